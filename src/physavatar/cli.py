@@ -1,0 +1,230 @@
+"""The ``physavatar`` command-line tool (typer).
+
+Every command turns bad input (a :class:`PhysavatarError`) into one line naming the file and the
+problem, and exit code 2 — never a traceback. Ctrl-C stops with exit code 130 and leaves only
+finished outputs behind (all writes are atomic).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from .errors import PhysavatarError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Physics-aware 3D avatars of dressed people from multi-view video (PhysAvatar on a CPU).",
+    pretty_exceptions_enable=False,
+)
+motion_app = typer.Typer(no_args_is_help=True, help="Built-in and imported body motions.")
+app.add_typer(motion_app, name="motion")
+
+console = Console(stderr=False)
+err_console = Console(stderr=True)
+
+
+def handle_errors(fn):
+    """Exit 2 with one clear line for bad input; 130 on Ctrl-C."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except PhysavatarError as e:
+            err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2)
+        except KeyboardInterrupt:
+            err_console.print("[yellow]interrupted[/]: finished outputs are kept; run again to resume")
+            raise typer.Exit(130)
+
+    return wrapper
+
+
+def _bad_option(name: str, problem: str):
+    raise PhysavatarError(None, f"option {name}: {problem}")
+
+
+# -- inspect -------------------------------------------------------------------------------------
+
+@app.command()
+@handle_errors
+def inspect(
+    capture: Path = typer.Argument(..., help="capture folder"),
+    quick: bool = typer.Option(False, "--quick", help="decode only the first frame's images (every file is still checked to exist)"),
+    as_json: bool = typer.Option(False, "--json", help="print the summary as JSON"),
+):
+    """Summarize a capture folder, or list every validation problem (exit code 2)."""
+    from .capture import load_capture, summarize, validate_capture
+
+    problems = validate_capture(capture, deep=not quick)
+    if problems:
+        for p in problems:
+            err_console.print(f"[bold red]error:[/] {p}", highlight=False, soft_wrap=True)
+        err_console.print(f"{len(problems)} problem(s) in {capture}")
+        raise typer.Exit(2)
+    s = summarize(load_capture(capture))
+    if as_json:
+        console.print_json(json.dumps(s))
+        return
+    t = Table(title=f"capture {capture}", show_header=False)
+    for k, v in s.items():
+        if isinstance(v, dict):
+            v = ", ".join(f"{a}={b:.2f}" for a, b in v.items())
+        t.add_row(k.replace("_", " "), str(v))
+    console.print(t)
+
+
+# -- motions -------------------------------------------------------------------------------------
+
+@motion_app.command("list")
+def motion_list():
+    """List the built-in motions."""
+    from .body.motion import BUILTIN
+
+    t = Table("name", "what")
+    for name, (_, doc) in BUILTIN.items():
+        t.add_row(name, doc)
+    console.print(t)
+
+
+@motion_app.command("preview")
+@handle_errors
+def motion_preview(
+    motion: str = typer.Argument(..., help="built-in name (see 'motion list'), or a .bvh / .npz file"),
+    out: Path = typer.Option(..., "--out", "-o", help="output .mp4 or .gif"),
+    fps: float = typer.Option(25.0, help="frames per second of the preview"),
+    duration: float = typer.Option(4.0, help="seconds (built-in motions)"),
+    max_frames: int = typer.Option(150, help="at most this many frames"),
+    mapping: Optional[Path] = typer.Option(None, help="BVH joint-name mapping overrides (JSON)"),
+):
+    """Render a quick preview of a motion on the (decimated) Anny body, front and side."""
+    from .body import BodyModel
+    from .body.preview import render_frames, write_video
+
+    if out.suffix.lower() not in (".mp4", ".gif"):
+        _bad_option("--out", f"{out} must end in .mp4 or .gif")
+    m = _load_motion(motion, fps, duration, mapping)
+    if m.frames > max_frames:
+        m = m.slice(0, max_frames)
+    body = BodyModel(topology="collider")
+    posed = m.pose(body)
+    with console.status(f"rendering {m.frames} frames"):
+        frames = render_frames(posed.vertices, body.faces, posed.joints, body.parents, title=m.name)
+        write_video(out, frames, fps)
+    console.print(f"wrote {out} ({m.frames} frames at {fps:g} fps)")
+
+
+def _load_motion(spec: str, fps: float, duration: float, mapping: Optional[Path] = None):
+    from .body import BodyModel
+    from .body.motion import BUILTIN, Motion, builtin_motion
+
+    names = BodyModel(topology="collider").bone_names
+    if fps <= 0 or duration <= 0:
+        _bad_option("--fps/--duration", "must be positive")
+    if spec in BUILTIN:
+        return builtin_motion(spec, names, fps, duration)
+    p = Path(spec)
+    if p.suffix.lower() == ".bvh":
+        from .body.bvh import import_bvh
+
+        return import_bvh(p, BodyModel(topology="collider"), mapping=mapping).resample(fps)
+    if p.suffix.lower() == ".npz":
+        return Motion.load(p).resample(fps).for_bones(names)
+    if not p.exists():
+        raise PhysavatarError(p, f"not a built-in motion ({', '.join(BUILTIN)}) and no such file")
+    raise PhysavatarError(p, "motion files must be .bvh or .npz")
+
+
+@motion_app.command("import")
+@handle_errors
+def motion_import(
+    bvh: Path = typer.Argument(..., help="a .bvh file"),
+    out: Path = typer.Option(..., "--out", "-o", help="output motion .npz"),
+    fps: Optional[float] = typer.Option(None, help="resample to this fps (default: keep the file's)"),
+    mapping: Optional[Path] = typer.Option(None, help="JSON of {bvh_joint: anny_bone} overrides"),
+):
+    """Import a BVH file (CMU, Mixamo-style) retargeted to Anny, as a motion .npz."""
+    from .body import BodyModel
+    from .body.bvh import import_bvh
+
+    m = import_bvh(bvh, BodyModel(topology="collider"), mapping=mapping)
+    if fps:
+        m = m.resample(fps)
+    m.save(out)
+    console.print(f"wrote {out}: {m.frames} frames at {m.fps:g} fps, "
+                  f"{len(m.meta['mapped_joints'])} joints mapped, {m.meta['scale_m_per_unit']:.4f} m per file unit")
+
+
+# -- pose ----------------------------------------------------------------------------------------
+
+@app.command()
+@handle_errors
+def pose(
+    motion: str = typer.Option("walk", help="built-in name, .bvh or .npz"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    fps: float = typer.Option(25.0),
+    duration: float = typer.Option(2.0, help="seconds (built-in motions)"),
+    topology: str = typer.Option("full", help="body topology: full, notoes, collider, coarse, tiny"),
+    shape: str = typer.Option("", help="phenotypes, e.g. 'height=0.7,weight=0.4' (each in [0, 1])"),
+    preview: bool = typer.Option(True, help="also write preview.gif"),
+):
+    """Build an Anny body, pose it with a motion, write the mesh sequence (npz + PLY per frame)."""
+    from .body import BodyModel, BodyShape
+    from .body.preview import render_frames, write_video
+    from .files import PlyMesh, save_npz_atomic, write_json_atomic, write_ply
+    from .body.model import TOPOLOGIES
+
+    if topology not in TOPOLOGIES:
+        _bad_option("--topology", f"{topology!r} is not one of {', '.join(TOPOLOGIES)}")
+    kw = {}
+    for item in filter(None, shape.split(",")):
+        k, _, v = item.partition("=")
+        try:
+            kw[k.strip()] = float(v)
+        except ValueError:
+            _bad_option("--shape", f"{item!r} is not name=value")
+    try:
+        bshape = BodyShape(**kw)
+    except (TypeError, ValueError) as e:
+        _bad_option("--shape", str(e))
+    t0 = time.time()
+    body = BodyModel(bshape, topology=topology)
+    t_load = time.time() - t0
+    m = _load_motion(motion, fps, duration)
+    posed = m.pose(body)
+    out.mkdir(parents=True, exist_ok=True)
+    save_npz_atomic(out / "body_sequence.npz", vertices=posed.vertices.astype("float32"), faces=body.faces,
+                    joints=posed.joints.astype("float32"), bone_names=body.bone_names, fps=fps,
+                    skinning_weights=body.skinning_weights.astype("float32"))
+    for t in range(posed.vertices.shape[0]):
+        write_ply(out / "meshes" / f"{t:06d}.ply", PlyMesh(posed.vertices[t], body.faces))
+    m.save(out / "motion.npz")
+    write_json_atomic(out / "config.json", {"command": "pose", "motion": motion, "fps": fps, "duration": duration,
+                                            "topology": topology, "shape": bshape.to_dict()})
+    if preview:
+        pv = BodyModel(bshape, topology="collider")
+        pp = m.pose(pv)
+        write_video(out / "preview.gif", render_frames(pp.vertices, pv.faces, pp.joints, pv.parents, title=m.name), fps)
+    console.print(f"posed Anny ({topology}: {len(body.rest_vertices)} vertices, {len(body.bone_names)} bones; "
+                  f"loaded in {t_load:.1f} s) with motion {m.name!r}: {m.frames} frames at {fps:g} fps")
+    console.print(f"wrote {out}/body_sequence.npz, {out}/meshes/*.ply, {out}/motion.npz"
+                  + (f", {out}/preview.gif" if preview else ""))
+
+
+def main():  # console-script entry point
+    app()
+
+
+if __name__ == "__main__":
+    main()

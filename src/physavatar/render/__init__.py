@@ -1,0 +1,74 @@
+"""Mitsuba 3 rendering: scenes as data, OpenCV cameras, lights, RGB + coverage images.
+
+Conventions and lighting options: docs/rendering.md. Entry points::
+
+    spec = SceneSpec(meshes=[MeshSpec("body", V, F, colors=C)], lights=soft_studio())
+    result = render(spec, camera, spp=16, seed=0)   # result.rgb [H, W, 3], result.alpha [H, W]
+"""
+
+from .backend import choose_variant, mitsuba, variant
+from .image import alpha_to_uint8, linear_to_srgb, linear_to_srgb8, read_png, srgb_to_linear, to_uint8, write_png
+from .lights import (
+    Ambient,
+    AreaLight,
+    EnvMap,
+    Light,
+    PointLight,
+    SunLight,
+    envmap_directions,
+    sky_envmap,
+    soft_studio,
+)
+from .mesh import MeshSpec, SplitMesh, bsdf_dict, split_uv_seams, to_mitsuba_mesh
+from .scene import (
+    ParamKeys,
+    RenderResult,
+    SceneSpec,
+    differentiable_scene,
+    load_scene,
+    param_keys,
+    render,
+    render_views,
+    scene_dict,
+)
+from .sensor import make_sensor, sensor_dict
+from .sheet import contact_sheet
+
+__all__ = [
+    "Ambient",
+    "AreaLight",
+    "EnvMap",
+    "Light",
+    "MeshSpec",
+    "ParamKeys",
+    "PointLight",
+    "RenderResult",
+    "SceneSpec",
+    "SplitMesh",
+    "SunLight",
+    "alpha_to_uint8",
+    "bsdf_dict",
+    "choose_variant",
+    "contact_sheet",
+    "differentiable_scene",
+    "envmap_directions",
+    "linear_to_srgb",
+    "linear_to_srgb8",
+    "load_scene",
+    "make_sensor",
+    "mitsuba",
+    "param_keys",
+    "read_png",
+    "render",
+    "render_views",
+    "scene_dict",
+    "sensor_dict",
+    "sky_envmap",
+    "soft_studio",
+    "split_uv_seams",
+    "srgb_to_linear",
+    "to_mitsuba_mesh",
+    "to_uint8",
+    "variant",
+    "write_png",
+]
