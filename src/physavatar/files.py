@@ -22,6 +22,9 @@ import numpy as np
 
 from .errors import PhysavatarError
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 # -- atomic writes -------------------------------------------------------------------------------
 
 
@@ -36,6 +39,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
+    os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual permissions
     try:
         yield tmp
         os.replace(tmp, path)
