@@ -1,0 +1,227 @@
+"""Cloth material: area density, membrane and bending stiffness in SI units.
+
+PhysAvatar (Sec. 3.2) estimates three scalars per garment: density ρ, membrane stiffness κs and
+bending stiffness κb. Here they carry units so that a fitted material means the same thing to
+every caller:
+
+- ``density``            ρ  [kg/m²]  mass per unit rest area (lumped to vertices),
+- ``stretch_stiffness``  κs [N/m]    Young's modulus × thickness of the shell (membrane),
+- ``bend_stiffness``     κb [N·m]    flexural rigidity of the shell (hinge bending),
+- ``poisson``            ν  [-]      Poisson ratio of the membrane (a setting, not estimated).
+
+Every elastic energy of :mod:`physavatar.sim.energies` is linear in its stiffness and the inertia
+and gravity terms are linear in ρ, so the motion only depends on κs/ρ and κb/ρ once the contact
+and damping forces scale with mass (docs/simulation.md, "What is identifiable").
+
+The PhysAvatar/Codim-IPC parameterisation is a base fabric (E = 0.076 MPa, ν = 0.071,
+thickness 0.328 mm) scaled by multipliers in [0.1, 8]; :meth:`Material.from_codim_ipc` maps it.
+:meth:`Material.from_arcsim` fits the linear isotropic model to the measured fabrics of Wang et
+al. 2011 (ARCSim json: density, stretching and bending tables).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import PhysavatarError
+
+# Base fabric of the official PhysAvatar Codim-IPC setup (docs/simulation.md).
+CODIM_BASE_YOUNG = 0.076e6  # Pa
+CODIM_BASE_POISSON = 0.071
+CODIM_BASE_THICKNESS = 0.328e-3  # m
+
+
+@dataclasses.dataclass(frozen=True)
+class Material:
+    """A homogeneous cloth material (SI units; see module docstring).
+
+    Attributes:
+        density: ρ [kg/m²], area density.
+        stretch_stiffness: κs [N/m], membrane Young's modulus × thickness.
+        bend_stiffness: κb [N·m], flexural rigidity D of the shell.
+        poisson: ν [-], membrane Poisson ratio, in [0, 0.5).
+        name: free text.
+    """
+
+    density: float = 0.131
+    stretch_stiffness: float = CODIM_BASE_YOUNG * CODIM_BASE_THICKNESS
+    bend_stiffness: float = (
+        CODIM_BASE_YOUNG * CODIM_BASE_THICKNESS**3 / (12.0 * (1.0 - CODIM_BASE_POISSON**2))
+    )
+    poisson: float = CODIM_BASE_POISSON
+    name: str = "codim-ipc-base"
+
+    UNITS = {
+        "density": "kg/m^2",
+        "stretch_stiffness": "N/m",
+        "bend_stiffness": "N*m",
+        "poisson": "1",
+    }
+
+    def __post_init__(self):
+        for key in ("density", "stretch_stiffness", "bend_stiffness"):
+            value = getattr(self, key)
+            if not (np.isfinite(value) and value > 0):
+                raise PhysavatarError(None, f"material {key} must be a positive number, got {value}")
+        if not (0.0 <= self.poisson < 0.5):
+            raise PhysavatarError(None, f"material poisson must be in [0, 0.5), got {self.poisson}")
+
+    # -- derived quantities ------------------------------------------------------------------
+
+    @property
+    def stretch_ratio(self) -> float:
+        """κs/ρ [m²/s²]: the membrane parameter video can identify."""
+        return self.stretch_stiffness / self.density
+
+    @property
+    def bend_ratio(self) -> float:
+        """κb/ρ [m³/s²]: the bending parameter video can identify."""
+        return self.bend_stiffness / self.density
+
+    def scaled(self, factor: float) -> "Material":
+        """ρ, κs and κb all multiplied by ``factor`` (same ratios, same motion)."""
+        return dataclasses.replace(
+            self,
+            density=self.density * factor,
+            stretch_stiffness=self.stretch_stiffness * factor,
+            bend_stiffness=self.bend_stiffness * factor,
+        )
+
+    # -- conversions -------------------------------------------------------------------------
+
+    @classmethod
+    def from_codim_ipc(
+        cls,
+        density_kg_m3: float = 400.0,
+        stretch_mult: float = 1.0,
+        bend_mult: float = 1.0,
+        young: float = CODIM_BASE_YOUNG,
+        poisson: float = CODIM_BASE_POISSON,
+        thickness: float = CODIM_BASE_THICKNESS,
+    ) -> "Material":
+        """The PhysAvatar parameterisation: volume density [kg/m³] and stiffness multipliers.
+
+        ρ = density × thickness; κs = E·t × stretch_mult; Codim-IPC's hinge coefficient is
+        E t³ / (24 (1 − ν²)) × bend_mult, which is half the plate rigidity D = E t³/(12(1 − ν²));
+        our hinge energy is normalised so that κb = D (docs/simulation.md), so
+        κb = E t³/(12(1 − ν²)) × bend_mult.
+        """
+        return cls(
+            density=density_kg_m3 * thickness,
+            stretch_stiffness=young * thickness * stretch_mult,
+            bend_stiffness=young * thickness**3 / (12.0 * (1.0 - poisson**2)) * bend_mult,
+            poisson=poisson,
+            name=f"codim-ipc(rho={density_kg_m3:g},ks×{stretch_mult:g},kb×{bend_mult:g})",
+        )
+
+    @classmethod
+    def from_arcsim(cls, path: str | Path, poisson: float | None = None) -> "Material":
+        """Fit the linear isotropic model to one ARCSim material file (Wang et al. 2011).
+
+        ARCSim's ``stretching`` holds 6 samples of the 2D elasticity tensor (C11, C12, C22, C33)
+        [N/m] at increasing strain; the first sample is the small-strain one. For an isotropic
+        plane-stress membrane C11 = C22 = κs/(1−ν²), C12 = ν κs/(1−ν²), C33 = κs/(2(1+ν)). We
+        take κs, ν from the small-strain sample by least squares on (C11, C22, C12, C33)
+        (closed form below) unless ``poisson`` is given. ``bending`` holds 3 directions × 5
+        curvature samples [N·m]; the fitted κb is the mean over directions of the smallest-
+        curvature sample (the linear, small-angle regime that the hinge model describes).
+        """
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+            rho = float(data["density"])
+            stretch = np.asarray(data["stretching"], dtype=float)
+            bend = np.asarray(data["bending"], dtype=float)
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise PhysavatarError(path, f"not an ARCSim material file ({err})") from err
+        if stretch.ndim != 2 or stretch.shape[1] != 4 or bend.ndim != 2:
+            raise PhysavatarError(path, "stretching must be [k, 4] and bending [d, s]")
+        c11, c12, c22, c33 = stretch[0]
+        ks, nu = fit_isotropic_membrane(c11, c12, c22, c33, poisson)
+        kb = float(np.mean(bend[:, 0]))
+        return cls(density=rho, stretch_stiffness=ks, bend_stiffness=kb, poisson=nu, name=path.stem)
+
+    def to_dict(self) -> dict:
+        out = dataclasses.asdict(self)
+        out["units"] = dict(self.UNITS)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Material":
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - fields - {"units"}
+        if unknown:
+            raise PhysavatarError(None, f"unknown material keys {sorted(unknown)}")
+        return cls(**{k: v for k, v in data.items() if k in fields})
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Material":
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            raise PhysavatarError(path, f"cannot read material json ({err})") from err
+        try:
+            return cls.from_dict(data)
+        except (PhysavatarError, TypeError) as err:
+            raise PhysavatarError(path, str(err)) from err
+
+
+def fit_isotropic_membrane(c11, c12, c22, c33, poisson=None) -> tuple[float, float]:
+    """Least-squares (κs, ν) of an isotropic plane-stress membrane to an orthotropic tensor.
+
+    With a = κs/(1−ν²): C11 ≈ a, C22 ≈ a, C12 ≈ ν a and C33 ≈ (1−ν) a / 2 (= κs/(2(1+ν))).
+    For fixed ν the problem is linear in a: a = (C11 + C22 + ν C12 + (1−ν)/2 C33) /
+    (2 + ν² + (1−ν)²/4); ν is then chosen on a fine grid in [0, 0.49] (the fit is one-
+    dimensional and smooth, so a grid is exact enough and never fails). ν is capped at 0.45:
+    near 0.5 the plane-stress membrane locks and Newton converges slowly. Returns (κs, ν).
+    """
+    target = np.array([c11, c22, c12, c33], dtype=float)
+    grid = np.array([poisson], dtype=float) if poisson is not None else np.linspace(0.0, 0.45, 451)
+    basis = np.stack([np.ones_like(grid), np.ones_like(grid), grid, 0.5 * (1.0 - grid)], axis=1)
+    a = basis @ target / np.sum(basis**2, axis=1)
+    residual = np.sum((basis * a[:, None] - target) ** 2, axis=1)
+    best = int(np.argmin(residual))
+    nu = float(grid[best])
+    return float(a[best] * (1.0 - nu**2)), nu
+
+
+
+
+# Presets: Material.from_arcsim fitted to three fabrics of Wang et al. 2011
+# (/work/shared/data/materials, docs/simulation.md "Presets"); the numbers are frozen here so the
+# package does not need the data folder, and tests/test_sim_material.py re-fits them.
+PRESET_SOURCES = {
+    "silk": "tango-red-jet-set",  # 100% polyester lining: lightest fabric, soft in bending
+    "cotton": "gray-interlock",  # 60/40 cotton t-shirt knit
+    "denim": "11oz-black-denim",  # 99% cotton jeans: heaviest, stiffest in stretch and bending
+}
+PRESETS: dict[str, Material] = {
+    "silk": Material(
+        density=0.113, stretch_stiffness=85.0306, bend_stiffness=1.88637e-05, poisson=0.45,
+        name="silk",
+    ),
+    "cotton": Material(
+        density=0.187, stretch_stiffness=30.8894, bend_stiffness=2.07364e-05, poisson=0.0,
+        name="cotton",
+    ),
+    "denim": Material(
+        density=0.324, stretch_stiffness=547.143, bend_stiffness=7.81775e-05, poisson=0.177,
+        name="denim",
+    ),
+}
+
+
+def preset(name: str) -> Material:
+    """One of the named materials: ``"silk"`` (light), ``"cotton"`` (medium), ``"denim"`` (stiff)."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise PhysavatarError(None, f"unknown material preset {name!r}; choose from {sorted(PRESETS)}")

@@ -1,0 +1,471 @@
+"""Implicit-Euler cloth stepping in the C-IPC formulation (Newton on the incremental potential).
+
+One step minimises
+
+    E(x) = ½‖x − x̃‖²_M / h² − Mg·x + Ψ_membrane(x) + Ψ_bending(x) + κ B(x) + h D(v(x))
+           (+ damping),       x̃ = xₜ + h vₜ,
+
+over the free cloth vertices; Dirichlet vertices sit at their prescribed targets and the body
+at its pose at t+1. Newton with per-element PSD-projected Hessians, sparse Cholesky, and a
+backtracking line search that starts from ipctk's collision-free step size (AdditiveCCD).
+
+Moving body (docs/simulation.md "Moving collider"): the prescribed motion (body t → t+1 and
+Dirichlet vertices → targets) is first swept with CCD against the cloth at xₜ. If it is
+collision-free it is applied at once and those DOFs are eliminated. Otherwise the prescribed
+vertices become unknowns pulled to their targets by a stiff penalty (KinematicPenalty), so
+every Newton step — body included — is limited by CCD and the barrier pushes the cloth ahead
+of the body; once they are within tolerance of their targets and the last bit of motion is
+collision-free, they are snapped and eliminated (IPC's Dirichlet treatment).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import ipctk
+import numpy as np
+
+from .assembly import Assembler, Factorization
+from .contact import Barrier, ContactScene, Friction, KinematicPenalty
+from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
+from .material import Material
+from .mesh import ClothTopology
+
+
+@dataclasses.dataclass(frozen=True)
+class SimSettings:
+    """Solver settings (SI units). Defaults: the official PhysAvatar Codim-IPC setup.
+
+    Attributes:
+        dt: time step [s] (0.04 = one step per frame at 25 fps).
+        dhat: barrier activation distance d̂ [m].
+        dmin: minimum separation kept between surfaces [m] (a thickness offset; 0 = none).
+        friction: Coulomb coefficient μ (0 turns friction off).
+        friction_eps_v: velocity below which friction is static [m/s] (ipctk ε_v).
+        friction_iterations: lagged-friction updates per step (1 = λ, T from the step start).
+        self_contact: resolve garment–garment contact too.
+        membrane_model: "stvk" (the paper) or "neohookean" (Codim-IPC default).
+        damping_mass: Rayleigh α [1/s], damping force −α M v.
+        damping_stiffness: Rayleigh β [s], damping force −β K(xₜ) v.
+        newton_tol: stop when ‖Δx‖∞ / h < newton_tol [m/s] (a velocity: the step's change in
+            the implicit velocity is below it).
+        max_newton_iterations: give up (and report converged=False) after this many.
+        barrier_stiffness_scale: ipctk min_barrier_stiffness_scale of the adaptive κ.
+        kinematic_penalty: penalty weight of the prescribed vertices, × mean mass / h².
+        keep_linearization: also assemble the exact (unprojected) Hessian at the solution and
+            keep it with the last factorization in ``ClothSim.linearization`` (for adjoints).
+        deterministic: run ipctk single-threaded so results are bit-identical run to run.
+        gravity: [3] m/s².
+    """
+
+    dt: float = 0.04
+    dhat: float = 1e-3
+    dmin: float = 0.0
+    friction: float = 0.2
+    friction_eps_v: float = 1e-3
+    friction_iterations: int = 1
+    self_contact: bool = False
+    membrane_model: str = "stvk"
+    damping_mass: float = 0.0
+    damping_stiffness: float = 0.0
+    newton_tol: float = 1e-3
+    max_newton_iterations: int = 100
+    barrier_stiffness_scale: float = 1e11
+    kinematic_penalty: float = 1e6
+    keep_linearization: bool = False
+    deterministic: bool = True
+    gravity: tuple = (0.0, 0.0, -9.81)
+
+
+@dataclasses.dataclass
+class StepStats:
+    """What one step did. Times in seconds."""
+
+    newton_iterations: int = 0
+    converged: bool = False
+    line_search_iterations: int = 0
+    penalty_iterations: int = 0
+    barrier_stiffness: float = 0.0
+    min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]
+    n_contacts: int = 0
+    residual: float = float("inf")  # last ‖Δx‖∞ / h [m/s]
+    time: dict = dataclasses.field(
+        default_factory=lambda: dict(
+            assembly=0.0, contact=0.0, linear_solve=0.0, ccd=0.0, line_search=0.0, total=0.0
+        )
+    )
+
+
+@dataclasses.dataclass
+class Linearization:
+    """The step's system at (or next to) its solution, for adjoint/forward sensitivities.
+
+    dof_map: [3(N+Nb)] reduced row of each DOF (-1 = prescribed). factorization: Cholesky of
+    the last projected Newton matrix. hessian: exact unprojected ∇²E at the solution (CSR over
+    the free DOFs), or None unless SimSettings.keep_linearization.
+    """
+
+    dof_map: np.ndarray
+    factorization: Factorization
+    hessian: object = None
+
+
+class ClothSim:
+    """Implicit-Euler C-IPC cloth simulator for one garment against one moving body.
+
+    Args:
+        rest_vertices: [N, 3] garment rest positions (its stress-free shape).
+        faces: [F, 3] consistently oriented triangles.
+        material: :class:`Material`.
+        settings: :class:`SimSettings`.
+        boundary_indices: [K] Dirichlet vertices (follow prescribed targets every step).
+    """
+
+    def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
+                 boundary_indices=()):
+        self.settings = settings
+        self.material = material
+        self.topo = ClothTopology.build(rest_vertices, faces)
+        self.n = len(self.topo.rest)
+        self.boundary = np.unique(np.asarray(boundary_indices, dtype=np.int64))
+        self.scene = None
+        self.barrier_stiffness = 0.0
+        self.max_barrier_stiffness = 0.0
+        self._kappa_balanced = False
+        self.linearization = None
+        self._body_faces = None
+
+    # -- setup ---------------------------------------------------------------------------------
+
+    def _setup(self, body_vertices, body_faces):
+        s, m = self.settings, self.material
+        body_faces = np.asarray(body_faces, dtype=np.int64).reshape(-1, 3)
+        self._body_faces = body_faces
+        self.nb = len(body_vertices)
+        n_total = self.n + self.nb
+        self.scene = ContactScene(self.topo.rest, self.topo.faces, body_vertices, body_faces,
+                                  s.dhat, s.dmin, s.self_contact)
+        free = np.ones(n_total)
+        free[self.boundary] = 0.0
+        free[self.n:] = 0.0
+        topo = dataclasses.replace(  # pad per-vertex rest data to the stacked [cloth; body] rows
+            self.topo, vertex_area=np.r_[self.topo.vertex_area, np.zeros(self.nb)],
+            rest=np.vstack([self.topo.rest, body_vertices]),
+        )
+        self.inertia = Inertia(topo, m.density, s.dt, free)
+        self.gravity = Gravity(topo, m.density, free, np.asarray(s.gravity, dtype=np.float64))
+        self.membrane = Membrane(self.topo, m.stretch_stiffness, m.poisson, s.membrane_model)
+        self.bending = Bending(self.topo, m.bend_stiffness)
+        self.barrier = Barrier(self.scene, max(self.barrier_stiffness, 1e-300))
+        self.friction = Friction(self.scene, s.friction, s.friction_eps_v, s.dt)
+        self.terms = [self.inertia, self.gravity, self.membrane, self.bending]
+        if s.damping_mass > 0:
+            self.mass_damping = MassDamping(self.inertia, s.damping_mass)
+            self.terms.append(self.mass_damping)
+        if s.damping_stiffness > 0:
+            self.stiffness_damping = StiffnessDamping(s.damping_stiffness, s.dt, [self.membrane, self.bending])
+            self.terms.append(self.stiffness_damping)
+        mean_mass = m.density * float(np.mean(self.topo.vertex_area))
+        kinematic = np.r_[self.boundary, np.arange(self.n, n_total)]
+        self.penalty = KinematicPenalty(kinematic, s.kinematic_penalty * mean_mass / s.dt**2, n_total)
+        # Two reduced systems: free cloth DOFs only, and everything (penalty mode).
+        dof_free = np.full(3 * n_total, -1, dtype=np.int64)
+        free_dofs = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
+        dof_free[free_dofs] = np.arange(len(free_dofs))
+        elements = [self.topo.faces, self.topo.hinges]
+        self.assembler_free = Assembler(dof_free, elements)
+        self.assembler_all = Assembler(np.arange(3 * n_total), elements)
+        # ipctk's adaptive κ expects the mass of an energy ½‖x − x̃‖²_M + h²Ψ; ours is that
+        # divided by h², so the matching "average mass" is m̄ / h² (κ then scales with ρ).
+        self._average_mass = mean_mass / s.dt**2
+
+    def reset(self):
+        """Forget the adaptive barrier stiffness (it persists across steps, as in IPC)."""
+        self.barrier_stiffness = 0.0
+        self.max_barrier_stiffness = 0.0
+        self._kappa_balanced = False
+
+    # -- energy --------------------------------------------------------------------------------
+
+    def _energy(self, X, penalty):
+        total = 0.0
+        for t in self._active_terms(penalty):
+            total += t.energy(X)
+            if not np.isfinite(total):
+                return np.inf
+        return total
+
+    def _active_terms(self, penalty):
+        terms = self.terms + [self.barrier, self.friction]
+        return terms + [self.penalty] if penalty else terms
+
+    # -- one step ------------------------------------------------------------------------------
+
+    def step(self, x, v, collider_vertices_t, collider_vertices_t1, collider_faces,
+             boundary_targets=None):
+        """Advance one implicit-Euler step of length settings.dt.
+
+        Args:
+            x: [N, 3] cloth positions at t (intersection-free with the body at t).
+            v: [N, 3] cloth velocities at t.
+            collider_vertices_t: [Nb, 3] body at t; collider_vertices_t1: [Nb, 3] body at t+1
+                (None for both: no collider).
+            collider_faces: [Fb, 3] body triangles (same for every step of a sim).
+            boundary_targets: [K, 3] Dirichlet vertex positions at t+1 (order of the sorted
+                ``boundary_indices``); None keeps them where they are.
+
+        Returns:
+            (x_new [N, 3], v_new [N, 3], StepStats).
+        """
+        s = self.settings
+        h = s.dt
+        t_start = time.perf_counter()
+        # ipctk's threaded reductions sum in a scheduling-dependent order; one thread makes a
+        # step bit-reproducible (DESIGN.md: same inputs, same outputs).
+        if s.deterministic:
+            ipctk.set_num_threads(1)
+        stats = StepStats()
+        x = np.asarray(x, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        if collider_vertices_t is None:  # no body: an empty collider
+            collider_vertices_t = collider_vertices_t1 = np.zeros((0, 3))
+            collider_faces = np.zeros((0, 3), dtype=np.int64)
+        bt = np.asarray(collider_vertices_t, dtype=np.float64).reshape(-1, 3)
+        bt1 = np.asarray(collider_vertices_t1, dtype=np.float64).reshape(-1, 3)
+        if (self.scene is None or len(bt) != self.nb
+                or not np.array_equal(np.asarray(collider_faces).reshape(-1, 3), self._body_faces)):
+            self._setup(bt, collider_faces)
+        X_prev = np.vstack([x, bt])
+        X_goal = X_prev.copy()
+        X_goal[self.n:] = bt1
+        if len(self.boundary) and boundary_targets is not None:
+            X_goal[self.boundary] = np.asarray(boundary_targets, dtype=np.float64)
+        self.inertia.target = np.vstack([x + h * v, bt1])
+        if s.damping_mass > 0:
+            self.mass_damping.previous = X_prev
+        if s.damping_stiffness > 0:
+            self.stiffness_damping.begin_step(X_prev)
+        self.penalty.target = X_goal[self.penalty.kinematic]
+
+        tc = time.perf_counter()
+        alpha = self.scene.collision_free_stepsize(X_prev, X_goal)
+        stats.time["ccd"] += time.perf_counter() - tc
+        penalty = alpha < 1.0
+        X = X_prev.copy() if penalty else X_goal.copy()
+
+        diag = self.scene.bbox_diagonal(X_goal)
+        self.scene.prepare_static(X)
+        self._update_stiffness_init(X)
+        lag_left = max(1, s.friction_iterations)
+        self.friction.lag(X, self.barrier, X_prev)
+        lag_left -= 1
+        prev_min_dist = self.scene.min_distance(X)
+        factor = None
+        penalty_iters = 0
+        for it in range(s.max_newton_iterations):
+            stats.newton_iterations = it + 1
+            assembler = self.assembler_all if penalty else self.assembler_free
+            self._update_stiffness_init(X)
+            active = self._active_terms(penalty)
+            # gradient and Hessian
+            ta = time.perf_counter()
+            grads_el, hess_el, grads_c, hess_c = [], [], [], []
+            for t in active:
+                contact = t is self.barrier or t is self.friction
+                tt = time.perf_counter()
+                g = t.gradient(X)
+                H = t.hessian(X, project=True)
+                if contact:
+                    grads_c.append(g)
+                    hess_c.append(H)
+                    stats.time["contact"] += time.perf_counter() - tt
+                else:
+                    grads_el.append(g)
+                    hess_el.append(H)
+            grad = assembler.reduce(np.sum(grads_el + grads_c, axis=0))
+            Hm = assembler.assemble(hess_el + hess_c)
+            stats.time["assembly"] += time.perf_counter() - ta
+            # Newton direction
+            tl = time.perf_counter()
+            factor = Factorization(Hm)
+            dx = -factor.solve(grad)
+            stats.time["linear_solve"] += time.perf_counter() - tl
+            step = assembler.expand(dx).reshape(-1, 3)
+            residual = float(np.max(np.abs(step[: self.n]))) / h if step.size else 0.0
+            stats.residual = residual
+            if not penalty and residual < s.newton_tol:
+                if lag_left > 0:
+                    self.friction.lag(X, self.barrier, X_prev)
+                    lag_left -= 1
+                    continue
+                stats.converged = True
+                break
+            # line search from the collision-free step size
+            tcd = time.perf_counter()
+            X_try = X + step
+            alpha = self.scene.collision_free_stepsize(X, X_try)
+            stats.time["ccd"] += time.perf_counter() - tcd
+            tls = time.perf_counter()
+            E0 = self._energy(X, penalty)
+            while True:
+                X_new = X + alpha * step
+                E1 = self._energy(X_new, penalty)
+                if E1 <= E0 or alpha < 1e-12:
+                    break
+                alpha *= 0.5
+                stats.line_search_iterations += 1
+            X = X_new
+            stats.time["line_search"] += time.perf_counter() - tls
+            # adaptive barrier stiffness (ipctk): grow κ when contacts keep closing in
+            tc = time.perf_counter()
+            min_dist = self.scene.min_distance(X)
+            if self.max_barrier_stiffness > 0 and np.isfinite(min_dist) and np.isfinite(prev_min_dist):
+                k = ipctk.update_barrier_stiffness(prev_min_dist, min_dist, self.max_barrier_stiffness,
+                                                   self.barrier_stiffness, diag, dmin=s.dmin)
+                if k != self.barrier_stiffness:
+                    self.barrier_stiffness = k
+                    self.barrier.set_stiffness(k)
+            prev_min_dist = min_dist
+            stats.time["contact"] += time.perf_counter() - tc
+            if penalty:
+                penalty_iters += 1
+                gap = np.max(np.abs(X[self.penalty.kinematic] - self.penalty.target))
+                if gap < 1e-2 * s.dhat:
+                    X_snap = X.copy()
+                    X_snap[self.penalty.kinematic] = self.penalty.target
+                    tcd = time.perf_counter()
+                    ok = self.scene.collision_free_stepsize(X, X_snap) >= 1.0
+                    stats.time["ccd"] += time.perf_counter() - tcd
+                    if ok:
+                        X = X_snap
+                        penalty = False
+                        self.scene.prepare_static(X)
+                        self.friction.lag(X, self.barrier, X_prev)
+                elif penalty_iters % 10 == 0:
+                    self.penalty.weight *= 10.0  # AL-style escalation when targets stall
+                    continue
+            self.scene.prepare_static(X)
+        stats.penalty_iterations = penalty_iters
+        if penalty:  # never reached the targets: report, keep the best state
+            stats.converged = False
+        X_final = X
+        stats.barrier_stiffness = self.barrier_stiffness
+        self.scene.prepare_static(X_final)
+        c = self.scene.collisions_at(X_final)
+        stats.n_contacts = len(c)
+        stats.min_distance = float(np.sqrt(self.scene.min_distance(X_final)))  # ipctk: squared
+        self.linearization = Linearization(
+            (self.assembler_all if penalty else self.assembler_free).dof_map, factor
+        )
+        if s.keep_linearization and not penalty:
+            hess = [t.hessian(X_final, project=False) for t in self._active_terms(False)]
+            self.linearization.hessian = self.assembler_free.assemble(hess)
+        # restore the base penalty weight for the next step
+        mean_mass = self.material.density * float(np.mean(self.topo.vertex_area))
+        self.penalty.weight = s.kinematic_penalty * mean_mass / s.dt**2
+        x_new = X_final[: self.n].copy()
+        v_new = (x_new - x) / h
+        stats.time["total"] = time.perf_counter() - t_start
+        return x_new, v_new, stats
+
+    def _update_stiffness_init(self, X):
+        """ipctk's initial κ from the balance of elastic and barrier gradients (IPC Sec. 4.3).
+
+        Before any contact κ is ipctk's minimum (scaled by mass); the first time contacts
+        exist it is set from the gradient balance; afterwards it only grows through
+        update_barrier_stiffness and persists across steps, as in IPC.
+        """
+        if self._kappa_balanced:
+            return
+        c = self.scene.collisions_at(X)
+        if self.barrier_stiffness > 0 and not len(c):
+            return
+        grad_e = np.sum([t.gradient(X) for t in self.terms], axis=0)
+        unit = ipctk.BarrierPotential(self.settings.dhat, 1.0)
+        grad_b = unit.gradient(c, self.scene.mesh, X) if len(c) else np.zeros_like(grad_e)
+        k, kmax = ipctk.initial_barrier_stiffness(
+            self.scene.bbox_diagonal(X), unit.barrier, self.settings.dhat, self._average_mass,
+            grad_e, grad_b, self.settings.barrier_stiffness_scale, self.settings.dmin,
+        )
+        self._kappa_balanced = bool(len(c))
+        self.barrier_stiffness = max(k, self.barrier_stiffness)
+        self.max_barrier_stiffness = max(kmax, self.max_barrier_stiffness)
+        self.barrier.set_stiffness(self.barrier_stiffness)
+
+
+def simulate(garment_rest, faces, material: Material, collider_sequence, collider_faces,
+             boundary_indices=(), boundary_targets=None, fps: float = 25.0, substeps: int = 1,
+             settings: SimSettings | None = None, x0=None, v0=None, callback=None,
+             progress: bool = False):
+    """Simulate a garment on a moving body for a whole sequence.
+
+    Args:
+        garment_rest: [N, 3] rest shape (also the initial state unless ``x0`` is given).
+        faces: [F, 3] garment triangles.
+        material: :class:`Material`.
+        collider_sequence: [T, Nb, 3] body vertices per frame (frame 0 = initial pose).
+        collider_faces: [Fb, 3] body triangles.
+        boundary_indices: [K] Dirichlet vertices.
+        boundary_targets: [T, K, 3] their positions per frame, or a callable
+            ``rule(frame, body_vertices [Nb, 3]) -> [K, 3]`` (an attachment rule), or None
+            (they stay at their initial positions).
+        fps: frames per second of the sequence; substeps: implicit steps per frame
+            (dt = 1 / (fps · substeps); body and targets are interpolated linearly in between).
+        settings: :class:`SimSettings` (its dt is replaced by the one above).
+        x0, v0: [N, 3] initial positions / velocities (default rest, zero).
+        callback: called as ``callback(frame, x [N, 3], stats list)`` after each frame.
+        progress: show a rich progress bar.
+
+    Returns:
+        [T, N, 3] garment positions per frame (frame 0 = initial state).
+    """
+    settings = settings or SimSettings()
+    dt = 1.0 / (fps * substeps)
+    settings = dataclasses.replace(settings, dt=dt)
+    bodies = np.asarray(collider_sequence, dtype=np.float64)
+    T = len(bodies)
+    sim = ClothSim(garment_rest, faces, material, settings, boundary_indices)
+    order = np.argsort(np.asarray(boundary_indices, dtype=np.int64), kind="stable")
+    x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
+    v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)
+
+    def targets(frame):
+        if len(sim.boundary) == 0:
+            return None
+        if boundary_targets is None:
+            return x0_boundary
+        if callable(boundary_targets):
+            return np.asarray(boundary_targets(frame, bodies[frame]))[order]
+        return np.asarray(boundary_targets[frame])[order]
+
+    x0_boundary = x[sim.boundary].copy()
+    out = np.empty((T,) + x.shape)
+    out[0] = x
+    bar = None
+    if progress:
+        from rich.progress import Progress
+
+        bar = Progress()
+        bar.start()
+        task = bar.add_task("simulating", total=T - 1)
+    try:
+        for f in range(1, T):
+            stats_frame = []
+            tb0, tb1 = targets(f - 1), targets(f)
+            for k in range(substeps):
+                w0, w1 = k / substeps, (k + 1) / substeps
+                b0 = (1 - w0) * bodies[f - 1] + w0 * bodies[f]
+                b1 = (1 - w1) * bodies[f - 1] + w1 * bodies[f]
+                tgt = None if tb1 is None else (1 - w1) * tb0 + w1 * tb1
+                x, v, st = sim.step(x, v, b0, b1, collider_faces, tgt)
+                stats_frame.append(st)
+            out[f] = x
+            if callback is not None:
+                callback(f, x, stats_frame)
+            if bar is not None:
+                bar.update(task, advance=1)
+    finally:
+        if bar is not None:
+            bar.stop()
+    return out
