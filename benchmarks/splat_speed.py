@@ -1,0 +1,174 @@
+"""Speed of the CPU Gaussian rasterizer (numba kernels) per image, forward and backward.
+
+Scene: Gaussians on a human-sized cylinder (radius 0.3 m, height 1.7 m), flat and tangent like
+mesh-aligned Gaussians, seen from 2.5 m. Times 10k / 30k / 100k Gaussians at the demo resolution
+on 1 and 2 numba threads, and the dense PyTorch twin against the kernels on a small case (the
+baseline ratio). Writes benchmarks/results/splat_speed.json.
+
+    python benchmarks/splat_speed.py [--quick] [--width 512 --height 512] [--sizes 10000 30000 100000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+import torch
+
+from physavatar.camera import intrinsics, look_at
+from physavatar.splat import rasterize, rotmat_to_quat
+
+
+def cylinder_scene(n: int, width: int, height: int, seed: int = 0):
+    """n flat Gaussians covering a cylinder of radius 0.3 m, height 1.7 m; camera 2.5 m away."""
+    rng = np.random.default_rng(seed)
+    radius, tall = 0.3, 1.7
+    theta = rng.uniform(0, 2 * np.pi, n)
+    z = rng.uniform(0, tall, n)
+    means = np.stack([radius * np.cos(theta), radius * np.sin(theta), z], 1)
+    # Frame per Gaussian: columns = tangent, up, normal; then a random spin about the normal.
+    normal = np.stack([np.cos(theta), np.sin(theta), np.zeros(n)], 1)
+    tangent = np.stack([-np.sin(theta), np.cos(theta), np.zeros(n)], 1)
+    up = np.broadcast_to([0.0, 0.0, 1.0], (n, 3))
+    spin = rng.uniform(0, np.pi, n)[:, None]
+    ex = np.cos(spin) * tangent + np.sin(spin) * up
+    ey = -np.sin(spin) * tangent + np.cos(spin) * up
+    R = np.stack([ex, ey, normal], -1)
+    quats = rotmat_to_quat(torch.tensor(R)).numpy()
+    spacing = np.sqrt(2 * np.pi * radius * tall / n)  # mean distance between neighbours
+    scales = np.concatenate([spacing * rng.uniform(0.4, 0.8, (n, 2)), np.full((n, 1), 1e-4)], 1)
+    f32 = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    params = [f32(means), f32(quats), f32(scales), f32(rng.uniform(0.5, 1.0, n)), f32(rng.uniform(0, 1, (n, 3)))]
+    K = f32(intrinsics(width, height, 45.0))
+    vm = f32(look_at([0.0, -2.5, 0.9], [0.0, 0.0, 0.85]))
+    return params, vm, K
+
+
+def time_render(params, vm, K, width, height, backend, repeats):
+    """Best (minimum) seconds of (forward, backward) over repeats, after one untimed warm-up: on
+    shared cores the minimum is the least disturbed estimate of the cost."""
+    ps = [p.clone().requires_grad_(True) for p in params]
+    g = torch.Generator().manual_seed(0)
+    wr = torch.rand(height, width, 3, generator=g, dtype=params[0].dtype)
+    fw, bw = [], []
+    for i in range(repeats + 1):
+        t0 = time.perf_counter()
+        out = rasterize(*ps, vm, K, width, height, backend=backend)
+        loss = (out["rgb"] * wr).sum() + out["alpha"].sum()
+        t1 = time.perf_counter()
+        loss.backward()
+        t2 = time.perf_counter()
+        if i:
+            fw.append(t1 - t0)
+            bw.append(t2 - t1)
+    if not fw:  # warm-up only
+        return 0.0, 0.0, out
+    return min(fw), min(bw), out
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="256x256, 10k and 30k Gaussians, 1 repeat")
+    ap.add_argument("--width", type=int, default=512)
+    ap.add_argument("--height", type=int, default=512)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 30_000, 100_000])
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "splat_speed.json"))
+    args = ap.parse_args()
+    if args.quick:
+        args.width, args.height, args.sizes, args.repeats = 256, 256, [10_000, 30_000], 1
+    threads = [t for t in args.threads if t <= numba.config.NUMBA_NUM_THREADS]
+    load_start = os.getloadavg()[0]
+
+    # Compile (or load the numba cache) outside the timings.
+    p, vm, K = cylinder_scene(100, 32, 32)
+    time_render(p, vm, K, 32, 32, "numba", 0)
+
+    rows, figures = [], {}
+    for n in args.sizes:
+        params, vm, K = cylinder_scene(n, args.width, args.height)
+        for t in threads:
+            numba.set_num_threads(t)
+            torch.set_num_threads(t)
+            fw, bw, out = time_render(params, vm, K, args.width, args.height, "numba", args.repeats)
+            key = f"n{n}_t{t}"
+            figures[key] = {"forward_ms": 1e3 * fw, "backward_ms": 1e3 * bw,
+                            "n_intersections": out["meta"]["n_intersections"],
+                            "covered_pixels": int((out["alpha"] > 0.5).sum())}
+            rows.append((n, t, 1e3 * fw, 1e3 * bw, out["meta"]["n_intersections"]))
+            print(f"numba  N={n:>7d}  threads={t}  forward {1e3 * fw:8.1f} ms  backward {1e3 * bw:8.1f} ms"
+                  f"  ({out['meta']['n_intersections']} tile intersections)", flush=True)
+
+    # Baseline: the dense twin on a case it can hold in memory, same thread count as the best row.
+    tb = max(threads)
+    numba.set_num_threads(tb)
+    torch.set_num_threads(tb)
+    bn, bsz = 1000, 64
+    params, vm, K = cylinder_scene(bn, bsz, bsz)
+    params64 = [q.double() for q in params]
+    fw_t, bw_t, out_t = time_render(params64, vm.double(), K.double(), bsz, bsz, "torch", max(1, args.repeats))
+    fw_n, bw_n, out_n = time_render(params64, vm.double(), K.double(), bsz, bsz, "numba", max(1, args.repeats))
+    diff = max(float((out_t[k] - out_n[k]).detach().abs().max()) for k in ("rgb", "alpha", "depth"))
+    ratio = (fw_t + bw_t) / (fw_n + bw_n)
+    figures["baseline"] = {"n": bn, "size": bsz, "threads": tb, "torch_forward_ms": 1e3 * fw_t,
+                           "torch_backward_ms": 1e3 * bw_t, "numba_forward_ms": 1e3 * fw_n,
+                           "numba_backward_ms": 1e3 * bw_n, "speedup_vs_twin": ratio, "max_abs_diff": diff}
+    print(f"baseline N={bn} {bsz}x{bsz}: torch twin {1e3 * (fw_t + bw_t):.1f} ms, numba {1e3 * (fw_n + bw_n):.1f} ms"
+          f" (x{ratio:.0f}), max |diff| {diff:.1e}")
+
+    print(f"\n{'N':>8} {'threads':>7} {'forward ms':>11} {'backward ms':>12} {'total ms':>9}")
+    for n, t, fw, bw, _ in rows:
+        print(f"{n:>8d} {t:>7d} {fw:>11.1f} {bw:>12.1f} {fw + bw:>9.1f}")
+
+    checks = {
+        "matches_twin": {"value": diff, "target": "< 1e-4", "unit": "max abs difference", "pass": diff < 1e-4},
+        "speedup_vs_twin": {"value": ratio, "target": ">= 10", "unit": "x (forward+backward)", "pass": ratio >= 10},
+    }
+    if 1 in threads and 2 in threads:
+        n = max(args.sizes)
+        one = figures[f"n{n}_t1"]["forward_ms"] + figures[f"n{n}_t1"]["backward_ms"]
+        two = figures[f"n{n}_t2"]["forward_ms"] + figures[f"n{n}_t2"]["backward_ms"]
+        checks["two_thread_scaling"] = {"value": one / two, "target": ">= 1.3", "unit": "x at N=%d" % n,
+                                        "pass": one / two >= 1.3}
+    result = {
+        "benchmark": "splat_speed",
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
+                    # the cores are shared: a load above ~1 makes the 2-thread figures meaningless
+                    "load_average_1min_at_end": os.getloadavg()[0],
+                    "load_average_1min_at_start": load_start},
+        "config": {"width": args.width, "height": args.height, "sizes": args.sizes, "threads": threads,
+                   "repeats": args.repeats, "quick": args.quick, "dtype": "float32 in, float64 kernels",
+                   "scene": "flat Gaussians on a cylinder r=0.3 m h=1.7 m, camera 2.5 m, fov_y 45 deg"},
+        "figures": figures,
+        "checks": checks,
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(args.out).with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(result, indent=2))
+    tmp.replace(args.out)
+    print(f"\nwrote {args.out}  (load average {load_start:.2f} at start, {os.getloadavg()[0]:.2f} at end)")
+    for name, c in checks.items():
+        print(f"  {name}: {c['value']:.3g} ({c['target']}) {'PASS' if c['pass'] else 'FAIL'}")
+
+
+if __name__ == "__main__":
+    main()

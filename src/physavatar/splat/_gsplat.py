@@ -1,0 +1,54 @@
+"""Adapter to ``gsplat.rasterization`` (CUDA), imported only when it is used.
+
+Written from gsplat's documented API (``gsplat/rendering.py``, v1.x); it cannot run on the CPU-only
+machines this project is tested on, so no test covers it. Known differences from the CPU kernels:
+gsplat clamps per-splat alpha at 0.999 (here 0.99) and bounds a splat by a square of 3 sigma along
+its major axis rather than by its 3-sigma ellipse, so images agree only up to those edge effects.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ._common import LOWPASS, TILE
+
+
+def available() -> bool:
+    """True when CUDA is present and gsplat imports."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        import gsplat  # noqa: F401
+    except Exception:  # a broken CUDA extension raises more than ImportError
+        return False
+    return True
+
+
+def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, near, far):
+    """Render C cameras at once with gsplat.
+
+    Args:
+        means [N, 3], quats [N, 4] (wxyz), scales [N, 3], opacities [N], colors [N, D];
+        viewmats [C, 4, 4] world-to-camera; Ks [C, 3, 3] with pixel centres at integers (this
+        project's convention); backgrounds [C, D] or None.
+    Returns:
+        rgb [C, H, W, D], alpha [C, H, W], depth [C, H, W] (accumulated sum w_i z_i), meta dict;
+        all on the CUDA device.
+    """
+    from gsplat import rasterization
+
+    dev = torch.device("cuda")
+    # gsplat samples pixel (i, j) at (j + 0.5, i + 0.5) in K's coordinates, this project at (j, i):
+    # shifting the principal point by half a pixel makes both sample the same rays.
+    Ks_g = Ks.to(dev).clone()
+    Ks_g[:, 0, 2] += 0.5
+    Ks_g[:, 1, 2] += 0.5
+    render, alphas, meta = rasterization(
+        means.to(dev), quats.to(dev), scales.to(dev), opacities.to(dev), colors.to(dev),
+        viewmats.to(dev), Ks_g, int(width), int(height),
+        near_plane=float(near), far_plane=float(far), eps2d=LOWPASS, tile_size=TILE,
+        backgrounds=None if backgrounds is None else backgrounds.to(dev),
+        render_mode="RGB+D",  # last channel: accumulated depth sum_i w_i z_i, like the CPU kernels
+        packed=False, rasterize_mode="classic",
+    )
+    return render[..., :-1], alphas[..., 0], render[..., -1], meta
