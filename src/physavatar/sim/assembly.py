@@ -1,9 +1,10 @@
-"""Sparse Hessian assembly with a pattern built once, and the sparse Cholesky solve.
+"""Sparse Hessian assembly with a pattern built once, and the Newton linear solve.
 
 The elastic element sets (triangles, hinges) never change, so their CSR pattern and, for each
 entry of each element block, the slot it adds into are computed once (a "scatter map");
-assembling is then one ``np.bincount``. Contact Hessians (ipctk, pattern changes every
-iteration) are added with scipy on top.
+assembling is then a numba scatter. Contact Hessians (ipctk) are scattered into the same
+pattern when their entries lie in it, else added with scipy on top. Newton systems are solved
+by CG preconditioned with a reused Cholesky factor of a sparsified matrix (NewtonLinearSolver).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ try:  # cholespy: supernodal Cholesky (CHOLMOD-derived); scipy's LU is the fallb
 except ImportError:  # pragma: no cover - cholespy is a dependency
     cholespy = None
 
+from . import _kernels
 from .energies import Blocks, Diagonal
 
 
@@ -29,8 +31,16 @@ class Assembler:
             be assembled.
     """
 
-    def __init__(self, dof_map: np.ndarray, element_sets: list[np.ndarray]):
+    def __init__(self, dof_map: np.ndarray, element_sets: list[np.ndarray], drop_pairs=None):
         self.dof_map = np.asarray(dof_map, dtype=np.int64)
+        # vertex of each reduced DOF, and the vertex pairs (i < j) the CG preconditioner drops
+        self.dof_vertex = np.zeros(int(self.dof_map.max()) + 1 if self.dof_map.size else 0, np.int64)
+        self.dof_vertex[self.dof_map[self.dof_map >= 0]] = np.flatnonzero(self.dof_map >= 0) // 3
+        self.drop_keys = None
+        if drop_pairs is not None and len(drop_pairs):
+            self._nv = len(self.dof_map) // 3
+            lo, hi = np.min(drop_pairs, axis=1), np.max(drop_pairs, axis=1)
+            self.drop_keys = np.unique(lo.astype(np.int64) * self._nv + hi)
         self.n = int(self.dof_map.max()) + 1 if self.dof_map.size else 0
         n = self.n
         keys = [np.arange(n, dtype=np.int64) * (n + 1)]  # the diagonal is always present
@@ -43,6 +53,7 @@ class Assembler:
         self.indptr = np.searchsorted(keys // n, np.arange(n + 1)).astype(np.int32)
         self.indices = (keys % n).astype(np.int32)
         self.nnz = len(keys)
+        self.keys = keys  # sorted r·n + c of the pattern's entries
         self.diag_slot = np.searchsorted(keys, np.arange(n, dtype=np.int64) * (n + 1))
         self.scatter = {}
         for index, (r, c, valid) in zip(element_sets, rowcols):
@@ -57,6 +68,24 @@ class Assembler:
         r = np.broadcast_to(red[:, :, None], (len(index), 3 * k, 3 * k))
         c = np.broadcast_to(red[:, None, :], (len(index), 3 * k, 3 * k))
         return r, c, (r >= 0) & (c >= 0)
+
+    def preconditioner_matrix(self, H: sp.csr_matrix) -> sp.csr_matrix:
+        """H without the entries between ``drop_pairs`` vertices, their |values| moved to the
+        diagonal (Gershgorin: the result is ⪰ H, so positive definite when H is)."""
+        if self.drop_keys is None:
+            return H
+        C = H.tocoo()
+        vr, vc = self.dof_vertex[C.row], self.dof_vertex[C.col]
+        key = np.minimum(vr, vc) * self._nv + np.maximum(vr, vc)
+        pos = np.minimum(np.searchsorted(self.drop_keys, key), len(self.drop_keys) - 1)
+        drop = self.drop_keys[pos] == key
+        comp = np.bincount(C.row[drop], weights=np.abs(C.data[drop]), minlength=H.shape[0])
+        keep = ~drop  # dropped entries must leave the pattern, or the factor keeps their fill
+        row, col, data = C.row[keep], C.col[keep], C.data[keep]
+        diag = row == col
+        data[diag] += comp[row[diag]]
+        # H's pattern always holds the diagonal (Assembler), so every row's |dropped| lands
+        return sp.csr_matrix((data, (row, col)), shape=H.shape)
 
     def reduce(self, vector: np.ndarray) -> np.ndarray:
         """Full-DOF vector [D] -> reduced [n]."""
@@ -73,7 +102,53 @@ class Assembler:
         return out
 
     def assemble(self, hessians) -> sp.csr_matrix:
-        """Sum Blocks / Diagonal / scipy-sparse (full-DOF) Hessians into one reduced CSR."""
+        """Sum Blocks / Diagonal / scipy-sparse (full-DOF) Hessians into one reduced CSR.
+
+        Blocks and diagonals go through their precomputed slots (numba scatter). A sparse
+        (contact) Hessian whose entries all lie in the fixed pattern is scattered the same way,
+        so the matrix keeps its pattern (and its cached symbolic factorization); otherwise it
+        is added with scipy and the pattern grows. :meth:`assemble_numpy` is the twin.
+        """
+        data = np.zeros(self.nnz + 1)  # the last slot collects entries on eliminated DOFs
+        extra = []
+        for h in hessians:
+            if h is None:
+                continue
+            for b in (h if isinstance(h, list) else [h]):
+                if isinstance(b, Blocks):
+                    _kernels.scatter_add(data, self.scatter[id(b.index)],
+                                         np.ascontiguousarray(b.values, dtype=np.float64).ravel())
+                elif isinstance(b, Diagonal):
+                    keep = self.dof_map[: len(b.values)] >= 0
+                    _kernels.scatter_add(data, self.diag_slot[self.dof_map[: len(b.values)][keep]],
+                                         np.ascontiguousarray(b.values[keep], dtype=np.float64))
+                else:
+                    slot, values = self._sparse_slots(b)
+                    if slot is None:
+                        extra.append(b)
+                    else:
+                        _kernels.scatter_add(data, slot, values)
+        H = sp.csr_matrix((data[: self.nnz], self.indices, self.indptr), shape=(self.n, self.n))
+        for h in extra:
+            H = H + self.reduce_matrix(h)
+        return H
+
+    def _sparse_slots(self, M):
+        """Slots of a full-DOF sparse matrix's kept entries in the pattern, or (None, None)."""
+        M = M.tocoo()
+        r = self.dof_map[M.row]
+        c = self.dof_map[M.col]
+        keep = (r >= 0) & (c >= 0)
+        key = r[keep] * self.n + c[keep]
+        if self.nnz == 0:
+            return (None, None) if len(key) else (np.zeros(0, np.int64), np.zeros(0))
+        pos = np.searchsorted(self.keys, key)
+        if np.any(pos >= self.nnz) or np.any(self.keys[np.minimum(pos, self.nnz - 1)] != key):
+            return None, None
+        return pos, np.ascontiguousarray(M.data[keep], dtype=np.float64)
+
+    def assemble_numpy(self, hessians) -> sp.csr_matrix:
+        """Reference twin of :meth:`assemble` (np.bincount, contact added with scipy)."""
         slots, values = [], []
         extra = []
         for h in hessians:
@@ -115,7 +190,8 @@ class Factorization:
     """Sparse Cholesky of a symmetric positive-definite CSR matrix (cholespy; scipy fallback).
 
     cholespy redoes the symbolic analysis on every construction (it exposes no separate
-    numeric refactorisation); the contact pattern changes each Newton iteration anyway.
+    numeric refactorisation); the analysis is ~1/10 of the numeric cost here, and most Newton
+    iterations need no factorisation at all (NewtonLinearSolver).
     """
 
     def __init__(self, H: sp.csr_matrix):
@@ -148,3 +224,117 @@ class Factorization:
             self._chol.solve(b, x)
             return x
         return self._lu.solve(b)
+
+
+class NewtonLinearSolver:
+    """Solves the Newton systems H d = b of consecutive iterations by preconditioned CG.
+
+    The preconditioner is the Cholesky factor of a *sparsified* H: the entries coupling the
+    two tips of a hinge (vertices that share no edge; only bending puts them in the pattern)
+    are dropped and their magnitudes added to both diagonals (H₁ = H − Drop + D with
+    D ⪰ Drop, so H₁ ⪰ H ≻ 0 stays positive definite). H₁ has the 1-ring pattern: on the
+    benchmark garment its factor has half the nonzeros and costs ~1/4 of factorising H, and
+    CG reaches ‖H d − b‖ ≤ ``rtol`` ‖b‖ (1e-6: the Newton iterates match a direct solve) in
+    ~20 iterations of ~1 ms. The factor is also reused across Newton iterations and steps
+    while CG converges quickly; after a solve that needed more than ``refresh_cg``
+    iterations it is recomputed from the next H, and when CG fails within ``max_cg`` (the
+    state or contacts changed a lot) it is recomputed from the current H at once.
+
+    ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
+    """
+
+    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 40):
+        self.rtol = float(rtol)
+        self.max_cg = int(max_cg)
+        self.refresh_cg = int(refresh_cg)
+        self.factorizations = 0
+        self.cg_iterations = 0
+        self.reset()
+
+    def reset(self):
+        self.factor: Factorization | None = None
+        self.factor_matrix = None  # the matrix self.factor factorises
+        self._stale = True
+
+    def _refactor(self, M):
+        self.factor = Factorization(M)
+        self.factor_matrix = M
+        self.factorizations += 1
+
+    def solve(self, H: sp.csr_matrix, b: np.ndarray, assembler: "Assembler | None" = None) -> np.ndarray:
+        if self.max_cg <= 0 or assembler is None:
+            self._refactor(H)
+            self._stale = True
+            return self.factor.solve(b)
+        if self.factor is None or self._stale or self.factor.n != H.shape[0]:
+            self._refactor(assembler.preconditioner_matrix(H))
+            self._stale = False
+        x, its, ok = pcg(H, b, self.factor.solve, self.rtol, self.max_cg)
+        self.cg_iterations += its
+        if not ok:  # the old factor no longer fits H: a fresh one
+            self._refactor(assembler.preconditioner_matrix(H))
+            x, its, ok = pcg(H, b, self.factor.solve, self.rtol, self.max_cg)
+            self.cg_iterations += its
+            if not ok:  # not expected (H₁ ⪰ H); a direct solve is always right
+                self._refactor(H)
+                self._stale = True
+                return self.factor.solve(b)
+        self._stale = its > self.refresh_cg
+        return x
+
+    def refine(self, H: sp.csr_matrix, b: np.ndarray, x: np.ndarray, assembler=None) -> np.ndarray:
+        """Continue CG on H x = b from x to ‖H x − b‖ ≤ 1e-10 ‖b‖ (with a fresh preconditioner
+        if the old one stalls, a direct solve if that stalls too).
+
+        The Newton stopping test reads ‖Δx‖∞, and with the barrier's conditioning a 1e-6
+        relative residual can still leave Δx visibly wrong; the step that is about to end the
+        solve is therefore made exact before it is trusted (only that one, so cheap).
+        """
+        if self.factor is None or self.factor_matrix is H:
+            return x  # came from a direct factorisation of H: already exact
+        x, its, ok = pcg(H, b, self.factor.solve, 1e-10, self.max_cg, x0=x)
+        self.cg_iterations += its
+        if ok:
+            return x
+        if assembler is not None:
+            self._refactor(assembler.preconditioner_matrix(H))
+            x, its, ok = pcg(H, b, self.factor.solve, 1e-10, self.max_cg, x0=x)
+            self.cg_iterations += its
+            if ok:
+                return x
+        self._refactor(H)
+        self._stale = True
+        return self.factor.solve(b)
+
+
+def pcg(A, b, precondition, rtol, max_iterations, x0=None):
+    """Preconditioned conjugate gradients from x0 (default M⁻¹ b: one preconditioner step).
+
+    Returns (x, iterations, converged) with converged meaning ‖A x − b‖₂ ≤ rtol ‖b‖₂.
+    """
+    bnorm = float(np.linalg.norm(b))
+    if bnorm == 0.0:
+        return np.zeros_like(b), 0, True
+    x = precondition(b) if x0 is None else np.array(x0, dtype=np.float64)
+    r = b - A @ x
+    tol = rtol * bnorm
+    if np.linalg.norm(r) <= tol:
+        return x, 0, True
+    z = precondition(r)
+    p = z.copy()
+    rz = float(r @ z)
+    for it in range(1, max_iterations + 1):
+        Ap = A @ p
+        pAp = float(p @ Ap)
+        if not pAp > 0.0:  # A not positive definite along p: let the caller factorise A
+            return x, it, False
+        a = rz / pAp
+        x += a * p
+        r -= a * Ap
+        if np.linalg.norm(r) <= tol:
+            return x, it, True
+        z = precondition(r)
+        rz_new = float(r @ z)
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return x, max_iterations, False

@@ -20,6 +20,7 @@ import dataclasses
 
 import numpy as np
 
+from . import _kernels
 from .mesh import ClothTopology
 
 GRAVITY = np.array([0.0, 0.0, -9.81])  # DESIGN.md: z up, m/s²
@@ -163,7 +164,9 @@ class StiffnessDamping:
         c = self.beta / self.dt
         self.blocks = []
         for term in self.elastic_terms:
-            b = term.hessian(x_prev, project=True)
+            # "eigen": K(xₜ) is the eigenvalue-clamped Hessian whatever PSD approximation the
+            # Newton solver uses, so the damping model does not depend on a solver setting.
+            b = term.hessian(x_prev, project="eigen")
             self.blocks.append(Blocks(b.index, c * b.values))
 
     def _matvec(self, d):
@@ -259,7 +262,20 @@ class Membrane:
         total = float(np.sum(self.area * W))
         return total if np.isfinite(total) else np.inf  # collapsed triangle (Neo-Hookean)
 
+    def _kernel_args(self, x):
+        mu, lam = self.lame
+        model = _kernels.MODEL_STVK if self.model == "stvk" else _kernels.MODEL_NEOHOOKEAN
+        return (np.ascontiguousarray(x, dtype=np.float64), self.index, self.G, self.area, mu, lam, model)
+
     def gradient(self, x):
+        """∇Ψ [3N] (numba kernel; :meth:`gradient_numpy` is its reference twin)."""
+        return _kernels.membrane_gradient(*self._kernel_args(x), len(x)).ravel()
+
+    def hessian(self, x, project=True):
+        """Blocks [F, 9, 9] (numba kernel; :meth:`hessian_numpy` is its reference twin)."""
+        return Blocks(self.index, _kernels.membrane_hessian(*self._kernel_args(x), bool(project)))
+
+    def gradient_numpy(self, x):
         F = self.deformation_gradient(x)
         _, S, _, _ = self._density(F)
         P = np.einsum("fij,fjk->fik", F, S)  # first Piola stress [F, 3, 2]
@@ -290,7 +306,7 @@ class Membrane:
         K = dP.reshape(len(F), 6, 6)
         return 0.5 * (K + np.swapaxes(K, 1, 2))
 
-    def hessian(self, x, project=True):
+    def hessian_numpy(self, x, project=True):
         K = self.stress_hessian(x)
         if project:
             K = project_psd(K)
@@ -384,6 +400,9 @@ class Bending:
         )
         self.weight = 0.5 * length2 / area  # the ½ of (κb/2) is kept in the weight
         self.rest_angle = dihedral_angle(X)
+        # PSD approximation used when hessian(project=True): the exact per-hinge eigenvalue
+        # clamp by default; the solver picks SimSettings.bending_hessian.
+        self.projection = "eigen"
 
     def energy(self, x):
         if len(self.index) == 0:
@@ -392,6 +411,29 @@ class Bending:
         return float(self.scale * np.sum(self.weight * d * d))
 
     def gradient(self, x):
+        """∇Ψ [3N] (numba kernel; :meth:`gradient_numpy` is its reference twin)."""
+        if len(self.index) == 0:
+            return np.zeros(3 * len(x))
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        return _kernels.bending_gradient(x, self.index, self.weight, self.rest_angle, self.scale,
+                                         len(x)).ravel()
+
+    def hessian(self, x, project=True):
+        """Blocks [H, 12, 12] (numba kernel; :meth:`hessian_numpy` is its reference twin).
+
+        project: False = exact; "eigen" = eigenvalues clamped at 0; "gauss_newton" = the
+        ∇θ∇θᵀ part only (PSD by construction); True = ``self.projection`` (the solver's choice,
+        SimSettings.bending_hessian).
+        """
+        if project is True:
+            project = self.projection
+        mode = {False: _kernels.BENDING_EXACT, "eigen": _kernels.BENDING_EIGEN,
+                "gauss_newton": _kernels.BENDING_GAUSS_NEWTON}[project]
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        H = _kernels.bending_hessian(x, self.index, self.weight, self.rest_angle, self.scale, mode)
+        return Blocks(self.index, H)
+
+    def gradient_numpy(self, x):
         out = np.zeros((len(x), 3))
         if len(self.index) == 0:
             return out.ravel()
@@ -401,14 +443,16 @@ class Bending:
         np.add.at(out, self.index.ravel(), g.reshape(-1, 3))
         return out.ravel()
 
-    def hessian(self, x, project=True):
+    def hessian_numpy(self, x, project=True):
+        """Reference twin of :meth:`hessian` (project: False, True/"eigen", "gauss_newton")."""
         X = x[self.index]
         d = dihedral_angle(X) - self.rest_angle
         g = dihedral_angle_gradient(X).reshape(-1, 12)
         c = 2.0 * self.scale * self.weight
-        H = c[:, None, None] * (
-            np.einsum("hi,hj->hij", g, g) + d[:, None, None] * dihedral_angle_hessian(X)
-        )
+        gg = np.einsum("hi,hj->hij", g, g)
+        if project == "gauss_newton":
+            return Blocks(self.index, c[:, None, None] * gg)
+        H = c[:, None, None] * (gg + d[:, None, None] * dihedral_angle_hessian(X))
         if project:
             H = project_psd(H)
         return Blocks(self.index, H)

@@ -26,7 +26,7 @@ import time
 import ipctk
 import numpy as np
 
-from .assembly import Assembler, Factorization
+from .assembly import Assembler, Factorization, NewtonLinearSolver
 from .contact import Barrier, ContactScene, Friction, KinematicPenalty
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
 from .material import Material
@@ -50,6 +50,16 @@ class SimSettings:
         damping_stiffness: Rayleigh β [s], damping force −β K(xₜ) v.
         newton_tol: stop when ‖Δx‖∞ / h < newton_tol [m/s] (a velocity: the step's change in
             the implicit velocity is below it).
+        bending_hessian: PSD approximation of the hinge Hessians in the Newton matrix:
+            "gauss_newton" (c ∇θ∇θᵀ, PSD by construction, no eigendecomposition; the cloth-
+            solver standard) or "eigen" (exact Hessian with eigenvalues clamped at 0). Only the
+            search direction depends on it, not the solution.
+        warm_start: start Newton from the CCD-clipped inertial prediction xₜ + h vₜ when its
+            energy is lower than at xₜ (else from xₜ).
+        linear_rtol, max_cg_iterations: the Newton system is solved by CG, preconditioned
+            with the Cholesky factor of a sparsified (1-ring) Newton matrix, to relative
+            residual linear_rtol; max_cg_iterations bounds CG before a fresh factor is taken
+            (0 = factorise the Newton matrix itself every iteration, a direct solve).
         max_newton_iterations: give up (and report converged=False) after this many.
         barrier_stiffness_scale: ipctk min_barrier_stiffness_scale of the adaptive κ.
         kinematic_penalty: penalty weight of the prescribed vertices, × mean mass / h².
@@ -70,6 +80,10 @@ class SimSettings:
     damping_mass: float = 0.0
     damping_stiffness: float = 0.0
     newton_tol: float = 1e-3
+    bending_hessian: str = "gauss_newton"
+    warm_start: bool = True
+    linear_rtol: float = 1e-6
+    max_cg_iterations: int = 100
     max_newton_iterations: int = 100
     barrier_stiffness_scale: float = 1e11
     kinematic_penalty: float = 1e6
@@ -90,6 +104,8 @@ class StepStats:
     min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]
     n_contacts: int = 0
     residual: float = float("inf")  # last ‖Δx‖∞ / h [m/s]
+    factorizations: int = 0  # sparse Cholesky factorisations (the rest were CG solves)
+    cg_iterations: int = 0
     time: dict = dataclasses.field(
         default_factory=lambda: dict(
             assembly=0.0, contact=0.0, linear_solve=0.0, ccd=0.0, line_search=0.0, total=0.0
@@ -97,18 +113,27 @@ class StepStats:
     )
 
 
-@dataclasses.dataclass
 class Linearization:
     """The step's system at (or next to) its solution, for adjoint/forward sensitivities.
 
-    dof_map: [3(N+Nb)] reduced row of each DOF (-1 = prescribed). factorization: Cholesky of
-    the last projected Newton matrix. hessian: exact unprojected ∇²E at the solution (CSR over
-    the free DOFs), or None unless SimSettings.keep_linearization.
+    dof_map: [3(N+Nb)] reduced row of each DOF (-1 = prescribed). matrix: the last projected
+    Newton matrix (CSR over the reduced DOFs). factorization: its Cholesky factor, computed on
+    first access (the Newton solve itself may have used an older factor as a CG
+    preconditioner, solver.NewtonLinearSolver). hessian: exact unprojected ∇²E at the solution
+    (CSR over the free DOFs), or None unless SimSettings.keep_linearization.
     """
 
-    dof_map: np.ndarray
-    factorization: Factorization
-    hessian: object = None
+    def __init__(self, dof_map: np.ndarray, matrix, hessian=None, factorization=None):
+        self.dof_map = dof_map
+        self.matrix = matrix
+        self.hessian = hessian
+        self._factorization = factorization
+
+    @property
+    def factorization(self) -> Factorization | None:
+        if self._factorization is None and self.matrix is not None:
+            self._factorization = Factorization(self.matrix)
+        return self._factorization
 
 
 class ClothSim:
@@ -135,6 +160,7 @@ class ClothSim:
         self._kappa_balanced = False
         self.linearization = None
         self._body_faces = None
+        self.linear_solver = NewtonLinearSolver(settings.linear_rtol, settings.max_cg_iterations)
 
     # -- setup ---------------------------------------------------------------------------------
 
@@ -143,6 +169,7 @@ class ClothSim:
         body_faces = np.asarray(body_faces, dtype=np.int64).reshape(-1, 3)
         self._body_faces = body_faces
         self.nb = len(body_vertices)
+        self.linear_solver.reset()  # a different system: its factor is no preconditioner
         n_total = self.n + self.nb
         self.scene = ContactScene(self.topo.rest, self.topo.faces, body_vertices, body_faces,
                                   s.dhat, s.dmin, s.self_contact)
@@ -157,6 +184,7 @@ class ClothSim:
         self.gravity = Gravity(topo, m.density, free, np.asarray(s.gravity, dtype=np.float64))
         self.membrane = Membrane(self.topo, m.stretch_stiffness, m.poisson, s.membrane_model)
         self.bending = Bending(self.topo, m.bend_stiffness)
+        self.bending.projection = s.bending_hessian
         self.barrier = Barrier(self.scene, max(self.barrier_stiffness, 1e-300))
         self.friction = Friction(self.scene, s.friction, s.friction_eps_v, s.dt)
         self.terms = [self.inertia, self.gravity, self.membrane, self.bending]
@@ -174,8 +202,11 @@ class ClothSim:
         free_dofs = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
         dof_free[free_dofs] = np.arange(len(free_dofs))
         elements = [self.topo.faces, self.topo.hinges]
-        self.assembler_free = Assembler(dof_free, elements)
-        self.assembler_all = Assembler(np.arange(3 * n_total), elements)
+        # hinge tips (x2, x3) are not (usually) joined by an edge: only bending couples them,
+        # and the CG preconditioner drops that coupling (assembly.NewtonLinearSolver)
+        tips = self.topo.hinges[:, 2:]
+        self.assembler_free = Assembler(dof_free, elements, tips)
+        self.assembler_all = Assembler(np.arange(3 * n_total), elements, tips)
         # ipctk's adaptive κ expects the mass of an energy ½‖x − x̃‖²_M + h²Ψ; ours is that
         # divided by h², so the matching "average mass" is m̄ / h² (κ then scales with ρ).
         self._average_mass = mean_mass / s.dt**2
@@ -253,6 +284,8 @@ class ClothSim:
         stats.time["ccd"] += time.perf_counter() - tc
         penalty = alpha < 1.0
         X = X_prev.copy() if penalty else X_goal.copy()
+        if not penalty and s.warm_start and np.any(v):
+            X = self._warm_start(X, x + h * v, stats)
 
         diag = self.scene.bbox_diagonal(X_goal)
         self.scene.prepare_static(X)
@@ -263,6 +296,7 @@ class ClothSim:
         prev_min_dist = self.scene.min_distance(X)
         factor = None
         penalty_iters = 0
+        n_fact0, n_cg0 = self.linear_solver.factorizations, self.linear_solver.cg_iterations
         for it in range(s.max_newton_iterations):
             stats.newton_iterations = it + 1
             assembler = self.assembler_all if penalty else self.assembler_free
@@ -288,11 +322,19 @@ class ClothSim:
             stats.time["assembly"] += time.perf_counter() - ta
             # Newton direction
             tl = time.perf_counter()
-            factor = Factorization(Hm)
-            dx = -factor.solve(grad)
+            # Penalty iterations take direct solves: their path decides where the body is
+            # snapped and friction re-lagged, so it is kept free of CG's inexactness.
+            dx = -self.linear_solver.solve(Hm, grad, None if penalty else assembler)
+            factor = Hm
             stats.time["linear_solve"] += time.perf_counter() - tl
             step = assembler.expand(dx).reshape(-1, 3)
             residual = float(np.max(np.abs(step[: self.n]))) / h if step.size else 0.0
+            if not penalty and residual < s.newton_tol:  # about to stop: make dx exact first
+                tl = time.perf_counter()
+                dx = -self.linear_solver.refine(Hm, grad, -dx, assembler)
+                stats.time["linear_solve"] += time.perf_counter() - tl
+                step = assembler.expand(dx).reshape(-1, 3)
+                residual = float(np.max(np.abs(step[: self.n]))) / h if step.size else 0.0
             stats.residual = residual
             if not penalty and residual < s.newton_tol:
                 if lag_left > 0:
@@ -347,6 +389,8 @@ class ClothSim:
                     continue
             self.scene.prepare_static(X)
         stats.penalty_iterations = penalty_iters
+        stats.factorizations = self.linear_solver.factorizations - n_fact0
+        stats.cg_iterations = self.linear_solver.cg_iterations - n_cg0
         if penalty:  # never reached the targets: report, keep the best state
             stats.converged = False
         X_final = X
@@ -356,7 +400,9 @@ class ClothSim:
         stats.n_contacts = len(c)
         stats.min_distance = float(np.sqrt(self.scene.min_distance(X_final)))  # ipctk: squared
         self.linearization = Linearization(
-            (self.assembler_all if penalty else self.assembler_free).dof_map, factor
+            (self.assembler_all if penalty else self.assembler_free).dof_map, factor,
+            factorization=(self.linear_solver.factor
+                           if self.linear_solver.factor_matrix is factor else None),
         )
         if s.keep_linearization and not penalty:
             hess = [t.hessian(X_final, project=False) for t in self._active_terms(False)]
@@ -368,6 +414,26 @@ class ClothSim:
         v_new = (x_new - x) / h
         stats.time["total"] = time.perf_counter() - t_start
         return x_new, v_new, stats
+
+    def _warm_start(self, X, x_pred, stats):
+        """Start Newton from the inertial prediction x̃ = xₜ + h vₜ (free vertices), clipped by
+        CCD so it stays intersection-free, when its energy is below that of xₜ (IPC's
+        initial guess; the minimiser is the same, only the path to it changes)."""
+        X_pred = X.copy()
+        free = self.inertia.unit_mass[: self.n] > 0
+        X_pred[: self.n][free] = x_pred[free]
+        tc = time.perf_counter()
+        alpha = self.scene.collision_free_stepsize(X, X_pred)
+        stats.time["ccd"] += time.perf_counter() - tc
+        if alpha <= 0.0:
+            return X
+        X_pred = X + alpha * (X_pred - X)
+        terms = self.terms + [self.barrier]  # friction is not lagged yet at this point
+        self.scene.prepare_static(X)
+        e0 = sum(t.energy(X) for t in terms)
+        self.scene.prepare_static(X_pred)
+        e1 = sum(t.energy(X_pred) for t in terms)
+        return X_pred if e1 < e0 else X
 
     def _update_stiffness_init(self, X):
         """ipctk's initial κ from the balance of elastic and barrier gradients (IPC Sec. 4.3).

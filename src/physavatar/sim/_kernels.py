@@ -1,0 +1,316 @@
+"""numba kernels for the per-element work of the elastic terms and the sparse scatter.
+
+Each kernel has a plain-numpy twin in energies.py / assembly.py (the reference) and
+tests/test_sim_kernels.py holds the fast one to it. The loops are serial on purpose: a
+gradient is ~0.2 ms and a Hessian a few ms of work, and with numba's parallel=True on the
+shared 2-core machine the thread start/barrier cost measured 16 ms for a 0.2 ms gradient
+(10-100x slower under load). Scatters into shared vertex rows / CSR slots must be serial anyway.
+
+Conventions are those of energies.py: x [N, 3], gradients [N, 3] (flattened by the caller),
+membrane blocks [F, 9, 9] and hinge blocks [H, 12, 12] ordered (vertex, axis).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# -- membrane ------------------------------------------------------------------------------------
+
+MODEL_STVK = 0
+MODEL_NEOHOOKEAN = 1
+
+
+@numba.njit(cache=True, inline="always")
+def _deformation_gradient(x, tri, G, f, F):
+    for i in range(3):
+        for j in range(2):
+            s = 0.0
+            for a in range(3):
+                s += x[tri[f, a], i] * G[f, a, j]
+            F[i, j] = s
+
+
+@numba.njit(cache=True, inline="always")
+def _second_piola(F, mu, lam, model, S, C, Cinv):
+    """S [2, 2] from F [3, 2]; fills C and (Neo-Hookean) Cinv; returns log J (0 for StVK)."""
+    for i in range(2):
+        for j in range(2):
+            C[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
+    if model == MODEL_STVK:
+        trE = 0.5 * (C[0, 0] - 1.0 + C[1, 1] - 1.0)
+        for i in range(2):
+            for j in range(2):
+                S[i, j] = mu * (C[i, j] - (1.0 if i == j else 0.0))
+            S[i, i] += lam * trE
+        return 0.0
+    det = C[0, 0] * C[1, 1] - C[0, 1] * C[1, 0]
+    logJ = 0.5 * math.log(det)
+    Cinv[0, 0] = C[1, 1] / det
+    Cinv[0, 1] = -C[0, 1] / det
+    Cinv[1, 0] = -C[1, 0] / det
+    Cinv[1, 1] = C[0, 0] / det
+    for i in range(2):
+        for j in range(2):
+            S[i, j] = (lam * logJ - mu) * Cinv[i, j] + (mu if i == j else 0.0)
+    return logJ
+
+
+@numba.njit(cache=True)
+def membrane_gradient(x, tri, G, area, mu, lam, model, n_vertices):
+    """∇Ψ_membrane [n_vertices, 3] (Neo-Hookean on a collapsed triangle: nan, as the twin)."""
+    nf = tri.shape[0]
+    per = np.empty((nf, 3, 3))
+    for f in range(nf):
+        F = np.empty((3, 2))
+        S = np.empty((2, 2))
+        C = np.empty((2, 2))
+        Cinv = np.empty((2, 2))
+        _deformation_gradient(x, tri, G, f, F)
+        _second_piola(F, mu, lam, model, S, C, Cinv)
+        for i in range(3):
+            P0 = F[i, 0] * S[0, 0] + F[i, 1] * S[1, 0]
+            P1 = F[i, 0] * S[0, 1] + F[i, 1] * S[1, 1]
+            for a in range(3):
+                per[f, a, i] = area[f] * (P0 * G[f, a, 0] + P1 * G[f, a, 1])
+    out = np.zeros((n_vertices, 3))
+    for f in range(nf):  # serial: triangles share vertices
+        for a in range(3):
+            for i in range(3):
+                out[tri[f, a], i] += per[f, a, i]
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _project_psd(K, n, Q, absolute=False):
+    """Clamp (or, ``absolute``, flip) the negative eigenvalues of symmetric K [n, n] in place.
+
+    A Cholesky attempt (n³/6 flops) first: blocks that are positive definite (triangles in
+    tension, most of them) are left as they are without the far costlier eigendecomposition.
+    """
+    for i in range(n):
+        for j in range(n):
+            Q[i, j] = K[i, j]
+    pd = True
+    for j in range(n):
+        d = Q[j, j]
+        for k in range(j):
+            d -= Q[j, k] * Q[j, k]
+        if not d > 0.0:
+            pd = False
+            break
+        d = math.sqrt(d)
+        Q[j, j] = d
+        for i in range(j + 1, n):
+            t = Q[i, j]
+            for k in range(j):
+                t -= Q[i, k] * Q[j, k]
+            Q[i, j] = t / d
+    if pd:
+        return
+    w, V = np.linalg.eigh(K)
+    if w[0] >= 0.0:
+        return
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                if w[k] > 0.0:
+                    s += V[i, k] * w[k] * V[j, k]
+                elif absolute:
+                    s -= V[i, k] * w[k] * V[j, k]
+            Q[i, j] = s
+    for i in range(n):
+        for j in range(n):
+            K[i, j] = Q[i, j]
+
+
+@numba.njit(cache=True)
+def membrane_hessian(x, tri, G, area, mu, lam, model, project):
+    """[F, 9, 9] vertex blocks A Gᵀ K G with K = ∂²W/∂F² (6×6, PSD-projected if ``project``)."""
+    nf = tri.shape[0]
+    out = np.empty((nf, 9, 9))
+    for f in range(nf):
+        F = np.empty((3, 2))
+        S = np.empty((2, 2))
+        C = np.empty((2, 2))
+        Cinv = np.empty((2, 2))
+        dC = np.empty((2, 2))
+        dS = np.empty((2, 2))
+        K = np.empty((6, 6))
+        Q = np.empty((6, 6))
+        _deformation_gradient(x, tri, G, f, F)
+        logJ = _second_piola(F, mu, lam, model, S, C, Cinv)
+        for b in range(6):  # column b: δF = e_k e_lᵀ, b = 2k + l
+            k, l = b // 2, b % 2
+            for i in range(2):  # δC = FᵀδF + δFᵀF
+                for j in range(2):
+                    dC[i, j] = (F[k, i] if j == l else 0.0) + (F[k, j] if i == l else 0.0)
+            if model == MODEL_STVK:
+                tr = dC[0, 0] + dC[1, 1]
+                for i in range(2):
+                    for j in range(2):
+                        dS[i, j] = mu * dC[i, j] + (0.5 * lam * tr if i == j else 0.0)
+            else:
+                tr = 0.0
+                for i in range(2):
+                    for j in range(2):
+                        tr += Cinv[i, j] * dC[j, i]
+                c = mu - lam * logJ
+                for i in range(2):
+                    for j in range(2):
+                        s = 0.0
+                        for p in range(2):
+                            for q in range(2):
+                                s += Cinv[i, p] * dC[p, q] * Cinv[q, j]
+                        dS[i, j] = c * s + 0.5 * lam * tr * Cinv[i, j]
+            for i in range(3):  # δP = δF S + F δS
+                for j in range(2):
+                    v = S[l, j] if i == k else 0.0
+                    v += F[i, 0] * dS[0, j] + F[i, 1] * dS[1, j]
+                    K[2 * i + j, b] = v
+        for i in range(6):
+            for j in range(i + 1, 6):
+                s = 0.5 * (K[i, j] + K[j, i])
+                K[i, j] = s
+                K[j, i] = s
+        if project:
+            _project_psd(K, 6, Q, project == 2)
+        # H[(a,i),(c,k)] = A Σ_{j,l} G[a,j] K[(i,j),(k,l)] G[c,l]
+        for a in range(3):
+            for i in range(3):
+                for c in range(3):
+                    for kk in range(3):
+                        s = 0.0
+                        for j in range(2):
+                            for l in range(2):
+                                s += G[f, a, j] * K[2 * i + j, 2 * kk + l] * G[f, c, l]
+                        out[f, 3 * a + i, 3 * c + kk] = area[f] * s
+    return out
+
+
+# -- bending -------------------------------------------------------------------------------------
+
+BENDING_EXACT = 0
+BENDING_EIGEN = 1
+BENDING_GAUSS_NEWTON = 2
+
+
+@numba.njit(cache=True, inline="always")
+def _angle(X):
+    """Signed dihedral angle of one hinge X [4, 3] (energies.dihedral_angle)."""
+    e0, e1, e2 = X[1, 0] - X[0, 0], X[1, 1] - X[0, 1], X[1, 2] - X[0, 2]
+    a0, a1, a2 = X[2, 0] - X[0, 0], X[2, 1] - X[0, 1], X[2, 2] - X[0, 2]
+    b0, b1, b2 = X[3, 0] - X[0, 0], X[3, 1] - X[0, 1], X[3, 2] - X[0, 2]
+    nA0, nA1, nA2 = e1 * a2 - e2 * a1, e2 * a0 - e0 * a2, e0 * a1 - e1 * a0  # e × a
+    nB0, nB1, nB2 = b1 * e2 - b2 * e1, b2 * e0 - b0 * e2, b0 * e1 - b1 * e0  # b × e
+    c0, c1, c2 = nA1 * nB2 - nA2 * nB1, nA2 * nB0 - nA0 * nB2, nA0 * nB1 - nA1 * nB0
+    le = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    return math.atan2((c0 * e0 + c1 * e1 + c2 * e2) / le, nA0 * nB0 + nA1 * nB1 + nA2 * nB2)
+
+
+@numba.njit(cache=True, inline="always")
+def _angle_gradient(X, g):
+    """∂θ/∂X into g [12] (energies.dihedral_angle_gradient); generic over float / complex X."""
+    e = X[1] - X[0]
+    u = X[2] - X[0]
+    w = X[2] - X[1]
+    p = X[3] - X[1]
+    q = X[3] - X[0]
+    n1 = np.array([u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]])
+    n2 = np.array([p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]])
+    le = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    n1 = n1 / (n1[0] * n1[0] + n1[1] * n1[1] + n1[2] * n1[2])
+    n2 = n2 / (n2[0] * n2[0] + n2[1] * n2[1] + n2[2] * n2[2])
+    s20 = (w[0] * e[0] + w[1] * e[1] + w[2] * e[2]) / le  # (x2 − x1)·e / |e|
+    s30 = (p[0] * e[0] + p[1] * e[1] + p[2] * e[2]) / le  # (x3 − x1)·e / |e|
+    s21 = (u[0] * e[0] + u[1] * e[1] + u[2] * e[2]) / le  # (x2 − x0)·e / |e|
+    s31 = (q[0] * e[0] + q[1] * e[1] + q[2] * e[2]) / le  # (x3 − x0)·e / |e|
+    for i in range(3):
+        g[i] = -s20 * n1[i] - s30 * n2[i]
+        g[3 + i] = s21 * n1[i] + s31 * n2[i]
+        g[6 + i] = -le * n1[i]
+        g[9 + i] = -le * n2[i]
+
+
+@numba.njit(cache=True)
+def bending_gradient(x, hinges, weight, rest_angle, scale, n_vertices):
+    nh = hinges.shape[0]
+    per = np.empty((nh, 12))
+    for h in range(nh):
+        X = np.empty((4, 3))
+        for a in range(4):
+            for i in range(3):
+                X[a, i] = x[hinges[h, a], i]
+        g = np.empty(12)
+        _angle_gradient(X, g)
+        c = 2.0 * scale * weight[h] * (_angle(X) - rest_angle[h])
+        for k in range(12):
+            per[h, k] = c * g[k]
+    out = np.zeros((n_vertices, 3))
+    for h in range(nh):  # serial: hinges share vertices
+        for a in range(4):
+            for i in range(3):
+                out[hinges[h, a], i] += per[h, 3 * a + i]
+    return out
+
+
+_COMPLEX_STEP = 1e-30
+
+
+@numba.njit(cache=True)
+def bending_hessian(x, hinges, weight, rest_angle, scale, mode):
+    """[H, 12, 12] hinge blocks c (∇θ∇θᵀ + (θ − θ̄) ∇²θ), c = 2 κb w_e.
+
+    mode: BENDING_EXACT; BENDING_EIGEN (eigenvalues clamped at 0); BENDING_GAUSS_NEWTON
+    (c ∇θ∇θᵀ only: PSD by construction, no eigendecomposition). ∇²θ is the complex-step
+    derivative of the closed-form gradient, as in energies.dihedral_angle_hessian.
+    """
+    nh = hinges.shape[0]
+    out = np.empty((nh, 12, 12))
+    for h in range(nh):
+        X = np.empty((4, 3))
+        for a in range(4):
+            for i in range(3):
+                X[a, i] = x[hinges[h, a], i]
+        g = np.empty(12)
+        _angle_gradient(X, g)
+        c = 2.0 * scale * weight[h]
+        for i in range(12):
+            for j in range(12):
+                out[h, i, j] = c * g[i] * g[j]
+        if mode == BENDING_GAUSS_NEWTON:
+            continue
+        d = _angle(X) - rest_angle[h]
+        Z = np.empty((4, 3), dtype=np.complex128)
+        gz = np.empty(12, dtype=np.complex128)
+        Hd = np.empty((12, 12))
+        for j in range(12):
+            for a in range(4):
+                for i in range(3):
+                    Z[a, i] = X[a, i]
+            Z[j // 3, j % 3] += 1j * _COMPLEX_STEP
+            _angle_gradient(Z, gz)
+            for i in range(12):
+                Hd[i, j] = gz[i].imag / _COMPLEX_STEP
+        for i in range(12):
+            for j in range(12):
+                out[h, i, j] += c * d * 0.5 * (Hd[i, j] + Hd[j, i])
+        if mode == BENDING_EIGEN:
+            K = out[h].copy()
+            Q = np.empty((12, 12))
+            _project_psd(K, 12, Q)
+            out[h] = K
+    return out
+
+
+# -- assembly ------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True)
+def scatter_add(data, slot, values):
+    """data[slot[i]] += values[i] (serial: slots repeat)."""
+    for i in range(slot.shape[0]):
+        data[slot[i]] += values[i]
