@@ -29,7 +29,13 @@ def main() -> None:
     run(["motion", "list"])
     run(["pose", "--motion", "walk", "--duration", "2", "--out", str(out / "pose_walk")])
     run(["motion", "preview", "dance", "--duration", "3", "--out", str(out / "dance.gif")])
+    capture = out / "capture"
+    if not capture.exists():
+        run(["synth", str(capture), "--preset", "demo"])
+    run(["inspect", str(capture)])
+    run(["render-capture", str(capture), "--out", str(out / "contact_sheet.png")])
     print("demo done:")
+    print(f"  {out}/capture/       synthetic capture (demo preset) with ground_truth/; contact sheet: {out}/contact_sheet.png")
     print(f"  {out}/pose_walk/     Anny body (full topology) posed by the built-in 'walk' motion:"
           " body_sequence.npz, meshes/*.ply, preview.gif")
     print(f"  {out}/dance.gif      preview of the built-in 'dance' motion")
