@@ -1,0 +1,126 @@
+"""Tracking accuracy (PhysAvatar Sec. 3.1) on the demo capture, plus the paper's Fig. 10 ablation.
+
+    python benchmarks/tracking_accuracy.py [--capture /tmp/demo_capture] [--quick] [--frames N]
+
+Builds the demo capture with ``physavatar synth`` if it is missing. Per frame: mean and 95th
+percentile vertex error (mm) against ground_truth/meshes.npz, garment and body separately, and
+the tracking seconds per frame. Checks: mean error <= 10 mm, no drift (last quarter's mean <=
+1.5x the first quarter's, frames after the first), and that dropping L_iso or L_normal makes the
+error worse (on fewer frames). Writes benchmarks/results/tracking_accuracy.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from physavatar.metrics import vertex_error_mm
+from physavatar.stages.track import TrackConfig, track
+
+HERE = Path(__file__).resolve().parent
+
+
+def cpu_name() -> str:
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def errors(pred: np.ndarray, gt: np.ndarray, labels: np.ndarray) -> dict:
+    out = {}
+    for part, sel in (("all", np.ones(len(labels), bool)), ("garment", labels > 0), ("body", labels == 0)):
+        if sel.any():
+            e = vertex_error_mm(pred[:, sel], gt[:, sel])
+            out[part] = {"mean_mm": e["mean_mm"].tolist(), "p95_mm": e["p95_mm"].tolist()}
+    return out
+
+
+def run(capture: Path, cfg: TrackConfig, work: Path) -> tuple[dict, list[float]]:
+    shutil.rmtree(work, ignore_errors=True)
+    res = track(capture, work, cfg, progress=True)
+    gt = np.load(capture / "ground_truth" / "meshes.npz")
+    G = gt["vertices"][: len(res.frames)]
+    return errors(res.vertices, G, gt["labels"]), [res.seconds[f] for f in res.frames]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--capture", type=Path, default=Path("/tmp/demo_capture"))
+    ap.add_argument("--quick", action="store_true", help="few frames, quarter resolution")
+    ap.add_argument("--frames", type=int, default=None, help="frames of the main run (default: all; quick: 6)")
+    ap.add_argument("--ablation-frames", type=int, default=None, help="frames of each ablation run (default 12; quick 4)")
+    args = ap.parse_args(argv)
+    if not (args.capture / "capture.json").is_file():
+        subprocess.run([sys.executable, "-m", "physavatar", "synth", str(args.capture), "--preset", "demo"], check=True)
+    cfg = TrackConfig()
+    if args.quick:
+        cfg = replace(cfg, scale=0.25)
+    n = args.frames or (6 if args.quick else None)
+    n_abl = args.ablation_frames or (4 if args.quick else 12)
+    tmp = Path(tempfile.mkdtemp(prefix="track_bench_"))
+
+    main_cfg = replace(cfg, n_frames=n)
+    err, secs = run(args.capture, main_cfg, tmp / "full")
+    mean = np.asarray(err["all"]["mean_mm"])
+    T = len(mean)
+    q = max(1, (T - 1) // 4)
+    later = mean[1:]  # frame 1 is the template itself (zero error)
+    first_q, last_q = float(later[:q].mean()), float(later[-q:].mean())
+
+    abl = {}
+    for name, change in (("full", {}), ("no_iso", {"iso_weight": 0.0}), ("no_normal", {"normal_weight": 0.0})):
+        if name == "full" and n_abl <= T:
+            e = float(mean[:n_abl].mean())
+        else:
+            ea, _ = run(args.capture, replace(cfg, n_frames=n_abl, **change), tmp / name)
+            e = float(np.mean(ea["all"]["mean_mm"]))
+        abl[name] = e
+
+    fig = {"per_frame": err, "seconds_per_frame": secs,
+           "mean_error_mm": {p: float(np.mean(v["mean_mm"])) for p, v in err.items()},
+           "p95_error_mm": {p: float(np.mean(v["p95_mm"])) for p, v in err.items()},
+           "tracking_seconds_per_frame": {"first": secs[0], "later_mean": float(np.mean(secs[1:])) if T > 1 else None},
+           "drift": {"first_quarter_mean_mm": first_q, "last_quarter_mean_mm": last_q, "ratio": last_q / first_q},
+           "ablation_mean_mm": abl, "ablation_frames": n_abl}
+    checks = {
+        "mean_error_mm": {"value": float(mean.mean()), "target": "<= 10", "unit": "mm", "pass": bool(mean.mean() <= 10)},
+        "no_drift": {"value": last_q / first_q, "target": "<= 1.5", "unit": "last/first quarter", "pass": bool(last_q <= 1.5 * first_q)},
+        "ablation_iso_worse": {"value": abl["no_iso"] / abl["full"], "target": "> 1", "unit": "error ratio",
+                               "pass": bool(abl["no_iso"] > abl["full"])},
+        "ablation_normal_worse": {"value": abl["no_normal"] / abl["full"], "target": "> 1", "unit": "error ratio",
+                                  "pass": bool(abl["no_normal"] > abl["full"])},
+    }
+    result = {"benchmark": "tracking_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
+              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None},
+              "config": dict(main_cfg.to_json(), capture=str(args.capture), quick=args.quick), "figures": fig,
+              "checks": checks}
+    print(f"{'frame':>5} {'all mean':>9} {'all p95':>8} " + " ".join(f"{p + ' mean':>13}" for p in err if p != "all") + f" {'s':>6}")
+    for i in range(T):
+        row = " ".join(f"{err[p]['mean_mm'][i]:13.2f}" for p in err if p != "all")
+        print(f"{i:5d} {err['all']['mean_mm'][i]:9.2f} {err['all']['p95_mm'][i]:8.2f} {row} {secs[i]:6.1f}")
+    print("ablation mean error (mm):", {k: round(v, 2) for k, v in abl.items()})
+    for k, c in checks.items():
+        print(f"{k:24s} {c['value']:.3f} (target {c['target']}) {'PASS' if c['pass'] else 'FAIL'}")
+    (HERE / "results").mkdir(exist_ok=True)
+    (HERE / "results" / "tracking_accuracy.json").write_text(json.dumps(result, indent=2) + "\n")
+    shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,592 @@
+"""Mesh tracking with mesh-aligned Gaussians (PhysAvatar Sec. 3.1), on a CPU.
+
+One flat Gaussian sits on each template face (:func:`physavatar.splat.mesh_to_gaussians`); it
+carries a colour (linear RGB, composited in linear light and then sRGB-encoded, like the
+renderer that made the capture), two in-plane log-scales and an opacity logit.
+
+- Frame 1 (the template is frame 1): colours, scales and opacities are fitted, vertices fixed.
+- Frames t > 1: vertices start at v_{t-1} + velocity * (v_{t-1} - v_{t-2}) and are fitted
+  together with the colours; scales and opacities stay as frame 1 left them. The loss is Eq. 4,
+
+      L = λ L1 + (1 - λ)(1 - SSIM)  +  w_mask |alpha - mask|  +  λ_iso L_iso  +  λ_n L_normal,
+
+  rendered into every training camera at every step, coarse to fine over an image pyramid, with
+  Adam and early stopping on a loss plateau (docs/tracking.md gives the schedule and why).
+
+Outputs (``track(capture, out, config)``)::
+
+    out/config.json            the exact TrackConfig (holdout resolved to camera names)
+    out/frames/<frame>.npz     vertices [V, 3] float32, face_colors [F, 3] (linear RGB);
+                               the first frame also log_scales [F, 2], opacity_logits [F], edge_index [F]
+    out/meshes/<frame>.ply     the tracked mesh with per-vertex label and boundary
+    out/track_log.csv          frame, iterations, final loss terms, seconds
+    out/tracked.npz            vertices [T, V, 3], faces, labels, face_colors [T, F, 3], frames, ...
+
+Every file is written atomically; a rerun with the same config skips finished frames.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import time
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from ..camera import Camera
+from ..capture import Capture, frame_name, load_capture
+from ..errors import PhysavatarError
+from ..files import PlyMesh, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
+from ..splat import longest_edge_index, mesh_to_gaussians, rasterize
+from ._losses import IsometryLoss, NormalLoss, linear_to_srgb, srgb_to_linear, ssim
+
+LOG_COLUMNS = ("frame", "iterations", "loss", "render", "l1", "ssim", "mask", "iso", "normal", "seconds")
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Everything that defines a tracking run (saved as config.json).
+
+    Attributes:
+        holdout: camera names excluded from fitting; None = the default rule
+            (:func:`default_holdout`: two cameras when the capture has at least six).
+        n_frames: track only the first N frames (None: all). Not part of the resume check, so a
+            run can be extended.
+        scale: resolution factor of the finest pyramid level w.r.t. the capture's images.
+        levels: pyramid levels as fractions of ``scale``, coarse to fine.
+        iters_first, iters: maximum iterations per level for frame 1 and for later frames.
+        min_iters, check_every, plateau_tol: a level stops early once the mean loss of the last
+            ``check_every`` steps improved on the window before by less than ``plateau_tol``
+            (relative), after at least ``min_iters`` steps.
+        l1_weight: λ of Eq. 1 (0.8 as the official code: 0.8 L1 + 0.2 (1 - SSIM)).
+        mask_weight: weight of |rendered alpha - mask| (0 ignores the masks).
+        iso_weight, normal_weight: λ_iso, λ_n of Eq. 4 (0 for the ablation).
+        normal_mode: "paper" (Eq. 3 as printed) or "rest" (change of each dihedral since frame
+            1; see :class:`NormalLoss`).
+        lr_vertices: Adam step size of the vertices at the finest level [m]; a level whose
+            pixels are k times larger uses k times this.
+        lr_decay: every level's step sizes decay exponentially to this fraction at its last step.
+        lr_colors, lr_scales, lr_opacity: Adam step sizes (linear RGB, log-scale, logit).
+        velocity: the constant-velocity prediction's factor (0: previous frame's vertices).
+        lr_colors_track: colour step size on frames t > 1. Smaller than frame 1's: colours that
+            chase every frame's image absorb misalignment instead of exposing it to the vertices.
+        subdivide: midpoint subdivisions of the template for the Gaussians (4^k splats per face,
+            attached at fixed barycentric positions, so gradients still reach the template
+            vertices). One flat colour per coarse face cannot show texture finer than the mesh.
+        smoothing: λ of the vertex update's smoothing (I + λ L)^-1 (:class:`SmoothedSolve`);
+            0 optimizes the vertices directly.
+        threads: numba and torch threads during the fit (1 is fastest on a shared 2-core machine:
+            the per-view work at these image sizes is too small to pay for thread start-up).
+        seed: torch seed (the fit itself uses no randomness; kept for reproducibility).
+    """
+
+    holdout: tuple[str, ...] | None = None
+    n_frames: int | None = None
+    scale: float = 0.5
+    levels: tuple[float, ...] = (0.5, 1.0)
+    iters_first: int = 150
+    iters: int = 40
+    min_iters: int = 20
+    check_every: int = 10
+    plateau_tol: float = 2e-3
+    l1_weight: float = 0.8
+    mask_weight: float = 0.5
+    iso_weight: float = 20.0
+    normal_weight: float = 0.1
+    normal_mode: str = "rest"
+    lr_vertices: float = 1e-3
+    lr_decay: float = 0.1
+    lr_colors: float = 0.01
+    lr_scales: float = 0.01
+    lr_opacity: float = 0.05
+    velocity: float = 1.0
+    lr_colors_track: float = 0.002
+    subdivide: int = 1
+    smoothing: float = 10.0
+    threads: int = 1
+    seed: int = 0
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["holdout"] = None if self.holdout is None else list(self.holdout)
+        d["levels"] = list(self.levels)
+        return d
+
+    @staticmethod
+    def from_json(d: dict) -> "TrackConfig":
+        names = {f.name for f in fields(TrackConfig)}
+        d = {k: v for k, v in d.items() if k in names}
+        if d.get("holdout") is not None:
+            d["holdout"] = tuple(d["holdout"])
+        if "levels" in d:
+            d["levels"] = tuple(d["levels"])
+        return TrackConfig(**d)
+
+
+def default_holdout(camera_names: list[str]) -> tuple[str, ...]:
+    """Two held-out cameras (as the paper), half a rig apart: positions 1 and 1 + C/2 in the
+    capture's order. Captures with fewer than six cameras keep every view for fitting."""
+    C = len(camera_names)
+    if C < 6:
+        return ()
+    return (camera_names[1], camera_names[1 + C // 2])
+
+
+# -- the Gaussians -------------------------------------------------------------------------------
+
+@dataclass
+class MeshGaussians:
+    """Per-face Gaussian parameters of a template (the vertices live outside).
+
+    Attributes:
+        faces: [F, 3] long. edge_index: [F] the face frames' x edge (longest edge of frame 1).
+        colors: [F, 3] linear RGB. log_scales: [F, 2]. opacity_logits: [F].
+    """
+
+    faces: torch.Tensor
+    edge_index: torch.Tensor
+    colors: torch.Tensor
+    log_scales: torch.Tensor
+    opacity_logits: torch.Tensor
+    midpoints: list = field(default_factory=list)  # per subdivision level: [E, 2] edge endpoints
+
+    @staticmethod
+    def init(vertices: np.ndarray, faces: np.ndarray, subdivide: int = 0) -> "MeshGaussians":
+        """Gaussians of ``faces``, or of their ``subdivide``-times midpoint subdivision (4^k per face)."""
+        faces = np.asarray(faces, np.int64)
+        mids = []
+        for _ in range(subdivide):
+            faces, m = _midpoint_subdivide(faces, len(vertices) + sum(len(x) for x in mids))
+            mids.append(m)
+        model = MeshGaussians(torch.from_numpy(faces), torch.zeros(0), torch.zeros(0), torch.zeros(0), torch.zeros(0),
+                              [torch.from_numpy(m) for m in mids])
+        V = model.gaussian_vertices(torch.from_numpy(np.asarray(vertices, np.float32)))
+        tri = V[model.faces]
+        area = 0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1)
+        # sigma = 0.45 sqrt(area) is 0.3 of an equilateral face's side: neighbouring splats
+        # overlap enough to close the surface without bleeding far past the face.
+        s = (0.45 * area.clamp(min=1e-12).sqrt()).log()
+        model.edge_index = longest_edge_index(V, model.faces)
+        model.colors = torch.full((len(model.faces), 3), 0.2)
+        model.log_scales = torch.stack([s, s], dim=1)
+        model.opacity_logits = torch.full((len(model.faces),), 2.0)  # sigmoid(2) = 0.88
+        return model
+
+    def gaussian_vertices(self, vertices: torch.Tensor) -> torch.Tensor:
+        """[V', 3] the vertices of the (subdivided) Gaussian mesh: linear in ``vertices``."""
+        for m in self.midpoints:
+            vertices = torch.cat([vertices, 0.5 * (vertices[m[:, 0]] + vertices[m[:, 1]])])
+        return vertices
+
+    def face_colors(self, n_faces: int) -> np.ndarray:
+        """[F, 3] per template face: the mean colour of its 4^k sub-faces (subdivision keeps
+        each face's children contiguous)."""
+        c = self.colors.numpy()
+        return c.reshape(n_faces, -1, 3).mean(1).astype(np.float32)
+
+    def render(self, vertices: torch.Tensor, cam: Camera, colors: torch.Tensor | None = None,
+               log_scales: torch.Tensor | None = None, opacity_logits: torch.Tensor | None = None) -> dict:
+        """Rasterize into ``cam``: rgb [H, W, 3] linear (over black), alpha [H, W]."""
+        means, quats, scales = mesh_to_gaussians(
+            self.gaussian_vertices(vertices), self.faces, self.log_scales if log_scales is None else log_scales, self.edge_index)
+        col = (self.colors if colors is None else colors).clamp(0.0, 1.0)
+        op = torch.sigmoid(self.opacity_logits if opacity_logits is None else opacity_logits)
+        return rasterize(means, quats, scales, op, col,
+                         torch.from_numpy(cam.w2c.astype(np.float32)), torch.from_numpy(cam.K.astype(np.float32)),
+                         cam.width, cam.height, backend="numba")
+
+
+def _midpoint_subdivide(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Split each triangle into four at its edge midpoints.
+
+    Returns the new faces [4F, 3] (face f's children at rows 4f..4f+3) and the midpoints' edge
+    endpoints [E, 2]; midpoint e gets vertex index n_vertices + e.
+    """
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    uniq, inv = np.unique(np.sort(e, axis=1), axis=0, return_inverse=True)
+    inv = inv.reshape(3, -1).T + n_vertices  # [F, 3] midpoint of edge (0,1), (1,2), (2,0)
+    a, b, c = faces.T
+    ab, bc, ca = inv.T
+    new = np.stack([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1), np.stack([ca, bc, c], 1),
+                    np.stack([ab, bc, ca], 1)], 1).reshape(-1, 3)
+    return new, uniq
+
+
+# -- views ---------------------------------------------------------------------------------------
+
+@dataclass
+class View:
+    """One camera at one pyramid level: camera, image [H, W, 3] sRGB, mask [H, W]."""
+
+    camera: Camera
+    image: torch.Tensor
+    mask: torch.Tensor
+
+
+def _resize(a: np.ndarray, w: int, h: int) -> np.ndarray:
+    if a.shape[1] == w and a.shape[0] == h:
+        return a
+    # box filter = the area average of each coarse pixel, the image a coarse camera would see
+    if a.ndim == 2:
+        return np.asarray(Image.fromarray(a.astype(np.float32), mode="F").resize((w, h), Image.BOX))
+    return np.stack([_resize(a[..., c], w, h) for c in range(a.shape[2])], -1)
+
+
+def load_views(capture: Capture, frame: int, cameras: list[Camera], factor: float) -> list[View]:
+    out = []
+    for cam in cameras:
+        c = cam.scaled(factor) if factor != 1.0 else cam
+        img = _resize(capture.image(cam.name, frame), c.width, c.height)
+        msk = _resize(capture.mask(cam.name, frame), c.width, c.height)
+        out.append(View(c, torch.from_numpy(np.array(img, np.float32)),
+                        torch.from_numpy(np.array(msk, np.float32))))
+    return out
+
+
+def initial_colors(vertices: np.ndarray, faces: np.ndarray, views: list[View]) -> np.ndarray:
+    """[F, 3] linear RGB: per face, the median over cameras of the pixel under its barycentre
+    (inside the mask). Occlusion is ignored — the fit corrects the few wrong faces; this only
+    saves the colours most of their way from grey."""
+    bary = vertices[faces].mean(1)
+    samples = []
+    for v in views:
+        uv, z = v.camera.project(bary)
+        u = np.rint(uv[:, 0]).astype(int)
+        w = np.rint(uv[:, 1]).astype(int)
+        ok = (z > 0) & (u >= 0) & (u < v.camera.width) & (w >= 0) & (w < v.camera.height)
+        s = np.full((len(faces), 3), np.nan)
+        m = v.mask.numpy()
+        ok[ok] &= m[w[ok], u[ok]] > 0.5
+        s[ok] = v.image.numpy()[w[ok], u[ok]]
+        samples.append(s)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(np.stack(samples), axis=0)
+    med = np.where(np.isfinite(med), med, 0.5)
+    return srgb_to_linear(med).astype(np.float32)
+
+
+class SmoothedSolve(torch.autograd.Function):
+    """x = M^-1 u for the fixed SPD matrix M = I + λ L (L the graph Laplacian of the mesh).
+
+    The "large steps" reparametrization (Nicolet et al. 2021): Adam updates u, and the vertices
+    move by M^-1 of it, a smooth field. Photometric gradients per vertex are noisy (each sees a
+    few pixels of texture); through M^-1 they act on whole neighbourhoods, so a limb that moved
+    several pixels between frames is followed in tens of steps instead of being torn apart.
+    M's rows sum to one (L 1 = 0): a uniform shift of u is the same shift of x, so step sizes
+    keep their meaning in metres. M is symmetric, so the backward pass is the same solve.
+    """
+
+    @staticmethod
+    def forward(ctx, u, solve):
+        ctx.solve = solve
+        return torch.from_numpy(solve(u.detach().double().numpy())).to(u.dtype)
+
+    @staticmethod
+    def backward(ctx, g):
+        return torch.from_numpy(ctx.solve(g.double().numpy())).to(g.dtype), None
+
+
+def smoothing_solver(n_vertices: int, faces: np.ndarray, lam: float):
+    """A function [V, 3] -> [V, 3] applying (I + lam L)^-1 (sparse LU, factorized once)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    from ._losses import mesh_edges
+
+    e = mesh_edges(np.asarray(faces))
+    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
+    A = (A + A.T).tocsr()
+    L = sp.diags(np.asarray(A.sum(1)).ravel()) - A
+    lu = splu((sp.identity(n_vertices) + lam * L).tocsc())
+    return lambda b: lu.solve(np.ascontiguousarray(b))
+
+
+# -- one frame -----------------------------------------------------------------------------------
+
+@dataclass
+class FrameResult:
+    vertices: np.ndarray
+    colors: np.ndarray
+    iterations: int
+    terms: dict = field(default_factory=dict)
+
+
+def _loss_terms(model: MeshGaussians, vertices, colors, log_scales, opacity_logits, views: list[View],
+                cfg: TrackConfig, iso: IsometryLoss | None, normal: NormalLoss | None) -> dict:
+    preds, alphas = [], []
+    for v in views:
+        out = model.render(vertices, v.camera, colors, log_scales, opacity_logits)
+        preds.append(linear_to_srgb(out["rgb"]))
+        alphas.append(out["alpha"])
+    pred = torch.stack(preds)
+    target = torch.stack([v.image for v in views])
+    l1 = (pred - target).abs().mean()
+    s = ssim(pred, target)
+    terms = {"l1": l1, "ssim": s}
+    render = cfg.l1_weight * l1 + (1 - cfg.l1_weight) * (1 - s)
+    if cfg.mask_weight > 0:
+        m = (torch.stack(alphas) - torch.stack([v.mask for v in views])).abs().mean()
+        terms["mask"] = m
+        render = render + cfg.mask_weight * m
+    terms["render"] = render
+    loss = render
+    if iso is not None:
+        terms["iso"] = iso(vertices)
+        loss = loss + cfg.iso_weight * terms["iso"]
+    if normal is not None:
+        terms["normal"] = normal(vertices)
+        loss = loss + cfg.normal_weight * terms["normal"]
+    terms["loss"] = loss
+    return terms
+
+
+def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[View]], cfg: TrackConfig,
+              first: bool, iso: IsometryLoss | None = None, normal: NormalLoss | None = None,
+              solve=None) -> FrameResult:
+    """Fit one frame over the pyramid (coarse to fine).
+
+    ``first``: optimize colours, log-scales and opacity logits of ``model`` in place (vertices
+    fixed); otherwise optimize ``vertices`` and colours, leaving scales and opacities alone.
+    Returns the fitted vertices and colours (also left in ``model.colors``).
+    """
+    V0 = torch.from_numpy(np.asarray(vertices, np.float32)).clone()
+    U = torch.zeros_like(V0)  # the smoothed offset's parameter (x = V0 + M^-1 U)
+
+    def current():
+        if first:
+            return V0
+        return V0 + (SmoothedSolve.apply(U, solve) if solve is not None else U)
+
+    colors = model.colors.clone().requires_grad_(True)
+    if first:
+        log_scales = model.log_scales.clone().requires_grad_(True)
+        opac = model.opacity_logits.clone().requires_grad_(True)
+        groups = [(colors, cfg.lr_colors), (log_scales, cfg.lr_scales), (opac, cfg.lr_opacity)]
+        iso = normal = None  # vertices are fixed: both terms are constants
+    else:
+        log_scales, opac = model.log_scales, model.opacity_logits
+        U.requires_grad_(True)
+        groups = [(colors, cfg.lr_colors_track), (U, cfg.lr_vertices)]
+    n_max = cfg.iters_first if first else cfg.iters
+    finest_px = pyramid[-1][0].camera.width
+    total_iters = 0
+    terms = {}
+    for views in pyramid:
+        # larger pixels, larger vertex steps: keep the step a fixed fraction of a pixel
+        px_ratio = finest_px / views[0].camera.width
+        lrs = [lr * (px_ratio if p is U else 1.0) for p, lr in groups]
+        opt = torch.optim.Adam([{"params": [p], "lr": lr} for (p, _), lr in zip(groups, lrs)])
+        decay = cfg.lr_decay ** (1.0 / max(n_max - 1, 1))
+        sched = torch.optim.lr_scheduler.ExponentialLR(opt, decay)
+        history: list[float] = []
+        for it in range(n_max):
+            opt.zero_grad(set_to_none=True)
+            terms = _loss_terms(model, current(), colors, log_scales, opac, views, cfg, iso, normal)
+            terms["loss"].backward()
+            opt.step()
+            sched.step()
+            with torch.no_grad():
+                colors.clamp_(0.0, 1.0)
+            history.append(float(terms["loss"].detach()))
+            total_iters += 1
+            k = cfg.check_every
+            if it + 1 >= max(cfg.min_iters, 2 * k) and (it + 1) % k == 0:
+                prev, last = np.mean(history[-2 * k:-k]), np.mean(history[-k:])
+                if prev - last < cfg.plateau_tol * abs(prev):
+                    break
+    with torch.no_grad():
+        V = current().detach()
+        final = _loss_terms(model, V, colors.detach(), log_scales.detach(), opac.detach(),
+                            pyramid[-1], cfg, iso, normal)
+    model.colors = colors.detach().clone()
+    if first:
+        model.log_scales = log_scales.detach().clone()
+        model.opacity_logits = opac.detach().clone()
+    return FrameResult(V.numpy().astype(np.float32), model.colors.numpy().astype(np.float32),
+                       total_iters, {k: float(v) for k, v in final.items()})
+
+
+# -- the stage -----------------------------------------------------------------------------------
+
+def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], list[int]]:
+    names = [c.name for c in capture.cameras]
+    hold = default_holdout(names) if cfg.holdout is None else cfg.holdout
+    unknown = [h for h in hold if h not in names]
+    if unknown:
+        raise PhysavatarError(capture.root / "cameras.json",
+                              f"held-out camera(s) {', '.join(unknown)} not in the capture (cameras: {', '.join(names)})")
+    train = [c for c in capture.cameras if c.name not in hold]
+    if not train:
+        raise PhysavatarError(None, f"option --holdout: holding out {', '.join(hold)} leaves no camera to fit")
+    n = len(capture.frames) if cfg.n_frames is None else cfg.n_frames
+    if n < 1 or n > len(capture.frames):
+        raise PhysavatarError(None, f"option --frames: must be between 1 and {len(capture.frames)} (the capture's frames), got {n}")
+    if not 0 < cfg.scale <= 1:
+        raise PhysavatarError(None, f"option --scale: must be in (0, 1], got {cfg.scale}")
+    if cfg.iters < 1 or cfg.iters_first < 1:
+        raise PhysavatarError(None, "options --iters/--iters-first: need at least one iteration")
+    if cfg.normal_mode not in ("paper", "rest"):
+        raise PhysavatarError(None, f"normal_mode must be 'paper' or 'rest', got {cfg.normal_mode!r}")
+    if not cfg.levels or any(not 0 < lv <= 1 for lv in cfg.levels):
+        raise PhysavatarError(None, f"levels must be fractions in (0, 1], got {cfg.levels}")
+    for c in train:
+        if min(round(c.width * cfg.scale * min(cfg.levels)), round(c.height * cfg.scale * min(cfg.levels))) < 11:
+            raise PhysavatarError(None, f"option --scale: camera {c.name} would be smaller than 11 px "
+                                        "at the coarsest level (SSIM's window); use a larger --scale")
+    return train, capture.frames[:n]
+
+
+def _read_log(path: Path) -> dict[int, dict]:
+    if not path.is_file():
+        return {}
+    rows = {}
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            rows[int(r["frame"])] = r
+    return rows
+
+
+def _write_log(path: Path, rows: dict[int, dict]) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=LOG_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    w.writeheader()
+    for f in sorted(rows):
+        w.writerow(rows[f])
+    write_text_atomic(path, buf.getvalue())
+
+
+def _resume_key(d: dict) -> dict:
+    return {k: v for k, v in d.items() if k != "n_frames"}
+
+
+@dataclass
+class TrackResult:
+    """vertices [T, V, 3] float32, face_colors [T, F, 3], frames [T], computed: frames fitted by
+    this call (the others were read back from a previous run), seconds per fitted frame."""
+
+    out: Path
+    frames: list[int]
+    vertices: np.ndarray
+    face_colors: np.ndarray
+    computed: list[int]
+    seconds: dict[int, float]
+
+
+def track(capture: Capture | str | Path, out: str | Path, config: TrackConfig = TrackConfig(),
+          progress: bool = True) -> TrackResult:
+    """Track the capture's template through its frames (see the module docstring for outputs)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    cap = capture if isinstance(capture, Capture) else load_capture(capture)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise PhysavatarError(out, "output exists and is not a folder")
+    train, frames = _check_config(config, cap)
+    train_names = {c.name for c in train}
+    cfg = replace(config, holdout=tuple(c.name for c in cap.cameras if c.name not in train_names))
+    cfg_json = cfg.to_json()
+    cfg_json["capture"] = str(Path(cap.root).resolve())
+    old_path = out / "config.json"
+    if old_path.is_file():
+        old = read_json(old_path)
+        if _resume_key(old) != _resume_key(cfg_json):
+            diff = sorted(k for k in set(old) | set(cfg_json) if k != "n_frames" and old.get(k) != cfg_json.get(k))
+            raise PhysavatarError(out, f"holds a tracking run with another config (differs in: {', '.join(diff)}); "
+                                       "choose another --out or delete it")
+    write_json_atomic(old_path, cfg_json)
+    torch.manual_seed(cfg.seed)
+    import numba
+
+    old_threads = (torch.get_num_threads(), numba.get_num_threads())
+    torch.set_num_threads(cfg.threads)
+    numba.set_num_threads(min(cfg.threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        return _track(cap, out, cfg, train, frames, progress)
+    finally:
+        torch.set_num_threads(old_threads[0])
+        numba.set_num_threads(old_threads[1])
+
+
+def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frames: list[int],
+           progress: bool) -> TrackResult:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+
+    t = cap.template
+    model = MeshGaussians.init(t.vertices, t.faces, cfg.subdivide)
+    iso = IsometryLoss(t.vertices, t.faces) if cfg.iso_weight > 0 else None
+    normal = (NormalLoss(t.faces, t.vertices if cfg.normal_mode == "rest" else None)
+              if cfg.normal_weight > 0 else None)
+    factors = [cfg.scale * lv for lv in cfg.levels]
+    solve = smoothing_solver(len(t.vertices), t.faces, cfg.smoothing) if cfg.smoothing > 0 else None
+    log_path = out / "track_log.csv"
+    log = _read_log(log_path)
+
+    verts: list[np.ndarray] = []
+    cols: list[np.ndarray] = []
+    computed: list[int] = []
+    seconds: dict[int, float] = {}
+    cols_ = (TextColumn("[bold]track[/] {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*cols_, disable=not progress) as bar:
+        task = bar.add_task("frames", total=len(frames))
+        for i, f in enumerate(frames):
+            fpath = out / "frames" / f"{frame_name(f)}.npz"
+            if fpath.is_file():
+                z = load_npz(fpath)
+                verts.append(z["vertices"])
+                cols.append(z["face_colors"])
+                model.colors = torch.from_numpy(z["gaussian_colors"]).float()
+                if i == 0:
+                    model.log_scales = torch.from_numpy(z["log_scales"]).float()
+                    model.opacity_logits = torch.from_numpy(z["opacity_logits"]).float()
+                    model.edge_index = torch.from_numpy(z["edge_index"]).long()
+                bar.advance(task)
+                continue
+            t0 = time.perf_counter()
+            pyramid = [load_views(cap, f, train, s) for s in factors]
+            if i == 0:
+                gv = model.gaussian_vertices(torch.from_numpy(np.asarray(t.vertices, np.float32))).numpy()
+                model.colors = torch.from_numpy(initial_colors(gv, model.faces.numpy(), pyramid[-1]))
+                init = np.asarray(t.vertices, np.float32)
+            else:
+                prev = verts[-1]
+                vel = verts[-1] - verts[-2] if i >= 2 else np.zeros_like(prev)
+                init = prev + np.float32(cfg.velocity) * vel
+            res = fit_frame(model, init, pyramid, cfg, first=(i == 0), iso=iso, normal=normal, solve=solve)
+            dt = time.perf_counter() - t0
+            extra = {}
+            if i == 0:
+                extra = dict(log_scales=model.log_scales.numpy(), opacity_logits=model.opacity_logits.numpy(),
+                             edge_index=model.edge_index.numpy())
+            face_colors = model.face_colors(len(t.faces))
+            save_npz_atomic(fpath, vertices=res.vertices, face_colors=face_colors, gaussian_colors=res.colors,
+                            frame=np.int64(f), **extra)
+            write_ply(out / "meshes" / f"{frame_name(f)}.ply",
+                      PlyMesh(res.vertices, t.faces, {"label": t.labels.astype(np.uint8),
+                                                      "boundary": t.boundary.astype(np.uint8)}))
+            row = {"frame": f, "iterations": res.iterations, "seconds": f"{dt:.3f}"}
+            row.update({k: f"{res.terms.get(k, 0.0):.6g}" for k in LOG_COLUMNS[2:-1]})
+            log[f] = row
+            _write_log(log_path, log)
+            verts.append(res.vertices)
+            cols.append(face_colors)
+            computed.append(f)
+            seconds[f] = dt
+            bar.update(task, advance=1, description=f"frame {frame_name(f)}: {res.iterations} it, "
+                                                    f"loss {res.terms['loss']:.4f}, {dt:.1f} s")
+    V = np.stack(verts).astype(np.float32)
+    C = np.stack(cols).astype(np.float32)
+    save_npz_atomic(out / "tracked.npz", vertices=V, faces=t.faces, labels=t.labels.astype(np.uint8),
+                    boundary=t.boundary.astype(np.uint8), face_colors=C, frames=np.asarray(frames, np.int64),
+                    log_scales=model.log_scales.numpy(), opacity_logits=model.opacity_logits.numpy(),
+                    edge_index=model.edge_index.numpy(), fps=np.float64(cap.fps))
+    return TrackResult(out, list(frames), V, C, computed, seconds)
