@@ -26,7 +26,10 @@ def test_tiny_capture_is_valid(tiny):
     s = summarize(cap)
     assert s["cameras"] == cfg.n_ring + cfg.n_elevated and s["frames"] == cfg.frames
     assert s["garment_vertices"] > 0 and s["boundary_vertices"] > 0 and s["uvs"]
-    assert cap.meta["garment_source"] == "skinned"
+    assert cap.meta["garment_source"] == "simulated"
+    from physavatar.sim import Material, preset
+
+    assert Material.load(tiny / "ground_truth" / "material.json") == preset(cfg.material)
     gt = np.load(tiny / "ground_truth" / "meshes.npz")
     assert gt["vertices"].shape == (cfg.frames, len(cap.template.vertices), 3)
     # frame 0 of the ground truth is the template (motions start at rest)
@@ -34,6 +37,18 @@ def test_tiny_capture_is_valid(tiny):
     held = np.load(tiny / "ground_truth" / "heldout" / "meshes.npz")
     assert held["vertices"].shape[0] == cfg.heldout_frames
     assert (tiny / "ground_truth" / "texture.png").exists()
+    # the simulated garment moves, stays attached at its boundary, and never enters the body
+    from physavatar.garment_sim import split_template
+
+    g = cap.template.garment_mask
+    V = gt["vertices"].astype(np.float64)
+    assert np.linalg.norm(V[-1, g] - V[0, g], axis=1).max() > 0.01
+    body_ids, body_faces, part = split_template(cap.template.vertices, cap.template.faces,
+                                                cap.template.labels, cap.template.boundary)
+    from physavatar.garment.geometry import count_intersections
+
+    for t in range(cfg.frames):
+        assert count_intersections(V[t, part.vertex_ids], part.faces, V[t, body_ids], body_faces) == 0
 
 
 def test_masks_agree_with_projected_ground_truth(tiny):

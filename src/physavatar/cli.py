@@ -230,6 +230,122 @@ def render_capture(
     console.print(f"wrote {out} ({sheet.shape[1]}x{sheet.shape[0]})")
 
 
+# -- simulate ----------------------------------------------------------------------------------
+
+@app.command()
+@handle_errors
+def simulate(
+    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    capture: Optional[Path] = typer.Option(None, help="simulate the garment of this capture's template on its body poses"),
+    garment: Optional[str] = typer.Option(None, help="dress, skirt, tshirt, or a garment .ply (label/boundary properties) / .npz"),
+    motion: Optional[str] = typer.Option(None, help="built-in motion, .bvh or .npz (with --garment KIND)"),
+    collider: Optional[Path] = typer.Option(None, help="animated body: .npz (vertices [T,V,3], faces) or a folder of OBJ/PLY frames"),
+    material: str = typer.Option("cotton", help="silk, cotton, denim, or a material .json"),
+    fps: float = typer.Option(25.0, help="frames per second (one implicit step per frame by default)"),
+    substeps: int = typer.Option(1, help="implicit steps per frame"),
+    duration: float = typer.Option(2.0, help="seconds (built-in motions)"),
+    edge_length: float = typer.Option(0.02, help="garment edge length [m] (with --garment KIND)"),
+    preview: bool = typer.Option(True, help="write preview.mp4"),
+):
+    """Simulate a garment on a moving body: writes the garment sequence (npz + PLY) and an MP4 preview.
+
+    Three ways to say what to simulate: --capture C; --garment KIND --motion M (on the Anny body);
+    --collider SEQ --garment FILE (any animated body; boundary vertices follow the collider surface
+    they start on).
+    """
+    import numpy as np
+
+    from .files import PlyMesh, save_npz_atomic, write_json_atomic, write_ply
+    from .garment_sim import GarmentPart, load_mesh_sequence, simulate_on_body, split_template
+    from .sim import Material, PRESETS
+
+    if material in PRESETS:
+        mat = PRESETS[material]
+    elif material.endswith(".json"):
+        mat = Material.load(material)
+    else:
+        _bad_option("--material", f"{material!r} is not one of {', '.join(PRESETS)} or a .json file")
+    if fps <= 0 or substeps < 1:
+        _bad_option("--fps/--substeps", "must be positive")
+    if capture is not None:
+        from .body import BodyModel
+        from .capture import load_capture
+
+        cap = load_capture(capture)
+        t = cap.template
+        body_ids, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
+        body = BodyModel(cap.body.shape, topology=cap.body.topology)
+        if len(body.rest_vertices) != len(body_ids):
+            raise PhysavatarError(capture / "template" / "mesh.ply",
+                                  f"its body has {len(body_ids)} vertices but Anny's {cap.body.topology!r} topology has {len(body.rest_vertices)}")
+        from .body import Motion
+
+        m = Motion("capture", cap.fps, cap.body.bone_names, cap.body.rotations, cap.body.root_translation)
+        bodies = m.pose(body).vertices
+        fps = cap.fps
+    elif collider is not None:
+        if garment is None or not Path(garment).exists():
+            _bad_option("--garment", "with --collider, give a garment mesh file (.ply with label/boundary, or .npz)")
+        bodies, body_faces = load_mesh_sequence(collider)
+        part = _garment_file(Path(garment))
+    elif garment is not None and motion is not None:
+        from .body import BodyModel
+        from .garment import GARMENTS, make_garment
+
+        if garment not in GARMENTS:
+            _bad_option("--garment", f"{garment!r} is not one of {', '.join(GARMENTS)}")
+        body = BodyModel(topology="collider")
+        g = make_garment(garment, body, edge_length=edge_length)
+        part = GarmentPart(np.arange(len(g.vertices)), g.vertices, g.faces, np.flatnonzero(g.boundary))
+        bodies = _load_motion(motion, fps, duration).pose(body).vertices
+        body_faces = body.faces
+    else:
+        _bad_option("--capture/--garment/--collider", "say what to simulate: --capture C, or --garment KIND --motion M, or --collider SEQ --garment FILE")
+    if len(part.boundary) == 0:
+        _bad_option("--garment", "the garment has no boundary vertices to attach to the body")
+    t0 = time.time()
+    X = simulate_on_body(part, bodies, body_faces, mat, fps, substeps=substeps, progress=True)
+    secs = time.time() - t0
+    out.mkdir(parents=True, exist_ok=True)
+    save_npz_atomic(out / "garment_sequence.npz", vertices=X.astype(np.float32), faces=part.faces,
+                    boundary=part.boundary, body_vertices=bodies.astype(np.float32), body_faces=body_faces, fps=fps)
+    for f in range(len(X)):
+        write_ply(out / "meshes" / f"{f:06d}.ply", PlyMesh(X[f], part.faces))
+    mat.save(out / "material.json")
+    write_json_atomic(out / "config.json", {"command": "simulate", "capture": str(capture) if capture else None,
+                                            "garment": garment, "motion": motion, "collider": str(collider) if collider else None,
+                                            "material": mat.to_dict(), "fps": fps, "substeps": substeps,
+                                            "frames": int(len(X)), "seconds": round(secs, 1)})
+    if preview:
+        from .body.preview import render_frames, write_video
+
+        Vall = np.concatenate([bodies, X], axis=1)
+        Fall = np.concatenate([body_faces, part.faces + bodies.shape[1]])
+        write_video(out / "preview.mp4", render_frames(Vall, Fall, None, None, title="simulate"), fps)
+    console.print(f"simulated {len(X)} frames of a {len(part.vertices)}-vertex garment in {secs:.0f} s "
+                  f"({(len(X) - 1) / max(secs, 1e-9):.2f} frames/s); wrote {out}/garment_sequence.npz, meshes/"
+                  + (", preview.mp4" if preview else ""))
+
+
+def _garment_file(path: Path):
+    import numpy as np
+
+    from .files import load_npz, read_ply
+    from .garment_sim import GarmentPart
+
+    if path.suffix == ".npz":
+        z = load_npz(path)
+        if not {"vertices", "faces", "boundary"} <= set(z):
+            raise PhysavatarError(path, "garment .npz needs 'vertices', 'faces' and 'boundary'")
+        V, F, b = z["vertices"], z["faces"], np.asarray(z["boundary"])
+        bidx = np.flatnonzero(b) if len(b) == len(V) else b  # a per-vertex flag, or indices
+        return GarmentPart(np.arange(len(V)), np.asarray(V, float), np.asarray(F, np.int64), np.asarray(bidx, np.int64))
+    m = read_ply(path)
+    if "boundary" not in m.vertex_data:
+        raise PhysavatarError(path, "needs a per-vertex 'boundary' property (1 = attached to the body)")
+    return GarmentPart(np.arange(len(m.vertices)), m.vertices, m.faces, np.flatnonzero(m.vertex_data["boundary"]))
+
+
 # -- pose ----------------------------------------------------------------------------------------
 
 @app.command()

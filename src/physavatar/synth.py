@@ -6,8 +6,9 @@ lighting that casts soft self-shadows, with a procedural texture that has detail
 lighting, the garment material when the garment is simulated, and a held-out motion (meshes and
 views) for evaluation.
 
-Until the cloth simulator lands the garment follows the body by skinning; ``capture.json`` says
-which (``garment_source``).
+The garment is simulated with a known material (``SynthConfig.material``: one of the simulator's
+presets) and the body as collider, starting at rest; with no material it follows the body by
+skinning instead. ``capture.json`` says which (``garment_source``).
 
 Building is resumable: images are written one by one, atomically, into ``OUT.partial/`` together
 with the config; a rerun with the same config skips what exists, and the folder is renamed to
@@ -58,7 +59,7 @@ class SynthConfig:
     texture_size: int = 1024
     ambient: float = 0.3
     key_radiance: float = 3.0
-    material: str = "medium"
+    material: str = "cotton"  # sim preset: silk (light), cotton (medium), denim (stiff); "" = skinned
     seed: int = 0
 
     def digest(self) -> str:
@@ -173,15 +174,25 @@ def build_template(cfg: SynthConfig) -> tuple[BodyModel, Template, np.ndarray]:
     return body, template, weights
 
 
-def pose_sequence(scene: _Scene, motion) -> np.ndarray:
-    """[T, V, 3] template vertices (body + skinned garment) along ``motion``."""
+def pose_sequence(scene: _Scene, motion, progress: bool = True) -> np.ndarray:
+    """[T, V, 3] template vertices along ``motion``: the body posed, the garment simulated with
+    the config's material (or skinned when it names none)."""
     posed = motion.pose(scene.body)
     t = scene.template
     V = np.empty((posed.vertices.shape[0], len(t.vertices), 3))
     body_idx = np.flatnonzero(~t.garment_mask)
     gar_idx = np.flatnonzero(t.garment_mask)
     V[:, body_idx] = posed.vertices
-    V[:, gar_idx] = linear_blend_skinning(t.vertices[gar_idx], scene.garment_weights, posed.bone_transforms)
+    if scene.cfg.material:
+        from .garment_sim import simulate_on_body, split_template
+        from .sim import preset
+
+        _, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
+        assert np.array_equal(part.vertex_ids, gar_idx)
+        V[:, gar_idx] = simulate_on_body(part, posed.vertices, body_faces, preset(scene.cfg.material),
+                                         scene.cfg.fps, progress=progress)
+    else:
+        V[:, gar_idx] = linear_blend_skinning(t.vertices[gar_idx], scene.garment_weights, posed.bone_transforms)
     return V
 
 
@@ -232,9 +243,15 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
     duration = (cfg.frames - 1) / cfg.fps
     motion = builtin_motion(cfg.motion, body.bone_names, cfg.fps, duration)
     held = builtin_motion(cfg.heldout_motion, body.bone_names, cfg.fps, (cfg.heldout_frames - 1) / cfg.fps)
-    source = "skinned"  # the garment follows the body by linear blend skinning
-    verts = pose_sequence(scene, motion)
-    held_verts = pose_sequence(scene, held)
+    source = "simulated" if cfg.material else "skinned"
+    meshes_file = work / "ground_truth" / "meshes.npz"
+    held_file = work / "ground_truth" / "heldout" / "meshes.npz"
+    if meshes_file.exists() and held_file.exists():  # resuming: the simulation is done
+        verts = np.load(meshes_file)["vertices"].astype(np.float64)
+        held_verts = np.load(held_file)["vertices"].astype(np.float64)
+    else:
+        verts = pose_sequence(scene, motion, progress is not False)
+        held_verts = pose_sequence(scene, held, progress is not False)
 
     # Capture files (small, rewritten every time: cheap and always consistent with cfg).
     frames = list(range(cfg.frames))
@@ -248,6 +265,10 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
     np.save(gt / "texture_linear.npy", texture)
     write_json_atomic(gt / "lighting.json", {"lights": [_light_json(l) for l in lights],
                                              "note": "Mitsuba emitters; radiance in linear RGB"})
+    if cfg.material:
+        from .sim import preset
+
+        preset(cfg.material).save(gt / "material.json")
     save_npz_atomic(gt / "meshes.npz", vertices=verts.astype(np.float32), faces=template.faces,
                     labels=template.labels.astype(np.uint8), fps=cfg.fps)
     held_dir = gt / "heldout"

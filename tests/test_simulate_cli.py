@@ -1,0 +1,63 @@
+"""`physavatar simulate`: the three input modes, no intersections, clear errors."""
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from physavatar.cli import app
+from physavatar.files import PlyMesh, write_ply
+from physavatar.garment.geometry import count_intersections
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def skirt_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "skirt"
+    r = runner.invoke(app, ["simulate", "--garment", "skirt", "--motion", "twist", "--duration", "0.4",
+                            "--edge-length", "0.05", "--out", str(out), "--no-preview"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_garment_on_builtin_motion(skirt_run):
+    z = np.load(skirt_run / "garment_sequence.npz")
+    X, B = z["vertices"].astype(float), z["body_vertices"].astype(float)
+    assert X.shape[0] == 11 and np.isfinite(X).all()
+    for t in range(X.shape[0]):
+        assert count_intersections(X[t], z["faces"], B[t], z["body_faces"]) == 0
+    # boundary (waistband) vertices stay on the body: they move with the twisting hips
+    b = z["boundary"]
+    assert np.linalg.norm(X[-1, b] - X[0, b], axis=1).max() > 0.01
+    assert (skirt_run / "meshes" / "000010.ply").exists() and (skirt_run / "material.json").exists()
+
+
+def test_collider_sequence_and_garment_file(skirt_run, tmp_path):
+    z = np.load(skirt_run / "garment_sequence.npz")
+    # the body as a folder of PLY frames from "another tool", the garment as a PLY with boundary flags
+    for t in range(4):
+        write_ply(tmp_path / "body" / f"f{t:03d}.ply", PlyMesh(z["body_vertices"][t], z["body_faces"]))
+    flag = np.zeros(len(z["vertices"][0]), np.uint8)
+    flag[z["boundary"]] = 1
+    write_ply(tmp_path / "garment.ply", PlyMesh(z["vertices"][0], z["faces"], {"boundary": flag}))
+    r = runner.invoke(app, ["simulate", "--collider", str(tmp_path / "body"), "--garment", str(tmp_path / "garment.ply"),
+                            "--out", str(tmp_path / "o"), "--no-preview"])
+    assert r.exit_code == 0, r.output
+    X = np.load(tmp_path / "o" / "garment_sequence.npz")["vertices"]
+    # same body motion and garment -> the same simulation as the first run's first frames, up to
+    # the float32 rounding of the files and the Newton tolerance (1e-3 m/s x 0.04 s)
+    assert np.abs(X - z["vertices"][:4]).max() < 1e-3
+
+
+def test_bad_inputs_exit_2(tmp_path):
+    write_ply(tmp_path / "a" / "0.ply", PlyMesh(np.random.rand(4, 3), [[0, 1, 2]]))
+    write_ply(tmp_path / "a" / "1.ply", PlyMesh(np.random.rand(5, 3), [[0, 1, 2]]))
+    write_ply(tmp_path / "g.ply", PlyMesh(np.random.rand(3, 3), [[0, 1, 2]], {"boundary": np.ones(3, np.uint8)}))
+    r = runner.invoke(app, ["simulate", "--collider", str(tmp_path / "a"), "--garment", str(tmp_path / "g.ply"),
+                            "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "1.ply" in r.output and "Traceback" not in r.output
+    r = runner.invoke(app, ["simulate", "--garment", "skirt", "--motion", "walk", "--material", "rubber",
+                            "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "rubber" in r.output
+    r = runner.invoke(app, ["simulate", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "say what to simulate" in r.output
