@@ -442,6 +442,58 @@ def track(
                   f"in {time.time() - t0:.0f} s; wrote {out}/tracked.npz, frames/, meshes/, track_log.csv")
 
 
+# -- fit-appearance, relight (paper Sec. 3.3) ----------------------------------------------------
+
+@app.command("fit-appearance")
+@handle_errors
+def fit_appearance_cmd(
+    capture: Path = typer.Argument(..., help="capture folder"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder (a rerun with the same config resumes)"),
+    tracked: Optional[Path] = typer.Option(None, "--tracked", help="tracking output folder (tracked.npz: meshes + Gaussian colours)"),
+    meshes: str = typer.Option("tracked", "--meshes", help="tracked, or gt (ground_truth/meshes.npz of a synthetic capture)"),
+    light: str = typer.Option("ambient", "--light", help="ambient (the paper: texture + L_a) or studio (+ the known key light's intensity)"),
+    lighting: Optional[Path] = typer.Option(None, "--lighting", help="studio lights file (default ground_truth/lighting.json)"),
+    iterations: int = typer.Option(2000, "--iterations", help="Adam steps (paper: 2000)"),
+    texture_size: int = typer.Option(512, "--texture-size", help="atlas resolution in texels"),
+    scale: float = typer.Option(1.0, "--scale", help="image resolution factor in (0, 1]"),
+    spp: int = typer.Option(8, "--spp", help="samples per pixel while fitting (paper: 8)"),
+    final_spp: int = typer.Option(128, "--final-spp", help="samples per pixel of the preview renders"),
+    batch: int = typer.Option(1, "--batch", help="random (frame, camera) views per step"),
+    lr: float = typer.Option(0.01, "--lr", help="Adam learning rate, halved every --decay-every steps"),
+    decay_every: int = typer.Option(500, "--decay-every"),
+    frame_stride: int = typer.Option(1, "--frame-stride", help="fit every k-th frame"),
+    cameras: Optional[str] = typer.Option(None, "--cameras", help="training cameras CAM,CAM (default: all)"),
+    fix_light: bool = typer.Option(False, "--fix-light", help="keep the light at its initial value"),
+    seed: int = typer.Option(0, "--seed"),
+):
+    """Fit a relightable diffuse texture and the light by inverse rendering (docs/appearance.md)."""
+    import numpy as np
+
+    from .stages.appearance import AppearanceConfig, fit_appearance
+
+    if meshes not in ("tracked", "gt"):
+        _bad_option("--meshes", f"{meshes!r} is not tracked or gt")
+    if meshes == "tracked" and tracked is None:
+        _bad_option("--tracked", "needed with --meshes tracked (or pass --meshes gt for a synthetic capture)")
+    cams = tuple(c.strip() for c in cameras.split(",") if c.strip()) if cameras else None
+    cfg = AppearanceConfig(light=light, iterations=iterations, texture_size=texture_size, scale=scale, spp=spp,
+                           final_spp=final_spp, batch=batch, lr=lr, lr_decay_every=decay_every,
+                           frame_stride=frame_stride, cameras=cams, fit_light=not fix_light, seed=seed)
+    t0 = time.time()
+    res = fit_appearance(capture, out, cfg, tracked=tracked, meshes=meshes, lighting=lighting)
+    amb = next((l.radiance for l in res.lights if type(l).__name__ == "Ambient"), None)
+    losses = [r["loss"] for r in res.log]
+    k = max(1, min(50, len(losses) // 4))
+    msg = (f"fitted {cfg.texture_size}² texture + {cfg.light} light in {time.time() - t0:.0f} s "
+           f"({res.seconds_per_iteration:.2f} s/iteration)")
+    if losses:
+        msg += f"; loss {np.mean(losses[:k]):.3g} -> {np.mean(losses[-k:]):.3g} (mean of {k} steps)"
+    if amb is not None:
+        msg += f"; ambient {tuple(round(float(a), 3) for a in np.broadcast_to(amb, 3))}"
+    console.print(msg)
+    console.print(f"wrote {out}/texture.png, texture_linear.npy, light.json, fit_log.csv, loss.png, preview.png")
+
+
 def main():  # console-script entry point
     app()
 

@@ -68,7 +68,7 @@ class SynthConfig:
 
 PRESETS: dict[str, SynthConfig] = {
     # For tests: seconds to build.
-    "tiny": SynthConfig(preset="tiny", garment="skirt", edge_length=0.05, body_topology="tiny", frames=8,
+    "tiny": SynthConfig(preset="tiny", garment="skirt", edge_length=0.05, frames=8,
                         heldout_frames=6, n_ring=3, n_elevated=1, width=96, height=96, spp=4,
                         texture_size=256, heldout_cameras=1),
     # The standard case for benchmarks (docs/synthetic.md gives its size).

@@ -1,0 +1,117 @@
+"""Animation (paper Sec. 3.2, "Animation"): the avatar driven by a new motion.
+
+The body follows the motion by linear blend skinning with the avatar's transferred weights; the
+garment is simulated with the avatar's material, its boundary vertices attached to the posed
+Anny collider, starting at rest. A motion whose first pose differs from the capture's frame-1
+pose is preceded by a warm-up transition (spherical interpolation of every bone), simulated
+but not returned, so the garment never starts from a jump.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..avatar import Avatar
+from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
+from ..errors import PhysavatarError
+from ..files import PlyMesh, save_npz_atomic, write_json_atomic, write_ply
+from ..garment.geometry import count_intersections
+from ..garment_sim import simulate_on_body, split_template
+from ..sim import SimSettings
+
+
+@dataclass
+class Sequence:
+    """An animated avatar: vertices [T, V, 3] in template order, with what rendering needs."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    labels: np.ndarray
+    face_uvs: np.ndarray | None
+    fps: float
+    avatar: Path | None = None
+
+    def save(self, out: Path, meta: dict, ply: bool = True) -> None:
+        out.mkdir(parents=True, exist_ok=True)
+        save_npz_atomic(out / "sequence.npz", vertices=self.vertices.astype(np.float32), faces=self.faces,
+                        labels=self.labels.astype(np.uint8), fps=np.float64(self.fps),
+                        **({"face_uvs": self.face_uvs.astype(np.float32)} if self.face_uvs is not None else {}))
+        if ply:
+            for t in range(len(self.vertices)):
+                write_ply(out / "meshes" / f"{t:06d}.ply", PlyMesh(self.vertices[t], self.faces,
+                                                                  {"label": self.labels.astype(np.uint8)}, self.face_uvs))
+        write_json_atomic(out / "sequence.json", {**meta, "avatar": str(self.avatar) if self.avatar else None,
+                                                  "frames": int(len(self.vertices)), "fps": self.fps})
+
+    @staticmethod
+    def load(path: str | Path) -> "Sequence":
+        from ..files import load_npz, read_json
+
+        path = Path(path)
+        z = load_npz(path / "sequence.npz")
+        meta = read_json(path / "sequence.json")
+        return Sequence(z["vertices"].astype(np.float64), z["faces"], z["labels"].astype(np.int64),
+                        z["face_uvs"] if "face_uvs" in z else None, float(z["fps"]),
+                        Path(meta["avatar"]) if meta.get("avatar") else None)
+
+
+def transition(r0: np.ndarray, t0: np.ndarray, r1: np.ndarray, t1: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """n poses easing from (r0 [B,3], t0 [3]) to just before (r1, t1) (smoothstep in time)."""
+    s = np.arange(n) / max(n, 1)
+    s = s * s * (3 - 2 * s)
+    R0, R1 = axis_angle_to_matrix(r0), axis_angle_to_matrix(r1)
+    rel = matrix_to_axis_angle(np.swapaxes(R0, -1, -2) @ R1)  # [B, 3]
+    R = R0[None] @ axis_angle_to_matrix(s[:, None, None] * rel[None])
+    return matrix_to_axis_angle(R), (1 - s)[:, None] * t0 + s[:, None] * t1
+
+
+def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
+            progress: bool = True) -> tuple[Sequence, dict]:
+    """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats)."""
+    fps = avatar.fps
+    body = BodyModel(avatar.shape, topology="collider")
+    m = motion.resample(fps).for_bones(body.bone_names)
+    rest = Motion("rest", fps, avatar.bone_names, avatar.rest_rotations[None], avatar.rest_translation[None])
+    rest = rest.for_bones(body.bone_names)
+    d_rot = np.abs(axis_angle_to_matrix(m.rotations[0]) - axis_angle_to_matrix(rest.rotations[0])).max()
+    d_tr = np.abs(m.root_translation[0] - rest.root_translation[0]).max()
+    n_warm = 0 if (d_rot < 1e-6 and d_tr < 1e-6) else max(2, int(round(warmup_s * fps)))
+    rots, trs = m.rotations, m.root_translation
+    if n_warm:
+        wr, wt = transition(rest.rotations[0], rest.root_translation[0], m.rotations[0], m.root_translation[0], n_warm)
+        rots = np.concatenate([wr, rots])
+        trs = np.concatenate([wt, trs])
+    posed = body.pose(rots, trs)
+    posed0 = body.pose(rest.rotations, rest.root_translation)
+
+    t = avatar.template
+    body_ids, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
+    # Skinning relative to the capture's frame-1 pose, which the template is in.
+    T_rel = posed.bone_transforms @ np.linalg.inv(posed0.bone_transforms[0])[None]
+    Vb = linear_blend_skinning(t.vertices[body_ids], avatar.body_weights, T_rel)
+    if count_intersections(part.vertices, part.faces, posed0.vertices[0], body.faces):
+        raise PhysavatarError(avatar.root / "template.ply",
+                              "the garment intersects Anny's collider body in the frame-1 pose; "
+                              "the garment must start outside the collider to be simulated")
+    t0 = time.time()
+    Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, settings=settings, progress=progress)
+    secs = time.time() - t0
+    V = np.empty((len(rots), len(t.vertices), 3))
+    V[:, body_ids] = Vb
+    V[:, part.vertex_ids] = Xg
+    V = V[n_warm:]
+    stats = {"frames": int(len(V)), "warmup_frames": n_warm, "simulation_s": round(secs, 2),
+             "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
+             "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps}
+    return Sequence(V, t.faces, t.labels, t.face_uvs, fps, avatar.root), stats
+
+
+def animate_to_folder(avatar_dir: str | Path, motion: Motion, out: str | Path, **kw) -> Sequence:
+    avatar = Avatar.load(avatar_dir)
+    seq, stats = animate(avatar, motion, **kw)
+    seq.save(Path(out), {"command": "animate", **stats})
+    return seq

@@ -1,0 +1,56 @@
+"""Avatar + animation: the avatar built from a synthetic capture reproduces it and moves with new motions."""
+
+import numpy as np
+import pytest
+
+from physavatar.avatar import Avatar, build_avatar
+from physavatar.body import BodyModel, Motion, builtin_motion
+from physavatar.capture import load_capture
+from physavatar.garment.geometry import count_intersections
+from physavatar.stages.animate import Sequence, animate
+from physavatar.synth import PRESETS, synthesize
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("anim")
+    cap = synthesize(root / "cap", PRESETS["tiny"], progress=False)
+    av = build_avatar(cap, root / "avatar", material=cap / "ground_truth" / "material.json")
+    return load_capture(cap), av, root
+
+
+def test_avatar_roundtrip_and_weights(tiny):
+    cap, av, _ = tiny
+    a2 = Avatar.load(av.root)
+    assert np.allclose(a2.template.vertices, cap.template.vertices, atol=1e-6)
+    # the template body is Anny's own mesh: transferred weights equal Anny's weights
+    body = BodyModel(cap.body.shape, topology=cap.body.topology)
+    assert np.abs(a2.body_weights - body.skinning_weights).max() < 1e-3
+    assert a2.material.density == pytest.approx(0.187)
+
+
+def test_animating_the_capture_motion_reproduces_ground_truth(tiny):
+    cap, av, _ = tiny
+    m = Motion("capture", cap.fps, cap.body.bone_names, cap.body.rotations, cap.body.root_translation)
+    seq, stats = animate(av, m, progress=False)
+    assert stats["warmup_frames"] == 0
+    gt = np.load(cap.root / "ground_truth" / "meshes.npz")["vertices"]
+    assert seq.vertices.shape == gt.shape
+    assert np.abs(seq.vertices - gt).max() < 2e-3  # float32 ground truth, Newton tolerance
+
+
+def test_new_motion_with_warmup(tiny):
+    cap, av, root = tiny
+    body = BodyModel(cap.body.shape, topology="collider")
+    m = builtin_motion("arm-swing", body.bone_names, fps=25, duration=0.4).slice(5, 11)  # starts mid-motion
+    seq, stats = animate(av, m, warmup_s=0.2, progress=False)
+    assert stats["warmup_frames"] == 5 and seq.vertices.shape[0] == 6
+    assert np.isfinite(seq.vertices).all()
+    g = cap.template.labels > 0
+    posed = body.pose(m.for_bones(body.bone_names).rotations, m.root_translation)
+    for t in range(6):
+        assert count_intersections(seq.vertices[t, g], cap.template.faces[g[cap.template.faces].all(1)] - g.argmax(),
+                                   posed.vertices[t], body.faces) == 0
+    seq.save(root / "seq", {"command": "test"})
+    s2 = Sequence.load(root / "seq")
+    assert np.allclose(s2.vertices, seq.vertices, atol=1e-6) and s2.avatar == av.root
