@@ -346,6 +346,119 @@ def _garment_file(path: Path):
     return GarmentPart(np.arange(len(m.vertices)), m.vertices, m.faces, np.flatnonzero(m.vertex_data["boundary"]))
 
 
+# -- avatar in use: animate, render, export ------------------------------------------------------
+
+@app.command("build-avatar")
+@handle_errors
+def build_avatar_cmd(
+    capture: Path = typer.Argument(..., help="capture folder"),
+    out: Path = typer.Option(..., "--out", "-o", help="avatar folder"),
+    material: str = typer.Option(..., help="material.json (fit-physics output) or a preset: silk, cotton, denim"),
+    appearance: Optional[Path] = typer.Option(None, help="fit-appearance output folder (texture, light)"),
+    tracked: Optional[Path] = typer.Option(None, help="tracking output folder: use the tracked frame 1 as the template"),
+):
+    """Bundle template, transferred skinning weights, material, texture and light into an avatar folder."""
+    import numpy as np
+
+    from .avatar import build_avatar
+
+    tv = None
+    if tracked is not None:
+        from .files import load_npz
+
+        tv = load_npz(tracked / "tracked.npz")["vertices"][0]
+    av = build_avatar(capture, out, material=material, texture_dir=appearance, template_vertices=tv)
+    console.print(f"wrote avatar {out}: {len(av.template.vertices)} vertices "
+                  f"({int(av.template.garment_mask.sum())} garment), material {av.material.name or 'fitted'}, "
+                  f"texture {'yes' if av.texture is not None else 'no'}, "
+                  f"skinning matched {av.meta['skinning_matched_fraction']:.0%} (rest inpainted)")
+
+
+@app.command()
+@handle_errors
+def animate(
+    avatar: Path = typer.Argument(..., help="avatar folder (build-avatar)"),
+    motion: str = typer.Option(..., help="built-in name, .bvh or .npz"),
+    out: Path = typer.Option(..., "--out", "-o", help="sequence folder"),
+    duration: float = typer.Option(4.0, help="seconds (built-in motions)"),
+    warmup: float = typer.Option(1.0, help="seconds of transition from the capture pose to the motion's first pose"),
+    max_frames: Optional[int] = typer.Option(None, help="at most this many frames"),
+):
+    """Drive the avatar with a new motion: body by skinning, garment simulated with its material."""
+    from .avatar import Avatar
+    from .stages.animate import animate as run_animate
+
+    av = Avatar.load(avatar)
+    m = _load_motion(motion, av.fps, duration)
+    if max_frames:
+        m = m.slice(0, max_frames)
+    seq, stats = run_animate(av, m, warmup_s=warmup)
+    seq.save(out, {"command": "animate", "motion_spec": motion, **stats})
+    console.print(f"animated {stats['frames']} frames (+{stats['warmup_frames']} warm-up) at {stats['sim_fps']:.2f} "
+                  f"simulated frames/s; wrote {out}/sequence.npz, meshes/")
+
+
+@app.command()
+@handle_errors
+def render(
+    seq: Path = typer.Argument(..., help="sequence folder (animate)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder (frames/ and MP4)"),
+    light: str = typer.Option("studio", help="fitted, studio, ambient, sky, sun, or an .hdr environment map"),
+    capture: Optional[Path] = typer.Option(None, help="render from this capture's cameras instead of an orbit"),
+    cameras: str = typer.Option("", help="with --capture: comma-separated camera names (default all)"),
+    spp: int = typer.Option(32, help="samples per pixel"),
+    size: int = typer.Option(512, help="orbit image size (pixels)"),
+):
+    """Render a sequence to PNG frames and MP4 under the fitted or a new light."""
+    from .stages.animate import Sequence
+    from .stages.render_seq import render_sequence
+
+    s = Sequence.load(seq)
+    cams = None
+    if capture is not None:
+        from .capture import load_capture
+
+        cams = load_capture(capture).cameras
+        if cameras:
+            want = cameras.split(",")
+            unknown = [c for c in want if c not in {k.name for k in cams}]
+            if unknown:
+                _bad_option("--cameras", f"unknown camera(s) {unknown}")
+            cams = [c for c in cams if c.name in want]
+    if spp < 1 or size < 16:
+        _bad_option("--spp/--size", "spp must be >= 1 and size >= 16")
+    r = render_sequence(s, out, cameras=cams, light=light, spp=spp, width=size, height=size)
+    console.print(f"rendered {r['frames']} frames; wrote {', '.join(r['videos'])}")
+
+
+@app.command()
+@handle_errors
+def export(
+    seq: Path = typer.Argument(..., help="sequence folder (animate)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output file (.usd/.usdc/.usda/.glb) or folder (obj, ply)"),
+    fmt: str = typer.Option("", "--format", help="usd, glb, obj or ply (default: from --out's extension)"),
+):
+    """Export a sequence: USD (time-sampled points, UVs, textured material), glTF binary, OBJ/PLY sequences."""
+    from .export import MeshSequence
+    from .export import export as run_export
+    from .stages.animate import Sequence
+
+    s = Sequence.load(seq)
+    tex = None
+    if s.avatar is not None and (Path(s.avatar) / "texture.png").exists():
+        tex = Path(s.avatar) / "texture.png"
+    fmt = fmt or {".usd": "usd", ".usdc": "usd", ".usda": "usd", ".glb": "glb"}.get(out.suffix.lower(), "")
+    if fmt not in ("usd", "glb", "obj", "ply"):
+        _bad_option("--format", "choose usd, glb, obj or ply (or give --out a .usd/.glb name)")
+    if fmt == "usd" and out.suffix.lower() not in (".usd", ".usdc", ".usda"):
+        out = out.with_suffix(".usdc")
+    if fmt == "glb" and out.suffix.lower() != ".glb":
+        out = out.with_suffix(".glb")
+    ms = MeshSequence(s.vertices, s.faces, uvs=s.face_uvs, texture=tex, fps=s.fps)
+    run_export(out, ms, fmt)
+    console.print(f"exported {len(s.vertices)} frames as {fmt}: {out}")
+
+
 # -- pose ----------------------------------------------------------------------------------------
 
 @app.command()

@@ -197,18 +197,12 @@ def pose_sequence(scene: _Scene, motion, progress: bool = True) -> np.ndarray:
 
 
 def _render_frame(scene: _Scene, vertices: np.ndarray, cameras: list[Camera], seed: int):
-    from .render import MeshSpec, SceneSpec, load_scene, render, split_uv_seams
+    from .render import SceneSpec, load_scene, render
+    from .render.avatar import avatar_specs
 
     t = scene.template
-    meshes = []
-    for name, sel, twosided in (("body", ~t.garment_mask, False), ("garment", t.garment_mask, True)):
-        fsel = sel[t.faces].all(1)
-        idx = np.flatnonzero(sel)
-        remap = -np.ones(len(t.vertices), np.int64)
-        remap[idx] = np.arange(len(idx))
-        sm = split_uv_seams(vertices[idx], remap[t.faces[fsel]], t.face_uvs[fsel])
-        meshes.append(MeshSpec(name, sm.vertices, sm.faces, uvs=sm.uvs, texture=scene.texture, twosided=twosided))
-    s = load_scene(SceneSpec(meshes=meshes, lights=scene.lights))
+    s = load_scene(SceneSpec(meshes=avatar_specs(vertices, t.faces, t.labels, t.face_uvs, scene.texture),
+                             lights=scene.lights))
     return [render(s, cam, spp=scene.cfg.spp, seed=seed + i) for i, cam in enumerate(cameras)]
 
 
