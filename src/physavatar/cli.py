@@ -459,6 +459,28 @@ def export(
     console.print(f"exported {len(s.vertices)} frames as {fmt}: {out}")
 
 
+# -- evaluation and the whole pipeline -----------------------------------------------------------
+
+@app.command()
+@handle_errors
+def evaluate(
+    capture: Path = typer.Argument(..., help="synthetic capture (with ground_truth/)"),
+    avatar: Path = typer.Option(..., help="avatar folder (build-avatar)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder: metrics.json, report.md, views/"),
+    tracked: Optional[Path] = typer.Option(None, help="tracking output: also report tracking error"),
+    frames: Optional[int] = typer.Option(None, help="evaluate the first N held-out frames"),
+    points: int = typer.Option(10000, help="points sampled per surface for Chamfer / F-score"),
+):
+    """Metrics against ground truth: garment/full Chamfer and F-scores on the held-out motion for LBS,
+    random, estimated and true material; PSNR/SSIM/LPIPS on held-out views; tracking error."""
+    from .stages.evaluate import evaluate as run_eval
+
+    if points < 100:
+        _bad_option("--points", "use at least 100 points")
+    run_eval(capture, avatar, out, tracked=tracked, frames=frames, n_points=points)
+    console.print((out / "report.md").read_text())
+
+
 # -- pose ----------------------------------------------------------------------------------------
 
 @app.command()
