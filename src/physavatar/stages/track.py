@@ -5,8 +5,9 @@ carries a colour (linear RGB, composited in linear light and then sRGB-encoded, 
 renderer that made the capture), two in-plane log-scales and an opacity logit.
 
 - Frame 1 (the template is frame 1): colours, scales and opacities are fitted, vertices fixed.
-- Frames t > 1: vertices start at v_{t-1} + velocity * (v_{t-1} - v_{t-2}) and are fitted
-  together with the colours; scales and opacities stay as frame 1 left them. The loss is Eq. 4,
+- Frames t > 1: vertices start at the template skinned to the capture's body pose of frame t
+  plus the carried residual of frame t-1 (:class:`TemplateSkinning`), and are fitted together
+  with the colours; scales and opacities stay as frame 1 left them. The loss is Eq. 4,
 
       L = λ L1 + (1 - λ)(1 - SSIM)  +  w_mask |alpha - mask|  +  λ_iso L_iso  +  λ_n L_normal,
 
@@ -72,12 +73,27 @@ class TrackConfig:
             pixels are k times larger uses k times this.
         lr_decay: every level's step sizes decay exponentially to this fraction at its last step.
         lr_colors, lr_scales, lr_opacity: Adam step sizes (linear RGB, log-scale, logit).
-        velocity: the constant-velocity prediction's factor (0: previous frame's vertices).
+        velocity: factor of the constant-velocity term of each frame's prediction (0: none).
+        init: how frame t starts. "lbs": the template skinned to the capture's body pose of
+            frame t (body.npz, the body model's LBS; garment weights transferred from the
+            closest body point), plus the previous frames' tracked residual from that skinning,
+            carried in each vertex's local skinning frame and extrapolated with ``velocity``
+            (:class:`TemplateSkinning`). "velocity": v_{t-1} + velocity (v_{t-1} - v_{t-2}).
+        target_blur: Gaussian blur (px) of the target images and masks at each level, meant to
+            match the splats' 0.3 px² low-pass (0: off; 0.5 px did not reduce the frame-1 refit
+            bias on the tiny capture, docs/tracking.md).
         lr_colors_track: colour step size on frames t > 1. Smaller than frame 1's: colours that
             chase every frame's image absorb misalignment instead of exposing it to the vertices.
         subdivide: midpoint subdivisions of the template for the Gaussians (4^k splats per face,
             attached at fixed barycentric positions, so gradients still reach the template
             vertices). One flat colour per coarse face cannot show texture finer than the mesh.
+        body_residual, garment_residual: the share of the body's / garment's tracked residual
+            from skinning carried to the next frame with ``init="lbs"``. Below one, the start of
+            each frame leans back toward the skinned pose, which bounds the drift: a per-frame
+            fitting error b adds up to b / (1 - share) instead of growing without end
+            (docs/tracking.md, measured).
+        vertex_optimizer: "uniform" (:class:`AdamUniform`: one second-moment normaliser for all
+            vertices) or "adam" (per-coordinate Adam). uniform_quantile: its normaliser's quantile.
         smoothing: λ of the vertex update's smoothing (I + λ L)^-1 (:class:`SmoothedSolve`);
             0 optimizes the vertices directly.
         threads: numba and torch threads during the fit (1 is fastest on a shared 2-core machine:
@@ -87,10 +103,10 @@ class TrackConfig:
 
     holdout: tuple[str, ...] | None = None
     n_frames: int | None = None
-    scale: float = 0.5
+    scale: float = 0.25
     levels: tuple[float, ...] = (0.5, 1.0)
     iters_first: int = 150
-    iters: int = 40
+    iters: int = 15
     min_iters: int = 20
     check_every: int = 10
     plateau_tol: float = 2e-3
@@ -104,9 +120,15 @@ class TrackConfig:
     lr_colors: float = 0.01
     lr_scales: float = 0.01
     lr_opacity: float = 0.05
-    velocity: float = 1.0
+    velocity: float = 0.0
+    init: str = "lbs"
+    vertex_optimizer: str = "uniform"
+    uniform_quantile: float = 0.5
+    body_residual: float = 0.0
+    garment_residual: float = 0.5
+    target_blur: float = 0.0
     lr_colors_track: float = 0.002
-    subdivide: int = 1
+    subdivide: int = 0
     smoothing: float = 10.0
     threads: int = 1
     seed: int = 0
@@ -189,16 +211,27 @@ class MeshGaussians:
         c = self.colors.numpy()
         return c.reshape(n_faces, -1, 3).mean(1).astype(np.float32)
 
-    def render(self, vertices: torch.Tensor, cam: Camera, colors: torch.Tensor | None = None,
-               log_scales: torch.Tensor | None = None, opacity_logits: torch.Tensor | None = None) -> dict:
-        """Rasterize into ``cam``: rgb [H, W, 3] linear (over black), alpha [H, W]."""
+    def splats(self, vertices: torch.Tensor, colors: torch.Tensor | None = None,
+               log_scales: torch.Tensor | None = None, opacity_logits: torch.Tensor | None = None) -> tuple:
+        """(means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colors [N, 3]) of the
+        Gaussians on ``vertices`` [V, 3]; computed once per step and shared by every view
+        (building them per view multiplied the autograd graph by the number of cameras)."""
         means, quats, scales = mesh_to_gaussians(
             self.gaussian_vertices(vertices), self.faces, self.log_scales if log_scales is None else log_scales, self.edge_index)
         col = (self.colors if colors is None else colors).clamp(0.0, 1.0)
         op = torch.sigmoid(self.opacity_logits if opacity_logits is None else opacity_logits)
-        return rasterize(means, quats, scales, op, col,
-                         torch.from_numpy(cam.w2c.astype(np.float32)), torch.from_numpy(cam.K.astype(np.float32)),
+        return means, quats, scales, op, col
+
+    @staticmethod
+    def rasterize(splats: tuple, cam: Camera) -> dict:
+        """Rasterize :meth:`splats` into ``cam``: rgb [H, W, 3] linear (over black), alpha [H, W]."""
+        return rasterize(*splats, torch.from_numpy(cam.w2c.astype(np.float32)), torch.from_numpy(cam.K.astype(np.float32)),
                          cam.width, cam.height, backend="numba")
+
+    def render(self, vertices: torch.Tensor, cam: Camera, colors: torch.Tensor | None = None,
+               log_scales: torch.Tensor | None = None, opacity_logits: torch.Tensor | None = None) -> dict:
+        """Rasterize into ``cam``: rgb [H, W, 3] linear (over black), alpha [H, W]."""
+        return self.rasterize(self.splats(vertices, colors, log_scales, opacity_logits), cam)
 
 
 def _midpoint_subdivide(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -237,12 +270,22 @@ def _resize(a: np.ndarray, w: int, h: int) -> np.ndarray:
     return np.stack([_resize(a[..., c], w, h) for c in range(a.shape[2])], -1)
 
 
-def load_views(capture: Capture, frame: int, cameras: list[Camera], factor: float) -> list[View]:
+def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
+    if sigma <= 0:
+        return a
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(a, (sigma, sigma) + (0,) * (a.ndim - 2), mode="nearest")
+
+
+def load_views(capture: Capture, frame: int, cameras: list[Camera], factor: float, blur: float = 0.0) -> list[View]:
+    """Every camera's image and mask box-filtered to ``factor`` of the capture's size, then
+    blurred with a Gaussian of ``blur`` px (see TrackConfig.target_blur)."""
     out = []
     for cam in cameras:
         c = cam.scaled(factor) if factor != 1.0 else cam
-        img = _resize(capture.image(cam.name, frame), c.width, c.height)
-        msk = _resize(capture.mask(cam.name, frame), c.width, c.height)
+        img = _blur(_resize(capture.image(cam.name, frame), c.width, c.height), blur)
+        msk = _blur(_resize(capture.mask(cam.name, frame), c.width, c.height), blur)
         out.append(View(c, torch.from_numpy(np.array(img, np.float32)),
                         torch.from_numpy(np.array(msk, np.float32))))
     return out
@@ -272,6 +315,52 @@ def initial_colors(vertices: np.ndarray, faces: np.ndarray, views: list[View]) -
             med = np.nanmedian(np.stack(samples), axis=0)
     med = np.where(np.isfinite(med), med, 0.5)
     return srgb_to_linear(med).astype(np.float32)
+
+
+class AdamUniform(torch.optim.Optimizer):
+    """Adam whose second moment is normalised by one value for the whole tensor, not per entry
+    (Nicolet et al. 2021, ``largesteps.optimize.AdamUniform``, uses the maximum).
+
+    Per-entry Adam moves every vertex about one step size per iteration however weak its
+    gradient: body vertices hidden under the garment or on low-contrast skin, whose photometric
+    gradient is tiny noise, then wander as far as the well-observed ones (measured on the demo
+    capture: the body, started exactly on its skinned pose, moved 5 mm in one frame). With one
+    normaliser the update keeps the gradient's relative sizes: the best-observed vertex moves
+    about a step, a vertex with a hundredth of its gradient a hundredth of that.
+
+    ``quantile`` < 1: rows (vertices) whose RMS gradient is above that quantile over rows take
+    per-row Adam steps, the others steps proportional to their gradient. With the maximum a few
+    vertices on high-contrast edges set the scale and the garment hardly moved (tiny capture:
+    the error stayed that of skinning alone); the median keeps weak vertices still and lets the
+    well-observed half move at the full step.
+    """
+
+    def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
+                 quantile: float = 1.0):
+        super().__init__(params, dict(lr=lr, betas=betas, eps=eps, quantile=quantile))
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                st = self.state[p]
+                if not st:
+                    st["step"] = 0
+                    st["m"] = torch.zeros_like(p)
+                    st["v"] = torch.zeros_like(p)
+                st["step"] += 1
+                st["m"].mul_(b1).add_(p.grad, alpha=1 - b1)
+                st["v"].mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+                m = st["m"] / (1 - b1 ** st["step"])
+                v = st["v"] / (1 - b2 ** st["step"])
+                # per row (vertex) RMS gradient; the normaliser is at least its quantile over rows
+                rms = v.reshape(len(v), -1).sum(1).sqrt()
+                floor = rms.max() if group["quantile"] >= 1 else torch.quantile(rms, group["quantile"])
+                denom = torch.maximum(rms, floor).reshape((-1,) + (1,) * (v.ndim - 1))
+                p.sub_(group["lr"] * m / (denom + group["eps"]))
 
 
 class SmoothedSolve(torch.autograd.Function):
@@ -310,6 +399,91 @@ def smoothing_solver(n_vertices: int, faces: np.ndarray, lam: float):
     return lambda b: lu.solve(np.ascontiguousarray(b))
 
 
+class TemplateSkinning:
+    """Linear blend skinning of the template by the capture's body poses (the initialization of
+    each frame; the paper also drives its template with the fitted body's LBS).
+
+    The body part of the template is the body model's mesh (its own skinning weights when the
+    vertex counts and positions agree); every other vertex takes the weights of its closest body
+    point (:func:`physavatar.garment.garment_skinning_weights`). Transforms are relative to the
+    first frame, whose pose the template is in, so a template that is not in the rest pose works
+    too: A_b(t) = T_b(t) T_b(1)^-1.
+
+    Attributes:
+        weights: [V, B]. transforms: [T, B, 4, 4] for every frame of the capture.
+    """
+
+    def __init__(self, template_vertices: np.ndarray, weights: np.ndarray, transforms: np.ndarray,
+                 carry: np.ndarray | None = None):
+        self.template = np.asarray(template_vertices, np.float64)
+        # [V] how much of its tracked residual each vertex carries to the next frame
+        self.carry = np.ones(len(self.template)) if carry is None else np.asarray(carry, np.float64)
+        self.weights = np.asarray(weights, np.float64)
+        self.transforms = np.asarray(transforms, np.float64)
+
+    @staticmethod
+    def from_capture(cap: Capture, body_residual: float = 1.0, garment_residual: float = 1.0) -> "TemplateSkinning":
+        from types import SimpleNamespace
+
+        from ..body import BodyModel
+        from ..garment import garment_skinning_weights
+
+        t = cap.template
+        body = BodyModel(cap.body.shape, topology=cap.body.topology)
+        posed = body.pose(cap.body.rotations, cap.body.root_translation)
+        Tb = posed.bone_transforms
+        rel = Tb @ np.linalg.inv(Tb[0])[None]
+        V = np.asarray(t.vertices, np.float64)
+        body_idx = np.flatnonzero(~t.garment_mask)
+        W = np.zeros((len(V), Tb.shape[1]))
+        first = posed.vertices[0]
+        if len(body_idx) == len(first) and np.abs(V[body_idx] - first).max() < 1e-3:
+            W[body_idx] = body.skinning_weights
+            other = np.flatnonzero(t.garment_mask)
+        else:  # the template's body is not this body model's mesh: transfer to every vertex
+            other = np.arange(len(V))
+        if len(other):
+            # closest point on the body of frame 1 (the template's pose), not on the rest body
+            at_first = SimpleNamespace(rest_vertices=first, faces=body.faces, skinning_weights=body.skinning_weights)
+            W[other] = garment_skinning_weights(V[other], at_first)
+        carry = np.where(t.garment_mask, garment_residual, body_residual)
+        return TemplateSkinning(V, W, rel, carry)
+
+    def matrices(self, index: int) -> np.ndarray:
+        """[V, 3, 4] each vertex's blended transform from frame 1 to capture frame ``index``."""
+        return np.einsum("vb,bij->vij", self.weights, self.transforms[index, :, :3, :])
+
+    def skin(self, index: int, points: np.ndarray | None = None) -> np.ndarray:
+        """[V, 3] ``points`` (default: the template) moved by frame ``index``'s blended transforms."""
+        A = self.matrices(index)
+        P = self.template if points is None else points
+        return np.einsum("vij,vj->vi", A[..., :3], P) + A[..., 3]
+
+    def unskin(self, index: int, points: np.ndarray) -> np.ndarray:
+        """[V, 3] the inverse of :meth:`skin`: ``points`` of frame ``index`` in the template's pose."""
+        A = self.matrices(index)
+        return np.linalg.solve(A[..., :3], (np.asarray(points, np.float64) - A[..., 3])[..., None])[..., 0]
+
+    def predict(self, index: int, tracked: list[np.ndarray], velocity: float) -> np.ndarray:
+        """[V, 3] float32 start of capture frame number ``index`` (position in the capture) from
+        ``tracked``, the vertices of the frames before it (``tracked[-1]`` is frame index - 1).
+
+        The residual r = unskin(x) - template (what skinning does not explain: cloth lag, folds)
+        changes slowly, so it is carried over in each vertex's local frame and extrapolated:
+        x_t = skin_t(template + r_{t-1} + velocity (r_{t-1} - r_{t-2})). Body vertices carry
+        ``body_residual`` of theirs (default 0: the body starts on the capture's body pose of
+        frame t, which drives it; carrying its residual only accumulated each frame's photometric
+        error — measured on the demo capture: a 1-2 mm shift per frame that added up).
+        """
+        k = self.carry[:, None]
+        r1 = k * (self.unskin(index - 1, tracked[-1]) - self.template)
+        c = self.template + r1
+        if velocity and len(tracked) >= 2:
+            r2 = k * (self.unskin(index - 2, tracked[-2]) - self.template)
+            c = c + velocity * (r1 - r2)
+        return self.skin(index, c).astype(np.float32)
+
+
 # -- one frame -----------------------------------------------------------------------------------
 
 @dataclass
@@ -323,8 +497,9 @@ class FrameResult:
 def _loss_terms(model: MeshGaussians, vertices, colors, log_scales, opacity_logits, views: list[View],
                 cfg: TrackConfig, iso: IsometryLoss | None, normal: NormalLoss | None) -> dict:
     preds, alphas = [], []
+    splats = model.splats(vertices, colors, log_scales, opacity_logits)
     for v in views:
-        out = model.render(vertices, v.camera, colors, log_scales, opacity_logits)
+        out = model.rasterize(splats, v.camera)
         preds.append(linear_to_srgb(out["rgb"]))
         alphas.append(out["alpha"])
     pred = torch.stack(preds)
@@ -384,16 +559,21 @@ def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[Vie
         # larger pixels, larger vertex steps: keep the step a fixed fraction of a pixel
         px_ratio = finest_px / views[0].camera.width
         lrs = [lr * (px_ratio if p is U else 1.0) for p, lr in groups]
-        opt = torch.optim.Adam([{"params": [p], "lr": lr} for (p, _), lr in zip(groups, lrs)])
         decay = cfg.lr_decay ** (1.0 / max(n_max - 1, 1))
-        sched = torch.optim.lr_scheduler.ExponentialLR(opt, decay)
+        opts = []
+        for (p, _), lr in zip(groups, lrs):
+            kind = AdamUniform if (p is U and cfg.vertex_optimizer == "uniform") else torch.optim.Adam
+            opts.append(kind([p], lr=lr, quantile=cfg.uniform_quantile) if kind is AdamUniform else kind([p], lr=lr))
+        scheds = [torch.optim.lr_scheduler.ExponentialLR(o, decay) for o in opts]
         history: list[float] = []
         for it in range(n_max):
-            opt.zero_grad(set_to_none=True)
+            for o in opts:
+                o.zero_grad(set_to_none=True)
             terms = _loss_terms(model, current(), colors, log_scales, opac, views, cfg, iso, normal)
             terms["loss"].backward()
-            opt.step()
-            sched.step()
+            for o, sc in zip(opts, scheds):
+                o.step()
+                sc.step()
             with torch.no_grad():
                 colors.clamp_(0.0, 1.0)
             history.append(float(terms["loss"].detach()))
@@ -434,6 +614,10 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"option --scale: must be in (0, 1], got {cfg.scale}")
     if cfg.iters < 1 or cfg.iters_first < 1:
         raise PhysavatarError(None, "options --iters/--iters-first: need at least one iteration")
+    if cfg.init not in ("lbs", "velocity"):
+        raise PhysavatarError(None, f"init must be 'lbs' or 'velocity', got {cfg.init!r}")
+    if cfg.vertex_optimizer not in ("uniform", "adam"):
+        raise PhysavatarError(None, f"vertex_optimizer must be 'uniform' or 'adam', got {cfg.vertex_optimizer!r}")
     if cfg.normal_mode not in ("paper", "rest"):
         raise PhysavatarError(None, f"normal_mode must be 'paper' or 'rest', got {cfg.normal_mode!r}")
     if not cfg.levels or any(not 0 < lv <= 1 for lv in cfg.levels):
@@ -530,6 +714,7 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
     solve = smoothing_solver(len(t.vertices), t.faces, cfg.smoothing) if cfg.smoothing > 0 else None
     log_path = out / "track_log.csv"
     log = _read_log(log_path)
+    skin = TemplateSkinning.from_capture(cap, cfg.body_residual, cfg.garment_residual) if cfg.init == "lbs" and len(frames) > 1 else None
 
     verts: list[np.ndarray] = []
     cols: list[np.ndarray] = []
@@ -552,11 +737,13 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                 bar.advance(task)
                 continue
             t0 = time.perf_counter()
-            pyramid = [load_views(cap, f, train, s) for s in factors]
+            pyramid = [load_views(cap, f, train, s, cfg.target_blur) for s in factors]
             if i == 0:
                 gv = model.gaussian_vertices(torch.from_numpy(np.asarray(t.vertices, np.float32))).numpy()
                 model.colors = torch.from_numpy(initial_colors(gv, model.faces.numpy(), pyramid[-1]))
                 init = np.asarray(t.vertices, np.float32)
+            elif skin is not None:
+                init = skin.predict(i, verts, cfg.velocity)
             else:
                 prev = verts[-1]
                 vel = verts[-1] - verts[-2] if i >= 2 else np.zeros_like(prev)
