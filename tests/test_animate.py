@@ -8,13 +8,12 @@ from physavatar.body import BodyModel, Motion, builtin_motion
 from physavatar.capture import load_capture
 from physavatar.garment.geometry import count_intersections
 from physavatar.stages.animate import Sequence, animate
-from physavatar.synth import PRESETS, synthesize
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tmp_path_factory, tiny_capture):
     root = tmp_path_factory.mktemp("anim")
-    cap = synthesize(root / "cap", PRESETS["tiny"], progress=False)
+    cap = tiny_capture
     av = build_avatar(cap, root / "avatar", material=cap / "ground_truth" / "material.json")
     return load_capture(cap), av, root
 

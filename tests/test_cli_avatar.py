@@ -5,7 +5,6 @@ import pytest
 from typer.testing import CliRunner
 
 from physavatar.cli import app
-from physavatar.synth import PRESETS, synthesize
 
 runner = CliRunner()
 
@@ -17,11 +16,12 @@ def ok(args):
 
 
 @pytest.fixture(scope="module")
-def seq(tmp_path_factory):
+def seq(tmp_path_factory, tiny_capture):
     root = tmp_path_factory.mktemp("cli_avatar")
-    cap = synthesize(root / "cap", PRESETS["tiny"], progress=False)
+    cap = tiny_capture
     ok(["build-avatar", cap, "--out", root / "avatar", "--material", "denim"])
     ok(["animate", root / "avatar", "--motion", "twist", "--duration", "0.2", "--out", root / "seq"])
+    (root / "cap").symlink_to(cap)
     return root
 
 

@@ -8,15 +8,14 @@ import pytest
 from physavatar.avatar import build_avatar
 from physavatar.files import save_npz_atomic
 from physavatar.stages.evaluate import random_material
-from physavatar.synth import PRESETS, synthesize
 
 
 @pytest.fixture(scope="module")
-def result(tmp_path_factory):
+def result(tmp_path_factory, tiny_capture):
     from physavatar.stages.evaluate import evaluate
 
     root = tmp_path_factory.mktemp("eval")
-    cap = synthesize(root / "cap", PRESETS["tiny"], progress=False)
+    cap = tiny_capture
     av = build_avatar(cap, root / "avatar", material=cap / "ground_truth" / "material.json")
     shutil.copyfile(cap / "ground_truth" / "texture_linear.npy", root / "avatar" / "texture_linear.npy")
     gt = np.load(cap / "ground_truth" / "meshes.npz")

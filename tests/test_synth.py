@@ -14,10 +14,8 @@ from physavatar.synth import PRESETS, synthesize
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    out = tmp_path_factory.mktemp("synth") / "tiny"
-    synthesize(out, PRESETS["tiny"], progress=False)
-    return out
+def tiny(tiny_capture):
+    return tiny_capture
 
 
 def test_tiny_capture_is_valid(tiny):
