@@ -601,6 +601,7 @@ def fit_appearance_cmd(
     cameras: Optional[str] = typer.Option(None, "--cameras", help="training cameras CAM,CAM (default: all)"),
     fix_light: bool = typer.Option(False, "--fix-light", help="keep the light at its initial value"),
     seed: int = typer.Option(0, "--seed"),
+    quick: bool = typer.Option(False, "--quick", help="a few-minute CPU budget: 200 iterations (lr 0.02) on half-resolution images, 32-spp previews"),
 ):
     """Fit a relightable diffuse texture and the light by inverse rendering (docs/appearance.md)."""
     import numpy as np
@@ -615,6 +616,11 @@ def fit_appearance_cmd(
     cfg = AppearanceConfig(light=light, iterations=iterations, texture_size=texture_size, scale=scale, spp=spp,
                            final_spp=final_spp, batch=batch, lr=lr, lr_decay_every=decay_every,
                            frame_stride=frame_stride, cameras=cams, fit_light=not fix_light, seed=seed)
+    if quick:
+        from dataclasses import replace as _replace
+
+        cfg = _replace(cfg, iterations=min(iterations, 200), scale=min(scale, 0.5), final_spp=min(final_spp, 32),
+                       lr=max(lr, 0.02), lr_decay_every=min(decay_every, 50), init_frame_stride=4)
     t0 = time.time()
     res = fit_appearance(capture, out, cfg, tracked=tracked, meshes=meshes, lighting=lighting)
     amb = next((l.radiance for l in res.lights if type(l).__name__ == "Ambient"), None)
@@ -628,6 +634,63 @@ def fit_appearance_cmd(
         msg += f"; ambient {tuple(round(float(a), 3) for a in np.broadcast_to(amb, 3))}"
     console.print(msg)
     console.print(f"wrote {out}/texture.png, texture_linear.npy, light.json, fit_log.csv, loss.png, preview.png")
+
+
+@app.command()
+@handle_errors
+def relight(
+    source: Path = typer.Argument(..., help="capture folder (ground-truth mesh) or tracking folder (tracked.npz)"),
+    texture: Path = typer.Option(..., "--texture", help="fit-appearance output folder"),
+    light: str = typer.Option("sky", "--light", help="ambient, studio (fitted), sun, sky, point, or an .hdr/.exr file"),
+    frame: Optional[int] = typer.Option(None, "--frame", help="frame id (default: the first)"),
+    out: Path = typer.Option(..., "--out", "-o", help="contact sheet PNG"),
+    capture: Optional[Path] = typer.Option(None, "--capture", help="capture folder for the cameras (when SOURCE is a tracking folder)"),
+    spp: int = typer.Option(128, "--spp"),
+    strength: float = typer.Option(1.0, "--strength", help="environment map scale"),
+    scale: float = typer.Option(1.0, "--scale", help="image resolution factor"),
+):
+    """Render the avatar with its fitted texture under a new light, from every capture camera."""
+    from .capture import load_capture
+    from .files import load_npz, read_json
+    from .capture import save_png
+    from .render import contact_sheet
+    from .stages.appearance import FittedAppearance, named_lights, relight as run_relight
+
+    if out.suffix.lower() != ".png":
+        _bad_option("--out", f"{out} must end in .png")
+    if spp < 1 or not (0 < scale <= 1):
+        _bad_option("--spp/--scale", "spp >= 1 and scale in (0, 1]")
+    fit = FittedAppearance.load(texture)
+    if (source / "tracked.npz").is_file():
+        tr = load_npz(source / "tracked.npz")
+        V_all, frames = tr["vertices"], [int(f) for f in tr["frames"]]
+        if capture is None:
+            cfg_path = source / "config.json"
+            guess = read_json(cfg_path).get("capture") if cfg_path.is_file() else None
+            if not guess:
+                _bad_option("--capture", "needed to find the cameras of a tracking folder")
+            capture = Path(guess)
+        cap = load_capture(capture)
+    else:
+        cap = load_capture(source)
+        if cap.ground_truth is None or not (cap.ground_truth / "meshes.npz").is_file():
+            raise PhysavatarError(source, "no ground_truth/meshes.npz: pass a tracking folder instead")
+        V_all, frames = load_npz(cap.ground_truth / "meshes.npz")["vertices"], list(cap.frames)
+    f = frames[0] if frame is None else frame
+    if f not in frames:
+        _bad_option("--frame", f"{f} is not one of the frames {frames[0]}..{frames[-1]}")
+    V = V_all[frames.index(f)]
+    t = cap.template
+    if fit.face_uvs.shape != (len(t.faces), 3, 2):
+        raise PhysavatarError(texture / "atlas.npz", "the atlas does not match this capture's template")
+    lights = named_lights(light, target=tuple(V.mean(0)), fitted=fit.lights, strength=strength)
+    imgs = []
+    for cam in cap.cameras:
+        r = run_relight(V, t.faces, fit.face_uvs, fit.texture, cam.scaled(scale), lights, labels=t.labels, spp=spp)
+        imgs.append(r.srgb8())
+    sheet = contact_sheet(imgs, [f"{c.name} {light if len(light) < 20 else Path(light).name}" for c in cap.cameras])
+    save_png(out, sheet)
+    console.print(f"wrote {out} ({len(imgs)} views of frame {f}, {sheet.shape[1]}x{sheet.shape[0]})")
 
 
 def main():  # console-script entry point
