@@ -481,6 +481,24 @@ def evaluate(
     console.print((out / "report.md").read_text())
 
 
+@app.command()
+@handle_errors
+def run(
+    capture: Path = typer.Argument(..., help="capture folder"),
+    out: Path = typer.Argument(..., help="output folder (resumes when it exists)"),
+    quick: bool = typer.Option(False, help="smaller budgets for every stage (tests, previews)"),
+    track_frames: Optional[int] = typer.Option(None, help="track only the first N frames"),
+    eval_frames: Optional[int] = typer.Option(None, help="animate / evaluate only the first N held-out frames"),
+):
+    """Run the whole pipeline: track, fit-physics, fit-appearance, build-avatar, animate (held-out
+    motion), render, evaluate; skips finished stages; writes OUT/report.md."""
+    from .stages.run import run_pipeline, write_report
+
+    rec = run_pipeline(capture, out, quick=quick, track_frames=track_frames, eval_frames=eval_frames)
+    path = write_report(out)
+    console.print(f"done in {rec['_total_seconds_this_run']:.0f} s; report: {path}")
+
+
 # -- pose ----------------------------------------------------------------------------------------
 
 @app.command()
@@ -535,6 +553,92 @@ def pose(
                   f"loaded in {t_load:.1f} s) with motion {m.name!r}: {m.frames} frames at {fps:g} fps")
     console.print(f"wrote {out}/body_sequence.npz, {out}/meshes/*.ply, {out}/motion.npz"
                   + (f", {out}/preview.gif" if preview else ""))
+
+
+# -- fit-physics ---------------------------------------------------------------------------------
+
+@app.command("fit-physics")
+@handle_errors
+def fit_physics(
+    source: Path = typer.Argument(..., help="tracked folder (tracked.npz) or capture with ground_truth/meshes.npz"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder (material.json, fit_log.csv, fit.png)"),
+    gradient: str = typer.Option("exact", help="fd (the paper: finite differences + Adam) or exact (sensitivities + Gauss-Newton)"),
+    window: int = typer.Option(24, help="frames fitted (the paper: 24)"),
+    start: int = typer.Option(0, help="first frame of the window (simulated from rest there)"),
+    iterations: Optional[int] = typer.Option(None, help="optimizer iterations (default: 100 fd, 15 exact)"),
+    init: str = typer.Option("far", help="initial material: a material JSON, a preset (silk, cotton, denim) or 'far'"),
+    fit_density: bool = typer.Option(False, "--fit-density", help="also fit rho (only ks/rho, kb/rho are identifiable)"),
+    density: Optional[float] = typer.Option(None, help="density prior rho in kg/m^2 (default: the initial material's)"),
+    noise_mm: float = typer.Option(0.0, "--noise-mm", help="Gaussian noise (mm) added to the reference (benchmarks)"),
+    workers: int = typer.Option(2, help="processes for the fd simulations"),
+    seed: int = typer.Option(0, help="seed of --noise-mm"),
+    friction: float = typer.Option(0.2, help="cloth-body friction coefficient of the simulator (0 = off)"),
+):
+    """Estimate the garment's cloth material from its tracked motion (PhysAvatar Sec. 3.2)."""
+    import dataclasses as _dc
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from .sim import PRESETS as _SIM_PRESETS
+    from .sim import Material
+    from .stages.physics import (PAPER_ITERATIONS, far_material, fit_material, fit_settings, load_physics_data,
+                                 write_outputs)
+
+    if gradient not in ("fd", "exact"):
+        _bad_option("--gradient", f"{gradient!r} is not fd or exact")
+    if window < 2:
+        _bad_option("--window", "needs at least 2 frames")
+    if iterations is not None and iterations < 1:
+        _bad_option("--iterations", "must be at least 1")
+    if noise_mm < 0:
+        _bad_option("--noise-mm", "must be >= 0")
+    if density is not None and not density > 0:
+        _bad_option("--density", "must be positive")
+    if friction < 0:
+        _bad_option("--friction", "must be >= 0")
+    if init == "far":
+        initial = far_material()
+    elif init in _SIM_PRESETS:
+        initial = _SIM_PRESETS[init]
+    else:
+        initial = Material.load(init)
+    if density is not None:
+        initial = _dc.replace(initial, density=density)
+    data = load_physics_data(source)
+    if start < 0 or start + 2 > data.frames:
+        _bad_option("--start", f"must leave at least 2 of the {data.frames} frames")
+    data = data.window(start, window)
+    # benchmark noise perturbs what is fitted to, not the (template-clean) start state
+    data = _dc.replace(data, initial=data.reference[0]).with_noise(noise_mm * 1e-3, seed)
+    n_iter = iterations or (PAPER_ITERATIONS if gradient == "fd" else 15)
+    console.print(f"fitting {('rho, ' if fit_density else '') + 'ks, kb'} of a {data.reference.shape[1]}-vertex "
+                  f"garment over {data.frames} frames ({gradient} gradients, up to {n_iter} iterations)")
+    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), console=console) as bar:
+        task = bar.add_task("fit", total=n_iter + (1 if gradient == "exact" else 0))
+
+        def report(row):
+            params = "  ".join(f"{k}={row[k]:.4g}" for k in ("density", "stretch_stiffness", "bend_stiffness") if k in row)
+            bar.update(task, advance=1,
+                       description=f"it {row['iteration']:3d}  loss {row['loss']:.4g} m² ({row['rms_mm']:.2f} mm)  {params}")
+
+        result = fit_material(data, initial, gradient, iterations, fit_density, fit_settings(friction=friction),
+                              workers=workers, callback=report)
+    write_outputs(out, result)
+    m = result.material
+    ci = result.ratio_intervals
+    t = Table(title=f"fitted material ({gradient})")
+    for col in ("quantity", "value", "95% interval"):
+        t.add_column(col)
+    t.add_row("rho [kg/m²]", f"{m.density:.4g}", "fitted" if fit_density else "prior")
+    t.add_row("ks [N/m]", f"{m.stretch_stiffness:.4g}", "")
+    t.add_row("kb [N·m]", f"{m.bend_stiffness:.4g}", "")
+    for key, label in (("stretch_ratio", "ks/rho [m²/s²]"), ("bend_ratio", "kb/rho [m³/s²]")):
+        iv = ci.get(key)
+        t.add_row(label, f"{getattr(m, key):.4g}", "-" if not iv else f"[{iv[0]:.4g}, {iv[1]:.4g}]")
+    console.print(t)
+    console.print(f"loss {result.loss:.4g} m² (rms {result.rms_mm:.2f} mm), {result.simulations} simulations, "
+                  f"{result.wall_time:.0f} s; wrote {out}/material.json, fit_log.csv, fit.png")
 
 
 # -- track (paper Sec. 3.1) ----------------------------------------------------------------------
