@@ -111,6 +111,12 @@ def build_avatar(capture: str | Path | Capture, out: str | Path, *, material: st
     t = cap.template
     if template_vertices is not None:
         t = Template(np.asarray(template_vertices, np.float64), t.faces, t.labels, t.boundary, t.face_uvs)
+    if texture_dir is not None and (Path(texture_dir) / "atlas.npz").exists():
+        # the texture was fitted on this atlas (made by xatlas when the capture's template has
+        # no UVs): the avatar must carry the same UVs as its texture
+        uv = load_npz(Path(texture_dir) / "atlas.npz").get("face_uvs")
+        if uv is not None and uv.shape == (len(t.faces), 3, 2):
+            t = Template(t.vertices, t.faces, t.labels, t.boundary, np.asarray(uv, np.float64))
     t.save(out / "template.ply")
     if isinstance(material, Material):
         mat = material
