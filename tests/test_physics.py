@@ -4,6 +4,7 @@ differences, scale invariance, recovery of κb/ρ, the fd estimator's pool, outp
 import dataclasses
 import json
 
+import cloth_grid
 import numpy as np
 import pytest
 import trimesh
@@ -22,15 +23,7 @@ TIGHT = SimSettings(newton_tol=1e-6)
 
 
 def grid(n, size, z=1.0, center=False):
-    u = np.linspace(-size / 2, size / 2, n) if center else np.linspace(0.0, size, n)
-    X, Y = np.meshgrid(u, u, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), np.full(n * n, z)], 1)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            F += [[a, a + n, a + 1], [a + 1, a + n, a + n + 1]]
-    return V, np.array(F)
+    return cloth_grid.grid(n, size, z, center)
 
 
 def hanging_cloth(frames=8, seed=0):

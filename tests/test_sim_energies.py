@@ -1,6 +1,7 @@
 """Energies of physavatar.sim against finite differences, ipctk and the plate formula."""
 
 import ipctk
+import cloth_grid
 import numpy as np
 import pytest
 
@@ -12,15 +13,7 @@ from physavatar.sim.mesh import ClothTopology
 
 
 def grid(n=4, size=1.0):
-    u = np.linspace(0.0, size, n)
-    X, Y = np.meshgrid(u, u, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), np.zeros(n * n)], 1)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            F += [[a, a + n, a + 1], [a + 1, a + n, a + n + 1]]
-    return V, np.array(F)
+    return cloth_grid.grid(n, size)
 
 
 def dense(h, n):

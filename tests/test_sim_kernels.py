@@ -1,5 +1,6 @@
 """The numba kernels and the CG linear solver of physavatar.sim against their numpy twins."""
 
+import cloth_grid
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -11,15 +12,7 @@ from physavatar.sim.mesh import ClothTopology
 
 
 def grid(n=5, size=1.0):
-    u = np.linspace(0.0, size, n)
-    X, Y = np.meshgrid(u, u, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), np.zeros(n * n)], 1)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            F += [[a, a + n, a + 1], [a + 1, a + n, a + n + 1]]
-    return V, np.array(F)
+    return cloth_grid.grid(n, size)
 
 
 @pytest.fixture

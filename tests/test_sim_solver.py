@@ -3,6 +3,7 @@
 import dataclasses
 
 import ipctk
+import cloth_grid
 import numpy as np
 import pytest
 import trimesh
@@ -11,15 +12,7 @@ from physavatar.sim import ClothSim, Material, SimSettings, simulate
 
 
 def grid(n, size, z=0.0):
-    u = np.linspace(-size / 2, size / 2, n)
-    X, Y = np.meshgrid(u, u, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), np.full(n * n, z)], 1)
-    F = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a = i * n + j
-            F += [[a, a + n, a + 1], [a + 1, a + n, a + n + 1]]
-    return V, np.array(F)
+    return cloth_grid.grid(n, size, z, center=True)
 
 
 def settle_sag(material, n=7):
