@@ -29,16 +29,10 @@ from physavatar.metrics import vertex_error_mm
 from physavatar.stages.track import TrackConfig, track
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _common import cpu_name  # noqa: E402
 
 
-def cpu_name() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def errors(pred: np.ndarray, gt: np.ndarray, labels: np.ndarray) -> dict:
