@@ -35,7 +35,7 @@ def main() -> None:
         run(["synth", str(capture), "--preset", a.preset])
     run(["inspect", str(capture), "--quick"])
     run(["render-capture", str(capture), "--out", str(out / "contact_sheet.png")])
-    extra = ["--eval-frames", "24"] if a.preset == "demo" else ["--quick"]
+    extra = [] if a.preset == "demo" else ["--quick"]
     run(["run", str(capture), str(out / "run"), *extra])
     print(f"\ndemo done in {(time.time() - t0) / 60:.1f} min:")
     print(f"  capture (synthetic, with ground truth): {capture}   contact sheet: {out}/contact_sheet.png")

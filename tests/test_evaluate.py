@@ -43,3 +43,28 @@ def test_random_material_is_seeded_and_in_range():
     a, b, c = random_material(0), random_material(0), random_material(1)
     assert a == b and a != c
     assert 200 * 0.328e-3 * 0.99 <= a.density <= 640 * 0.328e-3 * 1.01
+
+
+def test_reused_sequence_gives_the_same_row_and_bad_ones_are_refused(result, tiny_capture):
+    """`evaluate --sequence` (the animate stage's output) = simulating the estimated row again."""
+    from physavatar.avatar import Avatar
+    from physavatar.body import Motion
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.animate import animate
+    from physavatar.stages.evaluate import _reuse_sequence
+
+    m, root = result
+    av = Avatar.load(root / "avatar")
+    held = Motion.load(tiny_capture / "ground_truth" / "heldout" / "motion.npz")
+    seq, stats = animate(av, held, progress=False)
+    seq.save(root / "seq", {"command": "animate"}, ply=False)
+    n = m["heldout_frames"]
+    reused = _reuse_sequence(root / "seq", av, n)
+    assert reused.vertices.shape[0] == n
+    np.testing.assert_allclose(reused.vertices, seq.vertices[:n], atol=1e-6)  # float32 on disk
+    with pytest.raises(PhysavatarError, match="frames"):
+        _reuse_sequence(root / "seq", av, len(seq.vertices) + 1)
+    save_npz_atomic(root / "seq" / "sequence.npz", vertices=seq.vertices[:, :10].astype(np.float32),
+                    faces=seq.faces, labels=seq.labels[:10], fps=np.float64(seq.fps))
+    with pytest.raises(PhysavatarError, match="not an animation of this avatar"):
+        _reuse_sequence(root / "seq", av, n)

@@ -15,13 +15,32 @@ def test_run_end_to_end_and_resume(tiny_capture, tmp_path):
     report = (out / "report.md").read_text()
     assert "Geometry (paper Table 2 layout)" in report and "Wall time per stage" in report
     rec = json.loads((out / "run.json").read_text())
-    stages = ["track", "physics", "appearance", "avatar", "animate", "render", "relight", "evaluate"]
+    stages = ["track", "physics", "appearance", "avatar", "animate", "render", "relight", "export", "export-glb",
+              "evaluate"]
     assert all(rec[s]["status"] == "ok" for s in stages)
     m = json.loads((out / "evaluate" / "metrics.json").read_text())
     assert m["rows"]["true material"]["garment"]["chamfer_x1e3"] < m["rows"]["LBS"]["garment"]["chamfer_x1e3"]
     assert (out / "render" / "orbit.mp4").exists() and (out / "relight" / "orbit.mp4").exists()
+    # the exports hold the animated sequence, frame for frame
+    import numpy as np
+    from pxr import Usd, UsdGeom
+
+    seq = np.load(out / "animate" / "sequence.npz")
+    stage = Usd.Stage.Open(str(out / "export" / "avatar.usdc"))
+    mesh = next(UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+    times = mesh.GetPointsAttr().GetTimeSamples()
+    assert len(times) == len(seq["vertices"])
+    assert (out / "export-glb" / "avatar.glb").stat().st_size > 1000
+    # evaluate reused the animate stage's sequence instead of simulating it again
+    assert m["estimated_sequence"].endswith("animate")
+    assert "export/avatar.usdc" in report
     # a rerun skips every finished stage
     t = time.time()
     r = CliRunner().invoke(app, ["run", str(tiny_capture), str(out), "--quick"])
     assert r.exit_code == 0 and time.time() - t < 30
     assert r.output.count("skipped") == len(stages)
+    # an interrupted run (evaluation lost) resumes with just that stage
+    (out / "evaluate" / "metrics.json").unlink()
+    r = CliRunner().invoke(app, ["run", str(tiny_capture), str(out), "--quick"])
+    assert r.exit_code == 0, r.output
+    assert r.output.count("skipped") == len(stages) - 1 and (out / "evaluate" / "metrics.json").exists()

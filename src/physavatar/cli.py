@@ -470,6 +470,7 @@ def evaluate(
     tracked: Optional[Path] = typer.Option(None, help="tracking output: also report tracking error"),
     frames: Optional[int] = typer.Option(None, help="evaluate the first N held-out frames"),
     points: int = typer.Option(10000, help="points sampled per surface for Chamfer / F-score"),
+    sequence: Optional[Path] = typer.Option(None, help="animate output on the held-out motion: reuse it as the estimated-material row"),
 ):
     """Metrics against ground truth: garment/full Chamfer and F-scores on the held-out motion for LBS,
     random, estimated and true material; PSNR/SSIM/LPIPS on held-out views; tracking error."""
@@ -477,7 +478,7 @@ def evaluate(
 
     if points < 100:
         _bad_option("--points", "use at least 100 points")
-    run_eval(capture, avatar, out, tracked=tracked, frames=frames, n_points=points)
+    run_eval(capture, avatar, out, tracked=tracked, frames=frames, n_points=points, sequence=sequence)
     console.print((out / "report.md").read_text())
 
 
@@ -489,12 +490,16 @@ def run(
     quick: bool = typer.Option(False, help="smaller budgets for every stage (tests, previews)"),
     track_frames: Optional[int] = typer.Option(None, help="track only the first N frames"),
     eval_frames: Optional[int] = typer.Option(None, help="animate / evaluate only the first N held-out frames"),
+    motion: Optional[str] = typer.Option(None, help="motion to animate (built-in name, .bvh, .npz); default: the "
+                                         "synthetic capture's held-out motion (then also evaluated), else 'dance'"),
 ):
     """Run the whole pipeline: track, fit-physics, fit-appearance, build-avatar, animate (held-out
-    motion), render, evaluate; skips finished stages; writes OUT/report.md."""
+    motion), render, relight, export (USD, glTF), evaluate (synthetic captures); skips finished
+    stages; writes OUT/report.md."""
     from .stages.run import run_pipeline, write_report
 
-    rec = run_pipeline(capture, out, quick=quick, track_frames=track_frames, eval_frames=eval_frames)
+    rec = run_pipeline(capture, out, quick=quick, track_frames=track_frames, eval_frames=eval_frames,
+                       heldout_motion=motion)
     path = write_report(out)
     console.print(f"done in {rec['_total_seconds_this_run']:.0f} s; report: {path}")
 
@@ -573,6 +578,9 @@ def fit_physics(
     workers: int = typer.Option(2, help="processes for the fd simulations"),
     seed: int = typer.Option(0, help="seed of --noise-mm"),
     friction: float = typer.Option(0.2, help="cloth-body friction coefficient of the simulator (0 = off)"),
+    max_vertices: int = typer.Option(400, "--max-vertices",
+                                     help="fit on a coarse proxy of at most this many vertices when the garment has "
+                                          "more (0 = always the full garment; docs/physics.md)"),
 ):
     """Estimate the garment's cloth material from its tracked motion (PhysAvatar Sec. 3.2)."""
     import dataclasses as _dc
@@ -582,7 +590,8 @@ def fit_physics(
     from .sim import PRESETS as _SIM_PRESETS
     from .sim import Material
     from .stages.physics import (PAPER_ITERATIONS, far_material, fit_material, fit_settings, load_physics_data,
-                                 write_outputs)
+                                 on_proxy, write_outputs)
+    from .stages.proxy import make_proxy
 
     if gradient not in ("fd", "exact"):
         _bad_option("--gradient", f"{gradient!r} is not fd or exact")
@@ -596,6 +605,8 @@ def fit_physics(
         _bad_option("--density", "must be positive")
     if friction < 0:
         _bad_option("--friction", "must be >= 0")
+    if max_vertices != 0 and max_vertices < 20:
+        _bad_option("--max-vertices", "must be 0 (no proxy) or at least 20")
     if init == "far":
         initial = far_material()
     elif init in _SIM_PRESETS:
@@ -608,8 +619,16 @@ def fit_physics(
     if start < 0 or start + 2 > data.frames:
         _bad_option("--start", f"must leave at least 2 of the {data.frames} frames")
     data = data.window(start, window)
+    data = _dc.replace(data, initial=data.reference[0])
+    proxy = None
+    n_fine = data.reference.shape[1]
+    if max_vertices and n_fine > max_vertices:
+        proxy = make_proxy(data.rest, data.faces, data.boundary, max_vertices)
+        data = on_proxy(data, proxy)
+        console.print(f"simulating a {len(proxy.vertices)}-vertex proxy of the {n_fine}-vertex garment "
+                      f"(mean edge {100 * proxy.mean_edge:.1f} cm, {len(proxy.boundary)} boundary vertices)")
     # benchmark noise perturbs what is fitted to, not the (template-clean) start state
-    data = _dc.replace(data, initial=data.reference[0]).with_noise(noise_mm * 1e-3, seed)
+    data = data.with_noise(noise_mm * 1e-3, seed)
     n_iter = iterations or (PAPER_ITERATIONS if gradient == "fd" else 15)
     console.print(f"fitting {('rho, ' if fit_density else '') + 'ks, kb'} of a {data.reference.shape[1]}-vertex "
                   f"garment over {data.frames} frames ({gradient} gradients, up to {n_iter} iterations)")
@@ -624,6 +643,9 @@ def fit_physics(
 
         result = fit_material(data, initial, gradient, iterations, fit_density, fit_settings(friction=friction),
                               workers=workers, callback=report)
+    if proxy is not None:
+        result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),
+                        "mean_edge_m": proxy.mean_edge, "garment_vertices": n_fine, "max_vertices": max_vertices}
     write_outputs(out, result)
     m = result.material
     ci = result.ratio_intervals

@@ -32,7 +32,8 @@ Outputs (``out/``)::
     texture.png, texture_linear.npy    fitted albedo atlas (sRGB PNG; linear float32 [H, W, 3])
     texture_init_linear.npy            T_0 (the "w/o appearance" ablation of Table 2)
     atlas.npz                          face_uvs [F, 3, 2], face_colors [F, 3] (T_0's source),
-                                       face_pixels [F] (training pixels that saw each face)
+                                       face_pixels [F] (training pixels that saw each face; with
+                                       tracked colours counted on 8 frames spread over the sequence)
     light.json                         fitted lights (same format as lighting.json)
     fit_log.csv, loss.png              per-iteration loss, lr, lights, seconds
     preview.png                        target | fitted render of a few training views (final spp)
@@ -525,6 +526,9 @@ def image_face_colors(data: AppearanceData, frame_stride: int = 1, erode_px: int
 
 # -- the fit ---------------------------------------------------------------------------------------
 
+VISIBILITY_FRAMES = 8  # frames over which face visibility is counted when tracked colours exist
+
+
 class _Adam:
     """Adam on numpy arrays (β = 0.9, 0.999, ε = 1e-8, Mitsuba's defaults), kept here rather
     than ``mi.ad.Adam`` so that its moments can be checkpointed and a run resumed exactly."""
@@ -764,8 +768,13 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
         else:
             face_uvs = t.face_uvs
             used = range(0, len(data.frames), cfg.init_frame_stride)
-            task = bar.add_task("per-face colours", total=len(used) * len(data.cameras))
-            img_colors, face_pixels = image_face_colors(data, cfg.init_frame_stride, cfg.erode_px,
+            # With tracked colours the image pass only counts which faces the training pixels
+            # see (``face_pixels``): a few frames spread over the sequence suffice for that.
+            stride = cfg.init_frame_stride if data.face_colors is None else \
+                max(cfg.init_frame_stride, len(data.frames) // VISIBILITY_FRAMES)
+            task = bar.add_task("per-face colours" if data.face_colors is None else "face visibility",
+                                total=len(range(0, len(data.frames), stride)) * len(data.cameras))
+            img_colors, face_pixels = image_face_colors(data, stride, cfg.erode_px,
                                                         progress=lambda: bar.advance(task))
             if data.face_colors is not None:
                 # the paper: mean over t of the tracked Gaussian colours (Sec. 3.3)

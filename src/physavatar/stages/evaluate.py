@@ -56,8 +56,13 @@ def _surface_rows(pred: np.ndarray, gt: np.ndarray, faces: np.ndarray, n_points:
 
 def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tracked: str | Path | None = None,
              frames: int | None = None, n_points: int = 10000, views_spp: int = 64, seed: int = 0,
-             progress: bool = True) -> dict:
-    """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics."""
+             sequence: str | Path | None = None, progress: bool = True) -> dict:
+    """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics.
+
+    ``sequence``: an ``animate`` output of this avatar on the held-out motion, used as the
+    estimated-material row instead of simulating it again (it must cover the evaluated frames
+    and have the avatar's topology).
+    """
     from ..garment import garment_skinning_weights
     from ..body import BodyModel
     from .animate import animate
@@ -85,7 +90,11 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     # The four garment rows.
     seqs = {}
     t0 = time.time()
-    est, _ = animate(av, held, progress=progress)
+    est = _reuse_sequence(sequence, av, len(gt)) if sequence is not None else None
+    if est is None:
+        est, _ = animate(av, held, progress=progress)
+    else:
+        metrics["estimated_sequence"] = str(sequence)
     seqs["estimated material"] = est.vertices
     metrics["seconds"]["animate_estimated"] = round(time.time() - t0, 1)
     true_path = gt_root / "material.json"
@@ -130,6 +139,26 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     write_json_atomic(out / "metrics.json", metrics)
     write_text_atomic(out / "report.md", report_markdown(metrics))
     return metrics
+
+
+def _reuse_sequence(path, av, n_frames: int):
+    """The ``animate`` output at ``path`` (checked against the avatar and the frame count)."""
+    from .animate import Sequence
+
+    path = Path(path)
+    if not (path / "sequence.npz").is_file():
+        raise PhysavatarError(path, "no sequence.npz (pass an `animate` output folder)")
+    seq = Sequence.load(path)
+    t = av.template
+    if seq.vertices.shape[1] != len(t.vertices) or not np.array_equal(seq.faces, t.faces):
+        raise PhysavatarError(path, f"sequence has {seq.vertices.shape[1]} vertices / other faces than the avatar "
+                              f"({len(t.vertices)} vertices): not an animation of this avatar")
+    if len(seq.vertices) < n_frames:
+        raise PhysavatarError(path, f"sequence has {len(seq.vertices)} frames, the evaluation needs {n_frames}")
+    if abs(seq.fps - av.fps) > 1e-6:
+        raise PhysavatarError(path, f"sequence runs at {seq.fps} fps, the avatar at {av.fps}")
+    seq.vertices = seq.vertices[:n_frames]
+    return seq
 
 
 def _appearance(cap, av, seq, held_dir: Path, out: Path, spp: int) -> dict:
