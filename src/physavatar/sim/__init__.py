@@ -5,8 +5,15 @@ Rayleigh damping; contact (contact.py): ipctk barrier, lagged friction, CCD; New
 the public API (solver.py). Units and defaults: docs/simulation.md.
 """
 
-from .material import PRESETS, Material, preset
-from .solver import ClothSim, Linearization, SimSettings, StepStats, simulate
+import ipctk as _ipctk
+
+# ipctk logs a warning for every additive-CCD query with a near-zero gap; on a 24-frame material
+# fit that is thousands of console lines. The solver checks what matters itself (every step is
+# intersection-free and finite; the tests run ipctk's intersection check), so only errors show.
+_ipctk.set_logger_level(_ipctk.LoggerLevel.error)
+
+from .material import PRESETS, Material, preset  # noqa: E402
+from .solver import ClothSim, Linearization, SimSettings, StepStats, simulate  # noqa: E402
 
 __all__ = [
     "ClothSim",
