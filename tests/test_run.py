@@ -34,6 +34,8 @@ def test_run_end_to_end_and_resume(tiny_capture, tmp_path):
     # evaluate reused the animate stage's sequence instead of simulating it again
     assert m["estimated_sequence"].endswith("animate")
     assert "export/avatar.usdc" in report
+    for pic in ("tracking.png", "texture_before.png", "appearance/texture.png", "physics/fit.png"):
+        assert f"]({pic})" in report and (out / pic).stat().st_size > 1000
     # a rerun skips every finished stage
     t = time.time()
     r = CliRunner().invoke(app, ["run", str(tiny_capture), str(out), "--quick"])

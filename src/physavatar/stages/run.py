@@ -120,11 +120,18 @@ def write_report(out: str | Path) -> Path:
     out = Path(out)
     rec = read_json(out / "run.json") if (out / "run.json").exists() else {}
     L = ["# physavatar run", ""]
+    cap = rec.get("track", {}).get("args", [None, None])[1]
+    if cap:
+        L += [f"Capture `{cap}`, output `{out}`. Every stage's command is in the last table; "
+              "`physavatar run` with the same arguments resumes or skips finished stages.", ""]
     ev = out / "evaluate" / "report.md"
     if ev.exists():
         body = ev.read_text().split("\n", 1)[1]  # drop its title
         L += ["## Metrics", body.replace("\n## ", "\n### "), ""]
-    pics = [("Texture before inverse rendering (Gaussian colours)", "appearance/texture_init.png"),
+    _tracking_plot(out)
+    _texture_pngs(out)
+    pics = [("Tracking: loss and time per frame (and vertex error against ground truth)", "tracking.png"),
+            ("Texture before inverse rendering (mean tracked Gaussian colours)", "texture_before.png"),
             ("Texture after inverse rendering", "appearance/texture.png"),
             ("Appearance fit: loss", "appearance/loss.png"),
             ("Material fit: loss and parameters", "physics/fit.png")]
@@ -167,3 +174,59 @@ def write_report(out: str | Path) -> Path:
     path = out / "report.md"
     write_text_atomic(path, "\n".join(L) + "\n")
     return path
+
+
+def _tracking_plot(out: Path) -> None:
+    """OUT/tracking.png from track/track_log.csv (+ the evaluation's per-frame vertex error)."""
+    import csv
+
+    log = out / "track" / "track_log.csv"
+    if not log.exists():
+        return
+    try:
+        rows = list(csv.DictReader(log.open()))
+        frames = [int(r["frame"]) for r in rows]
+        loss = [float(r["loss"]) for r in rows]
+        secs = [float(r["seconds"]) for r in rows]
+    except (KeyError, ValueError, OSError):
+        return  # a log of another format: no plot rather than a broken report
+    err = {}
+    metrics = out / "evaluate" / "metrics.json"
+    if metrics.exists():
+        err = {p: r.get("per_frame_mean_mm", []) for p, r in read_json(metrics).get("tracking", {}).items()}
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..files import atomic_path
+
+    n = 3 if err else 2
+    fig, ax = plt.subplots(1, n, figsize=(4 * n, 3.2))
+    ax[0].semilogy(frames, loss)
+    ax[0].set(xlabel="frame", title="L_render + regularizers")
+    ax[1].bar(frames, secs)
+    ax[1].set(xlabel="frame", ylabel="s", title="tracking time")
+    if err:
+        for part, e in err.items():
+            ax[2].plot(range(len(e)), e, label=part)
+        ax[2].set(xlabel="frame", ylabel="mm", title="mean vertex error")
+        ax[2].legend()
+    fig.tight_layout()
+    with atomic_path(out / "tracking.png") as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+
+
+def _texture_pngs(out: Path) -> None:
+    """OUT/texture_before.png (the appearance stage's T_0, sRGB) for the before/after pictures."""
+    import numpy as np
+
+    src = out / "appearance" / "texture_init_linear.npy"
+    dst = out / "texture_before.png"
+    if not src.exists() or (dst.exists() and dst.stat().st_mtime >= src.stat().st_mtime):
+        return
+    from ..capture import save_png
+    from ..render import linear_to_srgb8
+
+    save_png(dst, linear_to_srgb8(np.load(src)))
