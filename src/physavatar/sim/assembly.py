@@ -310,31 +310,32 @@ class NewtonLinearSolver:
 def pcg(A, b, precondition, rtol, max_iterations, x0=None):
     """Preconditioned conjugate gradients from x0 (default M⁻¹ b: one preconditioner step).
 
-    Returns (x, iterations, converged) with converged meaning ‖A x − b‖₂ ≤ rtol ‖b‖₂.
+    Returns (x, iterations, converged) with converged meaning ‖A x − b‖₂ ≤ rtol ‖b‖₂. The
+    vector operations are numba loops (_kernels.dot / cg_step / cg_direction), not BLAS.
     """
-    bnorm = float(np.linalg.norm(b))
+    b = np.ascontiguousarray(b, dtype=np.float64)
+    bnorm = np.sqrt(_kernels.dot(b, b))
     if bnorm == 0.0:
         return np.zeros_like(b), 0, True
     x = precondition(b) if x0 is None else np.array(x0, dtype=np.float64)
+    x = np.ascontiguousarray(x, dtype=np.float64)
     r = b - A @ x
-    tol = rtol * bnorm
-    if np.linalg.norm(r) <= tol:
+    tol2 = (rtol * bnorm) ** 2
+    if _kernels.dot(r, r) <= tol2:
         return x, 0, True
-    z = precondition(r)
+    z = np.ascontiguousarray(precondition(r), dtype=np.float64)
     p = z.copy()
-    rz = float(r @ z)
+    rz = _kernels.dot(r, z)
     for it in range(1, max_iterations + 1):
-        Ap = A @ p
-        pAp = float(p @ Ap)
+        Ap = np.ascontiguousarray(A @ p, dtype=np.float64)
+        pAp = _kernels.dot(p, Ap)
         if not pAp > 0.0:  # A not positive definite along p: let the caller factorise A
             return x, it, False
         a = rz / pAp
-        x += a * p
-        r -= a * Ap
-        if np.linalg.norm(r) <= tol:
+        if _kernels.cg_step(x, r, p, Ap, a) <= tol2:
             return x, it, True
-        z = precondition(r)
-        rz_new = float(r @ z)
-        p = z + (rz_new / rz) * p
+        z = np.ascontiguousarray(precondition(r), dtype=np.float64)
+        rz_new = _kernels.dot(r, z)
+        _kernels.cg_direction(p, z, rz_new / rz)
         rz = rz_new
     return x, max_iterations, False
