@@ -33,6 +33,7 @@ def close(a, b, rtol=1e-10):
 def test_membrane_kernels_match_numpy(cloth, model):
     topo, x = cloth
     m = Membrane(topo, 37.0, 0.3, model)
+    assert abs(m.energy(x) - m.energy_numpy(x)) <= 1e-12 * abs(m.energy_numpy(x))
     assert close(m.gradient(x), m.gradient_numpy(x))
     for project in (False, True):
         assert close(m.hessian(x, project).values, m.hessian_numpy(x, project).values, 1e-9)
@@ -68,9 +69,18 @@ def test_membrane_closed_form_projection_equals_eigendecomposition(model):
             assert close(_kernels.membrane_hessian(*args, 2), H_abs.reshape(-1, 9, 9), 1e-10)
 
 
+def test_neohookean_energy_kernel_is_inf_on_inverted_triangles(cloth):
+    topo, x = cloth
+    m = Membrane(topo, 37.0, 0.3, "neohookean")
+    flat = x.copy()
+    flat[topo.faces[0]] = flat[topo.faces[0][0]]  # a collapsed triangle (det C = 0)
+    assert m.energy(flat) == np.inf and m.energy_numpy(flat) == np.inf
+
+
 def test_bending_kernels_match_numpy(cloth):
     topo, x = cloth
     b = Bending(topo, 2e-4)
+    assert abs(b.energy(x) - b.energy_numpy(x)) <= 1e-12 * abs(b.energy_numpy(x))
     assert close(b.gradient(x), b.gradient_numpy(x))
     for project in (False, "eigen", "gauss_newton"):
         assert close(b.hessian(x, project).values, b.hessian_numpy(x, project).values, 1e-9), project

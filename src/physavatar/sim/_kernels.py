@@ -59,6 +59,30 @@ def _second_piola(F, mu, lam, model, S, C, Cinv):
 
 
 @numba.njit(cache=True)
+def membrane_energy(x, tri, G, area, mu, lam, model):
+    """Σ_t A_t W(F_t) (inf when a Neo-Hookean triangle is collapsed or inverted, as the twin)."""
+    total = 0.0
+    F = np.empty((3, 2))
+    for f in range(tri.shape[0]):
+        _deformation_gradient(x, tri, G, f, F)
+        c00 = F[0, 0] * F[0, 0] + F[1, 0] * F[1, 0] + F[2, 0] * F[2, 0]
+        c01 = F[0, 0] * F[0, 1] + F[1, 0] * F[1, 1] + F[2, 0] * F[2, 1]
+        c11 = F[0, 1] * F[0, 1] + F[1, 1] * F[1, 1] + F[2, 1] * F[2, 1]
+        if model == MODEL_STVK:
+            e00, e01, e11 = 0.5 * (c00 - 1.0), 0.5 * c01, 0.5 * (c11 - 1.0)
+            tr = e00 + e11
+            W = mu * (e00 * e00 + 2.0 * e01 * e01 + e11 * e11) + 0.5 * lam * tr * tr
+        else:
+            det = c00 * c11 - c01 * c01
+            if not det > 0.0:
+                return np.inf
+            logJ = 0.5 * math.log(det)
+            W = 0.5 * mu * (c00 + c11 - 2.0) - mu * logJ + 0.5 * lam * logJ * logJ
+        total += area[f] * W
+    return total
+
+
+@numba.njit(cache=True)
 def membrane_gradient(x, tri, G, area, mu, lam, model, n_vertices):
     """∇Ψ_membrane [n_vertices, 3] (Neo-Hookean on a collapsed triangle: nan, as the twin)."""
     nf = tri.shape[0]
@@ -363,17 +387,56 @@ def _angle_gradient(X, g):
         g[9 + i] = -le * n2[i]
 
 
+@numba.njit(cache=True, inline="always")
+def _angle_gradient_real(X, g):
+    """_angle_gradient for real X with scalar temporaries (no per-hinge array allocations)."""
+    e0, e1, e2 = X[1, 0] - X[0, 0], X[1, 1] - X[0, 1], X[1, 2] - X[0, 2]
+    u0, u1, u2 = X[2, 0] - X[0, 0], X[2, 1] - X[0, 1], X[2, 2] - X[0, 2]
+    w0, w1, w2 = X[2, 0] - X[1, 0], X[2, 1] - X[1, 1], X[2, 2] - X[1, 2]
+    p0, p1, p2 = X[3, 0] - X[1, 0], X[3, 1] - X[1, 1], X[3, 2] - X[1, 2]
+    q0, q1, q2 = X[3, 0] - X[0, 0], X[3, 1] - X[0, 1], X[3, 2] - X[0, 2]
+    a0, a1, a2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0  # n1
+    b0, b1, b2 = p1 * q2 - p2 * q1, p2 * q0 - p0 * q2, p0 * q1 - p1 * q0  # n2
+    le = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    na = a0 * a0 + a1 * a1 + a2 * a2
+    nb = b0 * b0 + b1 * b1 + b2 * b2
+    a0, a1, a2 = a0 / na, a1 / na, a2 / na
+    b0, b1, b2 = b0 / nb, b1 / nb, b2 / nb
+    s20 = (w0 * e0 + w1 * e1 + w2 * e2) / le
+    s30 = (p0 * e0 + p1 * e1 + p2 * e2) / le
+    s21 = (u0 * e0 + u1 * e1 + u2 * e2) / le
+    s31 = (q0 * e0 + q1 * e1 + q2 * e2) / le
+    g[0], g[1], g[2] = -s20 * a0 - s30 * b0, -s20 * a1 - s30 * b1, -s20 * a2 - s30 * b2
+    g[3], g[4], g[5] = s21 * a0 + s31 * b0, s21 * a1 + s31 * b1, s21 * a2 + s31 * b2
+    g[6], g[7], g[8] = -le * a0, -le * a1, -le * a2
+    g[9], g[10], g[11] = -le * b0, -le * b1, -le * b2
+
+
+@numba.njit(cache=True)
+def bending_energy(x, hinges, weight, rest_angle, scale):
+    """Σ_e κb w_e (θ_e − θ̄_e)² (energies.Bending.energy)."""
+    total = 0.0
+    X = np.empty((4, 3))
+    for h in range(hinges.shape[0]):
+        for a in range(4):
+            for i in range(3):
+                X[a, i] = x[hinges[h, a], i]
+        d = _angle(X) - rest_angle[h]
+        total += weight[h] * d * d
+    return scale * total
+
+
 @numba.njit(cache=True)
 def bending_gradient(x, hinges, weight, rest_angle, scale, n_vertices):
     nh = hinges.shape[0]
     per = np.empty((nh, 12))
+    X = np.empty((4, 3))
+    g = np.empty(12)
     for h in range(nh):
-        X = np.empty((4, 3))
         for a in range(4):
             for i in range(3):
                 X[a, i] = x[hinges[h, a], i]
-        g = np.empty(12)
-        _angle_gradient(X, g)
+        _angle_gradient_real(X, g)
         c = 2.0 * scale * weight[h] * (_angle(X) - rest_angle[h])
         for k in range(12):
             per[h, k] = c * g[k]
@@ -404,7 +467,7 @@ def bending_hessian(x, hinges, weight, rest_angle, scale, mode):
             for i in range(3):
                 X[a, i] = x[hinges[h, a], i]
         g = np.empty(12)
-        _angle_gradient(X, g)
+        _angle_gradient_real(X, g)
         c = 2.0 * scale * weight[h]
         for i in range(12):
             for j in range(12):

@@ -258,6 +258,12 @@ class Membrane:
         return W, S, C, (logJ, Cinv)
 
     def energy(self, x):
+        """Ψ (numba kernel; :meth:`energy_numpy` is its reference twin)."""
+        args = self._kernel_args(x)
+        total = float(_kernels.membrane_energy(*args))
+        return total if np.isfinite(total) else np.inf
+
+    def energy_numpy(self, x):
         W, _, _, _ = self._density(self.deformation_gradient(x))
         total = float(np.sum(self.area * W))
         return total if np.isfinite(total) else np.inf  # collapsed triangle (Neo-Hookean)
@@ -405,6 +411,13 @@ class Bending:
         self.projection = "eigen"
 
     def energy(self, x):
+        """Ψ (numba kernel; :meth:`energy_numpy` is its reference twin)."""
+        if len(self.index) == 0:
+            return 0.0
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        return float(_kernels.bending_energy(x, self.index, self.weight, self.rest_angle, self.scale))
+
+    def energy_numpy(self, x):
         if len(self.index) == 0:
             return 0.0
         d = dihedral_angle(x[self.index]) - self.rest_angle
