@@ -578,6 +578,7 @@ def fit_physics(
     workers: int = typer.Option(2, help="processes for the fd simulations"),
     seed: int = typer.Option(0, help="seed of --noise-mm"),
     friction: float = typer.Option(0.2, help="cloth-body friction coefficient of the simulator (0 = off)"),
+    newton_tol: float = typer.Option(1e-4, "--newton-tol", help="Newton tolerance of the fitting simulations [m/s]"),
     max_vertices: int = typer.Option(400, "--max-vertices",
                                      help="fit on a coarse proxy of at most this many vertices when the garment has "
                                           "more (0 = always the full garment; docs/physics.md)"),
@@ -605,6 +606,8 @@ def fit_physics(
         _bad_option("--density", "must be positive")
     if friction < 0:
         _bad_option("--friction", "must be >= 0")
+    if not newton_tol > 0:
+        _bad_option("--newton-tol", "must be positive")
     if max_vertices != 0 and max_vertices < 20:
         _bad_option("--max-vertices", "must be 0 (no proxy) or at least 20")
     if init == "far":
@@ -638,10 +641,13 @@ def fit_physics(
 
         def report(row):
             params = "  ".join(f"{k}={row[k]:.4g}" for k in ("density", "stretch_stiffness", "bend_stiffness") if k in row)
-            bar.update(task, advance=1,
-                       description=f"it {row['iteration']:3d}  loss {row['loss']:.4g} m² ({row['rms_mm']:.2f} mm)  {params}")
+            line = f"it {row['iteration']:3d}  loss {row['loss']:.4g} m² ({row['rms_mm']:.2f} mm)  {params}"
+            bar.update(task, advance=1, description=line)
+            # one log line per iteration too: a bar alone shows nothing when output is not a terminal
+            bar.console.print(f"{line}  {row['wall_time_s']:.0f} s", highlight=False)
 
-        result = fit_material(data, initial, gradient, iterations, fit_density, fit_settings(friction=friction),
+        result = fit_material(data, initial, gradient, iterations, fit_density,
+                              fit_settings(friction=friction, newton_tol=newton_tol),
                               workers=workers, callback=report)
     if proxy is not None:
         result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),

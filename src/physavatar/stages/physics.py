@@ -40,7 +40,6 @@ import scipy.sparse.linalg as sla
 
 from ..errors import PhysavatarError
 from ..sim import ClothSim, Material, SimSettings, preset
-from ..sim.assembly import Factorization
 from ..sim.material import CODIM_BASE_POISSON, CODIM_BASE_THICKNESS, CODIM_BASE_YOUNG
 
 PARAMETERS = ("density", "stretch_stiffness", "bend_stiffness")
@@ -182,6 +181,46 @@ class PhysicsData:
         )
 
 
+# -- a coarse simulation proxy of a big garment (stages/proxy.py) ------------------------------
+
+PROXY_MAX_VERTICES = 400  # fit-physics default: garments above this are fitted on a proxy
+PROXY_CLEARANCE = 0.003  # [m] the proxy's smallest distance to the body at rest (> d̂ = 1 mm)
+
+
+def on_proxy(data: PhysicsData, proxy) -> PhysicsData:
+    """``data`` moved onto a :class:`~physavatar.stages.proxy.GarmentProxy` of its garment.
+
+    Every fine per-vertex sequence maps by the proxy's barycentric coordinates at rest: the
+    reference (tracked positions), the rest shape, the initial state, and the proxy's boundary
+    targets — the map of the fine positions with the fine boundary vertices at their targets
+    (the tracked boundary, or a prescribed attachment). The body collider is unchanged. Rest
+    shape and initial state are then pushed off the body frame 0 to ``PROXY_CLEARANCE`` where
+    the proxy's chords dip into it (a few mm; the reference is not moved).
+    """
+    ref = proxy.map(data.reference)
+    b = np.asarray(proxy.boundary, dtype=np.int64)
+    driven = data.reference.copy()
+    driven[:, data.boundary] = data.boundary_targets
+    targets = proxy.map(driven)[:, b]
+    rest = proxy.map(data.rest)
+    initial = ref[0] if data.initial is None else proxy.map(data.initial)
+    offset = 0.0
+    if data.collider is not None and data.collider_faces is not None:
+        # the proxy's flat triangles cut chords through the fine surface; over a convex body
+        # part they can dip into it at rest (IPC needs an intersection-free start, and a
+        # trapped proxy cannot sag like the garment): push them out to PROXY_CLEARANCE
+        from ..garment.garment import push_out
+
+        moved, _ = push_out(initial, proxy.faces, [(data.collider[0], data.collider_faces)], PROXY_CLEARANCE)
+        moved[b] = initial[b]  # the attachment stays where the fine one is
+        offset = moved - initial
+    return PhysicsData(
+        reference=ref, faces=proxy.faces, boundary=b, collider=data.collider, collider_faces=data.collider_faces,
+        fps=data.fps, rest=rest + offset, boundary_targets=targets, targets_tracked=data.targets_tracked,
+        initial=initial + offset,
+    )
+
+
 # -- simulation with forward sensitivities -------------------------------------------------------
 
 
@@ -204,19 +243,40 @@ def _with_log_params(material: Material, names, log_values) -> Material:
     return dataclasses.replace(material, **{n: float(math.exp(v)) for n, v in zip(names, log_values)})
 
 
-def _solve_exact(H: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
-    """Solve H S = rhs with the exact Hessian at the step's solution.
+def _solve_exact(H: sp.csr_matrix, rhs: np.ndarray, preconditioners=(), rtol: float = 1e-10) -> np.ndarray:
+    """Solve H S = rhs [n, P] with the exact (unprojected) Hessian H at the step's solution.
 
-    At a strict minimiser of E the exact Hessian is positive definite, so Cholesky normally
-    works; near a degenerate (buckling) minimiser it may not, and an LU solve is always right.
+    H need not be positive definite: near a buckling minimiser (folds, the barrier's curvature
+    left unresolved by the Newton tolerance) it has small negative eigenvalues, and a
+    Cholesky of H fails (CHOLMOD "not positive definite") while a pivoting LU of a 10⁴-DOF
+    shell Hessian takes seconds per step. So H is not factorised: GMRES (indefinite-safe) runs
+    on H, preconditioned with a Cholesky factor of the PSD-projected Newton matrix the step
+    already has (it differs from H only in the clamped negative curvature of membrane, bending
+    and contact, so tens of iterations suffice). ``preconditioners``: callables, each returning
+    a solve ([n] -> [n]) or None, tried in order until GMRES reaches ``rtol``; LU is the
+    always-right last resort.
     """
-    try:
-        X = Factorization(H).solve(rhs)
-        res = np.linalg.norm(H @ X - rhs) / max(np.linalg.norm(rhs), 1e-300)
-        if np.isfinite(res) and res < 1e-8:
+    rhs = np.asarray(rhs, dtype=np.float64)
+    for make in preconditioners:
+        solve = make()
+        if solve is None:
+            continue
+        M = sla.LinearOperator(H.shape, matvec=solve, dtype=np.float64)
+        X = np.zeros_like(rhs)
+        ok = True
+        for j in range(rhs.shape[1]):
+            b = rhs[:, j]
+            bn = np.linalg.norm(b)
+            if bn == 0.0:
+                continue
+            x, info = sla.gmres(H, b, x0=solve(b), M=M, rtol=rtol, atol=0.0, restart=50, maxiter=4)
+            res = np.linalg.norm(H @ x - b) / bn
+            if not (np.isfinite(res) and res <= 10 * rtol):
+                ok = False
+                break
+            X[:, j] = x
+        if ok:
             return X
-    except (RuntimeError, ValueError):
-        pass
     return sla.splu(H.tocsc()).solve(rhs)
 
 
@@ -319,10 +379,32 @@ def _step_sensitivity(sim: ClothSim, x_new, body_new, S, V, names, h):
         else:
             g = np.sum([t.gradient(X) for t in mass_terms], axis=0)
         rhs[order, j] = -(g[: 3 * N][fidx] + coupling[fidx, j])
-    sol = _solve_exact(H, rhs)
+    sol = _solve_exact(H, rhs, _projected_preconditioners(sim, H.shape[0]))
     S_new = np.zeros_like(S)
     S_new[fidx] = sol[order]
     return S_new, (S_new - S) / h
+
+
+def _projected_preconditioners(sim: ClothSim, n: int):
+    """Solves with Cholesky factors of the step's PSD-projected Newton matrix over the free DOFs,
+    cheapest first: the (sparsified) factor the Newton solver holds, then a factor of the last
+    projected matrix itself (computed only if the first is not good enough). Each is None when
+    it does not have ``n`` rows (a step that ended in penalty mode)."""
+
+    def held():
+        factor = getattr(getattr(sim, "linear_solver", None), "factor", None)
+        return factor.solve if factor is not None and getattr(factor, "n", -1) == n else None
+
+    def fresh():
+        lin = sim.linearization
+        if lin is None or lin.matrix is None or lin.matrix.shape[0] != n:
+            return None
+        try:
+            return lin.factorization.solve
+        except (RuntimeError, ValueError):
+            return None
+
+    return (held, fresh)
 
 
 # -- loss ----------------------------------------------------------------------------------------
@@ -374,6 +456,7 @@ class FitResult:
     log_std: dict
     window: int
     settings: dict
+    proxy: dict | None = None  # the coarse proxy fitted on (stages/proxy.py), if any
 
     def to_json(self) -> dict:
         m = self.material
@@ -398,6 +481,7 @@ class FitResult:
             "gradient": self.gradient,
             "window_frames": self.window,
             "settings": self.settings,
+            "proxy": self.proxy,
         }
 
 
@@ -593,7 +677,7 @@ def _settings_dict(settings, substeps):
 
 def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None = None,
               iterations: int = 15, fit_density: bool = False, substeps: int = 1,
-              tolerance: float = 1e-4, callback: Callable | None = None) -> FitResult:
+              tolerance: float = 1e-4, callback: Callable | None = None, max_rejections: int = 4) -> FitResult:
     """Levenberg–Marquardt on the trajectory residuals with exact Jacobians (:func:`rollout`).
 
     Each iteration simulates once with sensitivities (J [M, P], P = 2 or 3), solves
@@ -601,7 +685,8 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
     next Jacobian when accepted). λ shrinks ×0.3 on success and grows ×10 on failure. With
     ``fit_density`` the scaling direction is flat (JᵀJ singular there); the damping keeps the
     step finite and ρ stays near its start. Stops when a step improves the loss by less than
-    ``tolerance`` (relative) or after ``iterations`` accepted-or-rejected steps.
+    ``tolerance`` (relative), after ``max_rejections`` rejected steps in a row (λ then grew
+    10⁴-fold: the linear model no longer finds descent), or after ``iterations`` steps.
     """
     settings = settings or fit_settings()
     names = PARAMETERS if fit_density else PARAMETERS[1:]
@@ -621,6 +706,7 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
     loss, res, J = evaluate(theta)
     sims += 1
     lam = 1e-3
+    rejected = 0
     row = _history_row(0, loss, data, names, theta, t_start, sims)
     history.append(row)
     if callback is not None:
@@ -651,10 +737,11 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
         history.append(row)
         if callback is not None:
             callback(row)
+        rejected = 0 if improved else rejected + 1
         if improved and rel < tolerance:
             break
-        if not improved and lam > 1e8:
-            break
+        if rejected >= max_rejections or lam > 1e8:
+            break  # λ grew 10^max_rejections-fold without a better point: at a (local) minimum
     material = _with_log_params(initial, names, theta)
     intervals, stds = ratio_intervals(J, res, list(names), material)
     return FitResult(material, initial, float(loss), rms_mm(loss, data), len(history) - 1, sims,
