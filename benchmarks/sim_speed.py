@@ -12,7 +12,7 @@ solve, CCD, line search) and the step time over the time of one sparse Cholesky 
 of the same system (the floor of an implicit step; measured in the same process, so the ratio
 survives a loaded machine).
 
-    python benchmarks/sim_speed.py [--quick] [--frames N] [--profile]
+    python benchmarks/sim_speed.py [--quick] [--frames N] [--profile] [--out FILE]
 """
 
 from __future__ import annotations
@@ -79,6 +79,7 @@ def main():
     ap.add_argument("--quick", action="store_true", help="12 frames instead of 48")
     ap.add_argument("--frames", type=int, default=None, help="frames of the walk (incl. frame 0)")
     ap.add_argument("--profile", action="store_true", help="also print a cProfile of the simulation")
+    ap.add_argument("--out", default=None, help="result file (default benchmarks/results/sim_speed.json)")
     args = ap.parse_args()
     frames = args.frames or (12 if args.quick else PRESETS["demo"].frames)
 
@@ -96,7 +97,8 @@ def main():
     def callback(f, x, st):
         s = st[0]
         stats.append(s)
-        print(f"frame {f:3d}: {s.newton_iterations:3d} Newton its, {s.factorizations} fact, "
+        print(f"frame {f:3d}: {s.newton_iterations:3d} Newton its ({s.penalty_iterations:2d} penalty), "
+              f"{getattr(s, 'step_expansions', 0):2d} step doublings, {s.factorizations} fact, "
               f"{s.cg_iterations:4d} CG its, {s.line_search_iterations:2d} LS halvings, {s.n_contacts:4d} contacts, "
               f"{s.time['total']:.2f} s, converged={s.converged}", flush=True)
 
@@ -135,6 +137,8 @@ def main():
         "factorizations_per_frame": float(np.mean([s.factorizations for s in stats])),
         "cg_iterations_per_frame": float(np.mean([s.cg_iterations for s in stats])),
         "line_search_halvings_per_frame": float(np.mean([s.line_search_iterations for s in stats])),
+        "penalty_iterations_per_frame": float(np.mean([s.penalty_iterations for s in stats])),
+        "step_doublings_per_frame": float(np.mean([getattr(s, "step_expansions", 0) for s in stats])),
         "newton_iterations_per_frame_series": its,
         "mean_contacts": float(np.mean([s.n_contacts for s in stats])),
         "min_distance_m": float(min(s.min_distance for s in stats)),
@@ -163,7 +167,7 @@ def main():
     print(f"one factorization {t_fact:.3f} s (preconditioner {t_fact_pre:.3f} s); step / factorization = "
           f"{figures['step_over_factorization']:.1f}; factorizations/frame {figures['factorizations_per_frame']:.1f}, "
           f"CG its/frame {figures['cg_iterations_per_frame']:.0f}; load average {load0[0]:.2f} -> {load1[0]:.2f}")
-    out = Path(__file__).resolve().parent / "results" / "sim_speed.json"
+    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "sim_speed.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
 
