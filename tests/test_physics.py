@@ -175,6 +175,11 @@ def test_write_outputs_roundtrip(tmp_path):
     mj = json.loads((tmp_path / "material.json").read_text())
     assert Material.from_dict(mj["material"]) == res.material
     assert mj["simulations"] == res.simulations == 2
+    assert mj["at_bound"] == [] and mj["initial_rms_mm"] == res.history[0]["rms_mm"]
+    from physavatar.stages.physics import BOUNDS
+
+    pinned = dataclasses.replace(res, material=dataclasses.replace(res.material, bend_stiffness=BOUNDS["bend_stiffness"][0]))
+    assert pinned.at_bound() == ["bend_stiffness"]
 
 
 def test_cli_bad_input_exits_2(tmp_path):

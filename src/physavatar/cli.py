@@ -665,6 +665,9 @@ def fit_physics(
         iv = ci.get(key)
         t.add_row(label, f"{getattr(m, key):.4g}", "-" if not iv else f"[{iv[0]:.4g}, {iv[1]:.4g}]")
     console.print(t)
+    if result.at_bound():
+        console.print(f"[yellow]warning: {', '.join(result.at_bound())} ended on the search bound: the simulation "
+                      "cannot reproduce this motion (model error, e.g. a too coarse proxy; docs/physics.md)[/yellow]")
     console.print(f"loss {result.loss:.4g} m² (rms {result.rms_mm:.2f} mm), {result.simulations} simulations, "
                   f"{result.wall_time:.0f} s; wrote {out}/material.json, fit_log.csv, fit.png")
 

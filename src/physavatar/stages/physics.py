@@ -458,6 +458,12 @@ class FitResult:
     settings: dict
     proxy: dict | None = None  # the coarse proxy fitted on (stages/proxy.py), if any
 
+    def at_bound(self) -> list:
+        """Fitted parameters that ended on their search bound (:data:`BOUNDS`): the data pushed
+        them out of the physical range — usually model error (e.g. a coarse proxy), not a fit."""
+        return [n for n in self.fitted
+                if min(abs(math.log(getattr(self.material, n) / b)) for b in BOUNDS[n]) < 1e-6]
+
     def to_json(self) -> dict:
         m = self.material
         return {
@@ -475,6 +481,8 @@ class FitResult:
             "loss": self.loss,
             "loss_unit": "m^2 (sum over fitted frames and vertices of squared distance)",
             "rms_mm": self.rms_mm,
+            "initial_rms_mm": self.history[0]["rms_mm"] if self.history else None,
+            "at_bound": self.at_bound(),
             "iterations": self.iterations,
             "simulations": self.simulations,
             "wall_time_s": self.wall_time,
