@@ -456,8 +456,8 @@ class ClothSim:
         return X_pred if e1 < e0 else X
 
     def _expand_step(self, X, step, X_new, E_new, stats, max_scale=64.0):
-        """Try X + 2α·step, 4α·step, ... (α = 1) while CCD allows the whole move and the energy
-        keeps decreasing; return the best point.
+        """Try X + 2·step, 4·step, ... while the energy keeps decreasing; a move that CCD cuts is
+        tried at its collision-free fraction and ends the search. Returns the best point.
 
         Projected Newton converges only linearly along a mode whose curvature the PSD
         projection overstates: e.g. a vertex sliding over a body vertex, where the barrier's
@@ -470,16 +470,21 @@ class ClothSim:
         while scale < max_scale:
             X_try = X + (2.0 * scale) * step
             tc = time.perf_counter()
-            free = self.scene.collision_free_stepsize(X, X_try) >= 1.0
+            a = self.scene.collision_free_stepsize(X, X_try)
             stats.time["ccd"] += time.perf_counter() - tc
-            if not free:
-                break
+            last = a < 1.0  # the doubled step is cut by CCD: take its collision-free part, stop
+            if last:
+                if 2.0 * scale * a <= scale * 1.05:
+                    break
+                X_try = X + (2.0 * scale * a) * step
             E_try = self._energy(X_try, False)
             if not E_try < E_new:
                 break
-            scale *= 2.0
+            scale = 2.0 * scale * a if last else 2.0 * scale
             X_new, E_new = X_try, E_try
             stats.step_expansions += 1
+            if last:
+                break
         return X_new
 
     def _update_stiffness_init(self, X):
