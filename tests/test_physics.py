@@ -280,3 +280,31 @@ def test_fit_on_proxy_recovers_material_of_the_fine_simulation():
     ratio = res.material.bend_ratio / truth.bend_ratio
     assert abs(np.log(ratio)) < np.log(2.5), ratio
     assert res.history[0]["loss"] > 2 * res.loss  # measured 3.3x: the proxy cannot reach the fine motion
+
+
+def test_sensitivity_solve_is_gmres_on_an_indefinite_hessian_not_lu(monkeypatch):
+    """H S = rhs with H symmetric indefinite (a buckling minimiser's exact Hessian) and the
+    projected (SPD) matrix's Cholesky as preconditioner: the dense solve is the reference, and
+    the LU fallback must not be needed."""
+    import scipy.sparse as sp
+
+    from physavatar.sim.assembly import Factorization
+    from physavatar.stages import physics as ph
+
+    n = 300
+    A = sp.random(n, n, density=0.02, random_state=0, format="csr")
+    A = A + A.T
+    P = (A + sp.diags(np.asarray(abs(A).sum(1)).ravel() + 1.0)).tocsr()  # SPD, the "projected" matrix
+    shift = np.zeros(n)
+    shift[:4] = 3.0 * P.diagonal()[:4]  # a few directions of negative curvature
+    H = (P - sp.diags(shift)).tocsr()
+    eig = np.linalg.eigvalsh(H.toarray())
+    assert eig.min() < 0 < eig.max() and np.abs(eig).min() > 1e-3  # indefinite, nonsingular
+    rhs = np.random.default_rng(0).standard_normal((n, 2))
+
+    def no_lu(*a, **k):
+        raise AssertionError("LU fallback used")
+
+    monkeypatch.setattr(ph.sla, "splu", no_lu)
+    X = ph._solve_exact(H, rhs, (lambda: Factorization(P).solve,))
+    np.testing.assert_allclose(X, np.linalg.solve(H.toarray(), rhs), rtol=1e-7, atol=1e-9)
