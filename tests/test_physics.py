@@ -115,8 +115,11 @@ def test_fd_pool_matches_inline_and_counts_simulations():
     pooled = fit_fd(data, far_material(), iterations=2, workers=2)
     inline = fit_fd(data, far_material(), iterations=2, workers=1)
     assert pooled.simulations == 2 * 3
-    assert [r["loss"] for r in pooled.history] == [r["loss"] for r in inline.history]
-    assert pooled.material == inline.material
+    # the same simulations (worker processes run single-threaded BLAS, the main process may not:
+    # equal to round-off, not bit for bit)
+    assert [r["loss"] for r in pooled.history] == pytest.approx([r["loss"] for r in inline.history], rel=1e-9)
+    for n in ("stretch_stiffness", "bend_stiffness"):
+        assert getattr(pooled.material, n) == pytest.approx(getattr(inline.material, n), rel=1e-9)
     # the first Adam step moves each fitted log-parameter by its learning rate (0.1) downhill
     first, second = pooled.history
     for n in ("stretch_stiffness", "bend_stiffness"):
@@ -173,7 +176,7 @@ def test_write_outputs_roundtrip(tmp_path):
     res = fit_exact(data, far_material(), iterations=1)
     write_outputs(tmp_path, res)
     mj = json.loads((tmp_path / "material.json").read_text())
-    assert Material.from_dict(mj["material"]) == res.material
+    assert Material.from_dict(mj["material"]) == res.material and res.material.name == "fitted (exact)"
     assert mj["simulations"] == res.simulations == 2
     assert mj["at_bound"] == [] and mj["initial_rms_mm"] == res.history[0]["rms_mm"]
     from physavatar.stages.physics import BOUNDS

@@ -657,7 +657,7 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
     finally:
         ev.close()
     loss, theta_best, fd_jac, resid = best
-    material = _with_log_params(initial, names, theta_best)
+    material = dataclasses.replace(_with_log_params(initial, names, theta_best), name="fitted (fd)")
     intervals, stds = ratio_intervals(fd_jac, resid, list(names), material) if fd_jac is not None else ({}, {})
     return FitResult(material, initial, float(loss), rms_mm(loss, data), iterations, sims,
                      time.perf_counter() - t_start, "fd", names, history, intervals, stds, data.frames,
@@ -750,7 +750,7 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
             break
         if rejected >= max_rejections or lam > 1e8:
             break  # λ grew 10^max_rejections-fold without a better point: at a (local) minimum
-    material = _with_log_params(initial, names, theta)
+    material = dataclasses.replace(_with_log_params(initial, names, theta), name="fitted (exact)")
     intervals, stds = ratio_intervals(J, res, list(names), material)
     return FitResult(material, initial, float(loss), rms_mm(loss, data), len(history) - 1, sims,
                      time.perf_counter() - t_start, "exact", names, history, intervals, stds, data.frames,
