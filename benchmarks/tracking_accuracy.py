@@ -65,6 +65,7 @@ def main(argv=None) -> int:
     n = args.frames or (12 if args.quick else None)
     n_abl = args.ablation_frames or (6 if args.quick else 12)
     tmp = Path(tempfile.mkdtemp(prefix="track_bench_"))
+    load_start = os.getloadavg()
 
     main_cfg = replace(cfg, n_frames=n)
     err, secs = run(args.capture, main_cfg, tmp / "full")
@@ -106,8 +107,11 @@ def main(argv=None) -> int:
         "ablation_normal_worse": {"value": abl["no_normal"] / abl["full"], "target": "> 1", "unit": "error ratio",
                                   "pass": bool(abl["no_normal"] > abl["full"])},
     }
+    load_end = os.getloadavg()
     result = {"benchmark": "tracking_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None},
+              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
+                          # other jobs share the 2 cores: timings are pessimistic under load
+                          "load_average_start": list(load_start), "load_average_end": list(load_end)},
               "config": dict(main_cfg.to_json(), capture=str(args.capture), quick=args.quick), "figures": fig,
               "checks": checks}
     print(f"{'frame':>5} {'all mean':>9} {'all p95':>8} " + " ".join(f"{p + ' mean':>13}" for p in err if p != "all") + f" {'s':>6}")

@@ -134,7 +134,9 @@ def body_capture(tmp_path_factory):
     return root, V.astype(np.float32)
 
 
-FAST = TrackConfig(scale=1.0, levels=(0.5, 1.0), iters_first=40, iters=40, subdivide=0, lr_vertices=5e-3)
+# anchor_weight 0: the body starts on its skinned pose and only the images keep it there
+FAST = TrackConfig(scale=1.0, levels=(0.5, 1.0), iters_first=40, iters=40, subdivide=0, lr_vertices=5e-3,
+                   anchor_weight=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -186,6 +188,49 @@ def test_template_skinning_follows_the_body_poses(body_capture):
     # TrackConfig's default carries none of the body's residual: frame 2 starts on the body pose
     body_only = TemplateSkinning.from_capture(load_capture(root), body_residual=TrackConfig().body_residual)
     np.testing.assert_allclose(body_only.predict(2, tracked, 0.0), gt[2], atol=1e-5)
+
+
+def test_mixed_prediction_skins_body_and_extrapolates_garment(body_capture):
+    """init="mixed": flagged vertices take the skinned template (the fixture's posed body),
+    the others x_{t-1} + k (x_{t-1} - x_{t-2}), optionally with the difference low-passed."""
+    from physavatar.capture import load_capture
+    from physavatar.stages.track import TemplateSkinning, mixed_prediction, smoothing_solver
+
+    root, gt = body_capture
+    skin = TemplateSkinning.from_capture(load_capture(root), 0.0, 0.0)
+    V = len(gt[0])
+    flag = np.zeros(V, bool)
+    flag[: V // 2] = True
+    rng = np.random.default_rng(3)
+    a, b = gt[0] + 0.01 * rng.standard_normal(gt[0].shape), gt[1] + 0.01 * rng.standard_normal(gt[0].shape)
+    p = mixed_prediction(skin, 2, [a, b], 0.7, flag)
+    np.testing.assert_allclose(p[flag], gt[2][flag], atol=1e-5)
+    np.testing.assert_allclose(p[~flag], (b + 0.7 * (b - a))[~flag], atol=1e-5)
+    # a uniform velocity passes the low-pass unchanged (its rows sum to one)
+    solve = smoothing_solver(V, load_capture(root).template.faces, 30.0)
+    p = mixed_prediction(skin, 2, [b - 0.01, b], 1.0, flag, solve)
+    np.testing.assert_allclose(p[~flag], (b + 0.01)[~flag], atol=1e-5)
+    # only one previous frame: no velocity
+    np.testing.assert_allclose(mixed_prediction(skin, 1, [a], 1.0, flag)[~flag], a[~flag], atol=1e-6)
+
+
+def test_anchor_and_collision_losses_by_hand():
+    from physavatar.stages._losses import AnchorLoss, CollisionLoss
+
+    anchor = AnchorLoss(np.array([0, 2]), scale=0.01)
+    X = np.zeros((3, 3))
+    anchor.update(X)
+    Y = torch.tensor([[0.02, 0, 0], [5.0, 5, 5], [0, 0.01, 0.01]])
+    assert float(anchor(Y)) == pytest.approx(0.5 * (4.0 + 2.0), rel=1e-5)
+    # body: a unit square in z = 0 (normal +z); garment points above, on and below it
+    body = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    garment = np.array([[0.1, 0.1, 0.01], [0.9, 0.1, 0.0], [0.9, 0.9, -0.002]])
+    V = np.concatenate([body, garment])
+    coll = CollisionLoss(np.array([4, 5, 6]), np.arange(4), faces, margin=0.003)
+    coll.update(V)
+    # relu(margin - d)^2 / margin^2 averaged: d = 0.01 -> 0, d = 0 -> 1, d = -0.002 -> (5/3)^2
+    assert float(coll(torch.from_numpy(V).float())) == pytest.approx((0 + 1 + (5 / 3) ** 2) / 3, rel=1e-4)
 
 
 def test_adam_uniform_steps():

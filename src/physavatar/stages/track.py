@@ -5,11 +5,14 @@ carries a colour (linear RGB, composited in linear light and then sRGB-encoded, 
 renderer that made the capture), two in-plane log-scales and an opacity logit.
 
 - Frame 1 (the template is frame 1): colours, scales and opacities are fitted, vertices fixed.
-- Frames t > 1: vertices start at the template skinned to the capture's body pose of frame t
-  plus the carried residual of frame t-1 (:class:`TemplateSkinning`), and are fitted together
-  with the colours; scales and opacities stay as frame 1 left them. The loss is Eq. 4,
+- Frames t > 1 (``init="mixed"``): the body and the garment's boundary start on the template
+  skinned to the capture's body pose of frame t, the free garment on its own constant-velocity
+  prediction (:func:`mixed_prediction`); the vertices are fitted, colours, scales and opacities
+  stay as frame 1 left them (by default). The loss is Eq. 4 plus an anchor of the skinned
+  vertices to their pose,
 
-      L = λ L1 + (1 - λ)(1 - SSIM)  +  w_mask |alpha - mask|  +  λ_iso L_iso  +  λ_n L_normal,
+      L = λ L1 + (1 - λ)(1 - SSIM)  +  w_mask |alpha - mask|  +  λ_iso L_iso  +  λ_n L_normal
+          + w_anchor L_anchor  +  w_coll L_collision,
 
   rendered into every training camera at every step, coarse to fine over an image pyramid, with
   Adam and early stopping on a loss plateau (docs/tracking.md gives the schedule and why).
@@ -44,9 +47,9 @@ from ..capture import Capture, frame_name, load_capture
 from ..errors import PhysavatarError
 from ..files import PlyMesh, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
 from ..splat import longest_edge_index, mesh_to_gaussians, rasterize
-from ._losses import IsometryLoss, NormalLoss, linear_to_srgb, srgb_to_linear, ssim
+from ._losses import AnchorLoss, CollisionLoss, IsometryLoss, NormalLoss, linear_to_srgb, srgb_to_linear, ssim
 
-LOG_COLUMNS = ("frame", "iterations", "loss", "render", "l1", "ssim", "mask", "iso", "normal", "seconds")
+LOG_COLUMNS = ("frame", "iterations", "loss", "render", "l1", "ssim", "mask", "iso", "normal", "anchor", "collision", "seconds")
 
 
 @dataclass(frozen=True)
@@ -65,7 +68,9 @@ class TrackConfig:
             ``check_every`` steps improved on the window before by less than ``plateau_tol``
             (relative), after at least ``min_iters`` steps.
         l1_weight: λ of Eq. 1 (0.8 as the official code: 0.8 L1 + 0.2 (1 - SSIM)).
-        mask_weight: weight of |rendered alpha - mask| (0 ignores the masks).
+        mask_weight: weight of |rendered alpha - mask| (0 ignores the masks) on frame 1;
+            mask_weight_track on later frames (with colours fixed the silhouette is the part of
+            the image the frame-1 appearance model gets right; measured in docs/tracking.md).
         iso_weight, normal_weight: λ_iso, λ_n of Eq. 4 (0 for the ablation).
         normal_mode: "paper" (Eq. 3 as printed) or "rest" (change of each dihedral since frame
             1; see :class:`NormalLoss`).
@@ -74,7 +79,11 @@ class TrackConfig:
         lr_decay: every level's step sizes decay exponentially to this fraction at its last step.
         lr_colors, lr_scales, lr_opacity: Adam step sizes (linear RGB, log-scale, logit).
         velocity: factor of the constant-velocity term of each frame's prediction (0: none).
-        init: how frame t starts. "lbs": the template skinned to the capture's body pose of
+        velocity_smoothing: λ of a (I + λ L)^-1 low-pass of that velocity under ``init="mixed"``
+            (0: the raw difference of the last two tracked frames).
+        init: how frame t starts. "mixed" (default, :func:`mixed_prediction`): body and garment
+            boundary skinned to the body pose of frame t, the rest of the garment
+            x_{t-1} + velocity (x_{t-1} - x_{t-2}). "lbs": the template skinned to the capture's body pose of
             frame t (body.npz, the body model's LBS; garment weights transferred from the
             closest body point), plus the previous frames' tracked residual from that skinning,
             carried in each vertex's local skinning frame and extrapolated with ``velocity``
@@ -82,8 +91,9 @@ class TrackConfig:
         target_blur: Gaussian blur (px) of the target images and masks at each level, meant to
             match the splats' 0.3 px² low-pass (0: off; 0.5 px did not reduce the frame-1 refit
             bias on the tiny capture, docs/tracking.md).
-        lr_colors_track: colour step size on frames t > 1. Smaller than frame 1's: colours that
-            chase every frame's image absorb misalignment instead of exposing it to the vertices.
+        lr_colors_track: colour step size on frames t > 1 (default 0: fixed after frame 1).
+            Colours that chase every frame's image absorb misalignment instead of exposing it to
+            the vertices.
         subdivide: midpoint subdivisions of the template for the Gaussians (4^k splats per face,
             attached at fixed barycentric positions, so gradients still reach the template
             vertices). One flat colour per coarse face cannot show texture finer than the mesh.
@@ -99,6 +109,14 @@ class TrackConfig:
         threads: numba and torch threads during the fit (1 is fastest on a shared 2-core machine:
             the per-view work at these image sizes is too small to pay for thread start-up).
         seed: torch seed (the fit itself uses no randomness; kept for reproducibility).
+        collision_weight, collision_margin: garment-body penalty (:class:`CollisionLoss`, the
+            official code has one) and its margin [m]; 0 = off. With the body anchored it keeps the
+            skirt from passing through the swinging legs (demo, frames 1-24: worst frame
+            96 -> 60 mm).
+        anchor_weight: weight of :class:`AnchorLoss` (1 cm units) holding the body and the
+            garment boundary near their skinned pose under ``init="mixed"``: the capture's body
+            poses place the body better than the images do (measured: free, the fit moved the
+            exactly-placed demo body 3-6 mm; anchored, 0.4-0.5 mm).
     """
 
     holdout: tuple[str, ...] | None = None
@@ -112,26 +130,31 @@ class TrackConfig:
     plateau_tol: float = 2e-3
     l1_weight: float = 0.8
     mask_weight: float = 0.5
+    mask_weight_track: float = 1.0
     iso_weight: float = 20.0
     normal_weight: float = 0.1
     normal_mode: str = "rest"
-    lr_vertices: float = 1e-3
+    lr_vertices: float = 4e-3
     lr_decay: float = 0.1
     lr_colors: float = 0.01
     lr_scales: float = 0.01
     lr_opacity: float = 0.05
-    velocity: float = 0.0
-    init: str = "lbs"
+    velocity: float = 1.0
+    velocity_smoothing: float = 30.0
+    init: str = "mixed"
     vertex_optimizer: str = "uniform"
     uniform_quantile: float = 0.5
     body_residual: float = 0.0
     garment_residual: float = 0.5
     target_blur: float = 0.0
-    lr_colors_track: float = 0.002
+    lr_colors_track: float = 0.0
     subdivide: int = 0
     smoothing: float = 10.0
     threads: int = 1
     seed: int = 0
+    collision_weight: float = 0.05
+    collision_margin: float = 0.003
+    anchor_weight: float = 1.0
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -484,6 +507,27 @@ class TemplateSkinning:
         return self.skin(index, c).astype(np.float32)
 
 
+def mixed_prediction(skin: TemplateSkinning, index: int, tracked: list[np.ndarray], velocity: float,
+                     skinned: np.ndarray, smooth=None) -> np.ndarray:
+    """[V, 3] float32 start of capture frame ``index`` under ``init="mixed"``.
+
+    Vertices flagged in ``skinned`` [V] (the body and the garment's boundary) take the template
+    skinned to the body pose of frame ``index``; the free garment continues its own motion,
+    x_{t-1} + velocity (x_{t-1} - x_{t-2}). A simulated garment does not follow skinning: on the
+    demo dress, skinning alone is 90-140 mm off (the legs drag the skirt), while the constant-
+    velocity prediction from the true previous frames is 3-11 mm off (docs/tracking.md).
+    """
+    prev = tracked[-1].astype(np.float64)
+    x = prev.copy()
+    if len(tracked) >= 2:
+        v = prev - tracked[-2]
+        # ``smooth`` (a low-pass over the mesh): each frame's fitting noise is rough, the cloth's
+        # motion smooth; extrapolating the raw difference doubles the noise every frame
+        x += velocity * (smooth(v) if smooth is not None else v)
+    x[skinned] = skin.skin(index)[skinned]
+    return x.astype(np.float32)
+
+
 # -- one frame -----------------------------------------------------------------------------------
 
 @dataclass
@@ -495,7 +539,8 @@ class FrameResult:
 
 
 def _loss_terms(model: MeshGaussians, vertices, colors, log_scales, opacity_logits, views: list[View],
-                cfg: TrackConfig, iso: IsometryLoss | None, normal: NormalLoss | None) -> dict:
+                cfg: TrackConfig, iso: IsometryLoss | None, normal: NormalLoss | None,
+                collision: CollisionLoss | None = None, anchor: AnchorLoss | None = None) -> dict:
     preds, alphas = [], []
     splats = model.splats(vertices, colors, log_scales, opacity_logits)
     for v in views:
@@ -520,13 +565,19 @@ def _loss_terms(model: MeshGaussians, vertices, colors, log_scales, opacity_logi
     if normal is not None:
         terms["normal"] = normal(vertices)
         loss = loss + cfg.normal_weight * terms["normal"]
+    if collision is not None:
+        terms["collision"] = collision(vertices)
+        loss = loss + cfg.collision_weight * terms["collision"]
+    if anchor is not None:
+        terms["anchor"] = anchor(vertices)
+        loss = loss + cfg.anchor_weight * terms["anchor"]
     terms["loss"] = loss
     return terms
 
 
 def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[View]], cfg: TrackConfig,
               first: bool, iso: IsometryLoss | None = None, normal: NormalLoss | None = None,
-              solve=None) -> FrameResult:
+              solve=None, collision: CollisionLoss | None = None, anchor: AnchorLoss | None = None) -> FrameResult:
     """Fit one frame over the pyramid (coarse to fine).
 
     ``first``: optimize colours, log-scales and opacity logits of ``model`` in place (vertices
@@ -546,11 +597,13 @@ def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[Vie
         log_scales = model.log_scales.clone().requires_grad_(True)
         opac = model.opacity_logits.clone().requires_grad_(True)
         groups = [(colors, cfg.lr_colors), (log_scales, cfg.lr_scales), (opac, cfg.lr_opacity)]
-        iso = normal = None  # vertices are fixed: both terms are constants
+        iso = normal = collision = anchor = None  # vertices are fixed: these terms are constants
     else:
         log_scales, opac = model.log_scales, model.opacity_logits
         U.requires_grad_(True)
         groups = [(colors, cfg.lr_colors_track), (U, cfg.lr_vertices)]
+    if not first:
+        cfg = replace(cfg, mask_weight=cfg.mask_weight_track)
     n_max = cfg.iters_first if first else cfg.iters
     finest_px = pyramid[-1][0].camera.width
     total_iters = 0
@@ -569,7 +622,7 @@ def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[Vie
         for it in range(n_max):
             for o in opts:
                 o.zero_grad(set_to_none=True)
-            terms = _loss_terms(model, current(), colors, log_scales, opac, views, cfg, iso, normal)
+            terms = _loss_terms(model, current(), colors, log_scales, opac, views, cfg, iso, normal, collision, anchor)
             terms["loss"].backward()
             for o, sc in zip(opts, scheds):
                 o.step()
@@ -586,7 +639,7 @@ def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[Vie
     with torch.no_grad():
         V = current().detach()
         final = _loss_terms(model, V, colors.detach(), log_scales.detach(), opac.detach(),
-                            pyramid[-1], cfg, iso, normal)
+                            pyramid[-1], cfg, iso, normal, collision, anchor)
     model.colors = colors.detach().clone()
     if first:
         model.log_scales = log_scales.detach().clone()
@@ -614,8 +667,8 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"option --scale: must be in (0, 1], got {cfg.scale}")
     if cfg.iters < 1 or cfg.iters_first < 1:
         raise PhysavatarError(None, "options --iters/--iters-first: need at least one iteration")
-    if cfg.init not in ("lbs", "velocity"):
-        raise PhysavatarError(None, f"init must be 'lbs' or 'velocity', got {cfg.init!r}")
+    if cfg.init not in ("mixed", "lbs", "velocity"):
+        raise PhysavatarError(None, f"init must be 'mixed', 'lbs' or 'velocity', got {cfg.init!r}")
     if cfg.vertex_optimizer not in ("uniform", "adam"):
         raise PhysavatarError(None, f"vertex_optimizer must be 'uniform' or 'adam', got {cfg.vertex_optimizer!r}")
     if cfg.normal_mode not in ("paper", "rest"):
@@ -714,7 +767,19 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
     solve = smoothing_solver(len(t.vertices), t.faces, cfg.smoothing) if cfg.smoothing > 0 else None
     log_path = out / "track_log.csv"
     log = _read_log(log_path)
-    skin = TemplateSkinning.from_capture(cap, cfg.body_residual, cfg.garment_residual) if cfg.init == "lbs" and len(frames) > 1 else None
+    skin = (TemplateSkinning.from_capture(cap, cfg.body_residual, cfg.garment_residual)
+            if cfg.init in ("lbs", "mixed") and len(frames) > 1 else None)
+    # body and garment-boundary vertices: placed by skinning under "mixed"
+    skinned = ~t.garment_mask | t.boundary
+    collision = anchor = None
+    vsmooth = smoothing_solver(len(t.vertices), t.faces, cfg.velocity_smoothing) if cfg.velocity_smoothing > 0 else None
+    if cfg.init == "mixed" and skin is not None:
+        if cfg.anchor_weight > 0:
+            anchor = AnchorLoss(np.flatnonzero(skinned))
+        body_faces = t.faces[(~t.garment_mask[t.faces]).all(1)]
+        if cfg.collision_weight > 0 and len(body_faces) and (~skinned).any():
+            collision = CollisionLoss(np.flatnonzero(~skinned), np.flatnonzero(~t.garment_mask), body_faces,
+                                      cfg.collision_margin)
 
     verts: list[np.ndarray] = []
     cols: list[np.ndarray] = []
@@ -742,13 +807,19 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                 gv = model.gaussian_vertices(torch.from_numpy(np.asarray(t.vertices, np.float32))).numpy()
                 model.colors = torch.from_numpy(initial_colors(gv, model.faces.numpy(), pyramid[-1]))
                 init = np.asarray(t.vertices, np.float32)
+            elif cfg.init == "mixed":
+                init = mixed_prediction(skin, i, verts, cfg.velocity, skinned, vsmooth)
             elif skin is not None:
                 init = skin.predict(i, verts, cfg.velocity)
             else:
                 prev = verts[-1]
                 vel = verts[-1] - verts[-2] if i >= 2 else np.zeros_like(prev)
                 init = prev + np.float32(cfg.velocity) * vel
-            res = fit_frame(model, init, pyramid, cfg, first=(i == 0), iso=iso, normal=normal, solve=solve)
+            for term in (collision, anchor):
+                if term is not None and i > 0:
+                    term.update(init)
+            res = fit_frame(model, init, pyramid, cfg, first=(i == 0), iso=iso, normal=normal, solve=solve,
+                            collision=collision, anchor=anchor)
             dt = time.perf_counter() - t0
             extra = {}
             if i == 0:
