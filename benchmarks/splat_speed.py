@@ -133,7 +133,10 @@ def main() -> None:
         params, vm, K = cylinder_scene(n, args.width, args.height)
         for t in threads:
             numba.set_num_threads(t)
-            torch.set_num_threads(t)
+            # torch's own threads stay at 1: the work is in the numba kernels, and torch's OpenMP
+            # workers spinning after each small op took the second core from numba's (measured at
+            # 256², 30k: numba 2 threads 1.35-1.5x with torch on 2, 1.7-1.9x with torch on 1)
+            torch.set_num_threads(1)
             fw, bw, out = time_render(params, vm, K, args.width, args.height, "numba", args.repeats)
             key = f"n{n}_t{t}"
             figures[key] = {"forward_ms": 1e3 * fw, "backward_ms": 1e3 * bw,
