@@ -686,7 +686,8 @@ def track(
     scale: Optional[float] = typer.Option(None, "--scale", help="resolution factor of the finest level, in (0, 1]"),
     no_iso: bool = typer.Option(False, "--no-iso", help="drop the isometry loss (ablation)"),
     no_normal: bool = typer.Option(False, "--no-normal", help="drop the normal loss (ablation)"),
-    init: Optional[str] = typer.Option(None, "--init", help="start of each frame: lbs (body.npz pose + carried residual, default) or velocity"),
+    init: Optional[str] = typer.Option(None, "--init", help="start of each frame: mixed (body and garment boundary skinned from body.npz, the rest of the garment "
+                                        "by constant velocity; default), lbs (all skinned + carried residual) or velocity"),
 ):
     """Track the template through the capture with mesh-aligned Gaussians (docs/tracking.md)."""
     from dataclasses import replace as _replace
@@ -699,6 +700,8 @@ def track(
         changes["n_frames"] = frames
     if holdout is not None:
         changes["holdout"] = tuple(h.strip() for h in holdout.split(",") if h.strip())
+    if init is not None and init not in ("mixed", "lbs", "velocity"):
+        _bad_option("--init", f"{init!r} is not mixed, lbs or velocity")
     for name, value in (("iters_first", iters_first), ("iters", iters), ("scale", scale), ("init", init)):
         if value is not None:
             changes[name] = value
