@@ -64,6 +64,10 @@ def test_reused_sequence_gives_the_same_row_and_bad_ones_are_refused(result, tin
     np.testing.assert_allclose(reused.vertices, seq.vertices[:n], atol=1e-6)  # float32 on disk
     with pytest.raises(PhysavatarError, match="frames"):
         _reuse_sequence(root / "seq", av, len(seq.vertices) + 1)
+    save_npz_atomic(root / "seq" / "sequence.npz", vertices=seq.vertices.astype(np.float32), faces=seq.faces,
+                    labels=seq.labels, fps=np.float64(seq.fps * 2))
+    with pytest.raises(PhysavatarError, match="fps"):
+        _reuse_sequence(root / "seq", av, n)
     save_npz_atomic(root / "seq" / "sequence.npz", vertices=seq.vertices[:, :10].astype(np.float32),
                     faces=seq.faces, labels=seq.labels[:10], fps=np.float64(seq.fps))
     with pytest.raises(PhysavatarError, match="not an animation of this avatar"):
