@@ -26,6 +26,7 @@ from .body.transfer import transfer_skinning_weights
 from .capture import Capture, Template, load_capture
 from .errors import PhysavatarError
 from .files import load_npz, read_json, read_ply, save_npz_atomic, write_json_atomic
+from .garment.geometry import submesh
 from .sim import Material
 
 AVATAR_VERSION = 1
@@ -134,9 +135,7 @@ def build_avatar(capture: str | Path | Capture, out: str | Path, *, material: st
     m0 = m0.for_bones(body.bone_names)
     posed = body.pose(m0.rotations, m0.root_translation)
     bmask = t.labels == 0
-    remap = -np.ones(len(t.vertices), np.int64)
-    remap[bmask] = np.arange(int(bmask.sum()))
-    bfaces = remap[t.faces[bmask[t.faces].all(1)]]
+    _, bfaces = submesh(t.faces, bmask)
     W, matched = transfer_skinning_weights(t.vertices[bmask], bfaces, posed.vertices[0], body.faces, body.skinning_weights)
     save_npz_atomic(out / "skinning.npz", weights=W.astype(np.float32), bone_names=np.array(body.bone_names),
                     rest_rotations=m0.rotations[0], rest_translation=m0.root_translation[0],

@@ -152,6 +152,16 @@ def adjacency(F: np.ndarray, n: int) -> sp.csr_matrix:
     return A
 
 
+def submesh(faces: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The part of a mesh on the vertices where ``mask`` [V] is true: (vertex ids [n] into the
+    whole mesh, faces [f, 3] re-indexed on those ids); faces with all three corners selected."""
+    mask = np.asarray(mask, bool)
+    ids = np.flatnonzero(mask)
+    remap = -np.ones(len(mask), np.int64)
+    remap[ids] = np.arange(len(ids))
+    return ids, remap[faces[mask[faces].all(1)]]
+
+
 def mesh_edges(F: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..garment.geometry import submesh
 from .mesh import MeshSpec, split_uv_seams
 
 
@@ -23,10 +24,7 @@ def avatar_specs(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, fa
         fsel = sel[faces].all(1)
         if not fsel.any():
             continue
-        idx = np.flatnonzero(sel)
-        remap = -np.ones(len(vertices), np.int64)
-        remap[idx] = np.arange(len(idx))
-        f = remap[faces[fsel]]
+        idx, f = submesh(faces, sel)
         if texture is not None and face_uvs is not None:
             sm = split_uv_seams(vertices[idx], f, face_uvs[fsel])
             specs.append(MeshSpec(name, sm.vertices, sm.faces, uvs=sm.uvs, texture=texture, twosided=twosided))

@@ -108,23 +108,17 @@ def membrane_gradient(x, tri, G, area, mu, lam, model, n_vertices):
 
 
 @numba.njit(cache=True, inline="always")
-def _project_psd(K, n, Q, absolute=False):
-    """Clamp (or, ``absolute``, flip) the negative eigenvalues of symmetric K [n, n] in place.
-
-    A Cholesky attempt (n³/6 flops) first: blocks that are positive definite (triangles in
-    tension, most of them) are left as they are without the far costlier eigendecomposition.
-    """
+def _is_positive_definite(K, n, Q):
+    """Cholesky attempt on symmetric K [n, n] (n³/6 flops; Q is scratch)."""
     for i in range(n):
         for j in range(n):
             Q[i, j] = K[i, j]
-    pd = True
     for j in range(n):
         d = Q[j, j]
         for k in range(j):
             d -= Q[j, k] * Q[j, k]
         if not d > 0.0:
-            pd = False
-            break
+            return False
         d = math.sqrt(d)
         Q[j, j] = d
         for i in range(j + 1, n):
@@ -132,8 +126,23 @@ def _project_psd(K, n, Q, absolute=False):
             for k in range(j):
                 t -= Q[i, k] * Q[j, k]
             Q[i, j] = t / d
-    if pd:
-        return
+    return True
+
+
+@numba.njit(cache=True, inline="always")
+def _project_psd(K, n, Q, absolute=False):
+    """Clamp (or, ``absolute``, flip) the negative eigenvalues of symmetric K [n, n] in place.
+
+    A Cholesky attempt (n³/6 flops) first: blocks that are positive definite (triangles in
+    tension, most of them) are left as they are without the far costlier eigendecomposition.
+    """
+    if not _is_positive_definite(K, n, Q):
+        _clamp_eigenvalues(K, n, Q, absolute)
+
+
+@numba.njit(cache=True, inline="always")
+def _clamp_eigenvalues(K, n, Q, absolute=False):
+    """The eigendecomposition half of :func:`_project_psd` (K known not positive definite)."""
     w, V = np.linalg.eigh(K)
     if w[0] >= 0.0:
         return
@@ -252,28 +261,6 @@ def _project_psd_isotropic(K, F, R, Kh, absolute):
     return True
 
 
-@numba.njit(cache=True, inline="always")
-def _is_positive_definite(K, n, Q):
-    """Cholesky attempt on symmetric K [n, n] (n³/6 flops; Q is scratch)."""
-    for i in range(n):
-        for j in range(n):
-            Q[i, j] = K[i, j]
-    for j in range(n):
-        d = Q[j, j]
-        for k in range(j):
-            d -= Q[j, k] * Q[j, k]
-        if not d > 0.0:
-            return False
-        d = math.sqrt(d)
-        Q[j, j] = d
-        for i in range(j + 1, n):
-            t = Q[i, j]
-            for k in range(j):
-                t -= Q[i, k] * Q[j, k]
-            Q[i, j] = t / d
-    return True
-
-
 @numba.njit(cache=True)
 def membrane_hessian(x, tri, G, area, mu, lam, model, project):
     """[F, 9, 9] vertex blocks A Gᵀ K G with K = ∂²W/∂F² (6×6, PSD-projected if ``project``)."""
@@ -329,7 +316,7 @@ def membrane_hessian(x, tri, G, area, mu, lam, model, project):
             _project_psd(K, 6, Q)
         elif project and not _is_positive_definite(K, 6, Q):
             if not _project_psd_isotropic(K, F, R, Kh, project == 2):
-                _project_psd(K, 6, Q, project == 2)
+                _clamp_eigenvalues(K, 6, Q, project == 2)
         # H[(a,i),(c,k)] = A Σ_{j,l} G[a,j] K[(i,j),(k,l)] G[c,l]
         for a in range(3):
             for i in range(3):

@@ -59,6 +59,7 @@ from ..camera import Camera
 from ..capture import Capture, Template, frame_name, load_capture, save_png
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, save_npz_atomic, write_json_atomic, write_text_atomic
+from ..garment.geometry import submesh
 from ..render import (
     Ambient,
     AreaLight,
@@ -416,10 +417,8 @@ class AvatarMeshes:
             fsel = sel[faces].all(1)
             if not fsel.any():
                 continue
-            idx = np.flatnonzero(sel)
-            remap = -np.ones(len(template_vertices), np.int64)
-            remap[idx] = np.arange(len(idx))
-            sm = split_uv_seams(template_vertices[idx], remap[faces[fsel]], face_uvs[fsel])
+            idx, sub_faces = submesh(faces, sel)
+            sm = split_uv_seams(template_vertices[idx], sub_faces, face_uvs[fsel])
             names.append(name)
             F[name], UV[name], M[name], TS[name] = sm.faces, sm.uvs, idx[sm.vertex_map], twosided
         return AvatarMeshes(tuple(names), F, UV, M, TS)

@@ -29,6 +29,7 @@ from ..body import Motion, linear_blend_skinning
 from ..capture import load_capture
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, write_json_atomic, write_text_atomic
+from ..garment.geometry import submesh
 from ..sim import Material
 
 ROWS = ("LBS", "random material", "estimated material", "true material")
@@ -80,10 +81,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
         held, gt = held.slice(0, frames), gt[:frames]
     t = av.template
     gmask = t.labels > 0
-    gfaces = t.faces[gmask[t.faces].all(1)]
-    remap = -np.ones(len(t.vertices), np.int64)
-    remap[gmask] = np.arange(int(gmask.sum()))
-    gfaces_local = remap[gfaces]
+    _, gfaces_local = submesh(t.faces, gmask)
     metrics: dict = {"capture": str(cap.root), "avatar": str(av.root), "heldout_frames": int(len(gt)),
                      "n_points": n_points, "rows": {}, "seconds": {}}
 

@@ -39,6 +39,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from ..errors import PhysavatarError
+from ..garment.geometry import submesh
 from ..sim import ClothSim, Material, SimSettings, preset
 from ..sim.material import CODIM_BASE_POISSON, CODIM_BASE_THICKNESS, CODIM_BASE_YOUNG
 
@@ -852,15 +853,8 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
     garment_ids = sorted(set(labels.tolist()) - {0})
     if not garment_ids:
         raise PhysavatarError(src, "no garment vertices (labels >= 1)")
-    gmask = labels == garment_ids[0]
-    gidx = np.flatnonzero(gmask)
-    bidx = np.flatnonzero(labels == 0)
-    remap = -np.ones(len(labels), np.int64)
-    remap[gidx] = np.arange(len(gidx))
-    gfaces = remap[faces[gmask[faces].all(1)]]
-    bremap = -np.ones(len(labels), np.int64)
-    bremap[bidx] = np.arange(len(bidx))
-    bfaces = bremap[faces[(labels[faces] == 0).all(1)]]
+    gidx, gfaces = submesh(faces, labels == garment_ids[0])
+    bidx, bfaces = submesh(faces, labels == 0)
     gboundary = np.flatnonzero(boundary[gidx])
     if not len(gboundary):
         raise PhysavatarError(src, "the garment has no boundary vertices (template 'boundary' flags)")
