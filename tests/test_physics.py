@@ -311,3 +311,61 @@ def test_sensitivity_solve_is_gmres_on_an_indefinite_hessian_not_lu(monkeypatch)
     monkeypatch.setattr(ph.sla, "splu", no_lu)
     X = ph._solve_exact(H, rhs, (lambda: Factorization(P).solve,))
     np.testing.assert_allclose(X, np.linalg.solve(H.toarray(), rhs), rtol=1e-7, atol=1e-9)
+
+
+def test_shape_residuals_and_their_jacobian_match_central_fd():
+    """The local-shape residuals w·L(x − x̂): L annihilates a rigid translation, and the
+    objective's exact gradient 2 Jᵀr matches central differences of the objective."""
+    from physavatar.stages.physics import fit_residuals, shape_operator
+
+    data = hanging_cloth(frames=6, seed=2)
+    L = shape_operator(data.faces, data.reference.shape[1])
+    assert np.allclose(L @ (data.rest + [0.3, -0.2, 0.1]), L @ data.rest)
+    material = dataclasses.replace(far_material(), bend_stiffness=2e-6, poisson=0.2)
+    names = ("stretch_stiffness", "bend_stiffness")
+    r = rollout(data, material, TIGHT, parameters=names)
+    res, J = fit_residuals(r.positions, data, 3.0, r.jacobian)
+    assert len(res) == 2 * (data.frames - 1) * data.reference.shape[1] * 3
+    exact = 2.0 * J.T @ res
+    eps = 1e-3
+
+    def objective(m):
+        rr, _ = fit_residuals(rollout(data, m, TIGHT).positions, data, 3.0)
+        return rr @ rr
+
+    for k, n in enumerate(names):
+        lp = objective(dataclasses.replace(material, **{n: getattr(material, n) * np.exp(eps)}))
+        lm = objective(dataclasses.replace(material, **{n: getattr(material, n) * np.exp(-eps)}))
+        assert abs(exact[k] - (lp - lm) / (2 * eps)) < 1e-3 * abs(exact[k])
+
+
+def test_lm_step_is_the_box_constrained_minimum_of_the_damped_model():
+    """_lm_step against a brute-force minimisation of ‖r + Jδ‖² + λ δᵀ diag(JᵀJ) δ over the box
+    (|δ| ≤ radius and the bounds), with one parameter's scale 100× the other's (as κs vs κb)."""
+    from scipy.optimize import minimize
+
+    from physavatar.stages.physics import _lm_step
+
+    rng = np.random.default_rng(3)
+    for trial in range(6):
+        J = rng.standard_normal((40, 2)) * [100.0, 1.0]
+        res = rng.standard_normal(40) * 5
+        theta = np.array([0.0, rng.uniform(-0.5, 0.5)])
+        lo, hi = np.array([-5.0, -0.3 if trial % 2 else -5.0]), np.array([5.0, 5.0])
+        theta = np.maximum(theta, lo)
+        lam, radius = 1e-3, 0.5
+        new, predicted = _lm_step(J, res, theta, lo, hi, lam, radius)
+        d = np.diag(J.T @ J)
+
+        def model(delta):
+            r = res + J @ delta
+            return r @ r + lam * delta @ (d * delta)
+
+        box = list(zip(np.maximum(lo - theta, -radius), np.minimum(hi - theta, radius)))
+        ref = min((minimize(model, x0, bounds=box, method="L-BFGS-B", options={"ftol": 1e-15, "gtol": 1e-12})
+                   for x0 in ([0.0, 0.0], [b[0] for b in box], [b[1] for b in box])), key=lambda o: o.fun)
+        assert np.all(new - theta >= np.array([b[0] for b in box]) - 1e-12)
+        assert np.all(new - theta <= np.array([b[1] for b in box]) + 1e-12)
+        assert model(new - theta) <= ref.fun * (1 + 1e-9) + 1e-9
+        delta = new - theta
+        assert np.isclose(predicted, res @ res - np.sum((res + J @ delta) ** 2))

@@ -582,6 +582,9 @@ def fit_physics(
     max_vertices: int = typer.Option(400, "--max-vertices",
                                      help="fit on a coarse proxy of at most this many vertices when the garment has "
                                           "more (0 = always the full garment; docs/physics.md)"),
+    shape_weight: Optional[float] = typer.Option(None, "--shape-weight",
+                                                 help="weight of the local-shape residuals next to L_sim (default: 3 "
+                                                      "with exact, 0 = the paper's L_sim with fd; docs/physics.md)"),
 ):
     """Estimate the garment's cloth material from its tracked motion (PhysAvatar Sec. 3.2)."""
     import dataclasses as _dc
@@ -610,6 +613,8 @@ def fit_physics(
         _bad_option("--newton-tol", "must be positive")
     if max_vertices != 0 and max_vertices < 20:
         _bad_option("--max-vertices", "must be 0 (no proxy) or at least 20")
+    if shape_weight is not None and not shape_weight >= 0:
+        _bad_option("--shape-weight", "must be >= 0")
     if init == "far":
         initial = far_material()
     elif init in _SIM_PRESETS:
@@ -648,7 +653,8 @@ def fit_physics(
 
         result = fit_material(data, initial, gradient, iterations, fit_density,
                               fit_settings(friction=friction, newton_tol=newton_tol),
-                              workers=workers, callback=report)
+                              workers=workers, callback=report,
+                              shape_weight=shape_weight)
     if proxy is not None:
         result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),
                         "mean_edge_m": proxy.mean_edge, "garment_vertices": n_fine, "max_vertices": max_vertices}

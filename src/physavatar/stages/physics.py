@@ -63,6 +63,12 @@ PAPER_WINDOW = 24  # frames (App. A.3.1)
 # solver error alone leaves L_sim ~15 % above the noise floor at the true material on the demo
 # dress and makes it rough at the 1 % parameter scale; 1e-5 puts it at the floor.
 FIT_NEWTON_TOL = 1e-5
+# Weight w of the local-shape residuals w·L(x − x̂) next to Eq. 6's x − x̂ (fit_residuals) in the
+# exact estimator's objective. Under model error (ground truth at 2 steps per frame, fits at 1)
+# Eq. 6 alone is ~flat in κb (1 % over three decades) and LM put κb at −64 % (cotton) to its
+# bound; the shape residuals have their minimum near the true κb. w = 3 measured in
+# docs/physics.md ("Local shape"); 0 is the paper's L_sim.
+SHAPE_WEIGHT = 3.0
 
 
 def fit_settings(**changes) -> SimSettings:
@@ -422,6 +428,41 @@ def rms_mm(loss: float, data: PhysicsData) -> float:
     return 1e3 * math.sqrt(loss / ((data.frames - 1) * data.reference.shape[1]))
 
 
+def shape_operator(faces: np.ndarray, n: int) -> sp.csr_matrix:
+    """[n, n] uniform graph Laplacian I − D⁻¹A of the garment mesh: (L x)_i = x_i − mean of its
+    neighbours, the umbrella operator (a discrete mean-curvature normal, unscaled)."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    deg = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1.0)
+    return (sp.eye(n, format="csr") - sp.diags(1.0 / deg) @ A).tocsr()
+
+
+def fit_residuals(positions: np.ndarray, data: PhysicsData, shape_weight: float = 0.0,
+                  jacobian: np.ndarray | None = None):
+    """The residual vector the estimators minimise, and its Jacobian.
+
+    r = x_t − x̂_t over frames ≥ 1 (Eq. 6), and with ``shape_weight`` w > 0 also w·L(x_t − x̂_t)
+    (:func:`shape_operator`): the difference of local shape, blind to a smooth drift of the
+    whole garment. Model error (another simulator's time stepping and damping, docs/physics.md)
+    mostly shows as such a drift, in which κb is nearly invisible (its effect on Eq. 6 is ~1 %
+    of a 1-vs-2-steps-per-frame mismatch on the dress); bending shows in the local shape.
+    positions: [T, N, 3]; jacobian: [T, N, 3, P] or None. Returns (r [M], J [M, P] or None).
+    """
+    d = (np.asarray(positions) - data.reference)[1:]
+    res = [d.reshape(-1)]
+    jac = None if jacobian is None else [jacobian[1:].reshape(-1, jacobian.shape[-1])]
+    if shape_weight > 0:
+        L = shape_operator(data.faces, d.shape[1])
+        res.append(shape_weight * np.stack([L @ f for f in d]).reshape(-1))
+        if jacobian is not None:
+            P = jacobian.shape[-1]
+            Jl = np.stack([(L @ f.reshape(f.shape[0], -1)).reshape(f.shape) for f in jacobian[1:]])
+            jac.append(shape_weight * Jl.reshape(-1, P))
+    r = np.concatenate(res)
+    return r, (None if jac is None else np.concatenate(jac))
+
+
 def simulation_loss(data: PhysicsData, material: Material, settings: SimSettings | None = None,
                     substeps: int = 1) -> float:
     """L_sim of ``material`` on ``data`` (inf when the simulation fails)."""
@@ -458,6 +499,8 @@ class FitResult:
     window: int
     settings: dict
     proxy: dict | None = None  # the coarse proxy fitted on (stages/proxy.py), if any
+    shape_weight: float = 0.0  # weight of the local-shape residuals (fit_residuals)
+    objective: float | None = None  # what was minimised (= loss when shape_weight is 0)
 
     def at_bound(self) -> list:
         """Fitted parameters that ended on their search bound (:data:`BOUNDS`): the data pushed
@@ -481,6 +524,8 @@ class FitResult:
             "initial": self.initial.to_dict(),
             "loss": self.loss,
             "loss_unit": "m^2 (sum over fitted frames and vertices of squared distance)",
+            "objective": self.loss if self.objective is None else self.objective,
+            "shape_weight": self.shape_weight,
             "rms_mm": self.rms_mm,
             "initial_rms_mm": self.history[0]["rms_mm"] if self.history else None,
             "at_bound": self.at_bound(),
@@ -533,8 +578,9 @@ def ratio_intervals(jacobian: np.ndarray, residual: np.ndarray, names, material:
 _WORKER: dict = {}
 
 
-def _worker_init(data, material, settings, names, substeps):
-    _WORKER.update(data=data, material=material, settings=settings, names=names, substeps=substeps)
+def _worker_init(data, material, settings, names, substeps, shape_weight=0.0):
+    _WORKER.update(data=data, material=material, settings=settings, names=names, substeps=substeps,
+                   shape_weight=shape_weight)
 
 
 def _worker_simulate(log_values):
@@ -545,7 +591,8 @@ def _worker_simulate(log_values):
         r = rollout(w["data"], m, w["settings"], substeps=w["substeps"])
     except (FloatingPointError, np.linalg.LinAlgError, RuntimeError):
         return math.inf, None
-    return trajectory_loss(r.positions, w["data"].reference), r.positions.astype(np.float32)
+    res, _ = fit_residuals(r.positions, w["data"], w["shape_weight"])
+    return float(res @ res), r.positions.astype(np.float32)
 
 
 @contextlib.contextmanager
@@ -568,18 +615,18 @@ def _single_threaded_children():
 class _Evaluator:
     """Runs batches of simulations: a spawn-context process pool, or inline with workers=0/1."""
 
-    def __init__(self, data, material, settings, names, substeps, workers):
+    def __init__(self, data, material, settings, names, substeps, workers, shape_weight=0.0):
         self.workers = workers
         self.pool = None
         if workers > 1:
             with _single_threaded_children():
                 self.pool = concurrent.futures.ProcessPoolExecutor(
                     max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_worker_init, initargs=(data, material, settings, names, substeps))
+                    initializer=_worker_init, initargs=(data, material, settings, names, substeps, shape_weight))
                 # start the workers now, while the environment says one thread each
                 list(self.pool.map(_noop, range(workers)))
         else:
-            _worker_init(data, material, settings, names, substeps)
+            _worker_init(data, material, settings, names, substeps, shape_weight)
 
     def map(self, points):
         if self.pool is None:
@@ -603,14 +650,15 @@ def _bounds(names):
 
 def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = None,
            iterations: int = PAPER_ITERATIONS, fit_density: bool = False, workers: int = 2,
-           substeps: int = 1, callback: Callable | None = None) -> FitResult:
+           substeps: int = 1, callback: Callable | None = None, shape_weight: float = 0.0) -> FitResult:
     """Algorithm 1: forward finite differences (Eq. 7) and Adam, in log space.
 
     Each iteration simulates θ and θ + δ_p e_p for every fitted p (in parallel over ``workers``
     processes), takes ΔL/δ as the gradient, and makes one Adam step (lr cosine-annealed from
     0.1 to 0.04 on log κ, the paper's values mapped at its start point; module constants).
     The result is the best iterate seen (as the official driver keeps). The residual Jacobian
-    of the last iteration's differences gives the confidence intervals.
+    of the last iteration's differences gives the confidence intervals. ``shape_weight``: as in
+    :func:`fit_exact` (0, the paper's L_sim, by default).
     """
     settings = settings or fit_settings()
     names = PARAMETERS if fit_density else PARAMETERS[1:]
@@ -623,9 +671,9 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
     v_adam = np.zeros(len(names))
     t_start = time.perf_counter()
     history = []
-    best = (math.inf, theta.copy(), None, None)
+    best = (math.inf, theta.copy(), None, None, math.inf)
     sims = 0
-    ev = _Evaluator(data, initial, settings, names, substeps, workers)
+    ev = _Evaluator(data, initial, settings, names, substeps, workers, shape_weight)
     ref = data.reference
     try:
         for it in range(iterations):
@@ -637,14 +685,15 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
             if not np.isfinite(loss):
                 raise PhysavatarError(None, f"simulation failed at {dict(zip(names, np.exp(theta)))}")
             grad = np.where(np.isfinite(losses[1:]), (losses[1:] - loss) / delta, 0.0)
+            lsim = loss if shape_weight <= 0 else trajectory_loss(results[0][1].astype(np.float64), ref)
             if loss < best[0]:
                 fd_jac = None
                 if all(r[1] is not None for r in results):
                     base = results[0][1].astype(np.float64)
                     fd_jac = np.stack([(r[1].astype(np.float64) - base)[1:].ravel() / d
                                        for r, d in zip(results[1:], delta)], axis=1)
-                best = (loss, theta.copy(), fd_jac, (results[0][1].astype(np.float64) - ref)[1:].ravel())
-            row = _history_row(it, loss, data, names, theta, t_start, sims)
+                best = (loss, theta.copy(), fd_jac, (results[0][1].astype(np.float64) - ref)[1:].ravel(), lsim)
+            row = _history_row(it, lsim, data, names, theta, t_start, sims, loss)
             history.append(row)
             if callback is not None:
                 callback(row)
@@ -657,16 +706,17 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
             theta = np.clip(theta - lr * mh / (np.sqrt(vh) + eps), lo, hi)
     finally:
         ev.close()
-    loss, theta_best, fd_jac, resid = best
+    objective, theta_best, fd_jac, resid, loss = best
     material = dataclasses.replace(_with_log_params(initial, names, theta_best), name="fitted (fd)")
     intervals, stds = ratio_intervals(fd_jac, resid, list(names), material) if fd_jac is not None else ({}, {})
     return FitResult(material, initial, float(loss), rms_mm(loss, data), iterations, sims,
                      time.perf_counter() - t_start, "fd", names, history, intervals, stds, data.frames,
-                     _settings_dict(settings, substeps))
+                     _settings_dict(settings, substeps), shape_weight=shape_weight, objective=float(objective))
 
 
-def _history_row(it, loss, data, names, theta, t_start, sims):
-    row = {"iteration": it, "loss": float(loss), "rms_mm": rms_mm(loss, data)}
+def _history_row(it, loss, data, names, theta, t_start, sims, objective=None):
+    row = {"iteration": it, "loss": float(loss), "rms_mm": rms_mm(loss, data),
+           "objective": float(loss if objective is None else objective)}
     for n, v in zip(names, theta):
         row[n] = float(math.exp(v))
     row["wall_time_s"] = time.perf_counter() - t_start
@@ -684,23 +734,66 @@ def _settings_dict(settings, substeps):
 # -- exact gradients: forward sensitivities + Levenberg–Marquardt --------------------------------
 
 
+def _lm_step(J, res, theta, lo, hi, lam, radius):
+    """One box-constrained Levenberg–Marquardt step in log space.
+
+    Minimises the damped linear model ‖r + Jδ‖² + λ δᵀ diag(JᵀJ) δ over the box |δ_p| ≤
+    ``radius`` ∩ the bounds (no parameter moves more than a factor e^radius per iteration; the
+    residual model is only locally linear, and a far start otherwise overshoots into unstable
+    materials). Solving over the box, rather than scaling or clipping the unconstrained step:
+    κb is ~100× less constrained than κs, so its Gauss–Newton step is long; scaling the step
+    to the box shrank κs's part with it (κs stayed 19 % off while κb crawled to its bound),
+    and clipping at a bound turned the free parameters' direction. P ≤ 3, so the box problem
+    runs on the P×P Cholesky factor of JᵀJ + λD. Returns (trial θ, predicted decrease).
+    """
+    from scipy.optimize import lsq_linear
+
+    g = J.T @ res
+    JtJ = J.T @ J
+    d = np.maximum(np.diag(JtJ), 1e-12 * max(np.max(np.diag(JtJ)), 1e-300))
+    A = JtJ + lam * np.diag(d)
+    R = np.linalg.cholesky(A).T  # RᵀR = A: ‖Rδ + R⁻ᵀg‖² = δᵀAδ + 2gᵀδ + const
+    rhs = -np.linalg.solve(R.T, g)
+    lower = np.maximum(lo - theta, -radius)
+    upper = np.minimum(hi - theta, radius)
+    lower, upper = np.minimum(lower, 0.0), np.maximum(upper, 0.0)
+    fixed = upper - lower < 1e-12  # a parameter pinned on a bound with no room (lsq_linear needs lb < ub)
+    delta = np.zeros_like(theta)
+    if (~fixed).any():
+        Rf = R[:, ~fixed]
+        delta[~fixed] = lsq_linear(Rf, rhs, bounds=(lower[~fixed], upper[~fixed]), method="bvls").x
+    delta = np.clip(theta + delta, lo, hi) - theta
+    predicted = -(2.0 * g @ delta + delta @ JtJ @ delta)  # ‖r‖² − ‖r + Jδ‖²
+    return theta + delta, float(predicted)
+
+
 def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None = None,
               iterations: int = 15, fit_density: bool = False, substeps: int = 1,
-              tolerance: float = 1e-4, callback: Callable | None = None, max_rejections: int = 4) -> FitResult:
+              tolerance: float = 1e-4, callback: Callable | None = None, max_rejections: int = 4,
+              radius: float = 1.0, shape_weight: float = 0.0) -> FitResult:
     """Levenberg–Marquardt on the trajectory residuals with exact Jacobians (:func:`rollout`).
 
     Each iteration simulates once with sensitivities (J [M, P], P = 2 or 3), solves
-    (JᵀJ + λ diag JᵀJ) δ = −Jᵀr, and tries θ + δ (a second simulation, which also provides the
-    next Jacobian when accepted). λ shrinks ×0.3 on success and grows ×10 on failure. With
-    ``fit_density`` the scaling direction is flat (JᵀJ singular there); the damping keeps the
-    step finite and ρ stays near its start. Stops when a step improves the loss by less than
-    ``tolerance`` (relative), after ``max_rejections`` rejected steps in a row (λ then grew
-    10⁴-fold: the linear model no longer finds descent), or after ``iterations`` steps.
+    (JᵀJ + λ diag JᵀJ) δ = −Jᵀr within a box around θ and the bounds (:func:`_lm_step`), and
+    tries θ + δ (a second simulation, which also provides the next Jacobian when accepted).
+    A box trust region in log space (max norm, ``radius`` to start) follows the gain ratio ϱ of the
+    actual to the predicted loss decrease (Nielsen / Moré): ϱ > 0.75 doubles it (up to 2), ϱ <
+    0.25 halves it, a rejected step halves the region below the step tried; λ follows the same
+    way (×⅓ / ×4). L_sim has kinks at the 1 % parameter scale (contact events), so a rejected
+    step shrinks the region instead of only growing λ. With ``fit_density`` the scaling
+    direction is flat (JᵀJ singular there); the damping keeps the step finite and ρ stays near
+    its start. Stops when an accepted step improves the loss by less than ``tolerance``
+    (relative), after ``max_rejections`` rejected steps in a row, when the region falls
+    below 1e-3 (a 0.1 % change), or after ``iterations`` steps.
+
+    ``shape_weight`` w > 0 adds the local-shape residuals w·L(x_t − x̂_t) to the objective
+    (:func:`fit_residuals`); the reported ``loss`` stays L_sim (Eq. 6), ``objective`` is what
+    was minimised (and the intervals are its curvature's).
     """
     settings = settings or fit_settings()
     names = PARAMETERS if fit_density else PARAMETERS[1:]
     lo, hi = _bounds(names)
-    theta = np.array([math.log(getattr(initial, n)) for n in names])
+    theta = np.clip(np.array([math.log(getattr(initial, n)) for n in names]), lo, hi)
     t_start = time.perf_counter()
     sims = 0
     history = []
@@ -708,40 +801,42 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
     def evaluate(th):
         m = _with_log_params(initial, names, th)
         r = rollout(data, m, settings, parameters=names, substeps=substeps)
-        res = (r.positions - data.reference)[1:].reshape(-1)
-        J = r.jacobian[1:].reshape(-1, len(names))
-        return float(res @ res), res, J
+        res, J = fit_residuals(r.positions, data, shape_weight, r.jacobian)
+        return float(res @ res), res, J, trajectory_loss(r.positions, data.reference)
 
-    loss, res, J = evaluate(theta)
+    loss, res, J, lsim = evaluate(theta)
     sims += 1
     lam = 1e-3
     rejected = 0
-    row = _history_row(0, loss, data, names, theta, t_start, sims)
+    row = _history_row(0, lsim, data, names, theta, t_start, sims, loss)
     history.append(row)
     if callback is not None:
         callback(row)
     for it in range(1, iterations + 1):
-        JtJ = J.T @ J
-        g = J.T @ res
-        D = np.diag(np.maximum(np.diag(JtJ), 1e-12 * max(np.max(np.diag(JtJ)), 1e-300)))
-        step = np.linalg.solve(JtJ + lam * D, -g)
-        # a trust region in log space: no factor above e per iteration (the residual model is
-        # only locally linear, and a far start otherwise overshoots into unstable materials)
-        step *= min(1.0, 1.0 / max(np.max(np.abs(step)), 1e-300))
-        trial = np.clip(theta + step, lo, hi)
+        trial, predicted = _lm_step(J, res, theta, lo, hi, lam, radius)
+        tried = float(np.max(np.abs(trial - theta)))
+        if tried < 1e-12 or predicted <= 0:
+            break  # every free parameter is held on a bound: a constrained stationary point
         try:
-            new_loss, new_res, new_J = evaluate(trial)
+            new_loss, new_res, new_J, new_lsim = evaluate(trial)
         except (FloatingPointError, np.linalg.LinAlgError, RuntimeError):
             new_loss = math.inf
         sims += 1
+        gain = (loss - new_loss) / predicted
         improved = new_loss < loss
         rel = (loss - new_loss) / max(loss, 1e-300)
         if improved:
-            theta, loss, res, J = trial, new_loss, new_res, new_J
-            lam = max(lam * 0.3, 1e-9)
+            theta, loss, res, J, lsim = trial, new_loss, new_res, new_J, new_lsim
+            if gain > 0.75:
+                radius = min(2.0 * radius, 2.0)
+                lam = max(lam / 3.0, 1e-9)
+            elif gain < 0.25:
+                radius = 0.5 * max(tried, 1e-3)
+                lam *= 4.0
         else:
-            lam *= 10.0
-        row = _history_row(it, loss, data, names, theta, t_start, sims)
+            radius = 0.5 * tried
+            lam *= 4.0
+        row = _history_row(it, lsim, data, names, theta, t_start, sims, loss)
         row["accepted"] = bool(improved)
         history.append(row)
         if callback is not None:
@@ -749,29 +844,35 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
         rejected = 0 if improved else rejected + 1
         if improved and rel < tolerance:
             break
-        if rejected >= max_rejections or lam > 1e8:
-            break  # λ grew 10^max_rejections-fold without a better point: at a (local) minimum
+        if rejected >= max_rejections or radius < 1e-3:
+            break  # no better point within a shrinking region: at a (local) minimum
     material = dataclasses.replace(_with_log_params(initial, names, theta), name="fitted (exact)")
     intervals, stds = ratio_intervals(J, res, list(names), material)
-    return FitResult(material, initial, float(loss), rms_mm(loss, data), len(history) - 1, sims,
+    return FitResult(material, initial, float(lsim), rms_mm(lsim, data), len(history) - 1, sims,
                      time.perf_counter() - t_start, "exact", names, history, intervals, stds, data.frames,
-                     _settings_dict(settings, substeps))
+                     _settings_dict(settings, substeps), shape_weight=shape_weight, objective=float(loss))
 
 
 def fit_material(data: PhysicsData, initial: Material | None = None, gradient: str = "exact",
                  iterations: int | None = None, fit_density: bool = False, settings: SimSettings | None = None,
-                 workers: int = 2, substeps: int = 1, callback: Callable | None = None) -> FitResult:
+                 workers: int = 2, substeps: int = 1, callback: Callable | None = None,
+                 shape_weight: float | None = None) -> FitResult:
     """Estimate the garment material from ``data`` (one entry point for both estimators).
 
     initial: start material (default :func:`far_material`); its density is the prior that
     stays fixed unless ``fit_density``. gradient: "fd" (the paper) or "exact".
-    iterations: default 100 (fd, the paper) or 15 (exact).
+    iterations: default 100 (fd, the paper) or 15 (exact). shape_weight: :func:`fit_residuals`
+    (default :data:`SHAPE_WEIGHT` with exact, 0 — the paper's L_sim — with fd).
     """
     initial = initial or far_material()
+    if shape_weight is None:
+        shape_weight = SHAPE_WEIGHT if gradient == "exact" else 0.0
     if gradient == "fd":
-        return fit_fd(data, initial, settings, iterations or PAPER_ITERATIONS, fit_density, workers, substeps, callback)
+        return fit_fd(data, initial, settings, iterations or PAPER_ITERATIONS, fit_density, workers, substeps, callback,
+                      shape_weight=shape_weight)
     if gradient == "exact":
-        return fit_exact(data, initial, settings, iterations or 15, fit_density, substeps, callback=callback)
+        return fit_exact(data, initial, settings, iterations or 15, fit_density, substeps, callback=callback,
+                         shape_weight=shape_weight)
     raise PhysavatarError(None, f"gradient must be 'fd' or 'exact', got {gradient!r}")
 
 
