@@ -24,13 +24,15 @@ def available() -> bool:
     return True
 
 
-def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, near, far):
+def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, near, far,
+                     antialiased: bool = False):
     """Render C cameras at once with gsplat.
 
     Args:
         means [N, 3], quats [N, 4] (wxyz), scales [N, 3], opacities [N], colors [N, D];
         viewmats [C, 4, 4] world-to-camera; Ks [C, 3, 3] with pixel centres at integers (this
-        project's convention); backgrounds [C, D] or None.
+        project's convention); backgrounds [C, D] or None. antialiased: gsplat's
+        ``rasterize_mode="antialiased"`` (opacity compensated for the low-pass).
     Returns:
         rgb [C, H, W, D], alpha [C, H, W], depth [C, H, W] (accumulated sum w_i z_i), meta dict;
         all on the CUDA device.
@@ -49,6 +51,6 @@ def rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, widt
         near_plane=float(near), far_plane=float(far), eps2d=LOWPASS, tile_size=TILE,
         backgrounds=None if backgrounds is None else backgrounds.to(dev),
         render_mode="RGB+D",  # last channel: accumulated depth sum_i w_i z_i, like the CPU kernels
-        packed=False, rasterize_mode="classic",
+        packed=False, rasterize_mode="antialiased" if antialiased else "classic",
     )
     return render[..., :-1], alphas[..., 0], render[..., -1], meta

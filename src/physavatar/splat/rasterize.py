@@ -19,7 +19,7 @@ import torch
 
 from . import _gsplat
 from ._common import check_inputs
-from ._torch_impl import rasterize_dense
+from ._torch_impl import antialias_compensation, rasterize_dense
 
 BACKENDS = ("auto", "numba", "torch", "gsplat")
 
@@ -46,6 +46,7 @@ def rasterize(
     near: float = 0.01,
     far: float = 100.0,
     backend: str = "auto",
+    antialiased: bool = False,
 ) -> dict:
     """Render 3D Gaussians into one camera.
 
@@ -61,6 +62,9 @@ def rasterize(
         background: [D] colour behind the Gaussians; None means zeros.
         near, far: Gaussians whose centre has camera z outside [near, far] are dropped whole.
         backend: "auto", "numba", "torch" or "gsplat" (see the module docstring).
+        antialiased: scale each opacity by sqrt(det Σ2d / det(Σ2d + LOWPASS I)) so the low-pass
+            keeps every splat's mass (gsplat's ``rasterize_mode="antialiased"``;
+            :func:`antialias_compensation`, differentiable through torch on every backend).
 
     Returns:
         dict with
@@ -78,11 +82,13 @@ def rasterize(
     if which == "gsplat":
         rgb, alpha, depth, meta = _gsplat.rasterize_gsplat(
             means, quats, scales, opacities, colors, viewmat[None], K[None], width, height,
-            None if background is None else background[None], near, far,
+            None if background is None else background[None], near, far, antialiased,
         )
         dev = means.device
         return dict(rgb=rgb[0].to(dev), alpha=alpha[0].to(dev), depth=depth[0].to(dev),
                     meta=dict(meta, backend="gsplat"))
+    if antialiased:
+        opacities = opacities * antialias_compensation(means, quats, scales, viewmat, K, width, height)
     if which == "torch":
         rgb, alpha, depth, meta = rasterize_dense(
             means, quats, scales, opacities, colors, viewmat, K, int(width), int(height), background, near, far
@@ -113,12 +119,14 @@ def rasterize_batch(
     near: float = 0.01,
     far: float = 100.0,
     backend: str = "auto",
+    antialiased: bool = False,
 ) -> dict:
     """Render the same Gaussians into C cameras of one size.
 
     Args:
         means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colors [N, D]: as in
         :func:`rasterize`. viewmats: [C, 4, 4]. Ks: [C, 3, 3]. backgrounds: [C, D] or None.
+        antialiased: as in :func:`rasterize`.
     Returns:
         dict with rgb [C, H, W, D], alpha [C, H, W], depth [C, H, W], meta (list of C dicts, or
         gsplat's one dict).
@@ -129,13 +137,13 @@ def rasterize_batch(
             check_inputs(means, quats, scales, opacities, colors, viewmats[c], Ks[c],
                          None if backgrounds is None else backgrounds[c])
         rgb, alpha, depth, meta = _gsplat.rasterize_gsplat(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, near, far
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, near, far, antialiased
         )
         dev = means.device
         return dict(rgb=rgb.to(dev), alpha=alpha.to(dev), depth=depth.to(dev), meta=dict(meta, backend="gsplat"))
     outs = [
         rasterize(means, quats, scales, opacities, colors, viewmats[c], Ks[c], width, height,
-                  None if backgrounds is None else backgrounds[c], near, far, which)
+                  None if backgrounds is None else backgrounds[c], near, far, which, antialiased)
         for c in range(viewmats.shape[0])
     ]
     return dict(
