@@ -261,7 +261,9 @@ class NewtonLinearSolver:
         self.factor_matrix = M
         self.factorizations += 1
 
-    def solve(self, H: sp.csr_matrix, b: np.ndarray, assembler: "Assembler | None" = None) -> np.ndarray:
+    def solve(self, H: sp.csr_matrix, b: np.ndarray, assembler: "Assembler | None" = None,
+              rtol: float | None = None) -> np.ndarray:
+        rtol = self.rtol if rtol is None else max(float(rtol), self.rtol)
         if self.max_cg <= 0 or assembler is None:
             self._refactor(H)
             self._stale = True
@@ -269,11 +271,11 @@ class NewtonLinearSolver:
         if self.factor is None or self._stale or self.factor.n != H.shape[0]:
             self._refactor(assembler.preconditioner_matrix(H))
             self._stale = False
-        x, its, ok = pcg(H, b, self.factor.solve, self.rtol, self.max_cg)
+        x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
         self.cg_iterations += its
         if not ok:  # the old factor no longer fits H: a fresh one
             self._refactor(assembler.preconditioner_matrix(H))
-            x, its, ok = pcg(H, b, self.factor.solve, self.rtol, self.max_cg)
+            x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
             self.cg_iterations += its
             if not ok:  # not expected (H₁ ⪰ H); a direct solve is always right
                 self._refactor(H)

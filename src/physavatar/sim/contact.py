@@ -45,6 +45,7 @@ class ContactScene:
         self.candidates = ipctk.Candidates()
         self.collisions = ipctk.NormalCollisions()
         self._collisions_at = None
+        self.covers_last_point = False  # solver bookkeeping: candidates valid at its iterate
 
     # -- collision sets ------------------------------------------------------------------------
 
