@@ -231,6 +231,15 @@ def test_anchor_and_collision_losses_by_hand():
     coll.update(V)
     # relu(margin - d)^2 / margin^2 averaged: d = 0.01 -> 0, d = 0 -> 1, d = -0.002 -> (5/3)^2
     assert float(coll(torch.from_numpy(V).float())) == pytest.approx((0 + 1 + (5 / 3) ** 2) / 3, rel=1e-4)
+    # a roof (ridge at z = 1): a point 2 mm off the middle of one slope is 2 mm out, although the
+    # ridge vertex closest to it, with its averaged normal +z, would put it 0.4 m inside
+    roof = np.array([[0, -1, 0], [1, -1, 0], [1, 0, 1], [0, 0, 1], [0, 1, 0], [1, 1, 0]], float)
+    roof_faces = np.array([[0, 1, 2], [0, 2, 3], [4, 3, 2], [4, 2, 5]])
+    p = np.array([0.5, -0.4, 0.6]) + 0.002 * np.array([0, -1, 1]) / np.sqrt(2)
+    coll = CollisionLoss(np.array([6]), np.arange(6), roof_faces, margin=0.003)
+    V = np.concatenate([roof, p[None]])
+    coll.update(V)
+    assert float(coll(torch.from_numpy(V).float())) == pytest.approx((1 / 3) ** 2, rel=1e-3)
 
 
 def test_adam_uniform_steps():

@@ -155,41 +155,61 @@ class NormalLoss:
 
 class CollisionLoss:
     """Garment-body collision penalty (the official PhysAvatar code adds one; the paper's Eq. 4 does not):
-    mean over garment vertices of relu(margin - d)^2 / margin^2, d the signed distance along the
-    normal of the closest body vertex (pairs fixed for one frame).
+    mean over garment vertices of relu(margin - d)^2 / margin^2, d the signed distance from the
+    closest point of the body surface along that triangle's normal (pairs fixed for one frame).
 
     The body is known from the capture's poses, so it sits where skinning puts it; the garment
-    sinking into it is the easiest way for a photometric fit to slide an unobserved fold (the
-    demo dress's bodice sank 20-60 mm into the torso over eight frames without it).
+    sinking into it is the easiest way for a photometric fit to slide an unobserved fold.
+    The closest point is taken on the body's triangles, not at its closest vertex: on the coarse
+    demo collider (2-3 cm faces) the plane through the closest vertex with its averaged normal
+    lies outside the surface between vertices, and the true dress scored 1.1 on the old
+    closest-vertex term (margin 3 mm) and a fit pushed it out by centimetres; on triangles 99.9 %
+    of its vertices have d >= 0 (docs/tracking.md).
 
     Args:
         garment: [G] garment vertex indices. body: [B] body vertex indices.
         body_faces: [Fb, 3] faces over the full vertex array whose vertices are all body.
         margin: metres.
+        k: closest body vertices whose incident faces are searched for the closest point.
     """
 
-    def __init__(self, garment: np.ndarray, body: np.ndarray, body_faces: np.ndarray, margin: float = 0.003):
+    def __init__(self, garment: np.ndarray, body: np.ndarray, body_faces: np.ndarray, margin: float = 0.001,
+                 k: int = 4):
         self.garment = torch.from_numpy(np.asarray(garment)).long()
         self.body = np.asarray(body)
         self.body_faces = np.asarray(body_faces)
         self.margin = margin
-        self.points = self.normals = self.index = None
+        self.k = min(k, len(self.body))
+        n = int(max(self.body_faces.max(initial=0), self.body.max(initial=0))) + 1
+        ring = [[] for _ in range(n)]
+        for fi, f in enumerate(self.body_faces):
+            for v in f:
+                ring[v].append(fi)
+        self.incident = np.full((n, max(1, max(len(r) for r in ring))), -1)  # [n, W] body faces per vertex, -1 pad
+        for v, r in enumerate(ring):
+            self.incident[v, :len(r)] = r
+        self.points = self.normals = None
 
     def update(self, vertices: np.ndarray) -> None:
-        """Pair every garment vertex with its closest body vertex at ``vertices`` [V, 3]."""
+        """Pair every garment vertex with its closest point on the body at ``vertices`` [V, 3]."""
         from scipy.spatial import cKDTree
+        from trimesh.triangles import closest_point
 
         V = np.asarray(vertices, np.float64)
-        tri = V[self.body_faces]
-        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # area-weighted face normals
-        vn = np.zeros_like(V)
-        for k in range(3):
-            np.add.at(vn, self.body_faces[:, k], fn)
-        vn /= np.linalg.norm(vn, axis=1, keepdims=True) + 1e-30
-        _, j = cKDTree(V[self.body]).query(V[self.garment.numpy()])
-        idx = self.body[j]
-        self.points = torch.from_numpy(V[idx]).float()
-        self.normals = torch.from_numpy(vn[idx]).float()
+        x = V[self.garment.numpy()]
+        _, j = cKDTree(V[self.body]).query(x, k=self.k)
+        cand = self.incident[self.body[np.asarray(j).reshape(len(x), -1)]].reshape(len(x), -1)  # [G, C]
+        valid = cand >= 0
+        cand = np.where(valid, cand, 0)
+        G, C = cand.shape
+        cp = closest_point(V[self.body_faces[cand.ravel()]], np.repeat(x, C, axis=0)).reshape(G, C, 3)
+        d2 = np.where(valid, ((cp - x[:, None]) ** 2).sum(-1), np.inf)
+        best = d2.argmin(1)
+        face = self.body_faces[cand[np.arange(G), best]]
+        n = np.cross(V[face[:, 1]] - V[face[:, 0]], V[face[:, 2]] - V[face[:, 0]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-30
+        self.points = torch.from_numpy(cp[np.arange(G), best]).float()
+        self.normals = torch.from_numpy(n).float()
 
     def __call__(self, vertices: torch.Tensor) -> torch.Tensor:
         d = ((vertices[self.garment] - self.points.to(vertices.dtype)) * self.normals.to(vertices.dtype)).sum(-1)

@@ -77,7 +77,10 @@ class TrackConfig:
         lr_vertices: Adam step size of the vertices at the finest level [m]; a level whose
             pixels are k times larger uses k times this.
         lr_decay: every level's step sizes decay exponentially to this fraction at its last step.
-        lr_colors, lr_scales, lr_opacity: Adam step sizes (linear RGB, log-scale, logit).
+        lr_colors, lr_scales, lr_opacity: Adam step sizes on frame 1 (linear RGB, log-scale,
+            logit). Scales and opacities stay fixed by default (0): per-face scales and
+            opacities fitted to frame 1's silhouettes (opacities spread 0.04-0.98) do not transfer
+            to the faces that make the silhouette later (docs/tracking.md).
         velocity: factor of the constant-velocity term of each frame's prediction (0: none).
         velocity_smoothing: λ of a (I + λ L)^-1 low-pass of that velocity under ``init="mixed"``
             (0: the raw difference of the last two tracked frames).
@@ -110,9 +113,13 @@ class TrackConfig:
             the per-view work at these image sizes is too small to pay for thread start-up).
         seed: torch seed (the fit itself uses no randomness; kept for reproducibility).
         collision_weight, collision_margin: garment-body penalty (:class:`CollisionLoss`, the
-            official code has one) and its margin [m]; 0 = off. With the body anchored it keeps the
-            skirt from passing through the swinging legs (demo, frames 1-24: worst frame
-            96 -> 60 mm).
+            official code has one) and its margin [m]; 0 = off (default: once the rendering's
+            silhouette bias is gone it only pushed penetrated cloth out on the wrong side; demo,
+            frames 2-8: worst frame 16 -> 11 mm without it).
+        antialiased: render with the mass-conserving low-pass (:func:`physavatar.splat.rasterize`).
+            The plain 3DGS low-pass widens the silhouette of a surface of sub-pixel splats (demo,
+            128²: +20 % of the mask) and the fit shrinks the garment to undo it.
+        opacity: every splat's opacity (fixed unless lr_opacity > 0): an opaque surface.
         anchor_weight: weight of :class:`AnchorLoss` (1 cm units) holding the body and the
             garment boundary near their skinned pose under ``init="mixed"``: the capture's body
             poses place the body better than the images do (measured: free, the fit moved the
@@ -137,8 +144,8 @@ class TrackConfig:
     lr_vertices: float = 4e-3
     lr_decay: float = 0.1
     lr_colors: float = 0.01
-    lr_scales: float = 0.01
-    lr_opacity: float = 0.05
+    lr_scales: float = 0.0
+    lr_opacity: float = 0.0
     velocity: float = 1.0
     velocity_smoothing: float = 30.0
     init: str = "mixed"
@@ -152,9 +159,11 @@ class TrackConfig:
     smoothing: float = 10.0
     threads: int = 1
     seed: int = 0
-    collision_weight: float = 0.05
-    collision_margin: float = 0.003
+    collision_weight: float = 0.0
+    collision_margin: float = 0.001
     anchor_weight: float = 1.0
+    antialiased: bool = True
+    opacity: float = 0.99
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -199,17 +208,20 @@ class MeshGaussians:
     log_scales: torch.Tensor
     opacity_logits: torch.Tensor
     midpoints: list = field(default_factory=list)  # per subdivision level: [E, 2] edge endpoints
+    antialiased: bool = False  # mass-conserving low-pass (:func:`physavatar.splat.rasterize`)
 
     @staticmethod
-    def init(vertices: np.ndarray, faces: np.ndarray, subdivide: int = 0) -> "MeshGaussians":
-        """Gaussians of ``faces``, or of their ``subdivide``-times midpoint subdivision (4^k per face)."""
+    def init(vertices: np.ndarray, faces: np.ndarray, subdivide: int = 0, opacity: float = 0.88,
+             antialiased: bool = False) -> "MeshGaussians":
+        """Gaussians of ``faces``, or of their ``subdivide``-times midpoint subdivision (4^k per face),
+        all with opacity ``opacity``."""
         faces = np.asarray(faces, np.int64)
         mids = []
         for _ in range(subdivide):
             faces, m = _midpoint_subdivide(faces, len(vertices) + sum(len(x) for x in mids))
             mids.append(m)
         model = MeshGaussians(torch.from_numpy(faces), torch.zeros(0), torch.zeros(0), torch.zeros(0), torch.zeros(0),
-                              [torch.from_numpy(m) for m in mids])
+                              [torch.from_numpy(m) for m in mids], antialiased)
         V = model.gaussian_vertices(torch.from_numpy(np.asarray(vertices, np.float32)))
         tri = V[model.faces]
         area = 0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1)
@@ -219,7 +231,7 @@ class MeshGaussians:
         model.edge_index = longest_edge_index(V, model.faces)
         model.colors = torch.full((len(model.faces), 3), 0.2)
         model.log_scales = torch.stack([s, s], dim=1)
-        model.opacity_logits = torch.full((len(model.faces),), 2.0)  # sigmoid(2) = 0.88
+        model.opacity_logits = torch.full((len(model.faces),), float(np.log(opacity / (1.0 - opacity))))
         return model
 
     def gaussian_vertices(self, vertices: torch.Tensor) -> torch.Tensor:
@@ -245,11 +257,10 @@ class MeshGaussians:
         op = torch.sigmoid(self.opacity_logits if opacity_logits is None else opacity_logits)
         return means, quats, scales, op, col
 
-    @staticmethod
-    def rasterize(splats: tuple, cam: Camera) -> dict:
+    def rasterize(self, splats: tuple, cam: Camera) -> dict:
         """Rasterize :meth:`splats` into ``cam``: rgb [H, W, 3] linear (over black), alpha [H, W]."""
         return rasterize(*splats, torch.from_numpy(cam.w2c.astype(np.float32)), torch.from_numpy(cam.K.astype(np.float32)),
-                         cam.width, cam.height, backend="numba")
+                         cam.width, cam.height, backend="numba", antialiased=self.antialiased)
 
     def render(self, vertices: torch.Tensor, cam: Camera, colors: torch.Tensor | None = None,
                log_scales: torch.Tensor | None = None, opacity_logits: torch.Tensor | None = None) -> dict:
@@ -759,7 +770,7 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
 
 
     t = cap.template
-    model = MeshGaussians.init(t.vertices, t.faces, cfg.subdivide)
+    model = MeshGaussians.init(t.vertices, t.faces, cfg.subdivide, cfg.opacity, cfg.antialiased)
     iso = IsometryLoss(t.vertices, t.faces) if cfg.iso_weight > 0 else None
     normal = (NormalLoss(t.faces, t.vertices if cfg.normal_mode == "rest" else None)
               if cfg.normal_weight > 0 else None)
