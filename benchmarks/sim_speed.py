@@ -12,7 +12,7 @@ solve, CCD, line search) and the step time over the time of one sparse Cholesky 
 of the same system (the floor of an implicit step; measured in the same process, so the ratio
 survives a loaded machine).
 
-    python benchmarks/sim_speed.py [--quick] [--frames N] [--profile] [--out FILE]
+    python benchmarks/sim_speed.py [--quick] [--frames N] [--profile] [--set FIELD=VALUE] [--out FILE]
 """
 
 from __future__ import annotations
@@ -79,6 +79,8 @@ def main():
     ap.add_argument("--quick", action="store_true", help="12 frames instead of 48")
     ap.add_argument("--frames", type=int, default=None, help="frames of the walk (incl. frame 0)")
     ap.add_argument("--profile", action="store_true", help="also print a cProfile of the simulation")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a SimSettings field (e.g. barrier_stiffness_scale=1e12); repeatable")
     ap.add_argument("--out", default=None, help="result file (default benchmarks/results/sim_speed.json)")
     args = ap.parse_args()
     frames = args.frames or (12 if args.quick else PRESETS["demo"].frames)
@@ -87,7 +89,19 @@ def main():
     part, bodies, body_faces, fps, material_name = demo_scene(frames)
     t_build = time.perf_counter() - t0
     material = preset(material_name)
-    settings = SimSettings(dt=1.0 / fps)
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if key not in SimSettings.__dataclass_fields__ or not value:
+            sys.exit(f"--set {item!r}: expected FIELD=VALUE with FIELD one of SimSettings' fields")
+        kind = type(getattr(SimSettings(), key))
+        if kind is bool:
+            overrides[key] = value.lower() in ("1", "true", "yes")
+        elif kind in (int, float):
+            overrides[key] = kind(float(value))
+        else:
+            overrides[key] = value
+    settings = SimSettings(dt=1.0 / fps, **overrides)
     print(f"demo dress: {len(part.vertices)} vertices, {len(part.faces)} faces, {len(part.boundary)} attached; "
           f"body {bodies.shape[1]} vertices; {frames} frames of 'walk' at {fps:g} fps (build {t_build:.1f} s)")
 
@@ -156,7 +170,7 @@ def main():
             "attached_vertices": len(part.boundary), "body_vertices": int(bodies.shape[1]),
             "body_faces": len(body_faces), "material": material_name, "material_values": material.to_dict(),
             "dhat": settings.dhat, "friction": settings.friction, "newton_tol": settings.newton_tol,
-            "membrane": settings.membrane_model, "quick": args.quick,
+            "membrane": settings.membrane_model, "quick": args.quick, "overrides": overrides,
         },
         "figures": figures,
         "checks": {"fps": {"value": fps_sim, "target": ">= 0.5", "unit": "frames/s", "pass": bool(fps_sim >= 0.5)}},
