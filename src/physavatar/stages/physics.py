@@ -17,7 +17,9 @@ Two estimators:
   step's solution satisfies ∇E(x_{t+1}) = 0, so H S_{t+1} = −∂(∇E)/∂θ − ∂(∇E)/∂x_t S_t −
   ∂(∇E)/∂v_t V_t with H the exact Hessian at the solution), and Levenberg–Marquardt on the
   residuals r = x_t − x̂_t with their Jacobian J = S. The Gauss–Newton curvature JᵀJ also gives
-  the confidence intervals of the identifiable ratios.
+  the confidence intervals of the identifiable ratios. By default the residuals also include the
+  local shape w·L r (:func:`fit_residuals`, :data:`SHAPE_WEIGHT`), where bending shows when the
+  ground truth comes from another simulator.
 
 Units and the mapping of the paper's step sizes and ranges: docs/physics.md.
 """
