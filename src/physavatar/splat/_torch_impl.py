@@ -30,21 +30,27 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ).reshape(-1, 3, 3)
 
 
+def _ewa_jacobian(tx, ty, tz, K, width, height):
+    """[N, 2, 3] Jacobian of the perspective projection at camera points (tx, ty, tz > 0), with
+    x/z and y/z clamped to the field of view's guard band (as 3DGS / gsplat)."""
+    fx, fy = K[0, 0], K[1, 1]
+    nx, px, ny, py = fov_limits(K, width, height)
+    xc = tz * torch.clamp(tx / tz, -nx, px)
+    yc = tz * torch.clamp(ty / tz, -ny, py)
+    zero = torch.zeros_like(tz)
+    return torch.stack(
+        [fx / tz, zero, -fx * xc / tz**2, zero, fy / tz, -fy * yc / tz**2], dim=-1
+    ).reshape(-1, 2, 3)
+
+
 def projected_covariance(means, quats, scales, viewmat, K, width, height):
     """[N, 2, 2] EWA covariance J W R S S^T R^T W^T J^T of each Gaussian in pixels², without the
     low-pass; also [N] camera z. Differentiable w.r.t. means, quats and scales."""
     Rw, tw = viewmat[:3, :3], viewmat[:3, 3]
     t = means @ Rw.T + tw
     tx, ty, tz = t.unbind(-1)
-    fx, fy = K[0, 0], K[1, 1]
-    nx, px, ny, py = fov_limits(K, width, height)
     tzs = torch.where(tz > 0, tz, torch.ones_like(tz))  # culled later; keeps autograd finite
-    xc = tzs * torch.clamp(tx / tzs, -nx, px)
-    yc = tzs * torch.clamp(ty / tzs, -ny, py)
-    zero = torch.zeros_like(tzs)
-    J = torch.stack(
-        [fx / tzs, zero, -fx * xc / tzs**2, zero, fy / tzs, -fy * yc / tzs**2], dim=-1
-    ).reshape(-1, 2, 3)
+    J = _ewa_jacobian(tx, ty, tzs, K, width, height)
     A = J @ Rw @ (quat_to_rotmat(quats) * scales[:, None, :])  # J W R S
     return A @ A.transpose(1, 2), tz
 
@@ -84,13 +90,7 @@ def project(means, quats, scales, viewmat, K, width, height, near, far):
     # Culled Gaussians get a harmless depth so no inf/nan reaches autograd through torch.where.
     tz = torch.where(valid, tz, torch.ones_like(tz))
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    nx, px, ny, py = fov_limits(K, width, height)
-    xc = tz * torch.clamp(tx / tz, -nx, px)
-    yc = tz * torch.clamp(ty / tz, -ny, py)
-    zero = torch.zeros_like(tz)
-    J = torch.stack(
-        [fx / tz, zero, -fx * xc / tz**2, zero, fy / tz, -fy * yc / tz**2], dim=-1
-    ).reshape(-1, 2, 3)
+    J = _ewa_jacobian(tx, ty, tz, K, width, height)
     M = quat_to_rotmat(quats) * scales[:, None, :]  # R S
     A = J @ Rw @ M  # [N, 2, 3]; Sigma2d = A A^T = J W R S S^T R^T W^T J^T
     cov = A @ A.transpose(1, 2) + LOWPASS * torch.eye(2, dtype=means.dtype)
