@@ -257,14 +257,18 @@ def main():
         data = c.fit_data(gt_train).with_noise(args.noise_mm * 1e-3, seed=mi)
         return data, gt_held
 
+    def material_case(c, name, mi, setting):
+        """(true material, far start, fit data, held-out truth, noise-floor loss) of one material."""
+        true = PRESETS[name]
+        # ν is a model setting, not estimated (the paper fixes it too): the fit uses the true one
+        start = dataclasses.replace(far_material(), poisson=true.poisson)
+        data, gt_held = prepare(c, true, mi, setting)
+        return true, start, data, gt_held, data.reference[1:].size * (args.noise_mm * 1e-3) ** 2
+
     for setting in settings_run:
         rng = np.random.default_rng(0)  # the same random materials in every setting
         for mi, name in enumerate(materials):
-            true = PRESETS[name]
-            # ν is a model setting, not estimated (the paper fixes it too): the fit uses the true one
-            start = dataclasses.replace(far_material(), poisson=true.poisson)
-            data, gt_held = prepare(case, true, mi, setting)
-            noise_floor = data.reference[1:].size * (args.noise_mm * 1e-3) ** 2
+            true, start, data, gt_held, noise_floor = material_case(case, name, mi, setting)
             res = fit_exact(data, start, fit_settings, iterations=args.exact_iterations,
                             callback=logger(f"{name} {setting}", "exact", 1), shape_weight=args.shape_weight)
             rows[(setting, name, "exact")] = fit_row(res, true, noise_floor)
@@ -300,10 +304,7 @@ def main():
     if fd_case is not None and fd_case is not case:
         setting = args.fd_setting
         for mi, name in enumerate(fd_materials):
-            true = PRESETS[name]
-            start = dataclasses.replace(far_material(), poisson=true.poisson)
-            data, gt_held = prepare(fd_case, true, mi, setting)
-            noise_floor = data.reference[1:].size * (args.noise_mm * 1e-3) ** 2
+            true, start, data, gt_held, noise_floor = material_case(fd_case, name, mi, setting)
             ex = fit_exact(data, start, fit_settings, iterations=args.exact_iterations,
                            callback=logger(name, "exact@fd-edge", 1))
             fd = fit_fd(data, start, fit_settings, iterations=args.fd_iterations, workers=args.workers,
