@@ -72,3 +72,28 @@ def test_reused_sequence_gives_the_same_row_and_bad_ones_are_refused(result, tin
                     faces=seq.faces, labels=seq.labels[:10], fps=np.float64(seq.fps))
     with pytest.raises(PhysavatarError, match="not an animation of this avatar"):
         _reuse_sequence(root / "seq", av, n)
+
+
+def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
+    """`physavatar reference-sims` (what `run` computes beside tracking) = evaluate's own simulations."""
+    import json
+
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.evaluate import evaluate, reference_sequences
+
+    m, root = result
+    reference_sequences(tiny_capture, root / "refs", progress=False)
+    m2 = evaluate(tiny_capture, root / "avatar", root / "out2", n_points=4000, views_spp=4,
+                  references=root / "refs", progress=False)
+    assert m2["references"] == str(root / "refs")
+    for row in ("true material", "random material", "LBS"):
+        assert m2["rows"][row]["garment"]["chamfer_x1e3"] == pytest.approx(
+            m["rows"][row]["garment"]["chamfer_x1e3"], rel=1e-4, abs=1e-9), row
+    # references made for another random material (another --seed) are refused, by name
+    meta_file = root / "refs" / "random" / "sequence.json"
+    meta = json.loads(meta_file.read_text())
+    meta["material"]["density"] *= 1.5
+    meta_file.write_text(json.dumps(meta))
+    with pytest.raises(PhysavatarError, match="random material was simulated with"):
+        evaluate(tiny_capture, root / "avatar", root / "out3", n_points=1000, views_spp=4,
+                 references=root / "refs", progress=False)

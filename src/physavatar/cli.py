@@ -471,6 +471,7 @@ def evaluate(
     frames: Optional[int] = typer.Option(None, help="evaluate the first N held-out frames"),
     points: int = typer.Option(10000, help="points sampled per surface for Chamfer / F-score"),
     sequence: Optional[Path] = typer.Option(None, help="animate output on the held-out motion: reuse it as the estimated-material row"),
+    references: Optional[Path] = typer.Option(None, help="reference-sims output of this capture: reuse its true- and random-material rows"),
 ):
     """Metrics against ground truth: garment/full Chamfer and F-scores on the held-out motion for LBS,
     random, estimated and true material; PSNR/SSIM/LPIPS on held-out views; tracking error."""
@@ -478,8 +479,26 @@ def evaluate(
 
     if points < 100:
         _bad_option("--points", "use at least 100 points")
-    run_eval(capture, avatar, out, tracked=tracked, frames=frames, n_points=points, sequence=sequence)
+    run_eval(capture, avatar, out, tracked=tracked, frames=frames, n_points=points, sequence=sequence,
+             references=references)
     console.print((out / "report.md").read_text())
+
+
+@app.command("reference-sims")
+@handle_errors
+def reference_sims(
+    capture: Path = typer.Argument(..., help="synthetic capture (with ground_truth/)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder: avatar/, true/, random/, references.json"),
+    frames: Optional[int] = typer.Option(None, help="the first N held-out frames"),
+):
+    """The evaluation's reference rows ahead of time: the garment on the held-out motion with the
+    true and with the random material (they need nothing fitted; `run` makes them while tracking)."""
+    from .stages.evaluate import reference_sequences
+
+    if frames is not None and frames < 2:
+        _bad_option("--frames", "use at least 2 frames")
+    reference_sequences(capture, out, frames=frames)
+    console.print(f"wrote {out}/true, {out}/random")
 
 
 @app.command()

@@ -17,6 +17,9 @@ class PhysavatarError(Exception):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
+    def __reduce__(self):  # so that it crosses process boundaries (physavatar.parallel) intact
+        return (self.__class__, (self.path, self.problem))
+
 
 class CaptureError(PhysavatarError):
     """A capture folder that does not follow docs/capture-format.md."""

@@ -65,6 +65,14 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
                     settings=settings, progress=progress, callback=callback)
 
 
+
+def simulate_on_body_job(part: GarmentPart, body_sequence: np.ndarray, body_faces: np.ndarray, material: Material,
+                         fps: float, settings: SimSettings | None = None, report=None) -> np.ndarray:
+    """:func:`simulate_on_body` as a :class:`physavatar.parallel.Job` (``report(1)`` per frame)."""
+    cb = None if report is None else (lambda f, x, st: report(1))
+    return simulate_on_body(part, body_sequence, body_faces, material, fps, settings=settings, callback=cb)
+
+
 # -- inputs of `physavatar simulate` -----------------------------------------------------------
 
 def load_mesh_sequence(path) -> tuple[np.ndarray, np.ndarray]:

@@ -175,26 +175,35 @@ def build_template(cfg: SynthConfig) -> tuple[BodyModel, Template, np.ndarray]:
     return body, template, weights
 
 
-def pose_sequence(scene: _Scene, motion, progress: bool = True) -> np.ndarray:
-    """[T, V, 3] template vertices along ``motion``: the body posed, the garment simulated with
-    the config's material (or skinned when it names none)."""
-    posed = motion.pose(scene.body)
+def pose_sequences(scene: _Scene, motions: list, progress: bool = True) -> list[np.ndarray]:
+    """[T, V, 3] template vertices along each motion: the body posed, the garment simulated with
+    the config's material (or skinned when it names none). The simulations run side by side
+    (:mod:`physavatar.parallel`)."""
     t = scene.template
-    V = np.empty((posed.vertices.shape[0], len(t.vertices), 3))
     body_idx = np.flatnonzero(~t.garment_mask)
     gar_idx = np.flatnonzero(t.garment_mask)
-    V[:, body_idx] = posed.vertices
+    posed = [m.pose(scene.body) for m in motions]
+    out = []
+    for p in posed:
+        V = np.empty((p.vertices.shape[0], len(t.vertices), 3))
+        V[:, body_idx] = p.vertices
+        out.append(V)
     if scene.cfg.material:
-        from .garment_sim import simulate_on_body, split_template
+        from .garment_sim import simulate_on_body_job, split_template
+        from .parallel import Job, run_jobs
         from .sim import preset
 
         _, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
         assert np.array_equal(part.vertex_ids, gar_idx)
-        V[:, gar_idx] = simulate_on_body(part, posed.vertices, body_faces, preset(scene.cfg.material),
-                                         scene.cfg.fps, progress=progress)
+        mat = preset(scene.cfg.material)
+        jobs = [Job(m.name, simulate_on_body_job, (part, p.vertices, body_faces, mat, scene.cfg.fps),
+                    total=len(p.vertices) - 1) for m, p in zip(motions, posed)]
+        for V, Xg in zip(out, run_jobs(jobs, progress=progress, title="synth: simulating")):
+            V[:, gar_idx] = Xg
     else:
-        V[:, gar_idx] = linear_blend_skinning(t.vertices[gar_idx], scene.garment_weights, posed.bone_transforms)
-    return V
+        for V, p in zip(out, posed):
+            V[:, gar_idx] = linear_blend_skinning(t.vertices[gar_idx], scene.garment_weights, p.bone_transforms)
+    return out
 
 
 def _render_frame(scene: _Scene, vertices: np.ndarray, cameras: list[Camera], seed: int):
@@ -245,8 +254,7 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
         verts = np.load(meshes_file)["vertices"].astype(np.float64)
         held_verts = np.load(held_file)["vertices"].astype(np.float64)
     else:
-        verts = pose_sequence(scene, motion, progress is not False)
-        held_verts = pose_sequence(scene, held, progress is not False)
+        verts, held_verts = pose_sequences(scene, [motion, held], progress is not False)
 
     # Capture files (small, rewritten every time: cheap and always consistent with cfg).
     frames = list(range(cfg.frames))

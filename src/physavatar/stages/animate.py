@@ -69,17 +69,31 @@ def transition(r0: np.ndarray, t0: np.ndarray, r1: np.ndarray, t1: np.ndarray, n
     return matrix_to_axis_angle(R), (1 - s)[:, None] * t0 + s[:, None] * t1
 
 
-def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
-            progress: bool = True) -> tuple[Sequence, dict]:
-    """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats)."""
+def _warmup(avatar: Avatar, motion: Motion, bone_names, warmup_s: float) -> tuple[Motion, Motion, int]:
+    """(motion, rest pose) for ``bone_names`` at the avatar's fps, and the warm-up frame count."""
     fps = avatar.fps
-    body = BodyModel(avatar.shape, topology="collider")
-    m = motion.resample(fps).for_bones(body.bone_names)
+    m = motion.resample(fps).for_bones(bone_names)
     rest = Motion("rest", fps, avatar.bone_names, avatar.rest_rotations[None], avatar.rest_translation[None])
-    rest = rest.for_bones(body.bone_names)
+    rest = rest.for_bones(bone_names)
     d_rot = np.abs(axis_angle_to_matrix(m.rotations[0]) - axis_angle_to_matrix(rest.rotations[0])).max()
     d_tr = np.abs(m.root_translation[0] - rest.root_translation[0]).max()
     n_warm = 0 if (d_rot < 1e-6 and d_tr < 1e-6) else max(2, int(round(warmup_s * fps)))
+    return m, rest, n_warm
+
+
+def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> int:
+    """Frames :func:`animate` simulates for ``motion`` (warm-up included, the rest pose excluded)."""
+    m, _, n_warm = _warmup(avatar, motion, avatar.bone_names, warmup_s)
+    return len(m.rotations) + n_warm - 1
+
+
+def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
+            progress: bool = True, report=None) -> tuple[Sequence, dict]:
+    """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats).
+    ``report``: called with 1 after every simulated frame (:mod:`physavatar.parallel`)."""
+    fps = avatar.fps
+    body = BodyModel(avatar.shape, topology="collider")
+    m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s)
     rots, trs = m.rotations, m.root_translation
     if n_warm:
         wr, wt = transition(rest.rotations[0], rest.root_translation[0], m.rotations[0], m.root_translation[0], n_warm)
@@ -98,7 +112,9 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
                               "the garment intersects Anny's collider body in the frame-1 pose; "
                               "the garment must start outside the collider to be simulated")
     t0 = time.time()
-    Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, settings=settings, progress=progress)
+    cb = None if report is None else (lambda f, x, st: report(1))
+    Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, settings=settings,
+                          progress=progress and report is None, callback=cb)
     secs = time.time() - t0
     V = np.empty((len(rots), len(t.vertices), 3))
     V[:, body_ids] = Vb
@@ -108,6 +124,14 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
              "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps}
     return Sequence(V, t.faces, t.labels, t.face_uvs, fps, avatar.root), stats
+
+
+def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, **kw) -> np.ndarray:
+    """:func:`animate` of the avatar at ``avatar_dir`` with ``material`` instead of its own, as a
+    :class:`physavatar.parallel.Job`; returns the vertices [T, V, 3]."""
+    av = Avatar.load(avatar_dir)
+    av.material = material
+    return animate(av, motion, progress=False, report=report, **kw)[0].vertices
 
 
 def animate_to_folder(avatar_dir: str | Path, motion: Motion, out: str | Path, **kw) -> Sequence:

@@ -57,8 +57,12 @@ def _surface_rows(pred: np.ndarray, gt: np.ndarray, faces: np.ndarray, n_points:
 
 def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tracked: str | Path | None = None,
              frames: int | None = None, n_points: int = 10000, views_spp: int = 64, seed: int = 0,
-             sequence: str | Path | None = None, progress: bool = True) -> dict:
+             sequence: str | Path | None = None, references: str | Path | None = None,
+             progress: bool = True) -> dict:
     """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics.
+
+    ``references``: a :func:`reference_sequences` folder of this capture; its true- and
+    random-material rows are used instead of simulating them here.
 
     ``sequence``: an ``animate`` output of this avatar on the held-out motion, used as the
     estimated-material row instead of simulating it again (it must cover the evaluated frames
@@ -66,7 +70,8 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     """
     from ..garment import garment_skinning_weights
     from ..body import BodyModel
-    from .animate import animate
+    from ..parallel import Job, run_jobs
+    from .animate import animate, animate_job, simulated_frames
 
     cap = load_capture(capture)
     gt_root = cap.ground_truth
@@ -95,14 +100,21 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
         metrics["estimated_sequence"] = str(sequence)
     seqs["estimated material"] = est.vertices
     metrics["seconds"]["animate_estimated"] = round(time.time() - t0, 1)
-    true_path = gt_root / "material.json"
-    if true_path.exists():
-        av_true = Avatar.load(av.root)
-        av_true.material = load_material(true_path)
-        seqs["true material"] = animate(av_true, held, progress=progress)[0].vertices
-    av_rand = Avatar.load(av.root)
-    av_rand.material = random_material(seed)
-    seqs["random material"] = animate(av_rand, held, progress=progress)[0].vertices
+    # The reference materials: two independent simulations, side by side (physavatar.parallel),
+    # or taken from a `reference_sequences` folder made earlier (`physavatar run` makes it while
+    # tracking runs).
+    refs = dict(_reference_materials(gt_root, seed))
+    if references is not None:
+        for row, V in _reuse_references(Path(references), av, refs, len(gt)).items():
+            seqs[row] = V
+        metrics["references"] = str(references)
+    todo = [(row, mat) for row, mat in refs.items() if row not in seqs]
+    if todo:
+        n_sim = simulated_frames(av, held)
+        jobs = [Job(row, animate_job, (av.root, mat, held), total=n_sim) for row, mat in todo]
+        for (row, _), V in zip(todo, run_jobs(jobs, progress=progress, title="evaluate: simulating")):
+            seqs[row] = V
+    metrics["seconds"]["references"] = round(time.time() - t0 - metrics["seconds"]["animate_estimated"], 1)
     # LBS: the garment skinned with weights transferred from the body (no physics).
     body = BodyModel(av.shape, topology="collider")
     Wg = garment_skinning_weights(t.vertices[gmask], body)
@@ -123,8 +135,8 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
             "garment": _surface_rows(V[:, gmask], gt[:, gmask], gfaces_local, n_points, seed),
             "full": _surface_rows(V, gt, t.faces, n_points, seed),
         }
-    metrics["materials"] = {"estimated": av.material.to_dict(), "random": av_rand.material.to_dict(),
-                            "true": load_material(true_path).to_dict() if true_path.exists() else None}
+    metrics["materials"] = {"estimated": av.material.to_dict(), "random": refs["random material"].to_dict(),
+                            "true": refs["true material"].to_dict() if "true material" in refs else None}
 
     # Appearance on the held-out views.
     cams_file = gt_root / "heldout" / "cameras.json"
@@ -137,6 +149,78 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     write_json_atomic(out / "metrics.json", metrics)
     write_text_atomic(out / "report.md", report_markdown(metrics))
     return metrics
+
+
+def _reference_materials(gt_root: Path, seed: int) -> list[tuple[str, Material]]:
+    true_path = gt_root / "material.json"
+    return ([("true material", load_material(true_path))] if true_path.exists() else []) + \
+        [("random material", random_material(seed))]
+
+
+REFERENCE_FOLDERS = {"true material": "true", "random material": "random"}
+
+
+def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | None = None, seed: int = 0,
+                        progress: bool = True) -> Path:
+    """The true- and random-material rows of :func:`evaluate` simulated ahead of time.
+
+    They depend on the capture alone (its template, body shape and frame-1 pose; the held-out
+    motion; the ground-truth material; the seed), not on anything fitted, so ``physavatar run``
+    computes them on the second core while tracking runs on the first. Writes
+    ``out/avatar`` (a bare avatar of the capture), ``out/true`` and ``out/random`` (``animate``
+    folders, without PLYs) and ``out/references.json``.
+    """
+    from ..avatar import build_avatar
+    from ..parallel import Job, run_jobs
+    from .animate import Sequence, animate_job, simulated_frames
+
+    cap = load_capture(capture)
+    gt_root = cap.ground_truth
+    if gt_root is None or not (gt_root / "heldout" / "motion.npz").exists():
+        raise PhysavatarError(cap.root, "has no ground_truth/heldout (evaluation needs a synthetic capture)")
+    out = Path(out)
+    held = Motion.load(gt_root / "heldout" / "motion.npz")
+    if frames:
+        held = held.slice(0, frames)
+    refs = _reference_materials(gt_root, seed)
+    av = build_avatar(cap, out / "avatar", material=refs[0][1])
+    n_sim = simulated_frames(av, held)
+    t0 = time.time()
+    jobs = [Job(row, animate_job, (av.root, mat, held), total=n_sim) for row, mat in refs]
+    seqs = run_jobs(jobs, progress=progress, title="reference materials: simulating")
+    t = av.template
+    for (row, mat), V in zip(refs, seqs):
+        Sequence(V, t.faces, t.labels, None, av.fps, av.root).save(
+            out / REFERENCE_FOLDERS[row], {"command": "reference-sims", "material": mat.to_dict(),
+                                           "motion": held.name, "seed": seed}, ply=False)
+    write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames), "seed": seed,
+                                                "rows": [r for r, _ in refs], "seconds": round(time.time() - t0, 1)})
+    return out
+
+
+def _reuse_references(path: Path, av, refs: dict, n_frames: int) -> dict:
+    """Rows of a :func:`reference_sequences` folder, checked against this evaluation's materials."""
+    if not (path / "references.json").is_file():
+        raise PhysavatarError(path, "no references.json (pass a `physavatar reference-sims` output folder)")
+    ref_av = Avatar.load(path / "avatar")
+    same = (ref_av.template.vertices.shape == av.template.vertices.shape
+            and np.allclose(ref_av.template.vertices, av.template.vertices, atol=1e-7)
+            and np.allclose(ref_av.rest_rotations, av.rest_rotations) and np.allclose(ref_av.rest_translation, av.rest_translation)
+            and ref_av.shape == av.shape)
+    if not same:
+        raise PhysavatarError(path / "avatar", "the references start from another template, shape or rest pose "
+                              "than the evaluated avatar (made for another capture or avatar)")
+    rows = {}
+    for row, mat in refs.items():
+        folder = path / REFERENCE_FOLDERS[row]
+        used = read_json(folder / "sequence.json").get("material") if (folder / "sequence.json").is_file() else None
+        if used is None:
+            raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
+        if Material.from_dict(used) != mat:
+            raise PhysavatarError(folder / "sequence.json", f"{row} was simulated with {used.get('name')!r}, "
+                                  f"this evaluation uses {mat.name!r} (other ground truth or --seed)")
+        rows[row] = _reuse_sequence(folder, av, n_frames).vertices
+    return rows
 
 
 def _reuse_sequence(path, av, n_frames: int):

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from ..errors import PhysavatarError
 from ..files import read_json, write_json_atomic
+from ..parallel import default_workers
 
 
 @dataclass
@@ -26,6 +27,10 @@ class Stage:
     name: str
     args: list[str]
     done_file: str  # relative to OUT/<name>
+    needs: tuple[str, ...] = ()  # background stages this one must wait for
+    # Runs beside the following stages on the spare core (its output goes to OUT/<name>/stage.log)
+    # when the machine has two or more cores; in line otherwise.
+    background: bool = False
 
     def done(self, out: Path, record: dict) -> bool:
         return (out / self.name / self.done_file).exists() and record.get(self.name, {}).get("args") == self.args
@@ -67,11 +72,18 @@ def plan(capture: Path, out: Path, *, quick: bool = False, heldout_motion: str |
               Stage("export-glb", export_glb, "avatar.glb")]
     # Evaluation needs ground truth: synthetic captures only.
     if held_file.exists() and (Path(cap) / "ground_truth" / "heldout" / "meshes.npz").exists():
-        evaluate = ["evaluate", cap, "--avatar", f"{o}/avatar", "--tracked", f"{o}/track", "--out", f"{o}/evaluate"]
+        # The true- and random-material rows need nothing fitted: simulated on the second core
+        # while tracking (single-threaded) runs on the first.
+        frames = ["--frames", str(eval_frames)] if eval_frames else []
+        refs = Stage("references", ["reference-sims", cap, "--out", f"{o}/references"] + frames, "references.json",
+                     background=True)
+        stages.insert(1, refs)
+        evaluate = ["evaluate", cap, "--avatar", f"{o}/avatar", "--tracked", f"{o}/track", "--out", f"{o}/evaluate",
+                    "--references", f"{o}/references"]
         if heldout_motion is None:  # the animate stage ran the held-out motion: reuse it
             evaluate += ["--sequence", f"{o}/animate"]
-        evaluate += ["--frames", str(eval_frames)] if eval_frames else []
-        stages.append(Stage("evaluate", evaluate, "metrics.json"))
+        evaluate += frames
+        stages.append(Stage("evaluate", evaluate, "metrics.json", needs=("references",)))
     return stages
 
 
@@ -88,26 +100,63 @@ def run_pipeline(capture: str | Path, out: str | Path, *, only: list[str] | None
     record = read_json(rec_path) if rec_path.exists() else {}
     stages = plan(capture, out, **plan_kw)
     env = dict(os.environ)
+    cores = default_workers(64)
     t_all = time.time()
-    for i, st in enumerate(stages, 1):
-        if only and st.name not in only:
-            continue
-        if st.done(out, record):
-            console.print(f"[dim][{i}/{len(stages)}] {st.name}: done earlier ({record[st.name].get('seconds', '?')} s), skipped[/]")
-            continue
-        console.rule(f"[bold][{i}/{len(stages)}] {st.name}[/]: physavatar {' '.join(st.args)}")
-        t0 = time.time()
-        proc = subprocess.run([sys.executable, "-m", "physavatar.cli", *st.args], env=env)
-        secs = round(time.time() - t0, 1)
-        if proc.returncode == 130:
+    background: dict[str, tuple[subprocess.Popen, float, Stage]] = {}
+
+    def finish(name: str) -> None:
+        """Wait for background stage ``name`` and record it; raise if it failed."""
+        proc, t0, st = background.pop(name)
+        if proc.poll() is None:
+            console.print(f"[dim]waiting for {name} (running beside since {time.time() - t0:.0f} s; "
+                          f"log: {out / name / 'stage.log'})[/]")
+        rc = proc.wait()
+        _record(st, rc, round(time.time() - t0, 1), background=True)
+        console.print(f"[dim]{name} (beside the other stages): {'done' if rc == 0 else 'failed'} "
+                      f"after {record[name]['seconds']} s[/]")
+
+    def _record(st: Stage, rc: int, secs: float, background: bool = False) -> None:
+        if rc == 130:
             raise KeyboardInterrupt
-        if proc.returncode != 0:
-            record[st.name] = {"args": st.args, "seconds": secs, "status": f"failed ({proc.returncode})"}
-            write_json_atomic(rec_path, record)
-            raise PhysavatarError(out / st.name, f"stage {st.name!r} failed (exit code {proc.returncode}); "
-                                  f"fix the cause and run again to resume")
-        record[st.name] = {"args": st.args, "seconds": secs, "status": "ok"}
+        status = "ok" if rc == 0 else f"failed ({rc})"
+        record[st.name] = {"args": st.args, "seconds": secs, "status": status} | ({"background": True} if background else {})
         write_json_atomic(rec_path, record)
+        if rc != 0:
+            where = out / st.name / "stage.log" if background else out / st.name
+            raise PhysavatarError(where, f"stage {st.name!r} failed (exit code {rc}); "
+                                  f"fix the cause and run again to resume")
+
+    try:
+        for i, st in enumerate(stages, 1):
+            if only and st.name not in only:
+                continue
+            if st.done(out, record):
+                console.print(f"[dim][{i}/{len(stages)}] {st.name}: done earlier ({record[st.name].get('seconds', '?')} s), skipped[/]")
+                continue
+            if st.background and cores >= 2:
+                (out / st.name).mkdir(parents=True, exist_ok=True)
+                log = open(out / st.name / "stage.log", "w")
+                benv = env | {"PHYSAVATAR_WORKERS": "1"}  # one core: the other runs the next stages
+                proc = subprocess.Popen([sys.executable, "-m", "physavatar.cli", *st.args], env=benv,
+                                        stdout=log, stderr=subprocess.STDOUT)
+                log.close()
+                background[st.name] = (proc, time.time(), st)
+                console.print(f"[bold][{i}/{len(stages)}] {st.name}[/]: physavatar {' '.join(st.args)}  "
+                              f"[dim](beside the next stages on the second core; log: {out / st.name / 'stage.log'})[/]")
+                continue
+            for name in st.needs:
+                if name in background:
+                    finish(name)
+            console.rule(f"[bold][{i}/{len(stages)}] {st.name}[/]: physavatar {' '.join(st.args)}")
+            t0 = time.time()
+            proc = subprocess.run([sys.executable, "-m", "physavatar.cli", *st.args], env=env)
+            _record(st, proc.returncode, round(time.time() - t0, 1))
+        for name in list(background):
+            finish(name)
+    finally:
+        for proc, _, _ in background.values():  # interrupted or failed: stop what runs beside
+            proc.terminate()
+            proc.wait()
     record["_total_seconds_this_run"] = round(time.time() - t_all, 1)
     write_json_atomic(rec_path, record)
     return record
@@ -168,9 +217,12 @@ def write_report(out: str | Path) -> Path:
         cores = os.cpu_count()
         L += [f"## Wall time per stage ({cores}-core CPU, {platform.machine()})", "",
               "| stage | seconds | status | command |", "| --- | --- | --- | --- |"]
-        L += [f"| {k} | {v['seconds']} | {v.get('status', '')} | `physavatar {' '.join(v.get('args', []))}` |"
-              for k, v in times]
-        L += [f"| **total** | {sum(v['seconds'] for _, v in times):.1f} | | |", ""]
+        L += [f"| {k} | {v['seconds']}{' (beside)' if v.get('background') else ''} | {v.get('status', '')} | "
+              f"`physavatar {' '.join(v.get('args', []))}` |" for k, v in times]
+        L += [f"| **total** | {sum(v['seconds'] for _, v in times if not v.get('background')):.1f} | | |", ""]
+        if any(v.get("background") for _, v in times):
+            L += ["Stages marked *beside* ran on the second core while the stages after them ran; "
+                  "the total leaves them out (it is the wall time of the stages in line).", ""]
     path = out / "report.md"
     write_text_atomic(path, "\n".join(L) + "\n")
     return path

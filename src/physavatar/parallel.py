@@ -1,0 +1,103 @@
+"""Independent simulations side by side, one process each.
+
+The cloth simulator is single-threaded (ipctk at one thread, numba kernels serial: docs/simulation.md),
+so two garment simulations on a 2-core machine take the time of the longer one when they run in
+two processes. `synth` (the capture's motion and the held-out motion) and `evaluate` (the true and
+the random material on the held-out motion) use this.
+
+Each job is a picklable top-level function called as ``fn(*args, report=report, **kwargs)``;
+``report(k)`` tells the parent that k units (frames) of the job are done, and the parent shows one
+progress bar per job. With one worker (or one job) the jobs run in this process, one after the
+other, through the same interface, so results never depend on the worker count (each job is a
+deterministic single-threaded computation).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import queue as _queue
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+
+@dataclass
+class Job:
+    """One unit of work: ``fn(*args, report=..., **kwargs)``; ``total``: its frame count (progress)."""
+
+    label: str
+    fn: Callable
+    args: tuple = ()
+    kwargs: dict = field(default_factory=dict)
+    total: int | None = None
+
+
+def default_workers(n_jobs: int) -> int:
+    """Processes to use for ``n_jobs`` single-threaded jobs: the cores this process may use,
+    at most the number of jobs (``PHYSAVATAR_WORKERS`` overrides, 1 = run in this process)."""
+    env = os.environ.get("PHYSAVATAR_WORKERS")
+    if env:
+        try:
+            cap = max(1, int(env))
+        except ValueError:
+            cap = 1
+    else:
+        try:
+            cap = len(os.sched_getaffinity(0))
+        except AttributeError:  # not Linux
+            cap = os.cpu_count() or 1
+    return max(1, min(cap, n_jobs))
+
+
+def _child(fn, args, kwargs, q, idx):
+    def report(k: int = 1) -> None:
+        q.put((idx, k))
+
+    return fn(*args, report=report, **kwargs)
+
+
+def run_jobs(jobs: list[Job], *, workers: int | None = None, progress: bool = True,
+             title: str = "simulating") -> list[Any]:
+    """Run ``jobs``; returns their results in order. An exception in a job is raised here (the
+    other jobs are cancelled); Ctrl-C stops all of them."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    workers = default_workers(len(jobs)) if workers is None else max(1, min(workers, len(jobs)))
+    cols = (TextColumn(f"[bold]{title}[/] {{task.description}}"), BarColumn(), MofNCompleteColumn(),
+            TimeElapsedColumn())
+    with Progress(*cols, disable=not progress) as bar:
+        tasks = [bar.add_task(j.label, total=j.total) for j in jobs]
+        if workers == 1:
+            out = []
+            for j, t in zip(jobs, tasks):
+                out.append(j.fn(*j.args, report=lambda k=1, t=t: bar.advance(t, k), **j.kwargs))
+            return out
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Manager() as mgr:
+            q = mgr.Queue()
+            pool = ctx.Pool(processes=workers)
+            try:
+                res = [pool.apply_async(_child, (j.fn, j.args, j.kwargs, q, i)) for i, j in enumerate(jobs)]
+                while not all(r.ready() for r in res):
+                    for r in res:  # the first failure stops everything (terminate below)
+                        if r.ready() and not r.successful():
+                            r.get()
+                    _drain(q, bar, tasks)
+                    time.sleep(0.2)
+                _drain(q, bar, tasks)
+                out = [r.get() for r in res]
+                pool.close()
+                return out
+            finally:
+                pool.terminate()
+                pool.join()
+
+
+def _drain(q, bar, tasks) -> None:
+    while True:
+        try:
+            idx, k = q.get_nowait()
+        except _queue.Empty:
+            return
+        bar.advance(tasks[idx], k)
