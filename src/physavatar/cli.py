@@ -598,7 +598,7 @@ def fit_physics(
     seed: int = typer.Option(0, help="seed of --noise-mm"),
     friction: float = typer.Option(0.2, help="cloth-body friction coefficient of the simulator (0 = off)"),
     newton_tol: float = typer.Option(1e-4, "--newton-tol", help="Newton tolerance of the fitting simulations [m/s]"),
-    max_vertices: int = typer.Option(400, "--max-vertices",
+    max_vertices: int = typer.Option(1200, "--max-vertices",
                                      help="fit on a coarse proxy of at most this many vertices when the garment has "
                                           "more (0 = always the full garment; docs/physics.md)"),
     shape_weight: Optional[float] = typer.Option(None, "--shape-weight",
