@@ -5,6 +5,11 @@ evaluate -> report. Each stage runs as its own ``physavatar`` command (the same 
 type) writing into ``OUT/<stage>/``; a stage whose final output exists and whose command line is
 unchanged (recorded in ``OUT/run.json``) is skipped, so an interrupted run resumes where it
 stopped, and the stages' own resume logic (tracking per frame) picks up inside a stage.
+
+Stages that need nothing from the ones in between run *beside* them on a spare core (output to
+``OUT/<stage>/stage.log``): the evaluation's reference simulations (``reference-sims``) beside
+tracking, which is single-threaded, and fit-appearance (Mitsuba) beside fit-physics. A stage
+that needs one of them waits for it. On a one-core machine everything runs in line.
 """
 
 from __future__ import annotations
@@ -28,8 +33,8 @@ class Stage:
     args: list[str]
     done_file: str  # relative to OUT/<name>
     needs: tuple[str, ...] = ()  # background stages this one must wait for
-    # Runs beside the following stages on the spare core (its output goes to OUT/<name>/stage.log)
-    # when the machine has two or more cores; in line otherwise.
+    # Runs beside the following stages on a spare core (its output goes to OUT/<name>/stage.log)
+    # when one is free (at most cores - 1 stages run beside); in line otherwise.
     background: bool = False
 
     def done(self, out: Path, record: dict) -> bool:
@@ -69,8 +74,12 @@ def plan(capture: Path, out: Path, *, quick: bool = False, heldout_motion: str |
     relight = ["render", f"{o}/animate", "--out", f"{o}/relight", "--light", "sky", "--spp", spp] + size
     export = ["export", f"{o}/animate", "--out", f"{o}/export/avatar.usdc"]
     export_glb = ["export", f"{o}/animate", "--out", f"{o}/export-glb/avatar.glb"]
-    stages = [Stage("track", track, "tracked.npz"), Stage("physics", physics, "material.json"),
-              Stage("appearance", appearance, "texture.png"), Stage("avatar", avatar, "avatar.json"),
+    # fit-appearance (Mitsuba, multi-threaded) runs beside fit-physics (single-threaded
+    # simulations): both need only the tracking.
+    stages = [Stage("track", track, "tracked.npz"),
+              Stage("appearance", appearance, "texture.png", background=True),
+              Stage("physics", physics, "material.json"),
+              Stage("avatar", avatar, "avatar.json", needs=("appearance",)),
               Stage("animate", animate, "sequence.json"), Stage("render", render, "render.json"),
               Stage("relight", relight, "render.json"), Stage("export", export, "avatar.usdc"),
               Stage("export-glb", export_glb, "avatar.glb")]
@@ -137,7 +146,7 @@ def run_pipeline(capture: str | Path, out: str | Path, *, only: list[str] | None
             if st.done(out, record):
                 console.print(f"[dim][{i}/{len(stages)}] {st.name}: done earlier ({record[st.name].get('seconds', '?')} s), skipped[/]")
                 continue
-            if st.background and cores >= 2:
+            if st.background and len(background) < cores - 1:
                 (out / st.name).mkdir(parents=True, exist_ok=True)
                 log = open(out / st.name / "stage.log", "w")
                 benv = env | {"PHYSAVATAR_WORKERS": "1"}  # one core: the other runs the next stages
