@@ -414,6 +414,14 @@ class ClothSim:
                         penalty = False
                         self.scene.prepare_static(X)
                         self.friction.lag(X, self.barrier, X_prev)
+                    else:
+                        # The cloth sits closer to the body than the body's remaining gap:
+                        # the barrier holds the body short of its target at this penalty
+                        # weight, and more iterations at the same weight do not move it (a
+                        # pinched coarse proxy looped here to the iteration limit, thousands
+                        # of line-search halvings). A stiffer penalty pushes the cloth on.
+                        self.penalty.weight *= 10.0
+                        continue
                 elif penalty_iters % 10 == 0:
                     self.penalty.weight *= 10.0  # AL-style escalation when targets stall
                     continue
