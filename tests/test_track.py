@@ -270,6 +270,16 @@ def test_resume_recomputes_only_missing_frame(body_capture, tracked):
 
     with pytest.raises(PhysavatarError, match="another config"):
         track(root, out, TrackConfig(scale=1.0, iters=3), progress=False)
+    # a run folder written before an option existed resumes when the option is at its default
+    import json
+    from dataclasses import replace
+
+    cfg = json.loads((out / "config.json").read_text())
+    del cfg["level_iters"]
+    (out / "config.json").write_text(json.dumps(cfg))
+    assert track(root, out, FAST, progress=False).computed == []
+    with pytest.raises(PhysavatarError, match="level_iters"):
+        track(root, out, replace(FAST, level_iters=(3, 2)), progress=False)
 
 
 def test_cli_bad_input_exits_2(body_capture, tmp_path):
@@ -282,3 +292,83 @@ def test_cli_bad_input_exits_2(body_capture, tmp_path):
         r = runner.invoke(app, args)
         assert r.exit_code == 2, (args, r.output)
         assert "error" in r.output
+
+
+# -- physics prediction and per-level iterations ------------------------------------------------
+
+
+def _cloth_over_ball():
+    """A 7x7 cloth 5 cm above a ball (r 0.1 m), one row attached to the ball (the boundary),
+    the ball rising 0, 1, 3 cm: the cloth falls onto it in the third frame."""
+    import trimesh
+
+    from cloth_grid import grid
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    bv, bf = np.asarray(ball.vertices), np.asarray(ball.faces)
+    gv, gf = grid(7, 0.3, z=0.15, center=True)
+    V = np.vstack([bv, gv])
+    F = np.vstack([bf, gf + len(bv)])
+    labels = np.r_[np.zeros(len(bv), int), np.ones(len(gv), int)]
+    boundary = np.zeros(len(V), bool)
+    boundary[len(bv) + np.arange(7)] = True  # the row x = -0.15
+    bodies = np.stack([bv + [0, 0, dz] for dz in (0.0, 0.01, 0.03)])
+    return V, F, labels, boundary, bodies
+
+
+def test_physics_prediction_is_one_simulate_on_body_step():
+    """Frame 3 predicted from frames 1-2 of a simulation (velocity = their difference / h) is that
+    simulation's frame 3 (the independent reference: simulate_on_body over all three frames),
+    while constant velocity is centimetres off (gravity and the ball's push)."""
+    from physavatar.garment_sim import simulate_on_body, split_template
+    from physavatar.sim import SimSettings, preset
+    from physavatar.stages.track import PhysicsPrediction
+
+    V, F, labels, boundary, bodies = _cloth_over_ball()
+    body_ids, body_faces, part = split_template(V, F, labels, boundary)
+    mat = preset("cotton")
+    G = simulate_on_body(part, bodies, body_faces, mat, 25.0, SimSettings())
+    frames = []
+    for k in range(3):
+        X = V.copy()
+        X[body_ids] = bodies[k]
+        X[part.vertex_ids] = G[k]
+        frames.append(X)
+    pred = PhysicsPrediction(V, F, labels, boundary, mat, 25.0, SimSettings())
+    p = pred(frames[0], frames[1], frames[1], frames[2])
+    assert pred.last_stats.n_contacts > 0  # the ball is in contact in this step
+    np.testing.assert_allclose(p[body_ids], bodies[2])
+    err = np.linalg.norm(p[part.vertex_ids] - G[2], axis=1)
+    cv = np.linalg.norm(2 * G[1] - G[0] - G[2], axis=1)
+    assert err.max() < 2e-4, err.max()
+    assert cv.max() > 0.01, cv.max()
+    # a start state whose cloth passes through the ball has no simulator step: None
+    X = frames[1].copy()
+    X[part.vertex_ids, 2] = 0.0  # the cloth cuts the ball's equator: pushing out cannot untangle that
+    assert pred(frames[0], X, frames[1], frames[2]) is None
+    # one vertex dented 1 cm into the ball: pushed out first, then stepped (outside the ball)
+    X = frames[1].copy()
+    c = part.vertex_ids[24]  # the middle of the cloth, 2.4 cm above the ball's top
+    X[c, 2] = 0.10
+    p = pred(frames[0], X, frames[1], frames[2])
+    assert pred.pushed and p is not None
+    assert np.linalg.norm(p[c] - bodies[2].mean(0)) > 0.1
+
+
+def test_level_iters_sets_each_levels_iterations(body_capture):
+    from dataclasses import replace
+
+    from physavatar.capture import load_capture
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.track import MeshGaussians, _check_config, fit_frame, load_views
+
+    root, gt = body_capture
+    cap = load_capture(root)
+    cfg = replace(FAST, level_iters=(3, 2))  # min_iters 20: no early stop
+    model = MeshGaussians.init(gt[0], cap.template.faces, 0, cfg.opacity, cfg.antialiased)
+    pyr = [load_views(cap, 1, cap.cameras, lv) for lv in cfg.levels]
+    assert fit_frame(model, gt[1], pyr, cfg, first=False).iterations == 5
+    with pytest.raises(PhysavatarError, match="level_iters"):
+        _check_config(replace(FAST, level_iters=(3,)), cap)
+    with pytest.raises(PhysavatarError, match="garment_prediction"):
+        _check_config(replace(FAST, garment_prediction="lbs"), cap)

@@ -124,6 +124,19 @@ class TrackConfig:
             garment boundary near their skinned pose under ``init="mixed"``: the capture's body
             poses place the body better than the images do (measured: free, the fit moved the
             exactly-placed demo body 3-6 mm; anchored, 0.4-0.5 mm).
+        garment_prediction: how the free garment starts under ``init="mixed"``: "velocity"
+            (x_{t-1} + velocity S(x_{t-1} - x_{t-2}), :func:`mixed_prediction`) or "physics" (one
+            implicit-Euler step of the cloth simulator from the last two tracked frames with that
+            velocity, the body skinned to frames t-1 and t as collider: :class:`PhysicsPrediction`;
+            frames whose tracked garment intersects the body fall back to "velocity").
+        prediction_material: simulator material preset of the physics prediction (the garment's
+            material is not known when tracking: a prior; on the demo a wrong one, silk for the
+            cotton dress, made the start 3-4x worse than constant velocity, docs/tracking.md).
+        prediction_newton_iterations: cap on that step's Newton iterations. A converged step took
+            19-37 on the demo dress (7-17 s); capped at 4 it stays in the phase where the body
+            sweeps into the cloth and is worse than constant velocity.
+        level_iters: maximum iterations of frames t > 1 per pyramid level (coarse to fine);
+            None: ``iters`` on every level.
     """
 
     holdout: tuple[str, ...] | None = None
@@ -164,11 +177,16 @@ class TrackConfig:
     anchor_weight: float = 1.0
     antialiased: bool = True
     opacity: float = 0.99
+    garment_prediction: str = "velocity"
+    prediction_material: str = "cotton"
+    prediction_newton_iterations: int = 40
+    level_iters: tuple[int, ...] | None = None
 
     def to_json(self) -> dict:
         d = asdict(self)
         d["holdout"] = None if self.holdout is None else list(self.holdout)
         d["levels"] = list(self.levels)
+        d["level_iters"] = None if self.level_iters is None else list(self.level_iters)
         return d
 
     @staticmethod
@@ -179,6 +197,8 @@ class TrackConfig:
             d["holdout"] = tuple(d["holdout"])
         if "levels" in d:
             d["levels"] = tuple(d["levels"])
+        if d.get("level_iters") is not None:
+            d["level_iters"] = tuple(d["level_iters"])
         return TrackConfig(**d)
 
 
@@ -539,6 +559,99 @@ def mixed_prediction(skin: TemplateSkinning, index: int, tracked: list[np.ndarra
     return x.astype(np.float32)
 
 
+class PhysicsPrediction:
+    """The garment's start for frame t from one cloth-simulator step (paper Sec. 3.2's simulator,
+    :mod:`physavatar.sim`), under ``garment_prediction="physics"``.
+
+    The garment at t-1 with velocity v = (x_{t-1} - x_{t-2}) / h (optionally low-passed) takes one
+    implicit-Euler step of length h = 1/fps against the body moving from its pose at t-1 to t;
+    its boundary vertices follow the body point they sit on in the template (as
+    :func:`physavatar.garment_sim.simulate_on_body`, which made the demo's ground truth). Constant
+    velocity keeps a swinging hem going straight; the step adds gravity, the membrane's pull
+    back towards its rest lengths and the body's push.
+
+    Args:
+        vertices [V, 3], faces [F, 3], labels [V] (> 0 garment), boundary [V] bool: the template;
+            its garment is the rest shape, its body part (label 0) the collider's topology.
+        material: :class:`physavatar.sim.Material` (a prior: the real one is not known yet).
+        fps: the capture's frame rate. settings: :class:`physavatar.sim.SimSettings` (dt is
+            replaced by 1/fps).
+        push_clearance: a tracked garment that intersects the body at t-1 is first pushed out
+            to this distance [m] (:func:`physavatar.garment.garment.push_out`); if it still
+            intersects, there is no prediction (None).
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, boundary: np.ndarray,
+                 material, fps: float, settings=None, push_clearance: float = 1e-3):
+        from ..garment.garment import make_attachment
+        from ..garment_sim import split_template
+        from ..sim import ClothSim, SimSettings
+        from ..sim.contact import ContactScene
+
+        V = np.asarray(vertices, np.float64)
+        self.body_ids, self.body_faces, part = split_template(V, np.asarray(faces), np.asarray(labels),
+                                                              np.asarray(boundary, bool))
+        self.garment_ids = part.vertex_ids
+        self.boundary = part.boundary
+        self.h = 1.0 / fps
+        settings = replace(settings or SimSettings(), dt=self.h)
+        self.sim = ClothSim(part.vertices, part.faces, material, settings, part.boundary)
+        self.attachment = make_attachment(part.vertices[part.boundary], part.boundary, V[self.body_ids],
+                                          self.body_faces, "sequence")
+        # the intersection test of the start state (ipctk's CCD assumes an intersection-free start)
+        self._scene = ContactScene(part.vertices, part.faces, V[self.body_ids], self.body_faces, settings.dhat)
+        self._faces = part.faces
+        self.push_clearance = push_clearance
+        self.last_stats = None
+        self.pushed = False
+
+    def __call__(self, prev2: np.ndarray, prev: np.ndarray, body_prev: np.ndarray, body_next: np.ndarray,
+                 velocity: float = 1.0, smooth=None) -> np.ndarray | None:
+        """[V, 3] float64: ``prev`` with the garment stepped to frame t (the body part is copied
+        from ``body_next``), or None when the garment of ``prev`` intersects ``body_prev`` even
+        after pushing it out (``self.pushed`` says whether it was pushed).
+
+        prev2, prev: [V, 3] the template's vertices at t-2 and t-1; body_prev, body_next: [V, 3]
+        (only the body rows are used) its body at t-1 and t. ``velocity`` scales and ``smooth``
+        (a [V, 3] -> [V, 3] low-pass, as :func:`mixed_prediction`) filters the velocity.
+        """
+        from ..garment.garment import attachment_positions
+
+        g, b = self.garment_ids, self.body_ids
+        prev = np.asarray(prev, np.float64)
+        dv = prev - np.asarray(prev2, np.float64)
+        if smooth is not None:
+            dv = smooth(dv)
+        x = prev[g]
+        bt, bt1 = np.asarray(body_prev, np.float64)[b], np.asarray(body_next, np.float64)[b]
+        self.pushed = False
+        if self._scene.has_intersections(np.vstack([x, bt])):
+            # a tracked garment that has passed into the body: push the offending vertices out
+            # along the body normal (as garment design does) to get an intersection-free start
+            from ..garment.garment import push_out
+
+            x = push_out(x, self._faces, [(bt, self.body_faces)], self.push_clearance, iters=10)[0]
+            self.pushed = True
+            if self._scene.has_intersections(np.vstack([x, bt])):
+                self.last_stats = None
+                return None
+        targets = attachment_positions(self.attachment, bt1)
+        x1, _, self.last_stats = self.sim.step(x, velocity * dv[g] / self.h, bt, bt1, self.body_faces, targets)
+        out = prev.copy()
+        out[b] = bt1
+        out[g] = x1
+        return out
+
+
+def physics_predictor(cap: Capture, cfg: TrackConfig) -> PhysicsPrediction:
+    """The :class:`PhysicsPrediction` of ``cfg`` for the capture's template."""
+    from ..sim import SimSettings, preset
+
+    t = cap.template
+    return PhysicsPrediction(t.vertices, t.faces, t.labels, t.boundary, preset(cfg.prediction_material), cap.fps,
+                             SimSettings(max_newton_iterations=cfg.prediction_newton_iterations))
+
+
 # -- one frame -----------------------------------------------------------------------------------
 
 @dataclass
@@ -615,11 +728,12 @@ def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[Vie
         groups = [(colors, cfg.lr_colors_track), (U, cfg.lr_vertices)]
     if not first:
         cfg = replace(cfg, mask_weight=cfg.mask_weight_track)
-    n_max = cfg.iters_first if first else cfg.iters
+    n_levels = [cfg.iters_first] * len(pyramid) if first else (
+        list(cfg.level_iters) if cfg.level_iters is not None else [cfg.iters] * len(pyramid))
     finest_px = pyramid[-1][0].camera.width
     total_iters = 0
     terms = {}
-    for views in pyramid:
+    for views, n_max in zip(pyramid, n_levels):
         # larger pixels, larger vertex steps: keep the step a fixed fraction of a pixel
         px_ratio = finest_px / views[0].camera.width
         lrs = [lr * (px_ratio if p is U else 1.0) for p, lr in groups]
@@ -686,6 +800,15 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"normal_mode must be 'paper' or 'rest', got {cfg.normal_mode!r}")
     if not cfg.levels or any(not 0 < lv <= 1 for lv in cfg.levels):
         raise PhysavatarError(None, f"levels must be fractions in (0, 1], got {cfg.levels}")
+    if cfg.level_iters is not None and (len(cfg.level_iters) != len(cfg.levels) or min(cfg.level_iters) < 1):
+        raise PhysavatarError(None, f"level_iters needs one count >= 1 per level {cfg.levels}, got {cfg.level_iters}")
+    if cfg.garment_prediction not in ("velocity", "physics"):
+        raise PhysavatarError(None, f"garment_prediction must be 'velocity' or 'physics', got {cfg.garment_prediction!r}")
+    if cfg.garment_prediction == "physics":
+        from ..sim import PRESETS
+
+        if cfg.prediction_material not in PRESETS:
+            raise PhysavatarError(None, f"prediction_material must be one of {sorted(PRESETS)}, got {cfg.prediction_material!r}")
     for c in train:
         if min(round(c.width * cfg.scale * min(cfg.levels)), round(c.height * cfg.scale * min(cfg.levels))) < 11:
             raise PhysavatarError(None, f"option --scale: camera {c.name} would be smaller than 11 px "
@@ -746,6 +869,8 @@ def track(capture: Capture | str | Path, out: str | Path, config: TrackConfig = 
     old_path = out / "config.json"
     if old_path.is_file():
         old = read_json(old_path)
+        # a run written before an option existed ran with that option's default
+        old = {**{k: v for k, v in TrackConfig().to_json().items() if k not in old}, **old}
         if _resume_key(old) != _resume_key(cfg_json):
             diff = sorted(k for k in set(old) | set(cfg_json) if k != "n_frames" and old.get(k) != cfg_json.get(k))
             raise PhysavatarError(out, f"holds a tracking run with another config (differs in: {', '.join(diff)}); "
@@ -784,7 +909,10 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
     skinned = ~t.garment_mask | t.boundary
     collision = anchor = None
     vsmooth = smoothing_solver(len(t.vertices), t.faces, cfg.velocity_smoothing) if cfg.velocity_smoothing > 0 else None
+    physics = None
     if cfg.init == "mixed" and skin is not None:
+        if cfg.garment_prediction == "physics" and (~skinned).any():
+            physics = physics_predictor(cap, cfg)
         if cfg.anchor_weight > 0:
             anchor = AnchorLoss(np.flatnonzero(skinned))
         body_faces = t.faces[(~t.garment_mask[t.faces]).all(1)]
@@ -820,6 +948,10 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                 init = np.asarray(t.vertices, np.float32)
             elif cfg.init == "mixed":
                 init = mixed_prediction(skin, i, verts, cfg.velocity, skinned, vsmooth)
+                if physics is not None and i >= 2:
+                    p = physics(verts[-2], verts[-1], skin.skin(i - 1), skin.skin(i), cfg.velocity, vsmooth)
+                    if p is not None:  # None: the tracked garment intersects the body, keep velocity
+                        init[~skinned] = p[~skinned]
             elif skin is not None:
                 init = skin.predict(i, verts, cfg.velocity)
             else:
