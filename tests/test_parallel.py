@@ -12,7 +12,7 @@ from physavatar.parallel import Job, default_workers, run_jobs
 from physavatar.sim import Material, simulate
 
 
-def _drop(shift: float, frames: int, report=None):
+def _drop(shift: float, frames: int, send: bool = False, report=None):
     """A small cloth falling on a sphere that slides by ``shift`` per frame."""
     V, F = cloth_grid.grid(6, 0.3, 0.11, center=True)
     m = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
@@ -23,7 +23,7 @@ def _drop(shift: float, frames: int, report=None):
     def cb(f, x, st):
         seen.append(f)
         if report is not None:
-            report(1)
+            report(1, (f, x.copy()) if send else None)
 
     out = simulate(V, F, Material(), seq, BF, fps=25.0, callback=cb)
     assert seen == list(range(1, frames))
@@ -43,6 +43,18 @@ def test_two_processes_give_the_results_of_one_and_of_a_direct_call():
         assert np.array_equal(p, s) and np.array_equal(s, d)
     assert par[0].shape[0] == 5 and par[1].shape[0] == 4
     assert not np.allclose(par[0][3], par[1][3])  # the two jobs are different simulations
+
+
+def test_frames_reach_this_process_as_they_are_made():
+    """on_item gets every (frame, positions) of every job, in each job's order (synth renders them)."""
+    for workers in (1, 2):
+        got = {0: [], 1: []}
+        jobs = [Job("a", _drop, (0.004, 5, True)), Job("b", _drop, (-0.003, 4, True))]
+        out = run_jobs(jobs, workers=workers, progress=False, on_item=lambda i, item: got[i].append(item))
+        for i in (0, 1):
+            assert [f for f, _ in got[i]] == list(range(1, len(out[i])))
+            for f, x in got[i]:
+                assert np.array_equal(x, out[i][f])
 
 
 def test_an_error_in_a_job_arrives_whole_and_stops_the_others():

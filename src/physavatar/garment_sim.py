@@ -67,9 +67,12 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
 
 
 def simulate_on_body_job(part: GarmentPart, body_sequence: np.ndarray, body_faces: np.ndarray, material: Material,
-                         fps: float, settings: SimSettings | None = None, report=None) -> np.ndarray:
-    """:func:`simulate_on_body` as a :class:`physavatar.parallel.Job` (``report(1)`` per frame)."""
-    cb = None if report is None else (lambda f, x, st: report(1))
+                         fps: float, settings: SimSettings | None = None, send_frames: bool = False,
+                         report=None) -> np.ndarray:
+    """:func:`simulate_on_body` as a :class:`physavatar.parallel.Job`: ``report(1)`` per frame,
+    with ``(frame, positions)`` as the item when ``send_frames``."""
+    cb = None if report is None else (
+        (lambda f, x, st: report(1, (f, x.copy()))) if send_frames else (lambda f, x, st: report(1)))
     return simulate_on_body(part, body_sequence, body_faces, material, fps, settings=settings, callback=cb)
 
 

@@ -51,16 +51,21 @@ def default_workers(n_jobs: int) -> int:
 
 
 def _child(fn, args, kwargs, q, idx):
-    def report(k: int = 1) -> None:
-        q.put((idx, k))
+    def report(k: int = 1, item=None) -> None:
+        q.put((idx, k, item))
 
     return fn(*args, report=report, **kwargs)
 
 
 def run_jobs(jobs: list[Job], *, workers: int | None = None, progress: bool = True,
-             title: str = "simulating") -> list[Any]:
+             title: str = "simulating", on_item: Callable | None = None) -> list[Any]:
     """Run ``jobs``; returns their results in order. An exception in a job is raised here (the
-    other jobs are cancelled); Ctrl-C stops all of them."""
+    other jobs are cancelled); Ctrl-C stops all of them.
+
+    ``on_item(job_index, item)`` is called in this process for every ``report(k, item)`` a job
+    makes with an item (e.g. a finished frame), in the order each job reported them, while the
+    jobs run: this process can use the results as they come (synth renders finished frames).
+    """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     workers = default_workers(len(jobs)) if workers is None else max(1, min(workers, len(jobs)))
@@ -70,8 +75,13 @@ def run_jobs(jobs: list[Job], *, workers: int | None = None, progress: bool = Tr
         tasks = [bar.add_task(j.label, total=j.total) for j in jobs]
         if workers == 1:
             out = []
-            for j, t in zip(jobs, tasks):
-                out.append(j.fn(*j.args, report=lambda k=1, t=t: bar.advance(t, k), **j.kwargs))
+            for i, (j, t) in enumerate(zip(jobs, tasks)):
+                def report(k=1, item=None, t=t, i=i):
+                    bar.advance(t, k)
+                    if item is not None and on_item is not None:
+                        on_item(i, item)
+
+                out.append(j.fn(*j.args, report=report, **j.kwargs))
             return out
         ctx = multiprocessing.get_context("spawn")
         with ctx.Manager() as mgr:
@@ -83,9 +93,9 @@ def run_jobs(jobs: list[Job], *, workers: int | None = None, progress: bool = Tr
                     for r in res:  # the first failure stops everything (terminate below)
                         if r.ready() and not r.successful():
                             r.get()
-                    _drain(q, bar, tasks)
-                    time.sleep(0.2)
-                _drain(q, bar, tasks)
+                    if not _drain(q, bar, tasks, on_item):
+                        time.sleep(0.2)
+                _drain(q, bar, tasks, on_item)
                 out = [r.get() for r in res]
                 pool.close()
                 return out
@@ -94,10 +104,15 @@ def run_jobs(jobs: list[Job], *, workers: int | None = None, progress: bool = Tr
                 pool.join()
 
 
-def _drain(q, bar, tasks) -> None:
+def _drain(q, bar, tasks, on_item=None) -> bool:
+    """Apply the queued reports; True when there were any."""
+    got = False
     while True:
         try:
-            idx, k = q.get_nowait()
+            idx, k, item = q.get_nowait()
         except _queue.Empty:
-            return
+            return got
+        got = True
         bar.advance(tasks[idx], k)
+        if item is not None and on_item is not None:
+            on_item(idx, item)

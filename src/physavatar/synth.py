@@ -175,10 +175,12 @@ def build_template(cfg: SynthConfig) -> tuple[BodyModel, Template, np.ndarray]:
     return body, template, weights
 
 
-def pose_sequences(scene: _Scene, motions: list, progress: bool = True) -> list[np.ndarray]:
+def pose_sequences(scene: _Scene, motions: list, progress: bool = True, on_frame=None) -> list[np.ndarray]:
     """[T, V, 3] template vertices along each motion: the body posed, the garment simulated with
     the config's material (or skinned when it names none). The simulations run side by side
-    (:mod:`physavatar.parallel`)."""
+    (:mod:`physavatar.parallel`); ``on_frame(motion_index, frame, vertices [V, 3])`` is called in
+    this process for every frame as soon as it is simulated (frame 0 first), so the caller can
+    render finished frames on the core a finished simulation has freed."""
     t = scene.template
     body_idx = np.flatnonzero(~t.garment_mask)
     gar_idx = np.flatnonzero(t.garment_mask)
@@ -196,13 +198,27 @@ def pose_sequences(scene: _Scene, motions: list, progress: bool = True) -> list[
         _, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
         assert np.array_equal(part.vertex_ids, gar_idx)
         mat = preset(scene.cfg.material)
+        for i, V in enumerate(out):  # the garment starts at rest
+            V[0, gar_idx] = part.vertices
+            if on_frame is not None:
+                on_frame(i, 0, V[0])
+
+        def frame_done(i, item):
+            f, x = item
+            out[i][f, gar_idx] = x
+            if on_frame is not None:
+                on_frame(i, f, out[i][f])
+
         jobs = [Job(m.name, simulate_on_body_job, (part, p.vertices, body_faces, mat, scene.cfg.fps),
-                    total=len(p.vertices) - 1) for m, p in zip(motions, posed)]
-        for V, Xg in zip(out, run_jobs(jobs, progress=progress, title="synth: simulating")):
+                    {"send_frames": True}, total=len(p.vertices) - 1) for m, p in zip(motions, posed)]
+        for V, Xg in zip(out, run_jobs(jobs, progress=progress, title="synth: simulating", on_item=frame_done)):
             V[:, gar_idx] = Xg
     else:
-        for V, p in zip(out, posed):
+        for i, (V, p) in enumerate(zip(out, posed)):
             V[:, gar_idx] = linear_blend_skinning(t.vertices[gar_idx], scene.garment_weights, p.bone_transforms)
+            if on_frame is not None:
+                for f in range(len(V)):
+                    on_frame(i, f, V[f])
     return out
 
 
@@ -250,11 +266,53 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
     source = "simulated" if cfg.material else "skinned"
     meshes_file = work / "ground_truth" / "meshes.npz"
     held_file = work / "ground_truth" / "heldout" / "meshes.npz"
-    if meshes_file.exists() and held_file.exists():  # resuming: the simulation is done
-        verts = np.load(meshes_file)["vertices"].astype(np.float64)
-        held_verts = np.load(held_file)["vertices"].astype(np.float64)
-    else:
-        verts, held_verts = pose_sequences(scene, [motion, held], progress is not False)
+    gt = work / "ground_truth"
+    held_dir = gt / "heldout"
+    held_cams = cameras[: cfg.n_ring: max(1, cfg.n_ring // max(cfg.heldout_cameras, 1))][: cfg.heldout_cameras]
+    views = {"": (work, cameras), "heldout": (held_dir, held_cams)}
+    n_frames = {"": cfg.frames, "heldout": cfg.heldout_frames}
+
+    def done(prefix, f):
+        base, cams = views[prefix]
+        return all((base / "images" / c.name / f"{frame_name(f)}.png").exists()
+                   and (base / "masks" / c.name / f"{frame_name(f)}.png").exists() for c in cams)
+
+    cols = (TextColumn("[bold]synth[/] {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*cols, transient=False, disable=progress is False) as bar:
+        total = cfg.frames + cfg.heldout_frames
+        task = bar.add_task(f"rendering {len(cameras)} views x {cfg.frames} frames + held-out", total=total)
+        bar.advance(task, sum(done(p, f) for p in views for f in range(n_frames[p])))
+
+        def render_frame(prefix, f, v):
+            if done(prefix, f):
+                return
+            base, cams = views[prefix]
+            results = _render_frame(scene, v, cams, seed=cfg.seed * 100003 + f * 101 + (7 if prefix else 0))
+            for c, r in zip(cams, results):
+                save_png(base / "masks" / c.name / f"{frame_name(f)}.png", r.alpha8())
+                save_png(base / "images" / c.name / f"{frame_name(f)}.png", r.srgb8())
+            bar.advance(task)
+
+        if meshes_file.exists() and held_file.exists():  # resuming: the simulation is done
+            verts = np.load(meshes_file)["vertices"].astype(np.float64)
+            held_verts = np.load(held_file)["vertices"].astype(np.float64)
+        else:
+            # Frames are rendered here as the simulations (one process each) produce them, so
+            # no core idles once the shorter held-out simulation is done; a frame whose images
+            # exist is skipped, so an interrupted build resumes.
+            # (the rendering bar shows the simulations' progress too: one live display at a time)
+            bar.update(task, description=f"simulating + rendering {len(cameras)} views x {cfg.frames} frames + held-out")
+            verts, held_verts = pose_sequences(scene, [motion, held], False,
+                                               on_frame=lambda i, f, v: render_frame(("", "heldout")[i], f, v))
+            # kept at once: a build interrupted while rendering resumes without simulating again
+            save_npz_atomic(meshes_file, vertices=verts.astype(np.float32), faces=template.faces,
+                            labels=template.labels.astype(np.uint8), fps=cfg.fps)
+            save_npz_atomic(held_file, vertices=held_verts.astype(np.float32), faces=template.faces,
+                            labels=template.labels.astype(np.uint8), fps=cfg.fps)
+        for f in range(cfg.frames):
+            render_frame("", f, verts[f])
+        for f in range(cfg.heldout_frames):
+            render_frame("heldout", f, held_verts[f])
 
     # Capture files (small, rewritten every time: cheap and always consistent with cfg).
     frames = list(range(cfg.frames))
@@ -263,7 +321,6 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
     save_cameras(work, cameras)
     BodyPoses(body.shape, body.bone_names, motion.rotations, motion.root_translation, cfg.body_topology).save(work / "body.npz")
     template.save(work / "template" / "mesh.ply")
-    gt = work / "ground_truth"
     save_png(gt / "texture.png", _srgb8(texture))
     np.save(gt / "texture_linear.npy", texture)
     write_json_atomic(gt / "lighting.json", {"lights": [_light_json(l) for l in lights],
@@ -274,34 +331,11 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
         preset(cfg.material).save(gt / "material.json")
     save_npz_atomic(gt / "meshes.npz", vertices=verts.astype(np.float32), faces=template.faces,
                     labels=template.labels.astype(np.uint8), fps=cfg.fps)
-    held_dir = gt / "heldout"
     held.save(held_dir / "motion.npz")
     save_npz_atomic(held_dir / "meshes.npz", vertices=held_verts.astype(np.float32), faces=template.faces,
                     labels=template.labels.astype(np.uint8), fps=cfg.fps)
-    held_cams = cameras[: cfg.n_ring: max(1, cfg.n_ring // max(cfg.heldout_cameras, 1))][: cfg.heldout_cameras]
     save_cameras(held_dir, held_cams)
     save_npz_atomic(gt / "garment_skinning.npz", weights=weights.astype(np.float32))
-
-    jobs = [("", f, verts[f], cameras) for f in frames] + [("heldout", f, held_verts[f], held_cams)
-                                                           for f in range(cfg.heldout_frames)]
-
-    def done(prefix, f, cams):
-        base = work if not prefix else held_dir
-        return all((base / "images" / c.name / f"{frame_name(f)}.png").exists()
-                   and (base / "masks" / c.name / f"{frame_name(f)}.png").exists() for c in cams)
-
-    todo = [j for j in jobs if not done(j[0], j[1], j[3])]
-    cols = (TextColumn("[bold]synth[/] {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*cols, transient=False, disable=progress is False) as bar:
-        task = bar.add_task(f"rendering {len(cameras)} views x {cfg.frames} frames + held-out", total=len(jobs))
-        bar.advance(task, len(jobs) - len(todo))
-        for prefix, f, v, cams in todo:
-            base = work if not prefix else held_dir
-            results = _render_frame(scene, v, cams, seed=cfg.seed * 100003 + f * 101 + (7 if prefix else 0))
-            for c, r in zip(cams, results):
-                save_png(base / "masks" / c.name / f"{frame_name(f)}.png", r.alpha8())
-                save_png(base / "images" / c.name / f"{frame_name(f)}.png", r.srgb8())
-            bar.advance(task)
     write_json_atomic(gt / "build.json", {"seconds": round(time.time() - t0, 1), "config_digest": cfg.digest(),
                                           "template_vertices": int(len(template.vertices)),
                                           "garment_vertices": int(template.garment_mask.sum()),
