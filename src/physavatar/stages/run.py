@@ -146,6 +146,8 @@ def run_pipeline(capture: str | Path, out: str | Path, *, only: list[str] | None
             if st.done(out, record):
                 console.print(f"[dim][{i}/{len(stages)}] {st.name}: done earlier ({record[st.name].get('seconds', '?')} s), skipped[/]")
                 continue
+            for name in [n for n, (p, _, _) in background.items() if p.poll() is not None]:
+                finish(name)  # ended meanwhile: its core is free again
             if st.background and len(background) < cores - 1:
                 (out / st.name).mkdir(parents=True, exist_ok=True)
                 log = open(out / st.name / "stage.log", "w")
