@@ -116,6 +116,7 @@ def run_pipeline(capture: str | Path, out: str | Path, *, only: list[str] | None
     cores = default_workers(64)
     t_all = time.time()
     background: dict[str, tuple[subprocess.Popen, float, Stage]] = {}
+    ended = _EndTimes()  # when each background stage really ended (it is reaped later)
 
     def finish(name: str) -> None:
         """Wait for background stage ``name`` and record it; raise if it failed."""
@@ -124,7 +125,8 @@ def run_pipeline(capture: str | Path, out: str | Path, *, only: list[str] | None
             console.print(f"[dim]waiting for {name} (running beside since {time.time() - t0:.0f} s; "
                           f"log: {out / name / 'stage.log'})[/]")
         rc = proc.wait()
-        _record(st, rc, round(time.time() - t0, 1), background=True)
+        ended.wait(name)
+        _record(st, rc, round(ended.at.get(name, time.time()) - t0, 1), background=True)
         console.print(f"[dim]{name} (beside the other stages): {'done' if rc == 0 else 'failed'} "
                       f"after {record[name]['seconds']} s[/]")
 
@@ -156,6 +158,7 @@ def run_pipeline(capture: str | Path, out: str | Path, *, only: list[str] | None
                                         stdout=log, stderr=subprocess.STDOUT)
                 log.close()
                 background[st.name] = (proc, time.time(), st)
+                ended.watch(st.name, proc)
                 console.print(f"[bold][{i}/{len(stages)}] {st.name}[/]: physavatar {' '.join(st.args)}  "
                               f"[dim](beside the next stages on the second core; log: {out / st.name / 'stage.log'})[/]")
                 continue
@@ -175,6 +178,31 @@ def run_pipeline(capture: str | Path, out: str | Path, *, only: list[str] | None
     record["_total_seconds_this_run"] = round(time.time() - t_all, 1)
     write_json_atomic(rec_path, record)
     return record
+
+
+class _EndTimes:
+    """The wall-clock end of background processes, noted by one watcher thread each."""
+
+    def __init__(self):
+        import threading
+
+        self.at: dict[str, float] = {}
+        self._threads: dict = {}
+        self._threading = threading
+
+    def watch(self, name: str, proc: subprocess.Popen) -> None:
+        def note():
+            proc.wait()
+            self.at[name] = time.time()
+
+        t = self._threading.Thread(target=note, daemon=True)
+        t.start()
+        self._threads[name] = t
+
+    def wait(self, name: str) -> None:
+        t = self._threads.get(name)
+        if t is not None:
+            t.join(timeout=5.0)
 
 
 def write_report(out: str | Path) -> Path:
