@@ -181,6 +181,8 @@ class TrackConfig:
     prediction_material: str = "cotton"
     prediction_newton_iterations: int = 40
     level_iters: tuple[int, ...] | None = None
+    flow_smoothness: float = 3.0
+    flow_corrections: int = 2
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -802,8 +804,8 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"levels must be fractions in (0, 1], got {cfg.levels}")
     if cfg.level_iters is not None and (len(cfg.level_iters) != len(cfg.levels) or min(cfg.level_iters) < 1):
         raise PhysavatarError(None, f"level_iters needs one count >= 1 per level {cfg.levels}, got {cfg.level_iters}")
-    if cfg.garment_prediction not in ("velocity", "physics"):
-        raise PhysavatarError(None, f"garment_prediction must be 'velocity' or 'physics', got {cfg.garment_prediction!r}")
+    if cfg.garment_prediction not in ("velocity", "physics", "flow"):
+        raise PhysavatarError(None, f"garment_prediction must be 'velocity', 'physics' or 'flow', got {cfg.garment_prediction!r}")
     if cfg.garment_prediction == "physics":
         from ..sim import PRESETS
 
@@ -909,7 +911,12 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
     skinned = ~t.garment_mask | t.boundary
     collision = anchor = None
     vsmooth = smoothing_solver(len(t.vertices), t.faces, cfg.velocity_smoothing) if cfg.velocity_smoothing > 0 else None
-    physics = None
+    physics = flow = prev_images = reference = None
+    if cfg.init == "mixed" and skin is not None and cfg.garment_prediction == "flow" and (~skinned).any():
+        from .flow import FlowPrediction
+
+        garment_faces = t.faces[t.garment_mask[t.faces].all(1)]
+        flow = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.flow_smoothness)
     if cfg.init == "mixed" and skin is not None:
         if cfg.garment_prediction == "physics" and (~skinned).any():
             physics = physics_predictor(cap, cfg)
@@ -948,6 +955,20 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                 init = np.asarray(t.vertices, np.float32)
             elif cfg.init == "mixed":
                 init = mixed_prediction(skin, i, verts, cfg.velocity, skinned, vsmooth)
+                if flow is not None:
+                    images = [cap.image(c.name, f) for c in train]
+                    if prev_images is None:
+                        prev_images = [cap.image(c.name, frames[i - 1]) for c in train]
+                    init = flow(verts[-1], train, prev_images, images, start=init)
+                    if cfg.flow_corrections > 0:
+                        if reference is None:
+                            from .flow import ReferenceAppearance
+
+                            reference = ReferenceAppearance(verts[0], t.faces, train,
+                                                            [cap.image(c.name, frames[0]) for c in train])
+                        init = flow.correct(init, train, images, reference, cfg.flow_corrections)
+                    init = init.astype(np.float32)
+                    prev_images = images
                 if physics is not None and i >= 2:
                     p = physics(verts[-2], verts[-1], skin.skin(i - 1), skin.skin(i), cfg.velocity, vsmooth)
                     if p is not None:  # None: the tracked garment intersects the body, keep velocity
