@@ -713,6 +713,8 @@ def track(
     no_normal: bool = typer.Option(False, "--no-normal", help="drop the normal loss (ablation)"),
     init: Optional[str] = typer.Option(None, "--init", help="start of each frame: mixed (body and garment boundary skinned from body.npz, the rest of the garment "
                                         "by constant velocity; default), lbs (all skinned + carried residual) or velocity"),
+    garment_start: Optional[str] = typer.Option(None, "--garment-start", help="start of the free garment under --init mixed: "
+                                                 "flow (multi-view optical flow + model-based corrections; default), velocity or physics"),
 ):
     """Track the template through the capture with mesh-aligned Gaussians (docs/tracking.md)."""
     from dataclasses import replace as _replace
@@ -727,6 +729,10 @@ def track(
         changes["holdout"] = tuple(h.strip() for h in holdout.split(",") if h.strip())
     if init is not None and init not in ("mixed", "lbs", "velocity"):
         _bad_option("--init", f"{init!r} is not mixed, lbs or velocity")
+    if garment_start is not None and garment_start not in ("flow", "velocity", "physics"):
+        _bad_option("--garment-start", f"{garment_start!r} is not flow, velocity or physics")
+    if garment_start is not None:
+        changes["garment_prediction"] = garment_start
     for name, value in (("iters_first", iters_first), ("iters", iters), ("scale", scale), ("init", init)):
         if value is not None:
             changes[name] = value

@@ -199,17 +199,14 @@ class FlowPrediction:
 
     def __init__(self, faces: np.ndarray, solve: np.ndarray, smooth_faces: np.ndarray, smoothness: float = 3.0,
                  huber_px: float = 1.5, consistency_px: float = 0.7, depth_tolerance: float = 5e-3,
-                 iterations: int = 3, preset: str = "medium", prior_weight: float = 0.0):
+                 iterations: int = 3, preset: str = "medium", prior_weight: float = 0.0,
+                 rest: np.ndarray | None = None, iso_weight: float = 0.0):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
         self.pos = np.full(len(self.solve), -1, np.int64)
         self.pos[self.ids] = np.arange(len(self.ids))
-        f = np.asarray(smooth_faces, np.int64)
-        e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1), axis=0)
-        e = e[self.solve[e[:, 0]] | self.solve[e[:, 1]]]
-        G = sp.csr_matrix((np.r_[np.ones(len(e)), -np.ones(len(e))], (np.r_[np.arange(len(e)), np.arange(len(e))],
-                                                                      np.r_[e[:, 0], e[:, 1]])), shape=(len(e), len(self.solve)))
+        G, self._edges = _edge_difference(smooth_faces, self.solve)
         self._G_solve = G[:, self.ids]
         self._G_fixed = G[:, np.flatnonzero(~self.solve)]
         self._K = sp.kron((self._G_solve.T @ self._G_solve).tocsr(), sp.identity(3), format="csr")
@@ -220,6 +217,9 @@ class FlowPrediction:
         self.iterations = iterations
         self.preset = preset
         self.prior_weight = prior_weight
+        self.iso_weight = iso_weight
+        self._rest_lengths = None if rest is None else np.linalg.norm(
+            np.asarray(rest, np.float64)[self._edges[:, 0]] - np.asarray(rest, np.float64)[self._edges[:, 1]], axis=1)
         self.last_observations: list[FlowObservation] = []
 
     def observe(self, vertices: np.ndarray, cameras: list[Camera], images0: list[np.ndarray],
@@ -250,7 +250,7 @@ class FlowPrediction:
 
     def correct(self, vertices: np.ndarray, cameras: list[Camera], images: list[np.ndarray],
                 reference: "ReferenceAppearance", iterations: int = 2, smoothness: float = 1.0,
-                prior_weight: float = 0.1, preset: str = "fine") -> np.ndarray:
+                prior_weight: float = 0.1, preset: str = "fine", iso_weight: float | None = None) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
         frame t's images by model-based flow (module docstring): each iteration renders the mesh
         as the reference frame saw it (:class:`ReferenceAppearance`), measures the flow from that
@@ -265,11 +265,12 @@ class FlowPrediction:
                 synth, valid, depth, face = reference.render(X, cam, fill=g1)
                 obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset))
             self.last_observations = obs
-            X = self.lift(X, obs, smoothness=smoothness, prior_weight=prior_weight)
+            X = self.lift(X, obs, smoothness=smoothness, prior_weight=prior_weight, iso_weight=iso_weight)
         return X
 
     def lift(self, vertices: np.ndarray, observations: list[FlowObservation], start: np.ndarray | None = None,
-             smoothness: float | None = None, prior_weight: float | None = None) -> np.ndarray:
+             smoothness: float | None = None, prior_weight: float | None = None,
+             iso_weight: float | None = None) -> np.ndarray:
         """[V, 3] the vertices moved by the observations (module docstring, step 3).
 
         vertices: [V, 3] where the observations were made (frame t-1, or the current estimate of
@@ -279,6 +280,7 @@ class FlowPrediction:
         """
         lam = self.smoothness if smoothness is None else smoothness
         prior = self.prior_weight if prior_weight is None else prior_weight
+        iso = (self.iso_weight if iso_weight is None else iso_weight) if self._rest_lengths is not None else 0.0
         X0 = np.asarray(vertices, np.float64)
         X = X0.copy() if start is None else np.asarray(start, np.float64).copy()
         n = len(self.ids)
@@ -313,10 +315,33 @@ class FlowPrediction:
             M = M + lam * self._K + (prior + 1e-9) * sp.identity(3 * n, format="csr")
             rhs = ((b + np.einsum("nij,nj->ni", A, d_cur)).ravel() + lam * np.asarray(rhs_smooth).ravel()
                    + prior * d_prior.ravel())
+            if iso > 0:
+                # edge lengths toward the reference's, linearised: |D (d - d_cur) + (L - L0)|^2
+                D, r = self._length_jacobian(X)
+                M = M + iso * (D.T @ D)
+                rhs = rhs + iso * (D.T @ (D @ d_cur.ravel() - r))
             d = _spd_solve(M, rhs).reshape(n, 3)
             X[self.ids] = X0[self.ids] + d
         self.information = A  # [n, 3, 3] the data term's Gauss-Newton blocks at the last linearization
         return X
+
+    def _length_jacobian(self, X: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+        """D [E, 3n]: d(edge length)/d(solved displacement) at ``X``; r [E]: length - rest length."""
+        e = self._edges
+        v = X[e[:, 0]] - X[e[:, 1]]
+        L = np.linalg.norm(v, axis=1)
+        u = v / np.maximum(L, 1e-12)[:, None]
+        rows, cols, vals = [], [], []
+        for end, sign in ((0, 1.0), (1, -1.0)):
+            p = self.pos[e[:, end]]
+            m = p >= 0
+            for k in range(3):
+                rows.append(np.flatnonzero(m))
+                cols.append(3 * p[m] + k)
+                vals.append(sign * u[m, k])
+        D = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(len(e), 3 * len(self.ids)))
+        return D, L - self._rest_lengths
 
     def __call__(self, vertices: np.ndarray, cameras: list[Camera], images0: list[np.ndarray],
                  images1: list[np.ndarray], start: np.ndarray | None = None) -> np.ndarray:
@@ -385,6 +410,17 @@ class ReferenceAppearance:
             flat[pix[sel]] = sample_bilinear(self.grey[k], uv)[:, 0]
             vflat[pix[sel]] = True
         return np.clip(np.rint(out), 0, 255).astype(np.uint8), valid, depth, face
+
+
+def _edge_difference(faces: np.ndarray, solve: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """([E, V] the difference operator x_i - x_j, [E, 2] the edges) of the edges of ``faces`` that
+    touch a solved vertex."""
+    f = np.asarray(faces, np.int64)
+    e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1), axis=0)
+    e = e[solve[e[:, 0]] | solve[e[:, 1]]]
+    r = np.arange(len(e))
+    return sp.csr_matrix((np.r_[np.ones(len(e)), -np.ones(len(e))], (np.r_[r, r], np.r_[e[:, 0], e[:, 1]])),
+                         shape=(len(e), len(solve))), e
 
 
 def _spd_solve(M: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:

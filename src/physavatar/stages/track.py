@@ -128,7 +128,16 @@ class TrackConfig:
             (x_{t-1} + velocity S(x_{t-1} - x_{t-2}), :func:`mixed_prediction`) or "physics" (one
             implicit-Euler step of the cloth simulator from the last two tracked frames with that
             velocity, the body skinned to frames t-1 and t as collider: :class:`PhysicsPrediction`;
-            frames whose tracked garment intersects the body fall back to "velocity").
+            frames whose tracked garment intersects the body fall back to "velocity"), or "flow"
+            (:mod:`physavatar.stages.flow`: the multi-view optical flow I_{t-1} -> I_t of the
+            training cameras at full resolution lifted to the garment vertices, then
+            ``flow_corrections`` model-based corrections against the first frame's projective
+            texture; docs/tracking.md).
+        flow_smoothness: membrane smoothness of the flow lift (dimensionless, see
+            :class:`~physavatar.stages.flow.FlowPrediction`).
+        flow_corrections: model-based flow corrections per frame under "flow" (0: prediction only).
+        flow_iso: weight of the edge-length term of the flow lift, toward the template's lengths
+            (the hem seen by one or two cameras is otherwise free to stretch along the rays).
         prediction_material: simulator material preset of the physics prediction (the garment's
             material is not known when tracking: a prior; on the demo a wrong one, silk for the
             cotton dress, made the start 3-4x worse than constant velocity, docs/tracking.md).
@@ -177,12 +186,13 @@ class TrackConfig:
     anchor_weight: float = 1.0
     antialiased: bool = True
     opacity: float = 0.99
-    garment_prediction: str = "velocity"
+    garment_prediction: str = "flow"
     prediction_material: str = "cotton"
     prediction_newton_iterations: int = 40
     level_iters: tuple[int, ...] | None = None
     flow_smoothness: float = 3.0
     flow_corrections: int = 2
+    flow_iso: float = 3.0
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -916,7 +926,8 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
         from .flow import FlowPrediction
 
         garment_faces = t.faces[t.garment_mask[t.faces].all(1)]
-        flow = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.flow_smoothness)
+        flow = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.flow_smoothness, rest=t.vertices,
+                              iso_weight=cfg.flow_iso)
     if cfg.init == "mixed" and skin is not None:
         if cfg.garment_prediction == "physics" and (~skinned).any():
             physics = physics_predictor(cap, cfg)
