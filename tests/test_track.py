@@ -372,3 +372,5 @@ def test_level_iters_sets_each_levels_iterations(body_capture):
         _check_config(replace(FAST, level_iters=(3,)), cap)
     with pytest.raises(PhysavatarError, match="garment_prediction"):
         _check_config(replace(FAST, garment_prediction="lbs"), cap)
+    with pytest.raises(PhysavatarError, match="flow_corrections"):
+        _check_config(replace(FAST, flow_corrections=-1), cap)

@@ -729,9 +729,9 @@ def track(
         changes["holdout"] = tuple(h.strip() for h in holdout.split(",") if h.strip())
     if init is not None and init not in ("mixed", "lbs", "velocity"):
         _bad_option("--init", f"{init!r} is not mixed, lbs or velocity")
-    if garment_start is not None and garment_start not in ("flow", "velocity", "physics"):
-        _bad_option("--garment-start", f"{garment_start!r} is not flow, velocity or physics")
     if garment_start is not None:
+        if garment_start not in ("flow", "velocity", "physics"):
+            _bad_option("--garment-start", f"{garment_start!r} is not flow, velocity or physics")
         changes["garment_prediction"] = garment_start
     for name, value in (("iters_first", iters_first), ("iters", iters), ("scale", scale), ("init", init)):
         if value is not None:

@@ -110,17 +110,27 @@ def visible_vertices(vertices: np.ndarray, faces: np.ndarray, camera: Camera,
     if depth is None or face is None:
         depth, face = zbuffer(vertices, faces, camera)
     uv, z = camera.project(np.asarray(vertices, np.float64))
-    H, W = depth.shape
-    inside = (z > 0) & (uv[:, 0] > -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < H - 0.5)
-    u = np.clip(np.rint(uv[:, 0]), 0, W - 1).astype(np.int64)
-    v = np.clip(np.rint(uv[:, 1]), 0, H - 1).astype(np.int64)
+    front, (v, u) = _in_front(uv, z, depth, depth_tolerance)
     f = face[v, u]
     own = (f >= 0) & (np.asarray(faces)[np.maximum(f, 0)] == np.arange(len(uv))[:, None]).any(1)
-    return inside & ((z <= depth[v, u] + depth_tolerance) | own)
+    H, W = depth.shape
+    inside = (z > 0) & (uv[:, 0] > -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < H - 0.5)
+    return inside & (front | own)
+
+
+def _in_front(uv: np.ndarray, z: np.ndarray, depth: np.ndarray, tolerance: float) -> tuple[np.ndarray, tuple]:
+    """([N] bool: points at pixels ``uv`` [N, 2] with depth ``z`` within ``tolerance`` of the
+    z-buffer ``depth`` at their nearest pixel, (row, column) of that pixel)."""
+    H, W = depth.shape
+    u = np.clip(np.rint(uv[:, 0]), 0, W - 1).astype(np.int64)
+    v = np.clip(np.rint(uv[:, 1]), 0, H - 1).astype(np.int64)
+    return z <= depth[v, u] + tolerance, (v, u)
 
 
 def to_gray8(image: np.ndarray) -> np.ndarray:
-    """[H, W] uint8 luma of an sRGB image [H, W, 3] in [0, 1] (or already grey [H, W])."""
+    """[H, W] uint8 luma of an sRGB image [H, W, 3] in [0, 1] (a [H, W] uint8 image is returned as is)."""
+    if image.dtype == np.uint8 and image.ndim == 2:
+        return image
     a = np.asarray(image, np.float64)
     if a.ndim == 3:
         a = a[..., :3] @ np.array([0.299, 0.587, 0.114])
@@ -134,8 +144,7 @@ def optical_flow(image0: np.ndarray, image1: np.ndarray, preset: str = "medium")
 
     presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, "fine": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
-    a = image0 if image0.dtype == np.uint8 else to_gray8(image0)
-    b = image1 if image1.dtype == np.uint8 else to_gray8(image1)
+    a, b = to_gray8(image0), to_gray8(image1)
     dis = cv2.DISOpticalFlow_create(presets[preset])
     if preset == "fine":
         # "medium" searches down to half resolution; the finest level halves the flow error of
@@ -220,17 +229,15 @@ class FlowPrediction:
         self.iso_weight = iso_weight
         self._rest_lengths = None if rest is None else np.linalg.norm(
             np.asarray(rest, np.float64)[self._edges[:, 0]] - np.asarray(rest, np.float64)[self._edges[:, 1]], axis=1)
-        self.last_observations: list[FlowObservation] = []
 
     def observe(self, vertices: np.ndarray, cameras: list[Camera], images0: list[np.ndarray],
                 images1: list[np.ndarray]) -> list[FlowObservation]:
         """Flow observations of the solved vertices at ``vertices`` [V, 3] (frame t-1), from each
-        camera's image pair (frame t-1, frame t; full resolution, sRGB [H, W, 3])."""
+        camera's image pair (frame t-1, frame t; full resolution, sRGB [H, W, 3] or :func:`to_gray8`)."""
         obs = []
         for cam, a, b in zip(cameras, images0, images1):
             depth, face = zbuffer(vertices, self.faces, cam)
             obs.append(self._observation(vertices, cam, to_gray8(a), to_gray8(b), depth, face, None, self.preset))
-        self.last_observations = obs
         return obs
 
     def _observation(self, vertices: np.ndarray, cam: Camera, g0: np.ndarray, g1: np.ndarray, depth: np.ndarray,
@@ -264,7 +271,6 @@ class FlowPrediction:
             for cam, g1 in zip(cameras, grey):
                 synth, valid, depth, face = reference.render(X, cam, fill=g1)
                 obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset))
-            self.last_observations = obs
             X = self.lift(X, obs, smoothness=smoothness, prior_weight=prior_weight, iso_weight=iso_weight)
         return X
 
@@ -322,7 +328,6 @@ class FlowPrediction:
                 rhs = rhs + iso * (D.T @ (D @ d_cur.ravel() - r))
             d = _spd_solve(M, rhs).reshape(n, 3)
             X[self.ids] = X0[self.ids] + d
-        self.information = A  # [n, 3, 3] the data term's Gauss-Newton blocks at the last linearization
         return X
 
     def _length_jacobian(self, X: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
@@ -347,6 +352,33 @@ class FlowPrediction:
                  images1: list[np.ndarray], start: np.ndarray | None = None) -> np.ndarray:
         """[V, 3] float64: :meth:`observe` at ``vertices`` then :meth:`lift` (see there)."""
         return self.lift(vertices, self.observe(np.asarray(vertices, np.float64), cameras, images0, images1), start)
+
+
+class FlowStart:
+    """The tracker's start of frame t for the solved vertices (``garment_prediction="flow"``):
+    :class:`FlowPrediction` from the tracked frame t-1, then ``corrections`` model-based
+    corrections against the reference (first) frame's texture.
+
+    Args:
+        flow: the lift. cameras: the training views. reference_vertices: [V, 3] the tracked first
+        frame; reference_images: its views (sRGB or :func:`to_gray8`). corrections: per frame (0: prediction only).
+    """
+
+    def __init__(self, flow: FlowPrediction, cameras: list[Camera], reference_vertices: np.ndarray,
+                 reference_images: list[np.ndarray], corrections: int = 2):
+        self.flow, self.cameras, self.corrections = flow, list(cameras), corrections
+        self.reference = (ReferenceAppearance(reference_vertices, flow.faces, cameras, reference_images)
+                          if corrections > 0 else None)
+
+    def __call__(self, previous: np.ndarray, previous_grey: list[np.ndarray], grey: list[np.ndarray],
+                 start: np.ndarray) -> np.ndarray:
+        """[V, 3] float64 start of frame t. previous: [V, 3] tracked frame t-1; previous_grey,
+        grey: :func:`to_gray8` views of frames t-1 and t; start: [V, 3] the other vertices' start
+        (and the prior of the solved ones)."""
+        X = self.flow(previous, self.cameras, previous_grey, grey, start=start)
+        if self.reference is not None:
+            X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections)
+        return X
 
 
 class ReferenceAppearance:
@@ -403,9 +435,7 @@ class ReferenceAppearance:
             uv, z = cam.project(P[sel])
             H, W = self.depth[k].shape
             inside = (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
-            u = np.clip(np.rint(uv[:, 0]), 0, W - 1).astype(np.int64)
-            v = np.clip(np.rint(uv[:, 1]), 0, H - 1).astype(np.int64)
-            seen = inside & (z <= self.depth[k][v, u] + self.depth_tolerance)
+            seen = inside & _in_front(uv, z, self.depth[k], self.depth_tolerance)[0]
             sel, uv = sel[seen], uv[seen]
             flat[pix[sel]] = sample_bilinear(self.grey[k], uv)[:, 0]
             vflat[pix[sel]] = True

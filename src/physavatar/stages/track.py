@@ -47,6 +47,7 @@ from ..capture import Capture, frame_name, load_capture
 from ..errors import PhysavatarError
 from ..files import PlyMesh, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
 from ..splat import longest_edge_index, mesh_to_gaussians, rasterize
+from .flow import to_gray8
 from ._losses import AnchorLoss, CollisionLoss, IsometryLoss, NormalLoss, linear_to_srgb, srgb_to_linear, ssim
 
 LOG_COLUMNS = ("frame", "iterations", "loss", "render", "l1", "ssim", "mask", "iso", "normal", "anchor", "collision", "seconds")
@@ -344,13 +345,16 @@ def _blur(a: np.ndarray, sigma: float) -> np.ndarray:
     return gaussian_filter(a, (sigma, sigma) + (0,) * (a.ndim - 2), mode="nearest")
 
 
-def load_views(capture: Capture, frame: int, cameras: list[Camera], factor: float, blur: float = 0.0) -> list[View]:
+def load_views(capture: Capture, frame: int, cameras: list[Camera], factor: float, blur: float = 0.0,
+               images: list[np.ndarray] | None = None) -> list[View]:
     """Every camera's image and mask box-filtered to ``factor`` of the capture's size, then
-    blurred with a Gaussian of ``blur`` px (see TrackConfig.target_blur)."""
+    blurred with a Gaussian of ``blur`` px (see TrackConfig.target_blur). ``images``: the
+    cameras' full-resolution images of ``frame`` when already read."""
     out = []
-    for cam in cameras:
+    for k, cam in enumerate(cameras):
         c = cam.scaled(factor) if factor != 1.0 else cam
-        img = _blur(_resize(capture.image(cam.name, frame), c.width, c.height), blur)
+        full = capture.image(cam.name, frame) if images is None else images[k]
+        img = _blur(_resize(full, c.width, c.height), blur)
         msk = _blur(_resize(capture.mask(cam.name, frame), c.width, c.height), blur)
         out.append(View(c, torch.from_numpy(np.array(img, np.float32)),
                         torch.from_numpy(np.array(msk, np.float32))))
@@ -785,6 +789,22 @@ def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[Vie
                        total_iters, {k: float(v) for k, v in final.items()})
 
 
+def flow_start(cfg: TrackConfig, t, train: list[Camera], first_vertices: np.ndarray, first_grey: list[np.ndarray],
+               skinned: np.ndarray):
+    """The :class:`~physavatar.stages.flow.FlowStart` of the free garment (``~skinned``) of
+    template ``t``, its reference the tracked first frame (``first_grey``: its training views)."""
+    from .flow import FlowPrediction, FlowStart
+
+    garment_faces = t.faces[t.garment_mask[t.faces].all(1)]
+    lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.flow_smoothness, rest=t.vertices,
+                          iso_weight=cfg.flow_iso)
+    return FlowStart(lift, train, first_vertices, first_grey, cfg.flow_corrections)
+
+
+def _grey_views(cap: Capture, frame: int, cameras: list[Camera]) -> list[np.ndarray]:
+    return [to_gray8(cap.image(c.name, frame)) for c in cameras]
+
+
 # -- the stage -----------------------------------------------------------------------------------
 
 def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], list[int]]:
@@ -816,6 +836,9 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"level_iters needs one count >= 1 per level {cfg.levels}, got {cfg.level_iters}")
     if cfg.garment_prediction not in ("velocity", "physics", "flow"):
         raise PhysavatarError(None, f"garment_prediction must be 'velocity', 'physics' or 'flow', got {cfg.garment_prediction!r}")
+    if cfg.flow_corrections < 0 or cfg.flow_smoothness < 0 or cfg.flow_iso < 0:
+        raise PhysavatarError(None, "flow_corrections, flow_smoothness and flow_iso must be >= 0, got "
+                                    f"{cfg.flow_corrections}, {cfg.flow_smoothness}, {cfg.flow_iso}")
     if cfg.garment_prediction == "physics":
         from ..sim import PRESETS
 
@@ -921,13 +944,9 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
     skinned = ~t.garment_mask | t.boundary
     collision = anchor = None
     vsmooth = smoothing_solver(len(t.vertices), t.faces, cfg.velocity_smoothing) if cfg.velocity_smoothing > 0 else None
-    physics = flow = prev_images = reference = None
-    if cfg.init == "mixed" and skin is not None and cfg.garment_prediction == "flow" and (~skinned).any():
-        from .flow import FlowPrediction
-
-        garment_faces = t.faces[t.garment_mask[t.faces].all(1)]
-        flow = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.flow_smoothness, rest=t.vertices,
-                              iso_weight=cfg.flow_iso)
+    physics = flow = None
+    use_flow = cfg.init == "mixed" and skin is not None and cfg.garment_prediction == "flow" and (~skinned).any()
+    grey: dict[int, list[np.ndarray]] = {}  # frame -> training views' luma, for the flow start
     if cfg.init == "mixed" and skin is not None:
         if cfg.garment_prediction == "physics" and (~skinned).any():
             physics = physics_predictor(cap, cfg)
@@ -959,27 +978,23 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                 bar.advance(task)
                 continue
             t0 = time.perf_counter()
-            pyramid = [load_views(cap, f, train, s, cfg.target_blur) for s in factors]
+            images = [cap.image(c.name, f) for c in train]
+            pyramid = [load_views(cap, f, train, s, cfg.target_blur, images) for s in factors]
+            if use_flow:
+                grey[f] = [to_gray8(im) for im in images]
             if i == 0:
                 gv = model.gaussian_vertices(torch.from_numpy(np.asarray(t.vertices, np.float32))).numpy()
                 model.colors = torch.from_numpy(initial_colors(gv, model.faces.numpy(), pyramid[-1]))
                 init = np.asarray(t.vertices, np.float32)
             elif cfg.init == "mixed":
                 init = mixed_prediction(skin, i, verts, cfg.velocity, skinned, vsmooth)
-                if flow is not None:
-                    images = [cap.image(c.name, f) for c in train]
-                    if prev_images is None:
-                        prev_images = [cap.image(c.name, frames[i - 1]) for c in train]
-                    init = flow(verts[-1], train, prev_images, images, start=init)
-                    if cfg.flow_corrections > 0:
-                        if reference is None:
-                            from .flow import ReferenceAppearance
-
-                            reference = ReferenceAppearance(verts[0], t.faces, train,
-                                                            [cap.image(c.name, frames[0]) for c in train])
-                        init = flow.correct(init, train, images, reference, cfg.flow_corrections)
-                    init = init.astype(np.float32)
-                    prev_images = images
+                if use_flow:
+                    if frames[i - 1] not in grey:  # resumed: frame t-1 came from disk
+                        grey[frames[i - 1]] = _grey_views(cap, frames[i - 1], train)
+                    if flow is None:  # built here, not before the loop: frame 1 may come from a resumed run
+                        first = grey.get(frames[0]) or _grey_views(cap, frames[0], train)
+                        flow = flow_start(cfg, t, train, verts[0], first, skinned)
+                    init = flow(verts[-1], grey.pop(frames[i - 1]), grey[f], init).astype(np.float32)
                 if physics is not None and i >= 2:
                     p = physics(verts[-2], verts[-1], skin.skin(i - 1), skin.skin(i), cfg.velocity, vsmooth)
                     if p is not None:  # None: the tracked garment intersects the body, keep velocity
