@@ -91,3 +91,21 @@ def test_shape_changes_height():
     assert h(tall) > h(short) + 0.1
     with pytest.raises(ValueError):
         BodyShape(height=1.5)
+
+
+def test_loading_anny_keeps_a_redirected_stdout():
+    # anny's Warp module sets sys.stdout = sys.__stdout__ on import; under typer's CliRunner
+    # that dropped (and closed) the runner's capture stream. A fresh interpreter, so anny is
+    # imported for the first time under the redirect.
+    import subprocess
+    import sys
+
+    code = ("import io, sys\n"
+            "from physavatar.body.model import _import_anny\n"
+            "buf = io.StringIO(); sys.stdout = buf\n"
+            "_import_anny()\n"
+            "print('captured')\n"
+            "sys.__stdout__.write(f'same={sys.stdout is buf} closed={buf.closed} text={buf.getvalue()!r}')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.endswith("same=True closed=False text='captured\\n'"), r.stdout

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
 import threading
 import warnings
 from dataclasses import dataclass, field
@@ -39,6 +40,23 @@ PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 _lock = threading.Lock()
 
 
+def _import_anny():
+    """Import anny without losing sys.stdout.
+
+    anny.utils.warp_mesh_utils swaps sys.stdout for sys.stderr while it initialises Warp and
+    then sets it to sys.__stdout__, not back to what it was: under a redirected stdout (typer's
+    CliRunner, rich's live display, a caller's capture) the replaced stream was dropped, and a
+    dropped text wrapper closes the buffer under it. Import it once here and restore stdout.
+    """
+    saved_stdout = sys.stdout
+    try:
+        import anny
+        import anny.utils.warp_mesh_utils  # noqa: F401
+    finally:
+        sys.stdout = saved_stdout
+    return anny
+
+
 @functools.lru_cache(maxsize=None)
 def _anny(topology: str):
     """One Anny module per topology (Anny caches the built data on disk; this caches it in RAM)."""
@@ -47,7 +65,7 @@ def _anny(topology: str):
     with _lock, warnings.catch_warnings():
         warnings.simplefilter("ignore")
         os.environ.setdefault("WARP_LOG_LEVEL", "error")
-        import anny
+        anny = _import_anny()
 
         # Dense LBS in torch: deterministic and needs no Warp kernel compilation.
         model = anny.Anny(topology=TOPOLOGIES[topology], skinning_method="lbs")
