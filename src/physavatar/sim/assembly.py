@@ -235,8 +235,8 @@ class NewtonLinearSolver:
     D ⪰ Drop, so H₁ ⪰ H ≻ 0 stays positive definite). H₁ has the 1-ring pattern: on the
     benchmark garment its factor has half the nonzeros and costs ~1/4 of factorising H, and
     CG reaches ‖H d − b‖ ≤ ``rtol`` ‖b‖ (1e-6: the Newton iterates match a direct solve) in
-    ~20 iterations of ~1 ms. The factor is also reused across Newton iterations and steps
-    while CG converges quickly; after a solve that needed more than ``refresh_cg``
+    ~20 iterations of ~1 ms. The factor is also reused across the Newton iterations of a step
+    while CG converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`); after a solve that needed more than ``refresh_cg``
     iterations it is recomputed from the next H, and when CG fails within ``max_cg`` (the
     state or contacts changed a lot) it is recomputed from the current H at once.
 
@@ -254,6 +254,11 @@ class NewtonLinearSolver:
     def reset(self):
         self.factor: Factorization | None = None
         self.factor_matrix = None  # the matrix self.factor factorises
+        self._stale = True
+
+    def mark_stale(self):
+        """Take a fresh factor at the next solve (a new step: the old factor preconditioned
+        the previous step's matrices, and CG spent its 100 iterations on it before refactoring)."""
         self._stale = True
 
     def _refactor(self, M):
