@@ -288,8 +288,8 @@ class NewtonLinearSolver:
     benchmark garment its factor has half the nonzeros and costs ~1/4 of factorising H, and
     CG reaches ‖H d − b‖ ≤ ``rtol`` ‖b‖ (1e-6: the Newton iterates match a direct solve) in
     ~20 iterations of ~1 ms. The factor is also reused across the Newton iterations of a step
-    while CG converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`); after a solve that needed more than ``refresh_cg``
-    iterations it is recomputed from the next H, and when CG fails within ``max_cg`` (the
+    while CG converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`);
+    after a solve that needed more than ``refresh_cg`` iterations it is recomputed from the next H, and when CG fails within ``max_cg`` (the
     state or contacts changed a lot) it is recomputed from the current H at once.
 
     ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
