@@ -170,6 +170,7 @@ def main():
             "attached_vertices": len(part.boundary), "body_vertices": int(bodies.shape[1]),
             "body_faces": len(body_faces), "material": material_name, "material_values": material.to_dict(),
             "dhat": settings.dhat, "friction": settings.friction, "newton_tol": settings.newton_tol,
+            "newton_norm": settings.newton_norm, "newton_window": settings.newton_window,
             "membrane": settings.membrane_model, "quick": args.quick, "overrides": overrides,
         },
         "figures": figures,

@@ -113,6 +113,10 @@ def test_assembly_matches_numpy_twin(cloth):
         A, B = asm.assemble(hs), asm.assemble_numpy(hs)
         assert abs(A - B).max() <= 1e-12 * abs(B).max()
     assert asm.assemble([m.hessian(x), inside]).nnz == asm.nnz  # pattern kept
+    for M in (inside, outside, inside + outside):  # numba slot search == the numpy twin
+        (s1, v1), (s2, v2) = asm._sparse_slots(M), asm._sparse_slots_numpy(M)
+        assert (s1 is None) == (s2 is None) and (s1 is None or (np.array_equal(s1, s2) and np.array_equal(v1, v2)))
+    assert asm._sparse_slots(outside)[0] is None and asm._sparse_slots(inside)[0] is not None
 
 
 def test_cg_solver_matches_direct_solve(cloth):
@@ -124,6 +128,9 @@ def test_cg_solver_matches_direct_solve(cloth):
     H = asm.assemble(hs)
     P = asm.preconditioner_matrix(H)
     assert P.nnz < H.nnz  # hinge-tip couplings dropped
+    P_coo = asm._preconditioner_matrix_coo(H)  # the twin (any pattern) gives the same bits
+    assert np.array_equal(P.indptr, P_coo.indptr) and np.array_equal(P.indices, P_coo.indices)
+    assert np.array_equal(P.data, P_coo.data)
     assert np.linalg.eigvalsh((P - H).toarray()).min() > -1e-10 * abs(H).max()  # P ⪰ H
     b = np.random.default_rng(1).normal(size=3 * n)
     ref = sla.spsolve(H.tocsc(), b)

@@ -494,6 +494,25 @@ def scatter_add(data, slot, values):
         data[slot[i]] += values[i]
 
 
+@numba.njit(cache=True)
+def csr_slots(indptr, indices, rows, cols):
+    """Position of each entry (rows[k], cols[k]) in a CSR pattern with sorted rows, or -1
+    (binary search within the row; Assembler._sparse_slots_numpy is the twin)."""
+    out = np.empty(rows.shape[0], np.int64)
+    for k in range(rows.shape[0]):
+        r, c = rows[k], cols[k]
+        lo, hi = indptr[r], indptr[r + 1]
+        end = hi
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if indices[mid] < c:
+                lo = mid + 1
+            else:
+                hi = mid
+        out[k] = lo if lo < end and indices[lo] == c else -1
+    return out
+
+
 # -- conjugate gradients -------------------------------------------------------------------------
 # The vector operations of assembly.pcg. numpy's 1-D dot / norm call the threaded BLAS, whose
 # threads wake and spin on every call: on the shared 2-core machine a 14k-long dot measured

@@ -55,6 +55,7 @@ class Assembler:
         self.nnz = len(keys)
         self.keys = keys  # sorted r·n + c of the pattern's entries
         self.diag_slot = np.searchsorted(keys, np.arange(n, dtype=np.int64) * (n + 1))
+        self._sparsified = self._sparsified_pattern() if self.drop_keys is not None else None
         self.scatter = {}
         for index, (r, c, valid) in zip(element_sets, rowcols):
             slot = np.full(r.shape, self.nnz, dtype=np.int64)  # invalid -> dump slot
@@ -69,23 +70,57 @@ class Assembler:
         c = np.broadcast_to(red[:, None, :], (len(index), 3 * k, 3 * k))
         return r, c, (r >= 0) & (c >= 0)
 
+    def _dropped(self, row, col):
+        """Mask of the entries (reduced row, col) that join two ``drop_pairs`` vertices."""
+        vr, vc = self.dof_vertex[row], self.dof_vertex[col]
+        key = np.minimum(vr, vc) * self._nv + np.maximum(vr, vc)
+        pos = np.minimum(np.searchsorted(self.drop_keys, key), len(self.drop_keys) - 1)
+        return self.drop_keys[pos] == key
+
+    def _sparsified_pattern(self):
+        """The fixed pattern's entries kept by :meth:`preconditioner_matrix` (its CSR pattern and
+        slots) and the dropped ones (slots, rows): a matrix in the pattern is then sparsified
+        by gathers, without searching the drop pairs each time."""
+        n = self.n
+        row = np.repeat(np.arange(n, dtype=np.int64), np.diff(self.indptr))
+        drop = self._dropped(row, self.indices.astype(np.int64))
+        keep = np.flatnonzero(~drop)
+        indptr = np.r_[0, np.cumsum(np.bincount(row[keep], minlength=n))].astype(np.int32)
+        indices = self.indices[keep]
+        kept_diag = np.searchsorted(self.keys[keep], np.arange(n, dtype=np.int64) * (n + 1))
+        return dict(keep=keep, indptr=indptr, indices=indices, diag=kept_diag,
+                    drop=np.flatnonzero(drop), drop_row=row[drop])
+
     def preconditioner_matrix(self, H: sp.csr_matrix) -> sp.csr_matrix:
         """H without the entries between ``drop_pairs`` vertices, their |values| moved to the
         diagonal (Gershgorin: the result is ⪰ H, so positive definite when H is)."""
         if self.drop_keys is None:
             return H
-        C = H.tocoo()
-        vr, vc = self.dof_vertex[C.row], self.dof_vertex[C.col]
-        key = np.minimum(vr, vc) * self._nv + np.maximum(vr, vc)
-        pos = np.minimum(np.searchsorted(self.drop_keys, key), len(self.drop_keys) - 1)
-        drop = self.drop_keys[pos] == key
-        comp = np.bincount(C.row[drop], weights=np.abs(C.data[drop]), minlength=H.shape[0])
+        z = self._sparsified
+        if (H.nnz == self.nnz and H.has_canonical_format and np.array_equal(H.indptr, self.indptr)
+                and np.array_equal(H.indices, self.indices)):  # H in the fixed pattern: gathers
+            comp = np.bincount(z["drop_row"], weights=np.abs(H.data[z["drop"]]), minlength=self.n)
+            data = H.data[z["keep"]]
+            data[z["diag"]] += comp
+            return sp.csr_matrix((data, z["indices"], z["indptr"]), shape=H.shape)
+        return self._preconditioner_matrix_coo(H)
+
+    def _preconditioner_matrix_coo(self, H):
+        """Twin of :meth:`preconditioner_matrix` for any pattern (contacts outside the fixed one)."""
+        H = H.tocsr()
+        if not H.has_canonical_format:
+            H = H.copy()
+            H.sum_duplicates()
+        row = np.repeat(np.arange(H.shape[0], dtype=np.int64), np.diff(H.indptr))
+        drop = self._dropped(row, H.indices.astype(np.int64))
+        comp = np.bincount(row[drop], weights=np.abs(H.data[drop]), minlength=H.shape[0])
         keep = ~drop  # dropped entries must leave the pattern, or the factor keeps their fill
-        row, col, data = C.row[keep], C.col[keep], C.data[keep]
+        row, col, data = row[keep], H.indices[keep], H.data[keep]
         diag = row == col
         data[diag] += comp[row[diag]]
         # H's pattern always holds the diagonal (Assembler), so every row's |dropped| lands
-        return sp.csr_matrix((data, (row, col)), shape=H.shape)
+        indptr = np.r_[0, np.cumsum(np.bincount(row, minlength=H.shape[0]))].astype(np.int32)
+        return sp.csr_matrix((data, col.astype(np.int32), indptr), shape=H.shape)
 
     def reduce(self, vector: np.ndarray) -> np.ndarray:
         """Full-DOF vector [D] -> reduced [n]."""
@@ -134,7 +169,24 @@ class Assembler:
         return H
 
     def _sparse_slots(self, M):
-        """Slots of a full-DOF sparse matrix's kept entries in the pattern, or (None, None)."""
+        """Slots of a full-DOF sparse matrix's kept entries in the pattern, or (None, None).
+
+        Each entry is found by a binary search in its row of the CSR pattern (numba,
+        _kernels.csr_slots); :meth:`_sparse_slots_numpy` is the twin (a search in all keys).
+        """
+        M = M.tocoo()
+        r = self.dof_map[M.row]
+        c = self.dof_map[M.col]
+        keep = (r >= 0) & (c >= 0)
+        if self.nnz == 0:
+            return (None, None) if np.any(keep) else (np.zeros(0, np.int64), np.zeros(0))
+        pos = _kernels.csr_slots(self.indptr, self.indices, r[keep], c[keep])
+        if np.any(pos < 0):
+            return None, None
+        return pos, np.ascontiguousarray(M.data[keep], dtype=np.float64)
+
+    def _sparse_slots_numpy(self, M):
+        """Reference twin of :meth:`_sparse_slots`."""
         M = M.tocoo()
         r = self.dof_map[M.row]
         c = self.dof_map[M.col]
@@ -235,9 +287,9 @@ class NewtonLinearSolver:
     D ⪰ Drop, so H₁ ⪰ H ≻ 0 stays positive definite). H₁ has the 1-ring pattern: on the
     benchmark garment its factor has half the nonzeros and costs ~1/4 of factorising H, and
     CG reaches ‖H d − b‖ ≤ ``rtol`` ‖b‖ (1e-6: the Newton iterates match a direct solve) in
-    ~20 iterations of ~1 ms. The factor is also reused across Newton iterations and steps
-    while CG converges quickly; after a solve that needed more than ``refresh_cg``
-    iterations it is recomputed from the next H, and when CG fails within ``max_cg`` (the
+    ~20 iterations of ~1 ms. The factor is also reused across the Newton iterations of a step
+    while CG converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`);
+    after a solve that needed more than ``refresh_cg`` iterations it is recomputed from the next H, and when CG fails within ``max_cg`` (the
     state or contacts changed a lot) it is recomputed from the current H at once.
 
     ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
@@ -254,6 +306,11 @@ class NewtonLinearSolver:
     def reset(self):
         self.factor: Factorization | None = None
         self.factor_matrix = None  # the matrix self.factor factorises
+        self._stale = True
+
+    def mark_stale(self):
+        """Take a fresh factor at the next solve (a new step: the old factor preconditioned
+        the previous step's matrices, and CG spent its 100 iterations on it before refactoring)."""
         self._stale = True
 
     def _refactor(self, M):

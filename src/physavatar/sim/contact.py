@@ -46,6 +46,7 @@ class ContactScene:
         self.collisions = ipctk.NormalCollisions()
         self._collisions_at = None
         self.covers_last_point = False  # solver bookkeeping: candidates valid at its iterate
+        self.ccd_threads = 1  # narrow-phase CCD threads (order-independent; ClothSim sets it)
 
     # -- collision sets ------------------------------------------------------------------------
 
@@ -67,11 +68,24 @@ class ContactScene:
         return self.collisions
 
     def collision_free_stepsize(self, X0, X1):
-        """Largest α ∈ [0, 1] such that X0 + α (X1 − X0) stays intersection-free (ipctk CCD)."""
+        """Largest α ∈ [0, 1] such that X0 + α (X1 − X0) stays intersection-free (ipctk CCD).
+
+        The narrow phase runs on ``ccd_threads`` threads: it is a min-reduction over the
+        candidates (each candidate's time of impact does not depend on the others), so the
+        result is the same bits on any number of threads. The candidate build stays on one
+        thread: with more, the candidates (and the barrier sums over them) come in a
+        schedule-dependent order.
+        """
         self.prepare_segment(X0, X1)
-        return self.candidates.compute_collision_free_stepsize(
-            self.mesh, X0, X1, self.dmin, self.ccd
-        )
+        if self.ccd_threads > 1:
+            ipctk.set_num_threads(self.ccd_threads)
+        try:
+            return self.candidates.compute_collision_free_stepsize(
+                self.mesh, X0, X1, self.dmin, self.ccd
+            )
+        finally:
+            if self.ccd_threads > 1:
+                ipctk.set_num_threads(1)
 
     def min_distance(self, X):
         c = self.collisions_at(X)
