@@ -139,6 +139,14 @@ class TrackConfig:
         flow_corrections: model-based flow corrections per frame under "flow" (0: prediction only).
         flow_iso: weight of the edge-length term of the flow lift, toward the template's lengths
             (the hem seen by one or two cameras is otherwise free to stretch along the rays).
+        flow_collision: penalty weight holding the free garment outside the body in every flow lift
+            (0: off); without it the chain pushed 10 % of the demo dress into the legs by frame 14.
+        flow_final_corrections: model-based corrections after the photometric fit (the fit's own
+            optimum at 128² lies 1-2 mm from a corrected start; demo, docs/tracking.md).
+        flow_correction_smoothness, flow_correction_prior, flow_correction_iso: the corrections'
+            lift: membrane smoothness, pull toward the estimate, edge-length term (measured on the
+            demo from saved prediction states of frames 16, 33, 46: 0.1 / 0.01 / 10 against the
+            fourth session's 1 / 0.1 / 3 took two corrections from 4.0 / 6.2 / 6.0 mm to 3.1 / 4.3 / 5.1).
         prediction_material: simulator material preset of the physics prediction (the garment's
             material is not known when tracking: a prior; on the demo a wrong one, silk for the
             cotton dress, made the start 3-4x worse than constant velocity, docs/tracking.md).
