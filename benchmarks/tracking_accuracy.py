@@ -1,17 +1,22 @@
 """Tracking accuracy (PhysAvatar Sec. 3.1) on the demo capture, plus the paper's Fig. 10 ablation.
 
-    python benchmarks/tracking_accuracy.py [--capture /tmp/demo_capture] [--quick] [--frames N]
+    python benchmarks/tracking_accuracy.py [--capture /tmp/demo_capture] [--quick] [--frames N] [--work DIR]
 
 Builds the demo capture with ``physavatar synth`` if it is missing. Per frame: mean and 95th
 percentile vertex error (mm) against ground_truth/meshes.npz, garment and body separately, and
 the tracking seconds per frame. Checks: mean error <= 10 mm, no drift (last quarter's mean <=
 1.5x the first quarter's, frames after the first), and that dropping L_iso or L_normal makes the
 error worse (on fewer frames). Writes benchmarks/results/tracking_accuracy.json.
+
+``--work DIR`` keeps the three tracking runs in DIR/full, DIR/no_iso, DIR/no_normal and resumes
+them (the tracker skips finished frames of an identical config; their seconds come from its log),
+so an interrupted benchmark, or ablations started beside the main run, are not recomputed.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import datetime
 import json
 import os
@@ -44,12 +49,15 @@ def errors(pred: np.ndarray, gt: np.ndarray, labels: np.ndarray) -> dict:
     return out
 
 
-def run(capture: Path, cfg: TrackConfig, work: Path) -> tuple[dict, list[float]]:
-    shutil.rmtree(work, ignore_errors=True)
+def run(capture: Path, cfg: TrackConfig, work: Path, resume: bool = False) -> tuple[dict, list[float]]:
+    if not resume:
+        shutil.rmtree(work, ignore_errors=True)
     res = track(capture, work, cfg, progress=True)
     gt = np.load(capture / "ground_truth" / "meshes.npz")
     G = gt["vertices"][: len(res.frames)]
-    return errors(res.vertices, G, gt["labels"]), [res.seconds[f] for f in res.frames]
+    with open(work / "track_log.csv", newline="") as f:  # frames resumed from an earlier run
+        logged = {int(r["frame"]): float(r["seconds"]) for r in csv.DictReader(f)}
+    return errors(res.vertices, G, gt["labels"]), [res.seconds.get(f, logged[f]) for f in res.frames]
 
 
 def main(argv=None) -> int:
@@ -58,17 +66,19 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="12 frames, ablations on 6")
     ap.add_argument("--frames", type=int, default=None, help="frames of the main run (default: all; quick: 6)")
     ap.add_argument("--ablation-frames", type=int, default=None, help="frames of each ablation run (default 12; quick 4)")
+    ap.add_argument("--work", type=Path, default=None, help="keep and resume the tracking runs here (default: a temporary folder)")
     args = ap.parse_args(argv)
     if not (args.capture / "capture.json").is_file():
         subprocess.run([sys.executable, "-m", "physavatar", "synth", str(args.capture), "--preset", "demo"], check=True)
     cfg = TrackConfig()
     n = args.frames or (12 if args.quick else None)
     n_abl = args.ablation_frames or (6 if args.quick else 12)
-    tmp = Path(tempfile.mkdtemp(prefix="track_bench_"))
+    resume = args.work is not None
+    tmp = args.work if resume else Path(tempfile.mkdtemp(prefix="track_bench_"))
     load_start = os.getloadavg()
 
     main_cfg = replace(cfg, n_frames=n)
-    err, secs = run(args.capture, main_cfg, tmp / "full")
+    err, secs = run(args.capture, main_cfg, tmp / "full", resume)
     mean = np.asarray(err["all"]["mean_mm"])
     T = len(mean)
     q = max(1, (T - 1) // 4)
@@ -86,7 +96,7 @@ def main(argv=None) -> int:
         if name == "full" and n_abl <= T:
             e = float(mean[:n_abl].mean())
         else:
-            ea, _ = run(args.capture, replace(cfg, n_frames=n_abl, **change), tmp / name)
+            ea, _ = run(args.capture, replace(cfg, n_frames=n_abl, **change), tmp / name, resume)
             e = float(np.mean(ea["all"]["mean_mm"]))
         abl[name] = e
 
@@ -123,7 +133,8 @@ def main(argv=None) -> int:
         print(f"{k:24s} {c['value']:.3f} (target {c['target']}) {'PASS' if c['pass'] else 'FAIL'}")
     (HERE / "results").mkdir(exist_ok=True)
     (HERE / "results" / "tracking_accuracy.json").write_text(json.dumps(result, indent=2) + "\n")
-    shutil.rmtree(tmp, ignore_errors=True)
+    if not resume:
+        shutil.rmtree(tmp, ignore_errors=True)
     return 0
 
 

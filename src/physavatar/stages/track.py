@@ -139,6 +139,14 @@ class TrackConfig:
         flow_corrections: model-based flow corrections per frame under "flow" (0: prediction only).
         flow_iso: weight of the edge-length term of the flow lift, toward the template's lengths
             (the hem seen by one or two cameras is otherwise free to stretch along the rays).
+        flow_collision: penalty weight holding the free garment outside the body in every flow lift
+            (0: off); without it the chain pushed 10 % of the demo dress into the legs by frame 14.
+        flow_final_corrections: model-based corrections after the photometric fit (the fit's own
+            optimum at 128² lies 1-2 mm from a corrected start; demo, docs/tracking.md).
+        flow_correction_smoothness, flow_correction_prior, flow_correction_iso: the corrections'
+            lift: membrane smoothness, pull toward the estimate, edge-length term (measured on the
+            demo from saved prediction states of frames 16, 33, 46: 0.1 / 0.01 / 10 against the
+            fourth session's 1 / 0.1 / 3 took two corrections from 4.0 / 6.2 / 6.0 mm to 3.1 / 4.3 / 5.1).
         prediction_material: simulator material preset of the physics prediction (the garment's
             material is not known when tracking: a prior; on the demo a wrong one, silk for the
             cotton dress, made the start 3-4x worse than constant velocity, docs/tracking.md).
@@ -194,6 +202,11 @@ class TrackConfig:
     flow_smoothness: float = 3.0
     flow_corrections: int = 2
     flow_iso: float = 3.0
+    flow_collision: float = 1e3
+    flow_final_corrections: int = 1
+    flow_correction_smoothness: float = 0.1
+    flow_correction_prior: float = 0.01
+    flow_correction_iso: float = 10.0
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -796,9 +809,12 @@ def flow_start(cfg: TrackConfig, t, train: list[Camera], first_vertices: np.ndar
     from .flow import FlowPrediction, FlowStart
 
     garment_faces = t.faces[t.garment_mask[t.faces].all(1)]
+    body_faces = t.faces[(~t.garment_mask[t.faces]).all(1)]
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.flow_smoothness, rest=t.vertices,
-                          iso_weight=cfg.flow_iso)
-    return FlowStart(lift, train, first_vertices, first_grey, cfg.flow_corrections)
+                          iso_weight=cfg.flow_iso, collider_faces=body_faces, collision_weight=cfg.flow_collision)
+    return FlowStart(lift, train, first_vertices, first_grey, cfg.flow_corrections, cfg.flow_final_corrections,
+                     dict(smoothness=cfg.flow_correction_smoothness, prior_weight=cfg.flow_correction_prior,
+                          iso_weight=cfg.flow_correction_iso))
 
 
 def _grey_views(cap: Capture, frame: int, cameras: list[Camera]) -> list[np.ndarray]:
@@ -836,9 +852,11 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"level_iters needs one count >= 1 per level {cfg.levels}, got {cfg.level_iters}")
     if cfg.garment_prediction not in ("velocity", "physics", "flow"):
         raise PhysavatarError(None, f"garment_prediction must be 'velocity', 'physics' or 'flow', got {cfg.garment_prediction!r}")
-    if cfg.flow_corrections < 0 or cfg.flow_smoothness < 0 or cfg.flow_iso < 0:
-        raise PhysavatarError(None, "flow_corrections, flow_smoothness and flow_iso must be >= 0, got "
-                                    f"{cfg.flow_corrections}, {cfg.flow_smoothness}, {cfg.flow_iso}")
+    if min(cfg.flow_corrections, cfg.flow_final_corrections, cfg.flow_smoothness, cfg.flow_iso, cfg.flow_collision,
+           cfg.flow_correction_smoothness, cfg.flow_correction_prior, cfg.flow_correction_iso) < 0:
+        raise PhysavatarError(None, "the flow_* settings must be >= 0, got "
+                                    + ", ".join(f"{f.name}={getattr(cfg, f.name)}" for f in fields(cfg)
+                                                if f.name.startswith("flow_")))
     if cfg.garment_prediction == "physics":
         from ..sim import PRESETS
 
@@ -1010,6 +1028,8 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                     term.update(init)
             res = fit_frame(model, init, pyramid, cfg, first=(i == 0), iso=iso, normal=normal, solve=solve,
                             collision=collision, anchor=anchor)
+            if flow is not None and i > 0 and cfg.flow_final_corrections > 0:
+                res.vertices = flow.refine(res.vertices, grey[f]).astype(np.float32)
             dt = time.perf_counter() - t0
             extra = {}
             if i == 0:
