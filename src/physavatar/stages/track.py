@@ -139,11 +139,15 @@ class TrackConfig:
         flow_corrections: model-based flow corrections per frame under "flow" (0: prediction only).
         flow_iso: weight of the edge-length term of the flow lift, toward the template's lengths
             (the hem seen by one or two cameras is otherwise free to stretch along the rays).
+        flow_bend: weight of the bending term of the flow lift (distances across the garment's
+            interior edges toward the template's: its folds' dihedral angles), so a fold cannot
+            slide along itself where the edge lengths alone allow it (sixth session; demo, late
+            frames: docs/tracking.md).
         flow_collision: penalty weight holding the free garment outside the body in every flow lift
             (0: off); without it the chain pushed 10 % of the demo dress into the legs by frame 14.
         flow_final_corrections: model-based corrections after the photometric fit (the fit's own
             optimum at 128² lies 1-2 mm from a corrected start; demo, docs/tracking.md).
-        flow_correction_smoothness, flow_correction_prior, flow_correction_iso: the corrections'
+        flow_correction_smoothness, flow_correction_prior, flow_correction_iso, flow_correction_bend: the corrections'
             lift: membrane smoothness, pull toward the estimate, edge-length term (measured on the
             demo from saved prediction states of frames 16, 33, 46: 0.1 / 0.01 / 10 against the
             fourth session's 1 / 0.1 / 3 took two corrections from 4.0 / 6.2 / 6.0 mm to 3.1 / 4.3 / 5.1).
@@ -200,13 +204,15 @@ class TrackConfig:
     prediction_newton_iterations: int = 40
     level_iters: tuple[int, ...] | None = None
     flow_smoothness: float = 3.0
-    flow_corrections: int = 2
+    flow_corrections: int = 3
     flow_iso: float = 3.0
+    flow_bend: float = 10.0
     flow_collision: float = 1e3
     flow_final_corrections: int = 1
     flow_correction_smoothness: float = 0.1
     flow_correction_prior: float = 0.01
     flow_correction_iso: float = 10.0
+    flow_correction_bend: float = 5.0
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -811,10 +817,11 @@ def flow_start(cfg: TrackConfig, t, train: list[Camera], first_vertices: np.ndar
     garment_faces = t.faces[t.garment_mask[t.faces].all(1)]
     body_faces = t.faces[(~t.garment_mask[t.faces]).all(1)]
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.flow_smoothness, rest=t.vertices,
-                          iso_weight=cfg.flow_iso, collider_faces=body_faces, collision_weight=cfg.flow_collision)
+                          iso_weight=cfg.flow_iso, collider_faces=body_faces, collision_weight=cfg.flow_collision,
+                          bend_weight=cfg.flow_bend)
     return FlowStart(lift, train, first_vertices, first_grey, cfg.flow_corrections, cfg.flow_final_corrections,
                      dict(smoothness=cfg.flow_correction_smoothness, prior_weight=cfg.flow_correction_prior,
-                          iso_weight=cfg.flow_correction_iso))
+                          iso_weight=cfg.flow_correction_iso, bend_weight=cfg.flow_correction_bend))
 
 
 def _grey_views(cap: Capture, frame: int, cameras: list[Camera]) -> list[np.ndarray]:
@@ -852,8 +859,10 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"level_iters needs one count >= 1 per level {cfg.levels}, got {cfg.level_iters}")
     if cfg.garment_prediction not in ("velocity", "physics", "flow"):
         raise PhysavatarError(None, f"garment_prediction must be 'velocity', 'physics' or 'flow', got {cfg.garment_prediction!r}")
-    if min(cfg.flow_corrections, cfg.flow_final_corrections, cfg.flow_smoothness, cfg.flow_iso, cfg.flow_collision,
-           cfg.flow_correction_smoothness, cfg.flow_correction_prior, cfg.flow_correction_iso) < 0:
+    if min(cfg.flow_corrections, cfg.flow_final_corrections, cfg.flow_smoothness, cfg.flow_iso, cfg.flow_bend,
+           cfg.flow_collision,
+           cfg.flow_correction_smoothness, cfg.flow_correction_prior, cfg.flow_correction_iso,
+           cfg.flow_correction_bend) < 0:
         raise PhysavatarError(None, "the flow_* settings must be >= 0, got "
                                     + ", ".join(f"{f.name}={getattr(cfg, f.name)}" for f in fields(cfg)
                                                 if f.name.startswith("flow_")))
