@@ -3,9 +3,12 @@
 Scene: Gaussians on a human-sized cylinder (radius 0.3 m, height 1.7 m), flat and tangent like
 mesh-aligned Gaussians, seen from 2.5 m. Times 10k / 30k / 100k Gaussians at the demo resolution
 on 1 and 2 numba threads, and the dense PyTorch twin against the kernels on a small case (the
-baseline ratio). Writes benchmarks/results/splat_speed.json.
+baseline ratio); then the tracking stage's seconds per frame on a real capture (its first frame
+and the mean of the later ones; `--track-capture`, default the capture `make demo` builds,
+demo_out/capture, when it exists). Writes benchmarks/results/splat_speed.json.
 
     python benchmarks/splat_speed.py [--quick] [--width 512 --height 512] [--sizes 10000 30000 100000]
+        [--track-capture CAPTURE] [--track-frames 4]
 """
 
 from __future__ import annotations
@@ -109,6 +112,23 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def tracking_time(capture: Path, frames: int) -> dict:
+    """Seconds per frame of the tracking stage (default config) on the first `frames` frames."""
+    import shutil
+    import tempfile
+
+    from physavatar.stages.track import TrackConfig, track
+
+    work = Path(tempfile.mkdtemp(prefix="splat_speed_track_"))
+    try:
+        res = track(capture, work / "track", TrackConfig(n_frames=frames), progress=False)
+        secs = [float(res.seconds[f]) for f in res.frames]
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return {"measured": True, "capture": str(capture), "frames": len(secs), "seconds_per_frame": secs,
+            "first_frame_s": secs[0], "later_frames_mean_s": float(np.mean(secs[1:])) if len(secs) > 1 else None}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="256x256, 10k and 30k Gaussians, 1 repeat")
@@ -118,6 +138,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "splat_speed.json"))
+    ap.add_argument("--track-capture", type=Path, default=Path(__file__).resolve().parent.parent / "demo_out" / "capture",
+                    help="capture to time the tracking stage on (skipped when it does not exist)")
+    ap.add_argument("--track-frames", type=int, default=4, help="frames tracked for the per-frame time (0 = skip)")
     args = ap.parse_args()
     if args.quick:
         args.width, args.height, args.sizes, args.repeats = 256, 256, [10_000, 30_000], 1
@@ -183,6 +206,15 @@ def main() -> None:
         checks["parallel_efficiency"] = {"value": (one / two) / ms, "target": ">= 0.75",
                                          "unit": "rasterizer 2-thread ratio / trivially parallel loop's",
                                          "pass": (one / two) / ms >= 0.75}
+    if args.track_frames > 0 and (args.track_capture / "capture.json").is_file():
+        figures["tracking"] = tracking_time(args.track_capture, args.track_frames)
+        t = figures["tracking"]
+        print(f"tracking {args.track_capture} ({t['frames']} frames, default TrackConfig): first frame "
+              f"{t['first_frame_s']:.1f} s, later frames {t['later_frames_mean_s']:.1f} s each")
+    else:
+        figures["tracking"] = {"measured": False,
+                               "why": f"no capture at {args.track_capture} (run make demo or pass --track-capture)"}
+        print(f"tracking time per frame not measured: {figures['tracking']['why']}")
     result = {
         "benchmark": "splat_speed",
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
