@@ -63,6 +63,13 @@ class SimSettings:
             search direction depends on it, not the solution.
         warm_start: start Newton from the CCD-clipped inertial prediction xₜ + h vₜ when its
             energy is lower than at xₜ (else from xₜ).
+        follow_body: when the body's move to its pose at t+1 is cut by CCD (which would start
+            the kinematic-penalty phase), first try a start where every free cloth vertex within
+            this distance [m] of the body is carried rigidly with its closest body triangle
+            (fading to the inertial prediction at twice the distance). If that move is
+            collision-free, Newton starts there with the body at its pose and no penalty phase;
+            otherwise the penalty phase starts from its collision-free part. 0 = off. Changes
+            the path to the minimiser, not the minimiser.
         step_expansion: when a full Newton step was accepted but the residual fell by less
             than 30%, also try 2, 4, ... 64 times the step (CCD- and energy-checked;
             ClothSim._expand_step). Changes the path to the minimiser, not the minimiser.
@@ -102,6 +109,10 @@ class SimSettings:
     newton_window: int = 1
     bending_hessian: str = "gauss_newton"
     warm_start: bool = True
+    follow_body: float = 0.04
+    follow_segments: int = 4
+    follow_lift: float = 1.0
+    follow_retry: int = 3
     step_expansion: bool = True
     linear_rtol: float = 1e-6
     newton_forcing: float = 1e-3
@@ -124,6 +135,7 @@ class StepStats:
     line_search_iterations: int = 0
     step_expansions: int = 0  # line-search doublings beyond α = 1 (ClothSim._expand_step)
     penalty_iterations: int = 0
+    body_follows: int = 0  # times the cloth was carried with the body (SimSettings.follow_body)
     barrier_stiffness: float = 0.0
     min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]
     n_contacts: int = 0
@@ -158,6 +170,62 @@ class Linearization:
         if self._factorization is None and self.matrix is not None:
             self._factorization = Factorization(self.matrix)
         return self._factorization
+
+
+class SurfaceCarry:
+    """Points carried rigidly by their closest triangles of a deforming surface.
+
+    Each point p is written as q + δ, q = Σ w_k v_k the closest point on a triangle (barycentric
+    w) and δ in that triangle's orthonormal frame (first edge, in-plane normal, face normal);
+    ``at(V)`` rebuilds the points on the surface posed as V. Exact for a rigid motion of each
+    triangle. The closest triangle is searched among the k with the nearest centroids: not
+    always the global one (a long triangle's centroid can be far), which only matters where
+    the carry is a heuristic (the solver's start, checked by CCD).
+
+    Attributes: distance [m] (|δ|), face, bary, side (+1 where p lies on the normal's side).
+    """
+
+    def __init__(self, V, F, P, k=8):
+        from scipy.spatial import cKDTree
+
+        from ..garment.geometry import closest_point_triangle
+
+        V, P = np.asarray(V, dtype=np.float64), np.asarray(P, dtype=np.float64)
+        self.F = np.asarray(F, dtype=np.int64)
+        k = min(k, len(self.F))
+        _, cand = cKDTree(V[self.F].mean(1)).query(P, k=k)
+        cand = cand.reshape(len(P), k)
+        t = self.F[cand.ravel()]
+        Pr = np.repeat(P, k, axis=0)
+        w = closest_point_triangle(Pr, V[t[:, 0]], V[t[:, 1]], V[t[:, 2]])
+        q = np.einsum("nk,nkd->nd", w, V[t])
+        dist = np.linalg.norm(Pr - q, axis=1).reshape(len(P), k)
+        j = np.argmin(dist, axis=1)
+        r = np.arange(len(P))
+        self.distance = dist[r, j]
+        self.face = cand[r, j]
+        self.bary = w.reshape(len(P), k, 3)[r, j]
+        q = q.reshape(len(P), k, 3)[r, j]
+        R, _ = self._frames(V)
+        self.local = np.einsum("mij,mj->mi", R, P - q)
+        self.side = np.where(self.local[:, 2] < 0, -1.0, 1.0)
+
+    def _frames(self, V):
+        tri = V[self.F[self.face]]  # [m, 3 (vertex), 3]
+        e1 = tri[:, 1] - tri[:, 0]
+        nrm = np.cross(e1, tri[:, 2] - tri[:, 0])
+        e1 = e1 / np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-300)
+        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        return np.stack([e1, np.cross(nrm, e1), nrm], axis=1), tri  # rows: the frame's axes
+
+    def at(self, V, lift=None):
+        """The carried points on the surface posed as V [Nv, 3]; ``lift`` [m] (per point) is
+        added along the face normal."""
+        R, tri = self._frames(np.asarray(V, dtype=np.float64))
+        P = np.einsum("mk,mkd->md", self.bary, tri) + np.einsum("mij,mi->mj", R, self.local)
+        if lift is not None:
+            P = P + np.asarray(lift)[:, None] * R[:, 2]
+        return P
 
 
 class ClothSim:
@@ -319,7 +387,11 @@ class ClothSim:
         stats.time["ccd"] += time.perf_counter() - tc
         penalty = alpha < 1.0
         X = X_prev.copy() if penalty else X_goal.copy()
-        if not penalty and s.warm_start and np.any(v):
+        if penalty and s.follow_body > 0 and self.nb:
+            X, reached = self._follow_body(X_prev, X_goal, x + h * v, stats)
+            penalty = not reached
+            stats.body_follows += int(reached)
+        elif not penalty and s.warm_start and np.any(v):
             X = self._warm_start(X, x + h * v, stats)
 
         diag = self.scene.bbox_diagonal(X_goal)
@@ -449,7 +521,17 @@ class ClothSim:
                         # of line-search halvings). A stiffer penalty pushes the cloth on.
                         self.penalty.weight *= 10.0
                         continue
-                elif penalty_iters % 10 == 0:
+                elif s.follow_body > 0 and s.follow_retry > 0 and penalty_iters % s.follow_retry == 0:
+                    # try again to carry the cloth the rest of the way (the pairs that cut the
+                    # first try may have separated)
+                    X_f, reached = self._follow_body(X, X_goal, None, stats)
+                    self.scene.prepare_static(X_f if reached else X)
+                    if reached:
+                        X = X_f
+                        penalty = False
+                        stats.body_follows += 1
+                        self.friction.lag(X, self.barrier, X_prev)
+                if penalty and penalty_iters % 10 == 0:
                     self.penalty.weight *= 10.0  # AL-style escalation when targets stall
                     continue
             # The candidates of the last CCD segment (X → X + t·step, inflated by d̂) hold every
@@ -524,6 +606,59 @@ class ClothSim:
         self.scene.prepare_static(X_pred)
         e1 = sum(t.energy(X_pred) for t in terms)
         return X_pred if e1 < e0 else X
+
+    def _follow_body(self, X_from, X_goal, x_pred, stats):
+        """Carry the cloth along with the body from X_from to the body pose of X_goal
+        (SimSettings.follow_body). Returns (X, reached): X_goal's body with the carried cloth
+        when every leg of the move is collision-free (reached = True), else X_from moved by
+        the collision-free part of the move (reached = False).
+
+        Free cloth vertices within ``follow_body`` of the body move rigidly with their closest
+        body triangle (SurfaceCarry), fading to x_pred (the inertial prediction; None = stay)
+        at twice that distance. The body's vertices move on straight lines, a carried point on
+        a rotating triangle does not, and a straight cloth path dips towards the triangle by
+        ~θ²L/8 (tens of µm, more than the µm gaps of resting contacts): the cloth follows its
+        triangles through ``follow_segments`` intermediate body poses, each leg CCD-checked.
+        Cloth in an active contact (within d̂, from the barrier's collision set) is also lifted
+        off along the triangle normal, up to ``follow_lift`` × d̂ by the end: those gaps would
+        not survive the small non-rigid distortions of the carry; the free phase settles it
+        back in a few iterations.
+        """
+        s = self.settings
+        n = self.n
+        free = np.flatnonzero(self.inertia.unit_mass[:n] > 0)
+        b0, b1 = X_from[n:], X_goal[n:]
+        x = X_from[:n][free]
+        x_end = x if x_pred is None else x_pred[free]
+        tq = time.perf_counter()
+        carry = SurfaceCarry(b0, self._body_faces, x)
+        weight = np.clip(2.0 - carry.distance / s.follow_body, 0.0, 1.0)[:, None]
+        gap = np.full(n, np.inf)  # per cloth vertex: the closest active contact it is part of
+        self.scene.prepare_static(X_from)
+        coll = self.scene.collisions_at(X_from)
+        E, Fa = self.scene.mesh.edges, self.scene.mesh.faces
+        for group in (coll.vv_collisions, coll.ev_collisions, coll.ee_collisions, coll.fv_collisions):
+            for c in group:
+                ids = [i for i in c.vertex_ids(E, Fa) if i >= 0]
+                cloth = [i for i in ids if i < n]
+                gap[cloth] = np.minimum(gap[cloth], np.sqrt(max(c.compute_distance(X_from[ids].ravel()), 0.0)))
+        gap = np.minimum(gap[free], carry.distance)
+        lift = np.clip(s.follow_lift * s.dhat - gap, 0.0, None) * carry.side
+        stats.time["contact"] += time.perf_counter() - tq
+        X_seg = X_from
+        K = max(1, int(s.follow_segments))
+        for k in range(1, K + 1):
+            t = k / K
+            X_next = X_goal.copy() if k == K else X_from + t * (X_goal - X_from)
+            carried = carry.at(X_next[n:], lift=t * lift)
+            X_next[:n][free] = weight * carried + (1.0 - weight) * (x + t * (x_end - x))
+            tc = time.perf_counter()
+            alpha = self.scene.collision_free_stepsize(X_seg, X_next)
+            stats.time["ccd"] += time.perf_counter() - tc
+            if alpha < 1.0:
+                return X_seg + alpha * (X_next - X_seg), False
+            X_seg = X_next
+        return X_seg, True
 
     def _expand_step(self, X, step, X_new, E_new, stats, max_scale=64.0):
         """Try X + 2·step, 4·step, ... while the energy keeps decreasing; a move that CCD cuts is
