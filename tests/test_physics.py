@@ -76,6 +76,20 @@ def test_exact_gradient_matches_central_fd_with_contact():
     np.testing.assert_array_less(np.abs(exact - fd) / np.abs(fd), 0.05)
 
 
+def test_bdf2_exact_gradient_matches_central_fd():
+    """The same with the BDF2 integrator (sensitivities of the two-step base): no contact, and
+    frictionless contact (with friction the lagged normal forces' dependence on θ, which the
+    sensitivities leave out, grows over BDF2 steps: docs/physics.md)."""
+    bdf2 = dataclasses.replace(TIGHT, integrator="bdf2")
+    exact, fd, r = exact_and_central_fd(hanging_cloth(), preset("cotton"), bdf2, 1e-4)
+    assert r.converged and np.all(np.abs(fd) > 1e-4)
+    np.testing.assert_array_less(np.abs(exact - fd) / np.abs(fd), 1e-3)
+    exact, fd, r = exact_and_central_fd(cloth_on_sphere(), preset("cotton"), dataclasses.replace(bdf2, friction=0.0),
+                                        1e-3)
+    assert r.positions[-1, :, 2].min() < -0.05
+    np.testing.assert_array_less(np.abs(exact - fd) / np.abs(fd), 0.05)
+
+
 def test_scaling_all_parameters_leaves_loss_and_motion_unchanged():
     data = cloth_on_sphere(frames=6)
     m = preset("silk")

@@ -39,6 +39,13 @@ class SimSettings:
 
     Attributes:
         dt: time step [s] (0.04 = one step per frame at 25 fps).
+        integrator: "euler" (implicit Euler, the paper's and Codim-IPC's) or "bdf2" (the
+            two-step backward differentiation formula, IPC's other integrator: second order, so
+            far less numerical damping at the same step; docs/simulation.md "Time integration").
+            BDF2 is implicit Euler with step 2h/3 from x̂ = 4/3 xₜ − 1/3 xₜ₋₁ with velocity
+            4/3 vₜ − 1/3 vₜ₋₁; the previous state comes from ``step(history=...)`` or, when the
+            step continues the last one, from the sim itself; without one (the first step) the
+            step is implicit Euler (a second-order start: the velocity error is O(h²)).
         dhat: barrier activation distance d̂ [m].
         dmin: minimum separation kept between surfaces [m] (a thickness offset; 0 = none).
         friction: Coulomb coefficient μ (0 turns friction off).
@@ -95,6 +102,7 @@ class SimSettings:
     """
 
     dt: float = 0.04
+    integrator: str = "euler"
     dhat: float = 1e-3
     dmin: float = 0.0
     friction: float = 0.2
@@ -244,7 +252,12 @@ class ClothSim:
         if settings.newton_norm not in ("rms", "max") or settings.newton_window < 1:
             raise ValueError(f"newton_norm {settings.newton_norm!r} / newton_window {settings.newton_window}: "
                              "expected 'rms' or 'max' and a window >= 1")
+        if settings.integrator not in ("euler", "bdf2"):
+            raise ValueError(f"integrator {settings.integrator!r}: expected 'euler' or 'bdf2'")
         self.settings = settings
+        # the step of the implicit solve: h (implicit Euler, and BDF2's first step) or 2h/3 (BDF2)
+        self.h_implicit = settings.dt
+        self._last_step = None  # (x_new, v_new, x, v) of the last step: BDF2's history
         self.material = material
         self.topo = ClothTopology.build(rest_vertices, faces)
         self.n = len(self.topo.rest)
@@ -282,23 +295,23 @@ class ClothSim:
             self.topo, vertex_area=np.r_[self.topo.vertex_area, np.zeros(self.nb)],
             rest=np.vstack([self.topo.rest, body_vertices]),
         )
-        self.inertia = Inertia(topo, m.density, s.dt, free)
+        self.inertia = Inertia(topo, m.density, self.h_implicit, free)
         self.gravity = Gravity(topo, m.density, free, np.asarray(s.gravity, dtype=np.float64))
         self.membrane = Membrane(self.topo, m.stretch_stiffness, m.poisson, s.membrane_model)
         self.bending = Bending(self.topo, m.bend_stiffness)
         self.bending.projection = s.bending_hessian
         self.barrier = Barrier(self.scene, max(self.barrier_stiffness, 1e-300))
-        self.friction = Friction(self.scene, s.friction, s.friction_eps_v, s.dt)
+        self.friction = Friction(self.scene, s.friction, s.friction_eps_v, self.h_implicit)
         self.terms = [self.inertia, self.gravity, self.membrane, self.bending]
         if s.damping_mass > 0:
             self.mass_damping = MassDamping(self.inertia, s.damping_mass)
             self.terms.append(self.mass_damping)
         if s.damping_stiffness > 0:
-            self.stiffness_damping = StiffnessDamping(s.damping_stiffness, s.dt, [self.membrane, self.bending])
+            self.stiffness_damping = StiffnessDamping(s.damping_stiffness, self.h_implicit, [self.membrane, self.bending])
             self.terms.append(self.stiffness_damping)
         mean_mass = m.density * float(np.mean(self.topo.vertex_area))
         kinematic = np.r_[self.boundary, np.arange(self.n, n_total)]
-        self.penalty = KinematicPenalty(kinematic, s.kinematic_penalty * mean_mass / s.dt**2, n_total)
+        self.penalty = KinematicPenalty(kinematic, s.kinematic_penalty * mean_mass / self.h_implicit**2, n_total)
         # Two reduced systems: free cloth DOFs only, and everything (penalty mode).
         dof_free = np.full(3 * n_total, -1, dtype=np.int64)
         free_dofs = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
@@ -311,7 +324,7 @@ class ClothSim:
         self.assembler_all = Assembler(np.arange(3 * n_total), elements, tips)
         # ipctk's adaptive κ expects the mass of an energy ½‖x − x̃‖²_M + h²Ψ; ours is that
         # divided by h², so the matching "average mass" is m̄ / h² (κ then scales with ρ).
-        self._average_mass = mean_mass / s.dt**2
+        self._average_mass = mean_mass / self.h_implicit**2
         self._n_free = max(1, self.n - len(self.boundary))
 
     def reset(self):
@@ -337,8 +350,8 @@ class ClothSim:
     # -- one step ------------------------------------------------------------------------------
 
     def step(self, x, v, collider_vertices_t, collider_vertices_t1, collider_faces,
-             boundary_targets=None):
-        """Advance one implicit-Euler step of length settings.dt.
+             boundary_targets=None, history=None):
+        """Advance one implicit step of length settings.dt (implicit Euler or BDF2).
 
         Args:
             x: [N, 3] cloth positions at t (intersection-free with the body at t).
@@ -348,6 +361,9 @@ class ClothSim:
             collider_faces: [Fb, 3] body triangles (same for every step of a sim).
             boundary_targets: [K, 3] Dirichlet vertex positions at t+1 (order of the sorted
                 ``boundary_indices``); None keeps them where they are.
+            history: (x [N, 3], v [N, 3]) at t−1, used by BDF2 only. None: the last step's
+                input when this step continues it (x, v are its output), else none (an
+                implicit-Euler step). :meth:`step_base` gives the resulting x̂, v̂, ĥ.
 
         Returns:
             (x_new [N, 3], v_new [N, 3], StepStats).
@@ -371,13 +387,20 @@ class ClothSim:
                 or not np.array_equal(np.asarray(collider_faces).reshape(-1, 3), self._body_faces)):
             self._setup(bt, collider_faces)
         X_prev = np.vstack([x, bt])
+        # x̃ = x̂ + ĥ v̂: implicit Euler (x̂, v̂ = xₜ, vₜ; ĥ = h) or BDF2 (ĥ = 2h/3); friction and
+        # damping measure velocities as (x − x̂) / ĥ, the body's from the matching constant-
+        # velocity base (exact for a body moving at constant velocity)
+        base, vbase, hh = self.step_base(x, v, history)
+        self._set_implicit_step(hh)
+        X_base = np.vstack([base, bt + (1.0 - hh / h) * (bt1 - bt)])
+        x_pred = base + hh * vbase
         X_goal = X_prev.copy()
         X_goal[self.n:] = bt1
         if len(self.boundary) and boundary_targets is not None:
             X_goal[self.boundary] = np.asarray(boundary_targets, dtype=np.float64)
-        self.inertia.target = np.vstack([x + h * v, bt1])
+        self.inertia.target = np.vstack([x_pred, bt1])
         if s.damping_mass > 0:
-            self.mass_damping.previous = X_prev
+            self.mass_damping.previous = X_base
         if s.damping_stiffness > 0:
             self.stiffness_damping.begin_step(X_prev)
         self.penalty.target = X_goal[self.penalty.kinematic]
@@ -388,17 +411,17 @@ class ClothSim:
         penalty = alpha < 1.0
         X = X_prev.copy() if penalty else X_goal.copy()
         if penalty and s.follow_body > 0 and self.nb:
-            X, reached = self._follow_body(X_prev, X_goal, x + h * v, stats)
+            X, reached = self._follow_body(X_prev, X_goal, x_pred, stats)
             penalty = not reached
             stats.body_follows += int(reached)
-        elif not penalty and s.warm_start and np.any(v):
-            X = self._warm_start(X, x + h * v, stats)
+        elif not penalty and s.warm_start and np.any(x_pred != x):
+            X = self._warm_start(X, x_pred, stats)
 
         diag = self.scene.bbox_diagonal(X_goal)
         self.scene.prepare_static(X)
         self._update_stiffness_init(X)
         lag_left = max(1, s.friction_iterations)
-        self.friction.lag(X, self.barrier, X_prev)
+        self.friction.lag(X, self.barrier, X_base)
         lag_left -= 1
         prev_min_dist = self.scene.min_distance(X)
         prev_residual = np.inf
@@ -458,7 +481,7 @@ class ClothSim:
             below = not penalty and res_stop < s.newton_tol
             if s.newton_norm == "max" and below:  # the step is not taken: it is below tolerance
                 if lag_left > 0:
-                    self.friction.lag(X, self.barrier, X_prev)
+                    self.friction.lag(X, self.barrier, X_base)
                     lag_left -= 1
                     continue
                 stats.converged = True
@@ -512,7 +535,7 @@ class ClothSim:
                         X = X_snap
                         penalty = False
                         self.scene.prepare_static(X)
-                        self.friction.lag(X, self.barrier, X_prev)
+                        self.friction.lag(X, self.barrier, X_base)
                     else:
                         # The cloth sits closer to the body than the body's remaining gap:
                         # the barrier holds the body short of its target at this penalty
@@ -530,7 +553,7 @@ class ClothSim:
                         X = X_f
                         penalty = False
                         stats.body_follows += 1
-                        self.friction.lag(X, self.barrier, X_prev)
+                        self.friction.lag(X, self.barrier, X_base)
                 if penalty and penalty_iters % 10 == 0:
                     self.penalty.weight *= 10.0  # AL-style escalation when targets stall
                     continue
@@ -541,7 +564,7 @@ class ClothSim:
                 self.scene.prepare_static(X)
             if stop_after_step:
                 if lag_left > 0:
-                    self.friction.lag(X, self.barrier, X_prev)
+                    self.friction.lag(X, self.barrier, X_base)
                     lag_left -= 1
                     below_count = 0
                     continue
@@ -567,11 +590,39 @@ class ClothSim:
             self.linearization.hessian = self.assembler_free.assemble(hess)
         # restore the base penalty weight for the next step
         mean_mass = self.material.density * float(np.mean(self.topo.vertex_area))
-        self.penalty.weight = s.kinematic_penalty * mean_mass / s.dt**2
+        self.penalty.weight = s.kinematic_penalty * mean_mass / self.h_implicit**2
         x_new = X_final[: self.n].copy()
-        v_new = (x_new - x) / h
+        v_new = (x_new - base) / hh
+        self._last_step = (x_new, v_new, x.copy(), v.copy())
         stats.time["total"] = time.perf_counter() - t_start
         return x_new, v_new, stats
+
+    def step_base(self, x, v, history=None):
+        """(x̂, v̂, ĥ) of a step from (x, v): the inertial prediction is x̂ + ĥ v̂ and the step's
+        velocity (x⁺ − x̂) / ĥ. Implicit Euler: (x, v, h). BDF2: (4/3 x − 1/3 xₚ,
+        4/3 v − 1/3 vₚ, 2h/3) with (xₚ, vₚ) = ``history``, or the last step's input when (x, v)
+        is its output; with neither, an implicit-Euler step (x, v, h)."""
+        h = self.settings.dt
+        if self.settings.integrator != "bdf2":
+            return x, v, h
+        if history is None:
+            last = self._last_step
+            if last is None or not (np.array_equal(last[0], x) and np.array_equal(last[1], v)):
+                return x, v, h
+            history = last[2:]
+        xp, vp = (np.asarray(a, dtype=np.float64) for a in history)
+        return (4.0 * x - xp) / 3.0, (4.0 * v - vp) / 3.0, 2.0 * h / 3.0
+
+    def _set_implicit_step(self, hh):
+        """Make every h-dependent term use the implicit step ĥ (h, or BDF2's 2h/3)."""
+        self.h_implicit = hh
+        self.inertia.dt = hh  # mass damping reads it from here
+        self.friction.dt = hh
+        if self.settings.damping_stiffness > 0:
+            self.stiffness_damping.dt = hh
+        mean_mass = self.material.density * float(np.mean(self.topo.vertex_area))
+        self.penalty.weight = self.settings.kinematic_penalty * mean_mass / hh**2
+        self._average_mass = mean_mass / hh**2
 
     def _residuals(self, step, h):
         """(‖Δx‖∞ / h, the stopping norm of SimSettings.newton_norm) over the cloth vertices.

@@ -309,7 +309,10 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
     adaptive κ is ∝ mass) and friction (∝ κ) scale with ρ. xₜ, vₜ enter through x̃ = xₜ + h vₜ
     (inertia), xₜ through friction's velocity (x − xₜ)/h and mass damping. Dirichlet vertices
     and the body are prescribed: zero sensitivity. Friction's lagged normal forces and tangent
-    bases are held fixed (as the solver does within a step).
+    bases are held fixed (as the solver does within a step). With BDF2 (settings.integrator)
+    the same holds with (xₜ, vₜ, h) replaced by the step's base (x̂, v̂, ĥ = 2h/3),
+    x̂ = 4/3 xₜ − 1/3 xₜ₋₁ and v̂ likewise: the sensitivities of the base are those of the
+    last two states (ClothSim.step_base).
     """
     t0 = time.perf_counter()
     settings = settings or SimSettings()
@@ -331,6 +334,8 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
     P = len(names)
     S = np.zeros((3 * N, P))  # ∂x_t/∂log θ (flat, vertex-major)
     V = np.zeros((3 * N, P))
+    bdf2 = settings.integrator == "bdf2"
+    history = None  # (x, v, S, V) at t−1 (BDF2)
     jac = np.zeros((T, N, 3, P)) if want else None
     bodies = data.collider
     faces_b = data.collider_faces
@@ -344,13 +349,21 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
                 b0 = (1 - w0) * bodies[f - 1] + w0 * bodies[f]
                 b1 = (1 - w1) * bodies[f - 1] + w1 * bodies[f]
             target = (1 - w1) * tg[f - 1] + w1 * tg[f] if len(data.boundary) else None
-            x, v, st = sim.step(x, v, b0, b1, faces_b, target)
+            if bdf2 and history is not None:  # the base of the step and its sensitivities
+                xp, vp, Sp, Vp = history
+                SB, VB = (4.0 * S - Sp) / 3.0, (4.0 * V - Vp) / 3.0
+                history = (x, v, S, V)
+                x, v, st = sim.step(x, v, b0, b1, faces_b, target, history=(xp, vp))
+            else:  # implicit Euler (BDF2's first step too)
+                history = (x, v, S, V)
+                SB, VB = S, V
+                x, v, st = sim.step(x, v, b0, b1, faces_b, target)
             iters += st.newton_iterations
             converged &= st.converged
             if not np.all(np.isfinite(x)):
                 raise FloatingPointError("simulation produced non-finite positions")
             if want:
-                S, V = _step_sensitivity(sim, x, b1, S, V, names, h)
+                S, V = _step_sensitivity(sim, x, b1, SB, VB, names, sim.h_implicit)
         out[f] = x
         if want:
             jac[f] = S.reshape(N, 3, P)
@@ -358,7 +371,8 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
 
 
 def _step_sensitivity(sim: ClothSim, x_new, body_new, S, V, names, h):
-    """Propagate (S, V) = ∂(x, v)/∂log θ through the step ``sim`` just took (see :func:`rollout`)."""
+    """Propagate (S, V) = ∂(x̂, v̂)/∂log θ of the step's base (xₜ, vₜ for implicit Euler) through
+    the step ``sim`` just took, ``h`` its implicit step ĥ (see :func:`rollout`)."""
     N = sim.n
     X = x_new if body_new is None else np.vstack([x_new, body_new])
     lin = sim.linearization
