@@ -183,6 +183,12 @@ def test_load_capture_and_cli_writes_material_json(tmp_path):
     assert log[0].startswith("iteration,loss,rms_mm,stretch_stiffness,bend_stiffness")
     assert len(log) == 1 + len(json.loads(json.dumps(mj))["fitted_parameters"]) * 0 + mj["iterations"] + 1
     assert (tmp_path / "fit" / "fit.png").stat().st_size > 1000
+    # the fitting model is selectable and recorded with the result
+    r = CliRunner().invoke(app, ["fit-physics", str(tmp_path / "cap"), "--out", str(tmp_path / "fit2"),
+                                 "--iterations", "1", "--window", "3", "--integrator", "bdf2", "--substeps", "2"])
+    assert r.exit_code == 0, r.output
+    settings = json.loads((tmp_path / "fit2" / "material.json").read_text())["settings"]
+    assert settings["integrator"] == "bdf2" and settings["substeps"] == 2 and settings["dt"] == pytest.approx(0.02)
 
 
 def test_write_outputs_roundtrip(tmp_path):
@@ -213,6 +219,8 @@ def test_cli_bad_input_exits_2(tmp_path):
     assert r.exit_code == 2 and "meshes.npz" in r.output
     r = runner.invoke(app, ["fit-physics", str(tmp_path / "bad"), "--out", str(tmp_path / "o"), "--gradient", "adam"])
     assert r.exit_code == 2 and "--gradient" in r.output
+    r = runner.invoke(app, ["fit-physics", str(tmp_path / "bad"), "--out", str(tmp_path / "o"), "--integrator", "rk4"])
+    assert r.exit_code == 2 and "--integrator" in r.output
 
 
 # -- the coarse proxy (stages/proxy.py) --------------------------------------------------------

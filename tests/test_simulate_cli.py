@@ -61,3 +61,6 @@ def test_bad_inputs_exit_2(tmp_path):
     assert r.exit_code == 2 and "rubber" in r.output
     r = runner.invoke(app, ["simulate", "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "say what to simulate" in r.output
+    r = runner.invoke(app, ["simulate", "--garment", "skirt", "--motion", "walk", "--integrator", "rk4",
+                            "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "--integrator" in r.output and "Traceback" not in r.output

@@ -243,6 +243,8 @@ def simulate(
     material: str = typer.Option("cotton", help="silk, cotton, denim, or a material .json"),
     fps: float = typer.Option(25.0, help="frames per second (one implicit step per frame by default)"),
     substeps: int = typer.Option(1, help="implicit steps per frame"),
+    integrator: str = typer.Option("euler", help="euler (implicit Euler, the paper's) or bdf2 (second order; "
+                                                 "docs/simulation.md)"),
     duration: float = typer.Option(2.0, help="seconds (built-in motions)"),
     edge_length: float = typer.Option(0.02, help="garment edge length [m] (with --garment KIND)"),
     preview: bool = typer.Option(True, help="write preview.mp4"),
@@ -267,6 +269,11 @@ def simulate(
         _bad_option("--material", f"{material!r} is not one of {', '.join(PRESETS)} or a .json file")
     if fps <= 0 or substeps < 1:
         _bad_option("--fps/--substeps", "must be positive")
+    if integrator not in ("euler", "bdf2"):
+        _bad_option("--integrator", f"{integrator!r} is not euler or bdf2")
+    from .sim import SimSettings
+
+    sim_settings = SimSettings(integrator=integrator)
     if capture is not None:
         from .body import BodyModel
         from .capture import load_capture
@@ -304,7 +311,7 @@ def simulate(
     if len(part.boundary) == 0:
         _bad_option("--garment", "the garment has no boundary vertices to attach to the body")
     t0 = time.time()
-    X = simulate_on_body(part, bodies, body_faces, mat, fps, substeps=substeps, progress=True)
+    X = simulate_on_body(part, bodies, body_faces, mat, fps, settings=sim_settings, substeps=substeps, progress=True)
     secs = time.time() - t0
     out.mkdir(parents=True, exist_ok=True)
     save_npz_atomic(out / "garment_sequence.npz", vertices=X.astype(np.float32), faces=part.faces,
@@ -314,7 +321,7 @@ def simulate(
     mat.save(out / "material.json")
     write_json_atomic(out / "config.json", {"command": "simulate", "capture": str(capture) if capture else None,
                                             "garment": garment, "motion": motion, "collider": str(collider) if collider else None,
-                                            "material": mat.to_dict(), "fps": fps, "substeps": substeps,
+                                            "material": mat.to_dict(), "fps": fps, "substeps": substeps, "integrator": integrator,
                                             "frames": int(len(X)), "seconds": round(secs, 1)})
     if preview:
         from .body.preview import render_frames, write_video
@@ -598,6 +605,10 @@ def fit_physics(
     seed: int = typer.Option(0, help="seed of --noise-mm"),
     friction: float = typer.Option(0.2, help="cloth-body friction coefficient of the simulator (0 = off)"),
     newton_tol: float = typer.Option(1e-4, "--newton-tol", help="Newton tolerance of the fitting simulations [m/s]"),
+    substeps: int = typer.Option(1, help="implicit steps per frame of the fitting simulations (more: less "
+                                         "time-discretisation error, proportionally slower)"),
+    integrator: str = typer.Option("euler", help="time integrator of the fitting simulations: euler or bdf2 "
+                                                 "(docs/simulation.md; bdf2's gradients are approximate with friction)"),
     max_vertices: int = typer.Option(1200, "--max-vertices",
                                      help="fit on a coarse proxy of at most this many vertices when the garment has "
                                           "more (0 = always the full garment; docs/physics.md)"),
@@ -630,6 +641,10 @@ def fit_physics(
         _bad_option("--friction", "must be >= 0")
     if not newton_tol > 0:
         _bad_option("--newton-tol", "must be positive")
+    if substeps < 1:
+        _bad_option("--substeps", "must be at least 1")
+    if integrator not in ("euler", "bdf2"):
+        _bad_option("--integrator", f"{integrator!r} is not euler or bdf2")
     if max_vertices != 0 and max_vertices < 20:
         _bad_option("--max-vertices", "must be 0 (no proxy) or at least 20")
     if shape_weight is not None and not shape_weight >= 0:
@@ -671,8 +686,8 @@ def fit_physics(
             bar.console.print(f"{line}  {row['wall_time_s']:.0f} s", highlight=False)
 
         result = fit_material(data, initial, gradient, iterations, fit_density,
-                              fit_settings(friction=friction, newton_tol=newton_tol),
-                              workers=workers, callback=report,
+                              fit_settings(friction=friction, newton_tol=newton_tol, integrator=integrator),
+                              workers=workers, substeps=substeps, callback=report,
                               shape_weight=shape_weight)
     if proxy is not None:
         result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),

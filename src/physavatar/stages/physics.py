@@ -731,7 +731,7 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
     intervals, stds = ratio_intervals(fd_jac, resid, list(names), material) if fd_jac is not None else ({}, {})
     return FitResult(material, initial, float(loss), rms_mm(loss, data), iterations, sims,
                      time.perf_counter() - t_start, "fd", names, history, intervals, stds, data.frames,
-                     _settings_dict(settings, substeps), shape_weight=shape_weight, objective=float(objective))
+                     _settings_dict(settings, substeps, data.fps), shape_weight=shape_weight, objective=float(objective))
 
 
 def _history_row(it, loss, data, names, theta, t_start, sims, objective=None):
@@ -744,9 +744,10 @@ def _history_row(it, loss, data, names, theta, t_start, sims, objective=None):
     return row
 
 
-def _settings_dict(settings, substeps):
+def _settings_dict(settings, substeps, fps):
     d = dataclasses.asdict(settings)
     d["substeps"] = substeps
+    d["dt"] = 1.0 / (fps * substeps)  # the step the simulations took (rollout sets it from the data's fps)
     d["gravity"] = list(d["gravity"])
     return d
 
@@ -870,7 +871,7 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
     intervals, stds = ratio_intervals(J, res, list(names), material)
     return FitResult(material, initial, float(lsim), rms_mm(lsim, data), len(history) - 1, sims,
                      time.perf_counter() - t_start, "exact", names, history, intervals, stds, data.frames,
-                     _settings_dict(settings, substeps), shape_weight=shape_weight, objective=float(loss))
+                     _settings_dict(settings, substeps, data.fps), shape_weight=shape_weight, objective=float(loss))
 
 
 def fit_material(data: PhysicsData, initial: Material | None = None, gradient: str = "exact",
