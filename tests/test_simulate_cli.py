@@ -1,5 +1,7 @@
 """`physavatar simulate`: the three input modes, no intersections, clear errors."""
 
+import json
+
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -26,6 +28,8 @@ def test_garment_on_builtin_motion(skirt_run):
     assert X.shape[0] == 11 and np.isfinite(X).all()
     for t in range(X.shape[0]):
         assert count_intersections(X[t], z["faces"], B[t], z["body_faces"]) == 0
+    # the command checked every frame itself and says so
+    assert json.loads((skirt_run / "config.json").read_text())["frames_with_intersection_or_nan"] == []
     # boundary (waistband) vertices stay on the body: they move with the twisting hips
     b = z["boundary"]
     assert np.linalg.norm(X[-1, b] - X[0, b], axis=1).max() > 0.01

@@ -313,6 +313,17 @@ def simulate(
     t0 = time.time()
     X = simulate_on_body(part, bodies, body_faces, mat, fps, settings=sim_settings, substeps=substeps, progress=True)
     secs = time.time() - t0
+    # every frame checked: finite and free of garment-body intersections (ipctk's exact test)
+    from .sim.contact import ContactScene
+
+    scene = ContactScene(part.vertices, part.faces, bodies[0], body_faces, sim_settings.dhat)
+    bad = [f for f in range(len(X))
+           if not np.all(np.isfinite(X[f])) or scene.has_intersections(np.vstack([X[f], bodies[f]]))]
+    if bad:
+        console.print(f"[yellow]warning:[/] {len(bad)} of {len(X)} frames intersect the body or are not finite: "
+                      f"{bad[:20]}{' ...' if len(bad) > 20 else ''}")
+    else:
+        console.print(f"checked {len(X)} frames: no garment-body intersection, no NaN")
     out.mkdir(parents=True, exist_ok=True)
     save_npz_atomic(out / "garment_sequence.npz", vertices=X.astype(np.float32), faces=part.faces,
                     boundary=part.boundary, body_vertices=bodies.astype(np.float32), body_faces=body_faces, fps=fps)
@@ -322,6 +333,7 @@ def simulate(
     write_json_atomic(out / "config.json", {"command": "simulate", "capture": str(capture) if capture else None,
                                             "garment": garment, "motion": motion, "collider": str(collider) if collider else None,
                                             "material": mat.to_dict(), "fps": fps, "substeps": substeps, "integrator": integrator,
+                                            "frames_with_intersection_or_nan": bad,
                                             "frames": int(len(X)), "seconds": round(secs, 1)})
     if preview:
         from .body.preview import render_frames, write_video
