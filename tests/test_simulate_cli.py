@@ -68,3 +68,38 @@ def test_bad_inputs_exit_2(tmp_path):
     r = runner.invoke(app, ["simulate", "--garment", "skirt", "--motion", "walk", "--integrator", "rk4",
                             "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "--integrator" in r.output and "Traceback" not in r.output
+
+
+def test_motion_starting_away_from_rest_is_reached_by_a_warmup(tmp_path):
+    """A clip that starts mid-motion (as a BVH clip does) would put the body through the garment
+    made for the rest pose: the command eases into it first and writes only the clip's frames."""
+    from physavatar.body import BodyModel, Motion, builtin_motion
+
+    walk = builtin_motion("twist", BodyModel(topology="collider").bone_names, 25.0, 1.0)
+    k = 12  # mid-twist: far from the rest pose
+    assert np.abs(walk.rotations[k]).max() > 0.2
+    Motion("clip", 25.0, walk.bone_names, walk.rotations[k:k + 4], walk.root_translation[k:k + 4]).save(tmp_path / "clip.npz")
+    r = runner.invoke(app, ["simulate", "--garment", "skirt", "--motion", str(tmp_path / "clip.npz"), "--warmup", "0.2",
+                            "--edge-length", "0.05", "--out", str(tmp_path / "o"), "--no-preview"])
+    assert r.exit_code == 0, r.output
+    cfg = json.loads((tmp_path / "o" / "config.json").read_text())
+    assert cfg["warmup_frames"] == 5 and cfg["frames"] == 4 and cfg["frames_with_intersection_or_nan"] == []
+    z = np.load(tmp_path / "o" / "garment_sequence.npz")
+    assert z["vertices"].shape[0] == 4
+    for t in range(4):
+        assert count_intersections(z["vertices"][t], z["faces"], z["body_vertices"][t], z["body_faces"]) == 0
+
+
+def test_garment_crossing_the_first_collider_frame_is_refused(skirt_run, tmp_path):
+    z = np.load(skirt_run / "garment_sequence.npz")
+    for t in range(2):
+        write_ply(tmp_path / "body" / f"f{t:03d}.ply", PlyMesh(z["body_vertices"][t], z["body_faces"]))
+    flag = np.zeros(len(z["vertices"][0]), np.uint8)
+    flag[z["boundary"]] = 1
+    V = z["vertices"][0].astype(float)
+    V[:, :2] *= 0.5  # shrunk through the hips
+    write_ply(tmp_path / "garment.ply", PlyMesh(V, z["faces"], {"boundary": flag}))
+    r = runner.invoke(app, ["simulate", "--collider", str(tmp_path / "body"), "--garment", str(tmp_path / "garment.ply"),
+                            "--out", str(tmp_path / "o"), "--no-preview"])
+    assert r.exit_code == 2 and "crosses the body's first frame" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "o" / "garment_sequence.npz").exists()

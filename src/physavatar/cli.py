@@ -246,6 +246,8 @@ def simulate(
     integrator: str = typer.Option("euler", help="euler (implicit Euler, the paper's) or bdf2 (second order; "
                                                  "docs/simulation.md)"),
     duration: float = typer.Option(2.0, help="seconds (built-in motions)"),
+    warmup: float = typer.Option(1.0, help="with --motion: seconds of transition from the garment's rest pose to the "
+                                           "motion's first pose (simulated, not written)"),
     edge_length: float = typer.Option(0.02, help="garment edge length [m] (with --garment KIND)"),
     preview: bool = typer.Option(True, help="write preview.mp4"),
 ):
@@ -274,6 +276,7 @@ def simulate(
     from .sim import SimSettings
 
     sim_settings = SimSettings(integrator=integrator)
+    n_warm = 0  # leading frames simulated but not written (--motion's transition)
     if capture is not None:
         from .body import BodyModel
         from .capture import load_capture
@@ -304,15 +307,35 @@ def simulate(
         body = BodyModel(topology="collider")
         g = make_garment(garment, body, edge_length=edge_length)
         part = GarmentPart(np.arange(len(g.vertices)), g.vertices, g.faces, np.flatnonzero(g.boundary))
-        bodies = _load_motion(motion, fps, duration).pose(body).vertices
+        from .stages.animate import transition
+
+        mot = _load_motion(motion, fps, duration)
+        rots, trs = mot.rotations, mot.root_translation
+        # the garment is made for the rest pose: a motion that starts elsewhere (a BVH clip) is
+        # reached by a transition first, as `animate` does, so the garment never starts inside the body
+        if warmup < 0:
+            _bad_option("--warmup", "must be >= 0")
+        if np.abs(rots[0]).max() > 1e-6 or np.abs(trs[0]).max() > 1e-6:
+            n_warm = max(2, int(round(warmup * fps)))
+            wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
+            rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
+        bodies = body.pose(rots, trs).vertices
         body_faces = body.faces
     else:
         _bad_option("--capture/--garment/--collider", "say what to simulate: --capture C, or --garment KIND --motion M, or --collider SEQ --garment FILE")
     if len(part.boundary) == 0:
         _bad_option("--garment", "the garment has no boundary vertices to attach to the body")
+    from .garment.geometry import count_intersections
+
+    n_cross = count_intersections(part.vertices, part.faces, bodies[0], body_faces)
+    if n_cross:
+        raise PhysavatarError(collider or garment or capture,
+                              f"the garment crosses the body's first frame ({n_cross} intersecting triangle pairs): "
+                              "it must start outside the body, in the pose it was made for")
     t0 = time.time()
     X = simulate_on_body(part, bodies, body_faces, mat, fps, settings=sim_settings, substeps=substeps, progress=True)
     secs = time.time() - t0
+    X, bodies = X[n_warm:], bodies[n_warm:]
     # every frame checked: finite and free of garment-body intersections (ipctk's exact test)
     from .sim.contact import ContactScene
 
@@ -333,7 +356,7 @@ def simulate(
     write_json_atomic(out / "config.json", {"command": "simulate", "capture": str(capture) if capture else None,
                                             "garment": garment, "motion": motion, "collider": str(collider) if collider else None,
                                             "material": mat.to_dict(), "fps": fps, "substeps": substeps, "integrator": integrator,
-                                            "frames_with_intersection_or_nan": bad,
+                                            "frames_with_intersection_or_nan": bad, "warmup_frames": n_warm,
                                             "frames": int(len(X)), "seconds": round(secs, 1)})
     if preview:
         from .body.preview import render_frames, write_video
