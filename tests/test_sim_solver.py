@@ -295,3 +295,26 @@ def test_unknown_integrator_is_refused():
     V, F = grid(3, 0.1)
     with pytest.raises(ValueError, match="integrator"):
         ClothSim(V, F, Material(), SimSettings(integrator="rk4"))
+
+
+def test_body_that_leaves_no_room_lags_instead_of_crossing_the_cloth():
+    """Two plates close through a cloth caught between them (they would pass through each
+    other): no intersection-free state has the plates at their poses. The step gives up after
+    max_penalty_iterations, keeps the intersection-free state it reached, and the next step goes
+    on from where the plates got to (not from the poses it is given)."""
+    V, F = grid(5, 0.1)
+    P, PF = grid(3, 0.2)
+    plates_t = np.vstack([P + [0, 0, 0.01], P + [0, 0, -0.01]])
+    plates_t1 = np.vstack([P + [0, 0, -0.01], P + [0, 0, 0.01]])  # swapped: they cross
+    Fb = np.vstack([PF, PF + len(P)])
+    sim = ClothSim(V, F, Material(), SimSettings(max_penalty_iterations=8, friction=0.0), [])
+    x, v, st = sim.step(V, np.zeros_like(V), plates_t, plates_t1, Fb)
+    assert not st.converged and st.penalty_iterations == 8 and st.body_gap > 1e-3
+    reached = sim._body_lag[1]
+    scene = sim.scene
+    assert not scene.has_intersections(np.vstack([x, reached]))
+    assert scene.has_intersections(np.vstack([x, plates_t1])) or np.abs(reached - plates_t1).max() > 1e-3
+    # the next step is given the poses the last one was meant to reach; it starts from the reached ones
+    x2, v2, st2 = sim.step(x, v, plates_t1, plates_t1, Fb)
+    assert st2.body_lagged and np.all(np.isfinite(x2))
+    assert not scene.has_intersections(np.vstack([x2, sim._body_lag[1] if sim._body_lag else plates_t1]))

@@ -89,6 +89,12 @@ class SimSettings:
             stopping test is always refined to 1e-10, so only the path changes. Penalty-mode
             systems keep 1e-10 (their path decides where friction is re-lagged).
         max_newton_iterations: give up (and report converged=False) after this many.
+        max_penalty_iterations: give up the kinematic-penalty phase after this many iterations
+            (the body could not reach its pose: cloth pinched between body parts that leave it
+            no room). The step keeps the intersection-free state it reached, and the body
+            *lags*: the next step starts from where the body got to, not from the pose it was
+            given (``StepStats.body_gap`` says how far short it stopped), so the state stays
+            intersection-free and the body catches up once the pinch opens.
         barrier_stiffness_scale: ipctk min_barrier_stiffness_scale of the adaptive κ.
         kinematic_penalty: penalty weight of the prescribed vertices, × mean mass / h².
         keep_linearization: also assemble the exact (unprojected) Hessian at the solution and
@@ -126,6 +132,7 @@ class SimSettings:
     newton_forcing: float = 1e-3
     max_cg_iterations: int = 100
     max_newton_iterations: int = 100
+    max_penalty_iterations: int = 40
     barrier_stiffness_scale: float = 1e11
     kinematic_penalty: float = 1e6
     keep_linearization: bool = False
@@ -144,6 +151,8 @@ class StepStats:
     step_expansions: int = 0  # line-search doublings beyond α = 1 (ClothSim._expand_step)
     penalty_iterations: int = 0
     body_follows: int = 0  # times the cloth was carried with the body (SimSettings.follow_body)
+    body_gap: float = 0.0  # [m] how far the body (or a Dirichlet vertex) stopped short of its pose
+    body_lagged: bool = False  # the step started from where the last step's body got to
     barrier_stiffness: float = 0.0
     min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]
     n_contacts: int = 0
@@ -258,6 +267,7 @@ class ClothSim:
         # the step of the implicit solve: h (implicit Euler, and BDF2's first step) or 2h/3 (BDF2)
         self.h_implicit = settings.dt
         self._last_step = None  # (x_new, v_new, x, v) of the last step: BDF2's history
+        self._body_lag = None  # (pose the last step was given, pose it reached) when it fell short
         self.material = material
         self.topo = ClothTopology.build(rest_vertices, faces)
         self.n = len(self.topo.rest)
@@ -386,6 +396,10 @@ class ClothSim:
         if (self.scene is None or len(bt) != self.nb
                 or not np.array_equal(np.asarray(collider_faces).reshape(-1, 3), self._body_faces)):
             self._setup(bt, collider_faces)
+        lag, self._body_lag = self._body_lag, None
+        if lag is not None and np.array_equal(lag[0], bt):
+            bt = lag[1]  # the last step's body stopped short of this pose: go on from where it is
+            stats.body_lagged = True
         X_prev = np.vstack([x, bt])
         # x̃ = x̂ + ĥ v̂: implicit Euler (x̂, v̂ = xₜ, vₜ; ĥ = h) or BDF2 (ĥ = 2h/3); friction and
         # damping measure velocities as (x − x̂) / ĥ, the body's from the matching constant-
@@ -543,6 +557,8 @@ class ClothSim:
                         # pinched coarse proxy looped here to the iteration limit, thousands
                         # of line-search halvings). A stiffer penalty pushes the cloth on.
                         self.penalty.weight *= 10.0
+                        if penalty_iters >= s.max_penalty_iterations:
+                            break
                         continue
                 elif s.follow_body > 0 and s.follow_retry > 0 and penalty_iters % s.follow_retry == 0:
                     # try again to carry the cloth the rest of the way (the pairs that cut the
@@ -554,6 +570,8 @@ class ClothSim:
                         penalty = False
                         stats.body_follows += 1
                         self.friction.lag(X, self.barrier, X_base)
+                if penalty and penalty_iters >= s.max_penalty_iterations:
+                    break  # no room for the cloth at the body's pose: keep what was reached
                 if penalty and penalty_iters % 10 == 0:
                     self.penalty.weight *= 10.0  # AL-style escalation when targets stall
                     continue
@@ -573,8 +591,10 @@ class ClothSim:
         stats.penalty_iterations = penalty_iters
         stats.factorizations = sum(ls.factorizations for ls in solvers) - n_fact0
         stats.cg_iterations = sum(ls.cg_iterations for ls in solvers) - n_cg0
-        if penalty:  # never reached the targets: report, keep the best state
+        if penalty:  # never reached the targets: report, keep the best state, let the body lag
             stats.converged = False
+            stats.body_gap = float(np.max(np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)))
+            self._body_lag = (bt1.copy(), X[self.n:].copy())
         X_final = X
         stats.barrier_stiffness = self.barrier_stiffness
         self.scene.prepare_static(X_final)
