@@ -146,6 +146,31 @@ def _load_motion(spec: str, fps: float, duration: float, mapping: Optional[Path]
     raise PhysavatarError(p, "motion files must be .bvh or .npz")
 
 
+def _arm_clearance(m, spec: str, body, clearance: float):
+    """Motion capture (.bvh) with the arms raised where the hands would pinch the garment against
+    the trunk (body.motion.arm_clearance); other motions unchanged. Says what it changed."""
+    import numpy as np
+
+    if clearance < 0:
+        _bad_option("--arm-clearance", "must be >= 0")
+    if clearance == 0 or not str(spec).lower().endswith(".bvh"):
+        return m, None
+    from .body.motion import arm_clearance
+
+    m2, info = arm_clearance(m, body, clearance)
+    summary = {side: {"frames_raised": int(np.sum(d["angle_rad"] > 1e-3)),
+                      "max_angle_deg": round(float(np.degrees(d["angle_rad"].max())), 1),
+                      "min_distance_before_m": round(float(d["distance_before_m"].min()), 4),
+                      "min_distance_after_m": round(float(d["distance_after_m"].min()), 4)} for side, d in info.items()}
+    raised = {k: v for k, v in summary.items() if v["frames_raised"]}
+    if raised:
+        console.print("arm clearance: " + "; ".join(
+            f"{side} arm raised in {v['frames_raised']} frames (up to {v['max_angle_deg']} deg), hand-to-trunk "
+            f"{1000 * v['min_distance_before_m']:.0f} -> {1000 * v['min_distance_after_m']:.0f} mm" for side, v in raised.items())
+            + f" (--arm-clearance {clearance:g} m; 0 keeps the motion as it is)")
+    return m2, summary
+
+
 @motion_app.command("import")
 @handle_errors
 def motion_import(
@@ -248,6 +273,9 @@ def simulate(
     duration: float = typer.Option(2.0, help="seconds (built-in motions)"),
     warmup: float = typer.Option(1.0, help="with --motion: seconds of transition from the garment's rest pose to the "
                                            "motion's first pose (simulated, not written)"),
+    arm_clearance: float = typer.Option(0.03, "--arm-clearance",
+                                        help="with a .bvh motion: raise the arms where a hand comes closer than this "
+                                             "[m] to the hips/trunk, so the garment is not pinched (0 = off)"),
     edge_length: float = typer.Option(0.02, help="garment edge length [m] (with --garment KIND)"),
     preview: bool = typer.Option(True, help="write preview.mp4"),
 ):
@@ -277,6 +305,7 @@ def simulate(
 
     sim_settings = SimSettings(integrator=integrator)
     n_warm = 0  # leading frames simulated but not written (--motion's transition)
+    clearance_info = None
     if capture is not None:
         from .body import BodyModel
         from .capture import load_capture
@@ -310,6 +339,7 @@ def simulate(
         from .stages.animate import transition
 
         mot = _load_motion(motion, fps, duration)
+        mot, clearance_info = _arm_clearance(mot, motion, body, arm_clearance)
         rots, trs = mot.rotations, mot.root_translation
         # the garment is made for the rest pose: a motion that starts elsewhere (a BVH clip) is
         # reached by a transition first, as `animate` does, so the garment never starts inside the body
@@ -357,6 +387,7 @@ def simulate(
                                             "garment": garment, "motion": motion, "collider": str(collider) if collider else None,
                                             "material": mat.to_dict(), "fps": fps, "substeps": substeps, "integrator": integrator,
                                             "frames_with_intersection_or_nan": bad, "warmup_frames": n_warm,
+                                            "arm_clearance": clearance_info,
                                             "frames": int(len(X)), "seconds": round(secs, 1)})
     if preview:
         from .body.preview import render_frames, write_video
@@ -425,13 +456,19 @@ def animate(
     duration: float = typer.Option(4.0, help="seconds (built-in motions)"),
     warmup: float = typer.Option(1.0, help="seconds of transition from the capture pose to the motion's first pose"),
     max_frames: Optional[int] = typer.Option(None, help="at most this many frames"),
+    arm_clearance: float = typer.Option(0.03, "--arm-clearance",
+                                        help="with a .bvh motion: raise the arms where a hand comes closer than this "
+                                             "[m] to the hips/trunk, so the garment is not pinched (0 = off)"),
 ):
     """Drive the avatar with a new motion: body by skinning, garment simulated with its material."""
     from .avatar import Avatar
+    from .body import BodyModel
     from .stages.animate import animate as run_animate
 
     av = Avatar.load(avatar)
     m = _load_motion(motion, av.fps, duration)
+    if arm_clearance and str(motion).lower().endswith(".bvh"):
+        m, _ = _arm_clearance(m, motion, BodyModel(av.shape, topology="collider"), arm_clearance)
     if max_frames:
         m = m.slice(0, max_frames)
     seq, stats = run_animate(av, m, warmup_s=warmup)
