@@ -135,7 +135,8 @@ def test_arm_clearance_raises_only_the_arms_and_only_where_the_hands_come_too_cl
     from scipy.spatial import cKDTree
 
     from physavatar.body import builtin_motion
-    from physavatar.body.motion import _TRUNK_PARTS, _dominant_bone_names, arm_clearance
+    from physavatar.body.motion import _TRUNK_PARTS, arm_clearance
+    from physavatar.garment.surface import bone_vertex_mask
 
     walk = builtin_motion("walk", body.bone_names, 25.0, 1.2)
     _, before = arm_clearance(walk, body, clearance=0.0)  # measures only
@@ -145,9 +146,8 @@ def test_arm_clearance_raises_only_the_arms_and_only_where_the_hands_come_too_cl
     arm_bones = [names.index("upperarm01.L"), names.index("upperarm01.R")]
     other = np.setdiff1d(np.arange(len(names)), arm_bones)
     np.testing.assert_array_equal(m.rotations[:, other], walk.rotations[:, other])
-    dom = _dominant_bone_names(body)
     F = np.asarray(body.faces)
-    trunk = np.array([any(n.startswith(p) for p in _TRUNK_PARTS) for n in dom])
+    trunk = bone_vertex_mask(body, _TRUNK_PARTS)
     tf = F[np.all(trunk[F], axis=1)]
     bary = np.random.default_rng(7).dirichlet([1.0, 1.0, 1.0], size=(len(tf), 40))
     V = body.pose(m.rotations, m.root_translation).vertices
@@ -157,7 +157,8 @@ def test_arm_clearance_raises_only_the_arms_and_only_where_the_hands_come_too_cl
         need = d["distance_before_m"] < c
         raised_any |= bool(need.any())
         assert np.all(d["angle_rad"][need] > 0) and np.all(d["angle_rad"] <= np.radians(40.0) + 1e-9)
-        hand = np.array([("hand" in n or "finger" in n or "lowerarm" in n) and n.endswith("." + side) for n in dom])
+        hand = bone_vertex_mask(body, [n for n in names if n.startswith(("hand", "finger", "lowerarm"))
+                                       and n.endswith("." + side)])
         for t in np.flatnonzero(need):
             P = np.einsum("fsk,fkd->fsd", bary, V[t][tf]).reshape(-1, 3)
             assert cKDTree(P).query(V[t][hand])[0].min() > c - 0.005  # the room asked for, up to sampling

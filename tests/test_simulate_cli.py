@@ -22,6 +22,16 @@ def skirt_run(tmp_path_factory):
     return out
 
 
+def write_collider_and_garment(folder, z, frames, garment_vertices):
+    """The body of a simulate run as a folder of PLY frames (folder/body), and a garment
+    (folder/garment.ply) with its boundary flags."""
+    for t in range(frames):
+        write_ply(folder / "body" / f"f{t:03d}.ply", PlyMesh(z["body_vertices"][t], z["body_faces"]))
+    flag = np.zeros(len(garment_vertices), np.uint8)
+    flag[z["boundary"]] = 1
+    write_ply(folder / "garment.ply", PlyMesh(garment_vertices, z["faces"], {"boundary": flag}))
+
+
 def test_garment_on_builtin_motion(skirt_run):
     z = np.load(skirt_run / "garment_sequence.npz")
     X, B = z["vertices"].astype(float), z["body_vertices"].astype(float)
@@ -39,11 +49,7 @@ def test_garment_on_builtin_motion(skirt_run):
 def test_collider_sequence_and_garment_file(skirt_run, tmp_path):
     z = np.load(skirt_run / "garment_sequence.npz")
     # the body as a folder of PLY frames from "another tool", the garment as a PLY with boundary flags
-    for t in range(4):
-        write_ply(tmp_path / "body" / f"f{t:03d}.ply", PlyMesh(z["body_vertices"][t], z["body_faces"]))
-    flag = np.zeros(len(z["vertices"][0]), np.uint8)
-    flag[z["boundary"]] = 1
-    write_ply(tmp_path / "garment.ply", PlyMesh(z["vertices"][0], z["faces"], {"boundary": flag}))
+    write_collider_and_garment(tmp_path, z, 4, z["vertices"][0])
     r = runner.invoke(app, ["simulate", "--collider", str(tmp_path / "body"), "--garment", str(tmp_path / "garment.ply"),
                             "--out", str(tmp_path / "o"), "--no-preview"])
     assert r.exit_code == 0, r.output
@@ -92,13 +98,9 @@ def test_motion_starting_away_from_rest_is_reached_by_a_warmup(tmp_path):
 
 def test_garment_crossing_the_first_collider_frame_is_refused(skirt_run, tmp_path):
     z = np.load(skirt_run / "garment_sequence.npz")
-    for t in range(2):
-        write_ply(tmp_path / "body" / f"f{t:03d}.ply", PlyMesh(z["body_vertices"][t], z["body_faces"]))
-    flag = np.zeros(len(z["vertices"][0]), np.uint8)
-    flag[z["boundary"]] = 1
     V = z["vertices"][0].astype(float)
     V[:, :2] *= 0.5  # shrunk through the hips
-    write_ply(tmp_path / "garment.ply", PlyMesh(V, z["faces"], {"boundary": flag}))
+    write_collider_and_garment(tmp_path, z, 2, V)
     r = runner.invoke(app, ["simulate", "--collider", str(tmp_path / "body"), "--garment", str(tmp_path / "garment.ply"),
                             "--out", str(tmp_path / "o"), "--no-preview"])
     assert r.exit_code == 2 and "crosses the body's first frame" in r.output and "Traceback" not in r.output

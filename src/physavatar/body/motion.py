@@ -308,12 +308,6 @@ _ARM_PARTS = ("lowerarm", "wrist", "hand", "finger", "thumb", "metacarpal")
 _TRUNK_PARTS = ("root", "pelvis", "spine", "upperleg")
 
 
-def _dominant_bone_names(body: BodyModel) -> list[str]:
-    W = body.skinning_weights
-    W = W.toarray() if hasattr(W, "toarray") else np.asarray(W)
-    return [body.bone_names[j] for j in np.argmax(W, axis=1)]
-
-
 def arm_clearance(motion: Motion, body: BodyModel, clearance: float = 0.03, samples_per_face: int = 10,
                   max_angle: float = np.radians(40.0)):
     """Raise the arms sideways (about the torso's forward axis, at the shoulder joint) in the
@@ -328,13 +322,14 @@ def arm_clearance(motion: Motion, body: BodyModel, clearance: float = 0.03, samp
     from scipy.ndimage import gaussian_filter1d, maximum_filter1d
     from scipy.spatial import cKDTree
 
+    from ..garment.surface import bone_vertex_mask
+
     m = motion.for_bones(body.bone_names)
     rots, trs = m.rotations.copy(), m.root_translation
     names = body.bone_names
     idx = {n: i for i, n in enumerate(names)}
-    dom = _dominant_bone_names(body)
     F = np.asarray(body.faces)
-    trunk = np.array([any(n.startswith(p) for p in _TRUNK_PARTS) for n in dom])
+    trunk = bone_vertex_mask(body, _TRUNK_PARTS)
     trunk_faces = F[np.all(trunk[F], axis=1)]
     bary = np.random.default_rng(0).dirichlet([1.0, 1.0, 1.0], size=(len(trunk_faces), samples_per_face))
     parents = body.parents
@@ -354,9 +349,7 @@ def arm_clearance(motion: Motion, body: BodyModel, clearance: float = 0.03, samp
             out[t] = cKDTree(P).query(V[t][arm])[0].min()
         return out
 
-    def rotated(r, b, axis, theta):
-        X = world_rotations(r)
-        Xp = X[:, parents[b]]
+    def rotated(r, b, Xp, axis, theta):  # Xp: the parent's world rotations (unchanged by this)
         Q = axis_angle_to_matrix(axis * theta[:, None])
         Rb = np.swapaxes(Xp, 1, 2) @ Q @ Xp @ axis_angle_to_matrix(r[:, b])
         out = r.copy()
@@ -366,29 +359,30 @@ def arm_clearance(motion: Motion, body: BodyModel, clearance: float = 0.03, samp
     info = {}
     for side in ("L", "R"):
         b = idx.get(f"upperarm01.{side}")
-        arm = np.array([any(p in n for p in _ARM_PARTS) and n.endswith(f".{side}") for n in dom])
+        arm = bone_vertex_mask(body, [n for n in names if n.startswith(_ARM_PARTS) and n.endswith(f".{side}")])
         if b is None or not arm.any() or not len(trunk_faces):
             continue
-        # the torso's forward axis (the body faces -y at rest), per frame
+        # the torso's forward axis (the body faces -y at rest) and the shoulder's rotation, per frame
         X = world_rotations(rots)
         axis = X[:, idx.get("spine01", 0)] @ np.array([0.0, -1.0, 0.0])
+        Xp = X[:, parents[b]]
         d0 = distances(rots, arm)
         need = d0 < clearance
         theta = np.zeros(len(rots))
         if need.any():
             probe = np.full(len(rots), 0.2)
-            sign = 1.0 if distances(rotated(rots, b, axis, probe), arm)[need].mean() >= \
-                distances(rotated(rots, b, axis, -probe), arm)[need].mean() else -1.0
+            sign = 1.0 if distances(rotated(rots, b, Xp, axis, probe), arm)[need].mean() >= \
+                distances(rotated(rots, b, Xp, axis, -probe), arm)[need].mean() else -1.0
             lo, hi = np.zeros(len(rots)), np.full(len(rots), max_angle)
             for _ in range(7):  # bisection on the angle, all frames at once
                 mid = 0.5 * (lo + hi)
-                ok = distances(rotated(rots, b, axis, sign * mid), arm) >= clearance
+                ok = distances(rotated(rots, b, Xp, axis, sign * mid), arm) >= clearance
                 hi = np.where(ok, mid, hi)
                 lo = np.where(ok, lo, mid)
             theta = np.where(need, hi, 0.0)
             # no jitter: hold the largest angle for a third of a second around each frame, then smooth
             w = max(1, int(round(m.fps / 3)))
             theta = gaussian_filter1d(maximum_filter1d(theta, size=2 * w + 1), sigma=w / 2)
-            rots = rotated(rots, b, axis, sign * theta)
+            rots = rotated(rots, b, Xp, axis, sign * theta)
         info[side] = {"distance_before_m": d0, "distance_after_m": distances(rots, arm), "angle_rad": theta}
     return Motion(m.name, m.fps, m.bone_names, rots, trs), info

@@ -608,9 +608,6 @@ class ClothSim:
         if s.keep_linearization and not penalty:
             hess = [t.hessian(X_final, project=False) for t in self._active_terms(False)]
             self.linearization.hessian = self.assembler_free.assemble(hess)
-        # restore the base penalty weight for the next step
-        mean_mass = self.material.density * float(np.mean(self.topo.vertex_area))
-        self.penalty.weight = s.kinematic_penalty * mean_mass / self.h_implicit**2
         x_new = X_final[: self.n].copy()
         v_new = (x_new - base) / hh
         self._last_step = (x_new, v_new, x.copy(), v.copy())
@@ -635,7 +632,7 @@ class ClothSim:
 
     def _set_implicit_step(self, hh):
         """Make every h-dependent term use the implicit step ĥ (h, or BDF2's 2h/3)."""
-        self.h_implicit = hh
+        self.h_implicit = hh  # also resets the penalty weight the last step may have stiffened
         self.inertia.dt = hh  # mass damping reads it from here
         self.friction.dt = hh
         if self.settings.damping_stiffness > 0:
