@@ -20,17 +20,28 @@ docs/physics.md "Coarse proxy"). The "true" row simulates the true material in t
 model. The fit starts from the clean rest state and knows ν. Friction is off (docs/physics.md:
 lagged friction makes L_sim rough at the 1 % scale).
 
-Two settings (``--settings noise,model_error``): "noise" is the issue's literal setup (the
-fitting simulator's own ground truth + noise; κb/ρ checks), "model_error" the one above
-(κb/ρ reported the same way; the held-out "within 10 % of true" check only here, where the true
-material's distance is not ~0). The exact estimator runs with the local-shape residuals
+Three settings (``--settings noise,model_error,other_simulator``):
+- "noise": the issue's literal setup (the fitting simulator's own ground truth + noise); the
+  κb/ρ-within-10 % checks are made here.
+- "model_error": the ground truth above (``--truth-substeps`` implicit steps per frame).
+- "other_simulator": a ground truth from a differently built simulator, standing in for the
+  unseen simulator the issue will be checked with: BDF2 (``--other-integrator``) at 4 steps per
+  frame (``--other-substeps``) with the neo-Hookean membrane (``--other-membrane``) instead of
+  implicit Euler at 1 with StVK; optional mass damping (``--other-damping``).
+The held-out "within 10 % of true" checks are made in the two model-error settings, where the
+true material's distance is not ~0. κb/ρ's error there is *reported* against the same 10 % but
+is not a check: under model error the true material is not the fitting model's best one (in
+other_simulator the estimate predicts the held-out motion better than the true material), so
+that error measures the model gap rather than the estimator. The paper's estimator's κb/ρ is
+reported the same way. The exact estimator runs with the local-shape residuals
 (``--shape-weight``, default 3) and, as "exact_eq6", on the paper's L_sim alone; fd and the
 fd-vs-exact comparison use L_sim.
 
     python benchmarks/physics_recovery.py [--quick] [--edge 0.07] [--window 12]
-        [--settings noise,model_error] [--truth-substeps 2] [--shape-weight 3] [--no-eq6-rows]
-        [--proxy-vertices 0] [--fd-edge 0.10] [--fd-materials silk,cotton,denim] [--fd-setting noise]
-        [--fd-iterations 100]
+        [--settings noise,model_error,other_simulator] [--truth-substeps 2] [--other-substeps 4]
+        [--other-integrator bdf2] [--other-membrane neohookean] [--other-damping 0]
+        [--shape-weight 3] [--no-eq6-rows] [--proxy-vertices 0] [--fd-edge 0.10]
+        [--fd-materials silk,cotton,denim] [--fd-setting noise] [--fd-iterations 100] [--out JSON]
 
 --quick: dress edge 7 cm (299 vertices) for the accuracy runs (exact on all three materials),
 the fd-vs-exact comparison on all three materials in the issue's setting (noise) with a coarser
@@ -57,7 +68,7 @@ from physavatar.garment import attachment_positions, garment_skinning_weights, m
 from physavatar.metrics import chamfer_distance, sample_surface
 from physavatar.sim import PRESETS, SimSettings
 from physavatar.stages.physics import (SHAPE_WEIGHT, PhysicsData, far_material, fit_exact, fit_fd, fit_residuals,
-                                       on_proxy, rollout, trajectory_loss)
+                                       fit_selecting_integrator, on_proxy, rollout, trajectory_loss)
 from physavatar.stages.proxy import GarmentProxy, make_proxy
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -125,6 +136,11 @@ def fit_row(res, true, noise_floor):
         "iterations": res.iterations, "simulations": res.simulations, "wall_time_s": res.wall_time,
         "fitted": {"stretch_stiffness": m.stretch_stiffness, "bend_stiffness": m.bend_stiffness,
                    "density_prior": m.density},
+        "integrator": m.integrator,
+        "model_selection": None if res.model_selection is None else {
+            "chosen": res.model_selection["chosen"],
+            **{f"{k}_{q}": v[q] for k, v in res.model_selection["fits"].items()
+               for q in ("objective", "loss", "bend_ratio", "stretch_ratio")}},
         "loss_history": [r["loss"] for r in res.history],
         "time_history_s": [r["wall_time_s"] for r in res.history],
     }
@@ -166,8 +182,9 @@ class Case:
         gt = held.reference
         cd = {"lbs": garment_chamfer_x1e3(self.lbs, gt, self.faces)}
         for label, mat in materials:
-            try:
-                cd[label] = garment_chamfer_x1e3(rollout(held, mat, settings).positions, gt, self.faces)
+            try:  # each material in the model it was fitted in (the presets: implicit Euler)
+                s = dataclasses.replace(settings, integrator=mat.integrator)
+                cd[label] = garment_chamfer_x1e3(rollout(held, mat, s).positions, gt, self.faces)
             except (FloatingPointError, RuntimeError) as e:
                 cd[label] = math.inf
                 print(f"  held-out {label} failed: {e}", flush=True)
@@ -180,6 +197,9 @@ SETTINGS = {
     "noise": "ground truth by the fitting simulator (1 step per frame, Newton tol 1e-6) + 2 mm noise",
     # a ground truth the fitting model cannot reproduce exactly
     "model_error": "ground truth at {k} implicit steps per frame (Newton tol 1e-6) + 2 mm noise; fits 1 step per frame",
+    # a ground truth from a differently built simulator: another integrator, step and membrane law
+    "other_simulator": "ground truth by {oi} at {ok} steps per frame with the {om} membrane{od} (Newton tol 1e-6) "
+                       "+ 2 mm noise; fits implicit Euler, 1 step per frame, StVK",
 }
 
 
@@ -194,22 +214,35 @@ def main():
     ap.add_argument("--window", type=int, default=None, help="fitted frames")
     ap.add_argument("--heldout-frames", type=int, default=24)
     ap.add_argument("--materials", default="silk,cotton,denim")
-    ap.add_argument("--settings", default="noise,model_error",
+    ap.add_argument("--settings", default="noise,model_error,other_simulator",
                     help="comma-separated: noise (the fitting simulator's own ground truth + noise: the issue's "
-                         "literal setup), model_error (ground truth at --truth-substeps)")
+                         "literal setup), model_error (ground truth at --truth-substeps), other_simulator (--other-*)")
     ap.add_argument("--fd-materials", default=None, help="comma-separated presets fitted with fd too ('' = none)")
     ap.add_argument("--fd-setting", default="noise",
                     help="the ground truth of the fd-vs-exact runs (default: the issue's literal setup)")
     ap.add_argument("--fd-iterations", type=int, default=100)
     ap.add_argument("--exact-iterations", type=int, default=12)
+    ap.add_argument("--fit-integrator", choices=("auto", "euler", "bdf2"), default="auto",
+                    help="the exact estimator's time integrator: auto (fit-physics' default: fit with both, keep the "
+                         "lower objective; physics.fit_selecting_integrator), euler or bdf2. fd and the fd-vs-exact "
+                         "comparison use implicit Euler (the paper's)")
     ap.add_argument("--truth-substeps", type=int, default=2,
                     help="implicit steps per frame of the model_error ground truth (the fits take 1)")
+    ap.add_argument("--other-substeps", type=int, default=4,
+                    help="steps per frame of the other_simulator ground truth")
+    ap.add_argument("--other-integrator", choices=("euler", "bdf2"), default="bdf2",
+                    help="time integrator of the other_simulator ground truth (the fits use implicit Euler)")
+    ap.add_argument("--other-membrane", choices=("stvk", "neohookean"), default="neohookean",
+                    help="membrane model of the other_simulator ground truth (the fits use StVK)")
+    ap.add_argument("--other-damping", type=float, default=0.0,
+                    help="mass damping alpha [1/s] of the other_simulator ground truth (the fits use none)")
     ap.add_argument("--noise-mm", type=float, default=2.0)
     ap.add_argument("--shape-weight", type=float, default=SHAPE_WEIGHT,
                     help="the exact estimator's local-shape residual weight (fit_residuals); the 'exact_eq6' rows and "
                          "the fd-vs-exact comparison use 0 (the paper's L_sim)")
     ap.add_argument("--no-eq6-rows", action="store_true", help="skip the exact fits on L_sim alone")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=RESULTS, help="results JSON (default benchmarks/results/physics_recovery.json)")
     args = ap.parse_args()
     edge = args.edge or (0.07 if args.quick else 0.05)
     proxy_vertices = args.proxy_vertices
@@ -221,12 +254,16 @@ def main():
     unknown = set(settings_run + [args.fd_setting]) - set(SETTINGS)
     if unknown:
         ap.error(f"unknown settings {sorted(unknown)}; choose from {sorted(SETTINGS)}")
-    truth_substeps = {"noise": 1, "model_error": args.truth_substeps}
+    truth_substeps = {"noise": 1, "model_error": args.truth_substeps, "other_simulator": args.other_substeps}
     fd_materials = [m for m in (args.fd_materials if args.fd_materials is not None
                                 else args.materials).split(",") if m]
     # the ∞-norm stopping rule these tolerances were chosen with (stages/physics.fit_settings)
     fit_settings = SimSettings(friction=0.0, newton_tol=1e-5, newton_norm="max")
-    truth_settings = SimSettings(friction=0.0, newton_tol=1e-6, newton_norm="max")
+    truth_base = SimSettings(friction=0.0, newton_tol=1e-6, newton_norm="max")
+    truth_settings = {"noise": truth_base, "model_error": truth_base,
+                      "other_simulator": dataclasses.replace(truth_base, integrator=args.other_integrator,
+                                                             membrane_model=args.other_membrane,
+                                                             damping_mass=args.other_damping)}
     load_start = list(os.getloadavg())
     t_all = time.perf_counter()
 
@@ -238,7 +275,9 @@ def main():
               f"fitted proxy: {c.n_fit} vertices ({len(c.proxy.boundary)} boundary, mean edge "
               f"{100 * c.proxy.mean_edge:.1f} cm); body {len(c.body.rest_vertices)} vertices", flush=True)
     print(f"window {window} frames (walk), held-out {args.heldout_frames} (dance); settings {settings_run}; "
-          f"model_error ground truth {args.truth_substeps} substeps/frame, fits 1", flush=True)
+          f"model_error ground truth {args.truth_substeps} substeps/frame; other_simulator {args.other_integrator} "
+          f"{args.other_substeps} substeps/frame {args.other_membrane}; fits implicit Euler 1 step/frame StVK",
+          flush=True)
     rows = {}
     figures = {"per_material": {s: {} for s in settings_run}, "fd_comparison": {}}
 
@@ -250,9 +289,16 @@ def main():
                       f"t {row['wall_time_s']:.0f} s", flush=True)
         return log
 
+    def exact_fit(data, start, callback, shape_weight):
+        if args.fit_integrator == "auto":
+            return fit_selecting_integrator(data, start, fit_settings, args.exact_iterations, callback=callback,
+                                            shape_weight=shape_weight)
+        return fit_exact(data, start, dataclasses.replace(fit_settings, integrator=args.fit_integrator),
+                         iterations=args.exact_iterations, callback=callback, shape_weight=shape_weight)
+
     def prepare(c, true, mi, setting):
         t0 = time.perf_counter()
-        gt_train, gt_held = c.truth(true, truth_settings, truth_substeps[setting])
+        gt_train, gt_held = c.truth(true, truth_settings[setting], truth_substeps[setting])
         print(f"[{true.name} @ {c.edge} m, {setting}] ground truth simulated in {time.perf_counter() - t0:.0f} s",
               flush=True)
         # the fit starts from the clean rest state (the template), not the noisy frame 0
@@ -271,8 +317,8 @@ def main():
         rng = np.random.default_rng(0)  # the same random materials in every setting
         for mi, name in enumerate(materials):
             true, start, data, gt_held, noise_floor = material_case(case, name, mi, setting)
-            res = fit_exact(data, start, fit_settings, iterations=args.exact_iterations,
-                            callback=logger(f"{name} {setting}", "exact", 1), shape_weight=args.shape_weight)
+            res = exact_fit(data, start, callback=logger(f"{name} {setting}", "exact", 1),
+                            shape_weight=args.shape_weight)
             rows[(setting, name, "exact")] = fit_row(res, true, noise_floor)
             true_x = rollout(data, true, fit_settings).positions
             rows[(setting, name, "exact")]["true_material_loss_m2"] = trajectory_loss(true_x, data.reference)
@@ -280,8 +326,7 @@ def main():
             rows[(setting, name, "exact")]["true_material_objective_m2"] = float(r_true @ r_true)
             estimates = [("estimated_exact", res.material)]
             if not args.no_eq6_rows and args.shape_weight > 0:
-                eq6 = fit_exact(data, start, fit_settings, iterations=args.exact_iterations,
-                                callback=logger(f"{name} {setting}", "exact_eq6", 1))
+                eq6 = exact_fit(data, start, callback=logger(f"{name} {setting}", "exact_eq6", 1), shape_weight=0.0)
                 rows[(setting, name, "exact_eq6")] = fit_row(eq6, true, noise_floor)
                 estimates.append(("estimated_exact_eq6", eq6.material))
             if name in fd_materials and fd_case is case and setting == args.fd_setting:
@@ -291,7 +336,11 @@ def main():
                 estimates.append(("estimated_fd", fd_res.material))
             # Table 2 on the held-out motion; "true" = the true material in the fitting model
             rnd = random_material(rng, start.density)
-            cd = case.heldout_cd([("random", rnd)] + estimates + [("true", true)], gt_held, fit_settings)
+            # "true": the true material as the simulator runs a preset (implicit Euler); where an
+            # estimate was fitted in BDF2, the true material in BDF2 too (the check takes the better)
+            trues = [("true", true)] + ([("true_bdf2", dataclasses.replace(true, integrator="bdf2"))]
+                                        if any(m.integrator == "bdf2" for _, m in estimates) else [])
+            cd = case.heldout_cd([("random", rnd)] + estimates + trues, gt_held, fit_settings)
             figures["per_material"][setting][name] = {
                 "true": {"stretch_ratio": true.stretch_ratio, "bend_ratio": true.bend_ratio},
                 "random_material": {"stretch_stiffness": rnd.stretch_stiffness, "bend_stiffness": rnd.bend_stiffness},
@@ -332,30 +381,37 @@ def main():
                                                   "heldout_chamfer_x1e3": fig["heldout_chamfer_x1e3"],
                                                   "estimators": {"exact": ex, "fd": fig["estimators"]["fd"]}}
 
-    # checks (the issue's targets). κb/ρ within 10 %: the issue's literal setup ("noise") and,
-    # reported the same way, with model error. Held-out Chamfer within 10 % of the true
-    # material's: only meaningful with model error (without it the true material's distance is
-    # the Newton tolerance's, ~0); below LBS and random: both.
-    checks = {}
+    # checks: the issue's targets. κb/ρ within 10 %: in the issue's literal setup ("noise": ground
+    # truth meshes + 2 mm noise). Held-out Chamfer within 10 % of the true material's: only with
+    # model error (without it the true material's distance is the Newton tolerance's, ~0); below
+    # LBS and random: every setting. The exact estimator reaching fd's loss in a third of fd's time.
+    # reported: the same κb/ρ figure under model error, and the paper's estimator's κb/ρ. Under model
+    # error the true material is not the fitting model's best one (other_simulator: the estimate
+    # predicts the held-out motion better than the true material does), so κb/ρ's distance from
+    # the truth there measures the model gap, not the estimator; it is reported against the same
+    # 10 % for comparison, not counted as a check.
+    checks, reported = {}, {}
     for setting, per in figures["per_material"].items():
         for name, fig in per.items():
             r = fig["estimators"]["exact"]
-            checks[f"{setting}:{name}_exact_bend_ratio_within_10pct"] = {
+            (checks if setting == "noise" else reported)[f"{setting}:{name}_exact_bend_ratio_within_10pct"] = {
                 "value": abs(r["bend_ratio_rel_error"]), "target": "<= 0.10", "unit": "relative error",
                 "setting": setting, "pass": abs(r["bend_ratio_rel_error"]) <= 0.10}
             cd = fig["heldout_chamfer_x1e3"]
             est = cd.get("estimated_exact", math.inf)
-            if setting == "model_error":
+            if setting != "noise":
+                true_cd = min(cd["true"], cd.get("true_bdf2", math.inf))  # the better of the two models
                 checks[f"{setting}:{name}_heldout_cd_estimated_within_10pct_of_true"] = {
-                    "value": est / cd["true"] if cd["true"] > 0 else math.inf, "target": "<= 1.10", "unit": "CD ratio",
-                    "setting": setting, "pass": est <= 1.10 * cd["true"]}
+                    "value": est / true_cd if true_cd > 0 else math.inf,
+                    "target": "<= 1.10 (true: the better of implicit Euler and, if an estimate chose it, BDF2)",
+                    "unit": "CD ratio", "setting": setting, "pass": est <= 1.10 * true_cd}
             checks[f"{setting}:{name}_heldout_cd_estimated_below_lbs_and_random"] = {
                 "value": est, "target": f"< min(lbs {cd['lbs']:.4g}, random {cd['random']:.4g})", "unit": "CD x1e3",
                 "setting": setting, "pass": est < min(cd["lbs"], cd["random"])}
     for name, fig in figures["fd_comparison"].items():
         fd, ex = fig["estimators"]["fd"], fig["estimators"]["exact"]
         setting = fig["setting"]
-        checks[f"{setting}:{name}_fd_bend_ratio_within_10pct"] = {
+        reported[f"{setting}:{name}_fd_bend_ratio_within_10pct"] = {
             "value": abs(fd["bend_ratio_rel_error"]), "target": "<= 0.10 (the paper's estimator; edge "
             f"{fig['edge_length_m']} m)", "unit": "relative error", "setting": setting,
             "pass": abs(fd["bend_ratio_rel_error"]) <= 0.10}
@@ -384,13 +440,18 @@ def main():
             "body": "Anny collider topology", "train_motion": "walk", "window_frames": window,
             "heldout_motion": "dance", "heldout_frames": args.heldout_frames, "fps": 25.0,
             "noise_mm": args.noise_mm, "initial": far_material().to_dict(), "materials": materials,
-            "settings": {s: SETTINGS[s].format(k=args.truth_substeps) for s in settings_run},
+            "settings": {s: SETTINGS[s].format(
+                k=args.truth_substeps, ok=args.other_substeps, oi=args.other_integrator, om=args.other_membrane,
+                od=f", mass damping {args.other_damping} 1/s" if args.other_damping else "") for s in settings_run},
             "fd_materials": fd_materials, "fd_setting": args.fd_setting,
             "fd_iterations": args.fd_iterations, "exact_max_iterations": args.exact_iterations,
-            "workers": args.workers, "fit_settings": {"friction": 0.0, "newton_tol": 1e-5, "dt": 0.04, "substeps": 1},
+            "workers": args.workers, "fit_settings": {"friction": 0.0, "newton_tol": 1e-5, "dt": 0.04, "substeps": 1,
+                                                     "integrator": args.fit_integrator},
             "shape_weight": {"exact": args.shape_weight, "exact_eq6": 0.0, "fd": 0.0, "exact@fd_edge": 0.0},
             "truth_settings": {s: {"friction": 0.0, "newton_tol": 1e-6, "dt": 0.04 / truth_substeps[s],
-                                   "substeps": truth_substeps[s]} for s in settings_run},
+                                   "substeps": truth_substeps[s], "integrator": truth_settings[s].integrator,
+                                   "membrane_model": truth_settings[s].membrane_model,
+                                   "damping_mass": truth_settings[s].damping_mass} for s in settings_run},
             "model_error": (f"model_error: ground truth simulated with {args.truth_substeps} implicit steps per frame "
                             "and a 10x tighter Newton tolerance (1e-6 m/s); the fits and the held-out rows (the "
                             "'true' row too) take 1 step per frame at 1e-5 m/s"
@@ -402,27 +463,33 @@ def main():
         },
         "figures": figures,
         "checks": checks,
+        "reported": reported,
     }
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2, default=float) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_name(args.out.name + ".tmp")
+    tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
+    tmp.replace(args.out)
 
-    print(f"\n{'setting':12s} {'material':8s} {'method':14s} {'kb/rho err':>10s} {'ks/rho err':>10s} "
+    print(f"\n{'setting':16s} {'material':8s} {'method':14s} {'model':6s} {'kb/rho err':>10s} {'ks/rho err':>10s} "
           f"{'loss/floor':>10s} {'sims':>5s} {'time s':>7s}")
     for (setting, name, method), r in rows.items():
-        print(f"{setting:12s} {name:8s} {method:14s} {r['bend_ratio_rel_error']:+10.3f} "
+        print(f"{setting:16s} {name:8s} {method:14s} {r['integrator']:6s} {r['bend_ratio_rel_error']:+10.3f} "
               f"{r['stretch_ratio_rel_error']:+10.3f} {r['loss_over_noise_floor']:10.3f} {r['simulations']:5d} "
               f"{r['wall_time_s']:7.0f}")
     print("\nheld-out Chamfer x1e3 (dance):")
     for setting, per in figures["per_material"].items():
         for name, fig in per.items():
-            print(f"  {setting:12s} {name:8s} " + "  ".join(f"{k} {v:.4g}" for k, v in fig["heldout_chamfer_x1e3"].items()))
+            print(f"  {setting:16s} {name:8s} " + "  ".join(f"{k} {v:.4g}" for k, v in fig["heldout_chamfer_x1e3"].items()))
     for name, fig in figures["fd_comparison"].items():
         print(f"  {fig['setting']:12s} {name:8s} @ {fig['edge_length_m']} m " + "  ".join(
             f"{k} {v:.4g}" for k, v in fig["heldout_chamfer_x1e3"].items()))
-    print("\nchecks:")
+    print("\nchecks (the issue's targets):")
     for k, c in checks.items():
         print(f"  {'PASS' if c['pass'] else 'FAIL'} {k}: {c['value']:.4g} (target {c['target']})")
-    print(f"wrote {RESULTS} ({figures['total_wall_time_s']:.0f} s)")
+    print("reported (model error's κb/ρ and the paper's estimator, against the same 10 %; not targets):")
+    for k, c in reported.items():
+        print(f"  {'within' if c['pass'] else 'outside'} {k}: {c['value']:.4g} ({c['target']})")
+    print(f"wrote {args.out} ({figures['total_wall_time_s']:.0f} s)")
 
 
 if __name__ == "__main__":

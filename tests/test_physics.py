@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 from physavatar.cli import app
 from physavatar.files import PlyMesh, save_npz_atomic, write_ply
 from physavatar.sim import Material, SimSettings, preset
-from physavatar.stages.physics import (PhysicsData, far_material, fit_exact, fit_fd, load_physics_data, rollout,
-                                       trajectory_loss, write_outputs)
+from physavatar.stages.physics import (PhysicsData, far_material, fit_exact, fit_fd, fit_material, load_physics_data,
+                                       rollout, trajectory_loss, write_outputs)
 
 NAMES = ("density", "stretch_stiffness", "bend_stiffness")
 # tight Newton tolerance: the FD references differentiate the solver's output, so it must be
@@ -181,7 +181,14 @@ def test_load_capture_and_cli_writes_material_json(tmp_path):
     assert lo < mj["ratios"]["bend_ratio"]["value"] < hi
     log = (tmp_path / "fit" / "fit_log.csv").read_text().splitlines()
     assert log[0].startswith("iteration,loss,rms_mm,stretch_stiffness,bend_stiffness")
-    assert len(log) == 1 + len(json.loads(json.dumps(mj))["fitted_parameters"]) * 0 + mj["iterations"] + 1
+    # --integrator auto (the default): an implicit-Euler fit, then a BDF2 fit, each with its row 0
+    assert log[0].endswith(",integrator") and len(log) == 1 + mj["iterations"] + 2
+    sel = mj["model_selection"]
+    assert set(sel["fits"]) == {"euler", "bdf2"} and mj["integrator"] == m["integrator"] == sel["chosen"]
+    assert sel["fits"][sel["chosen"]]["objective"] == min(f["objective"] for f in sel["fits"].values())
+    assert mj["simulations"] == sum(f["simulations"] for f in sel["fits"].values())
+    # fit-physics' material.json is a material file for every command that takes one
+    assert Material.load(tmp_path / "fit" / "material.json").integrator == sel["chosen"]
     assert (tmp_path / "fit" / "fit.png").stat().st_size > 1000
     # the fitting model is selectable and recorded with the result
     r = CliRunner().invoke(app, ["fit-physics", str(tmp_path / "cap"), "--out", str(tmp_path / "fit2"),
@@ -203,6 +210,42 @@ def test_write_outputs_roundtrip(tmp_path):
 
     pinned = dataclasses.replace(res, material=dataclasses.replace(res.material, bend_stiffness=BOUNDS["bend_stiffness"][0]))
     assert pinned.at_bound() == ["bend_stiffness"]
+
+
+def test_integrator_selection_keeps_the_model_the_motion_came_from():
+    """fit_selecting_integrator: the fitted material is the best one for the model it was fitted
+    in; fitted to motion made by implicit Euler it keeps implicit Euler, to motion made by BDF2 it
+    keeps BDF2 (the other model cannot reach the noise floor), and records the choice."""
+    truth = Material(density=0.2, stretch_stiffness=40.0, bend_stiffness=3e-5, poisson=0.2)
+    start = dataclasses.replace(far_material(), poisson=0.2)
+    d0 = hanging_cloth(frames=8, seed=1)
+    for made_by in ("euler", "bdf2"):
+        gt = rollout(d0, truth, dataclasses.replace(TIGHT, integrator=made_by)).positions
+        res = fit_material(dataclasses.replace(d0, reference=gt), start, "exact", 12,
+                           settings=dataclasses.replace(TIGHT, integrator="euler"), shape_weight=0.0,
+                           select_integrator=True)
+        sel = res.model_selection
+        other = "bdf2" if made_by == "euler" else "euler"
+        assert sel["chosen"] == made_by and res.material.integrator == made_by, sel
+        assert sel["fits"][made_by]["objective"] < 0.1 * sel["fits"][other]["objective"], sel
+        assert abs(res.material.bend_ratio / truth.bend_ratio - 1) < 0.02
+        assert res.simulations == sum(f["simulations"] for f in sel["fits"].values())
+        assert [r["integrator"] for r in res.history] == sorted([r["integrator"] for r in res.history],
+                                                                key=("euler", "bdf2").index)
+
+
+def test_simulate_uses_the_integrator_the_material_was_fitted_with():
+    from physavatar.sim import simulate
+
+    d = hanging_cloth(frames=5)
+    base = Material(density=0.2, stretch_stiffness=40.0, bend_stiffness=3e-5, poisson=0.2)
+    run = lambda m, s=None: simulate(d.rest, d.faces, m, np.zeros((5, 0, 3)), np.zeros((0, 3), int),  # noqa: E731
+                                     boundary_indices=d.boundary, settings=s)
+    fitted_bdf2 = dataclasses.replace(base, integrator="bdf2")
+    np.testing.assert_array_equal(run(fitted_bdf2), run(base, SimSettings(integrator="bdf2")))
+    assert np.abs(run(fitted_bdf2) - run(base)).max() > 1e-3  # the two models differ on this swing
+    with pytest.raises(Exception, match="integrator"):
+        dataclasses.replace(base, integrator="rk4")
 
 
 def test_cli_bad_input_exits_2(tmp_path):

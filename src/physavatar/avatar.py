@@ -34,12 +34,7 @@ AVATAR_VERSION = 1
 
 def load_material(path: str | Path) -> Material:
     """A Material from a material.json: the simulator's own format, or fit-physics' (``{"material": {...}}``)."""
-    path = Path(path)
-    d = read_json(path)
-    try:
-        return Material.from_dict(d["material"] if "material" in d else d)
-    except (KeyError, TypeError, ValueError) as e:
-        raise PhysavatarError(path, f"not a material ({type(e).__name__}: {e})") from None
+    return Material.load(path)
 
 
 @dataclass

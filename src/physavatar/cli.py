@@ -268,8 +268,9 @@ def simulate(
     material: str = typer.Option("cotton", help="silk, cotton, denim, or a material .json"),
     fps: float = typer.Option(25.0, help="frames per second (one implicit step per frame by default)"),
     substeps: int = typer.Option(1, help="implicit steps per frame"),
-    integrator: str = typer.Option("euler", help="euler (implicit Euler, the paper's) or bdf2 (second order; "
-                                                 "docs/simulation.md)"),
+    integrator: Optional[str] = typer.Option(None, help="euler (implicit Euler, the paper's) or bdf2 (second order; "
+                                                        "docs/simulation.md); default: the one the material was "
+                                                        "fitted with (euler for presets)"),
     duration: float = typer.Option(2.0, help="seconds (built-in motions)"),
     warmup: float = typer.Option(1.0, help="with --motion: seconds of transition from the garment's rest pose to the "
                                            "motion's first pose (simulated, not written)"),
@@ -299,6 +300,8 @@ def simulate(
         _bad_option("--material", f"{material!r} is not one of {', '.join(PRESETS)} or a .json file")
     if fps <= 0 or substeps < 1:
         _bad_option("--fps/--substeps", "must be positive")
+    if integrator is None:
+        integrator = mat.integrator  # a fitted material is simulated in the model it was fitted in
     if integrator not in ("euler", "bdf2"):
         _bad_option("--integrator", f"{integrator!r} is not euler or bdf2")
     from .sim import SimSettings
@@ -679,8 +682,9 @@ def fit_physics(
     newton_tol: float = typer.Option(1e-4, "--newton-tol", help="Newton tolerance of the fitting simulations [m/s]"),
     substeps: int = typer.Option(1, help="implicit steps per frame of the fitting simulations (more: less "
                                          "time-discretisation error, proportionally slower)"),
-    integrator: str = typer.Option("euler", help="time integrator of the fitting simulations: euler or bdf2 "
-                                                 "(docs/simulation.md; bdf2's gradients are approximate with friction)"),
+    integrator: str = typer.Option("auto", help="time integrator of the fitting simulations: auto (exact: fit with "
+                                                "euler and bdf2, keep the better; fd: euler), euler or bdf2. The "
+                                                "material records it and simulate/animate use it (docs/physics.md)"),
     max_vertices: int = typer.Option(1200, "--max-vertices",
                                      help="fit on a coarse proxy of at most this many vertices when the garment has "
                                           "more (0 = always the full garment; docs/physics.md)"),
@@ -715,8 +719,11 @@ def fit_physics(
         _bad_option("--newton-tol", "must be positive")
     if substeps < 1:
         _bad_option("--substeps", "must be at least 1")
-    if integrator not in ("euler", "bdf2"):
-        _bad_option("--integrator", f"{integrator!r} is not euler or bdf2")
+    if integrator not in ("auto", "euler", "bdf2"):
+        _bad_option("--integrator", f"{integrator!r} is not auto, euler or bdf2")
+    select = integrator == "auto" and gradient == "exact"
+    if integrator == "auto":
+        integrator = "euler"  # fd: the paper's; exact: the first of the two fits
     if max_vertices != 0 and max_vertices < 20:
         _bad_option("--max-vertices", "must be 0 (no proxy) or at least 20")
     if shape_weight is not None and not shape_weight >= 0:
@@ -748,11 +755,13 @@ def fit_physics(
                   f"garment over {data.frames} frames ({gradient} gradients, up to {n_iter} iterations)")
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task("fit", total=n_iter + (1 if gradient == "exact" else 0))
+        task = bar.add_task("fit", total=(n_iter + (1 if gradient == "exact" else 0)) * (2 if select else 1))
 
         def report(row):
             params = "  ".join(f"{k}={row[k]:.4g}" for k in ("density", "stretch_stiffness", "bend_stiffness") if k in row)
             line = f"it {row['iteration']:3d}  loss {row['loss']:.4g} m² ({row['rms_mm']:.2f} mm)  {params}"
+            if "integrator" in row:
+                line += f"  [{row['integrator']}]"
             bar.update(task, advance=1, description=line)
             # one log line per iteration too: a bar alone shows nothing when output is not a terminal
             bar.console.print(f"{line}  {row['wall_time_s']:.0f} s", highlight=False)
@@ -760,7 +769,7 @@ def fit_physics(
         result = fit_material(data, initial, gradient, iterations, fit_density,
                               fit_settings(friction=friction, newton_tol=newton_tol, integrator=integrator),
                               workers=workers, substeps=substeps, callback=report,
-                              shape_weight=shape_weight)
+                              shape_weight=shape_weight, select_integrator=select)
     if proxy is not None:
         result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),
                         "mean_edge_m": proxy.mean_edge, "garment_vertices": n_fine, "max_vertices": max_vertices}
@@ -777,6 +786,11 @@ def fit_physics(
         iv = ci.get(key)
         t.add_row(label, f"{getattr(m, key):.4g}", "-" if not iv else f"[{iv[0]:.4g}, {iv[1]:.4g}]")
     console.print(t)
+    if result.model_selection:
+        fits = result.model_selection["fits"]
+        console.print("time integrator: " + ", ".join(f"{k} objective {v['objective']:.4g} m²" for k, v in fits.items())
+                      + f" -> kept {result.model_selection['chosen']} (recorded in material.json; simulate and "
+                      "animate use it)")
     if result.at_bound():
         console.print(f"[yellow]warning: {', '.join(result.at_bound())} ended on the search bound: the simulation "
                       "cannot reproduce this motion (model error, e.g. a too coarse proxy; docs/physics.md)[/yellow]")

@@ -45,6 +45,10 @@ class Material:
         bend_stiffness: κb [N·m], flexural rigidity D of the shell.
         poisson: ν [-], membrane Poisson ratio, in [0, 0.5).
         name: free text.
+        integrator: the time integrator the material was fitted with ("euler" or "bdf2";
+            ``fit-physics`` records the one it selected). A fitted material is the best one for
+            the simulation model it was fitted in, so :func:`simulate` (and everything built on
+            it: ``simulate``, ``animate``) uses this integrator unless its settings are given.
     """
 
     density: float = 0.131
@@ -54,6 +58,7 @@ class Material:
     )
     poisson: float = CODIM_BASE_POISSON
     name: str = "codim-ipc-base"
+    integrator: str = "euler"
 
     UNITS = {
         "density": "kg/m^2",
@@ -69,6 +74,8 @@ class Material:
                 raise PhysavatarError(None, f"material {key} must be a positive number, got {value}")
         if not (0.0 <= self.poisson < 0.5):
             raise PhysavatarError(None, f"material poisson must be in [0, 0.5), got {self.poisson}")
+        if self.integrator not in ("euler", "bdf2"):
+            raise PhysavatarError(None, f"material integrator must be 'euler' or 'bdf2', got {self.integrator!r}")
 
     # -- derived quantities ------------------------------------------------------------------
 
@@ -165,15 +172,20 @@ class Material:
 
     @classmethod
     def load(cls, path: str | Path) -> "Material":
+        """A material.json: the simulator's own format, or fit-physics' (``{"material": {...}, ...}``)."""
         path = Path(path)
         try:
             data = json.loads(path.read_text())
         except (OSError, ValueError) as err:
             raise PhysavatarError(path, f"cannot read material json ({err})") from err
+        if isinstance(data, dict) and isinstance(data.get("material"), dict):
+            data = data["material"]  # fit-physics' material.json: {"material": {...}, "ratios": ..., ...}
+        if not isinstance(data, dict):
+            raise PhysavatarError(path, "not a material (expected a JSON object)")
         try:
             return cls.from_dict(data)
-        except (PhysavatarError, TypeError) as err:
-            raise PhysavatarError(path, str(err)) from err
+        except (PhysavatarError, TypeError, ValueError) as err:
+            raise PhysavatarError(path, f"not a material ({err})") from None
 
 
 def fit_isotropic_membrane(c11, c12, c22, c33, poisson=None) -> tuple[float, float]:

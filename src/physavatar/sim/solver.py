@@ -805,7 +805,8 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             (they stay at their initial positions).
         fps: frames per second of the sequence; substeps: implicit steps per frame
             (dt = 1 / (fps · substeps); body and targets are interpolated linearly in between).
-        settings: :class:`SimSettings` (its dt is replaced by the one above).
+        settings: :class:`SimSettings` (its dt is replaced by the one above); default: the
+            defaults with the material's integrator (the one it was fitted with).
         x0, v0: [N, 3] initial positions / velocities (default rest, zero).
         callback: called as ``callback(frame, x [N, 3], stats list)`` after each frame.
         progress: show a rich progress bar.
@@ -813,7 +814,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     Returns:
         [T, N, 3] garment positions per frame (frame 0 = initial state).
     """
-    settings = settings or SimSettings()
+    settings = settings or SimSettings(integrator=material.integrator)  # the model it was fitted in
     dt = 1.0 / (fps * substeps)
     settings = dataclasses.replace(settings, dt=dt)
     bodies = np.asarray(collider_sequence, dtype=np.float64)
