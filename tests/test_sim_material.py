@@ -40,3 +40,22 @@ def test_codim_ipc_mapping_and_json_round_trip(tmp_path):
     m.save(tmp_path / "m.json")
     assert Material.load(tmp_path / "m.json") == m
     assert m.scaled(2.0).stretch_ratio == pytest.approx(m.stretch_ratio)
+
+
+def test_load_reads_fit_physics_output_and_names_the_file_on_bad_input(tmp_path):
+    import json
+
+    from physavatar.errors import PhysavatarError
+
+    m = Material(density=0.2, stretch_stiffness=40.0, bend_stiffness=3e-5, poisson=0.2, integrator="bdf2")
+    (tmp_path / "fit.json").write_text(json.dumps({"material": m.to_dict(), "ratios": {}, "loss": 1.0}))
+    assert Material.load(tmp_path / "fit.json") == m  # fit-physics' material.json, integrator included
+    old = {k: v for k, v in m.to_dict().items() if k != "integrator"}  # written before the field existed
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    assert Material.load(tmp_path / "old.json").integrator == "euler"
+    for name, text in (("list.json", "[1, 2]"), ("keys.json", '{"density": 0.2, "stiff": 1}'),
+                       ("neg.json", '{"density": -1}'), ("rk4.json", '{"integrator": "rk4"}'), ("bad.json", "{")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(PhysavatarError) as e:
+            Material.load(tmp_path / name)
+        assert name in str(e.value)
