@@ -33,7 +33,11 @@ true material's distance is not ~0. κb/ρ's error there is *reported* against t
 is not a check: under model error the true material is not the fitting model's best one (in
 other_simulator the estimate predicts the held-out motion better than the true material), so
 that error measures the model gap rather than the estimator. The paper's estimator's κb/ρ is
-reported the same way. The exact estimator runs with the local-shape residuals
+reported the same way. The exact estimator fits as ``fit-physics`` does by default
+(``--fit-integrator auto``): in implicit Euler and in BDF2, keeping the lower objective
+(physics.fit_selecting_integrator); each material's held-out row is simulated in the model it
+was fitted in, and "true_bdf2" (the true material in BDF2) is added where an estimate kept BDF2.
+The exact estimator runs with the local-shape residuals
 (``--shape-weight``, default 3) and, as "exact_eq6", on the paper's L_sim alone; fd and the
 fd-vs-exact comparison use L_sim.
 
@@ -41,12 +45,14 @@ fd-vs-exact comparison use L_sim.
         [--settings noise,model_error,other_simulator] [--truth-substeps 2] [--other-substeps 4]
         [--other-integrator bdf2] [--other-membrane neohookean] [--other-damping 0]
         [--shape-weight 3] [--no-eq6-rows] [--proxy-vertices 0] [--fd-edge 0.10]
-        [--fd-materials silk,cotton,denim] [--fd-setting noise] [--fd-iterations 100] [--out JSON]
+        [--fd-materials silk,cotton,denim] [--fd-setting noise] [--fd-iterations 100]
+        [--fit-integrator auto|euler|bdf2] [--out JSON]
 
 --quick: dress edge 7 cm (299 vertices) for the accuracy runs (exact on all three materials),
 the fd-vs-exact comparison on all three materials in the issue's setting (noise) with a coarser
 dress (edge 10 cm, 152 vertices) so that the paper's 100 fd iterations finish; a 12-frame window, 24 held-out
-frames (~1-2 h on the 2 shared cores, both settings). Without --quick: edge 5 cm, the paper's 24-frame window, fd on all three (hours).
+frames (~1 h on 2 idle cores, three settings; ``--fd-materials ''`` runs the accuracy part alone,
+``--settings ''`` the fd-vs-exact part alone, e.g. side by side into two ``--out`` files). Without --quick: edge 5 cm, the paper's 24-frame window, fd on all three (hours).
 """
 
 from __future__ import annotations
