@@ -73,8 +73,8 @@ from physavatar.body import BodyModel, builtin_motion, linear_blend_skinning
 from physavatar.garment import attachment_positions, garment_skinning_weights, make_garment
 from physavatar.metrics import chamfer_distance, sample_surface
 from physavatar.sim import PRESETS, SimSettings
-from physavatar.stages.physics import (SHAPE_WEIGHT, PhysicsData, far_material, fit_exact, fit_fd, fit_residuals,
-                                       fit_selecting_integrator, on_proxy, rollout, trajectory_loss)
+from physavatar.stages.physics import (SHAPE_WEIGHT, PhysicsData, far_material, fit_exact, fit_fd, fit_material,
+                                       fit_residuals, on_proxy, rollout, trajectory_loss)
 from physavatar.stages.proxy import GarmentProxy, make_proxy
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -295,12 +295,11 @@ def main():
                       f"t {row['wall_time_s']:.0f} s", flush=True)
         return log
 
-    def exact_fit(data, start, callback, shape_weight):
-        if args.fit_integrator == "auto":
-            return fit_selecting_integrator(data, start, fit_settings, args.exact_iterations, callback=callback,
-                                            shape_weight=shape_weight)
-        return fit_exact(data, start, dataclasses.replace(fit_settings, integrator=args.fit_integrator),
-                         iterations=args.exact_iterations, callback=callback, shape_weight=shape_weight)
+    def exact_fit(data, start, callback, shape_weight):  # as fit-physics does (--integrator)
+        auto = args.fit_integrator == "auto"
+        return fit_material(data, start, "exact", args.exact_iterations, callback=callback, shape_weight=shape_weight,
+                            settings=dataclasses.replace(fit_settings, integrator="euler" if auto else args.fit_integrator),
+                            select_integrator=auto)
 
     def prepare(c, true, mi, setting):
         t0 = time.perf_counter()

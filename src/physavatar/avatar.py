@@ -32,11 +32,6 @@ from .sim import Material
 AVATAR_VERSION = 1
 
 
-def load_material(path: str | Path) -> Material:
-    """A Material from a material.json: the simulator's own format, or fit-physics' (``{"material": {...}}``)."""
-    return Material.load(path)
-
-
 @dataclass
 class Avatar:
     root: Path
@@ -84,7 +79,7 @@ class Avatar:
 
             tex = srgb_to_linear(read_png(root / "texture.png")[..., :3].astype(np.float32) / 255.0)
         return Avatar(root, meta, template, W, [str(b) for b in z["bone_names"]], z["rest_rotations"],
-                      z["rest_translation"], load_material(root / "material.json"), tex,
+                      z["rest_translation"], Material.load(root / "material.json"), tex,
                       (root / "light.json") if (root / "light.json").exists() else None)
 
 
@@ -119,7 +114,7 @@ def build_avatar(capture: str | Path | Capture, out: str | Path, *, material: st
     elif isinstance(material, str) and material in PRESETS:
         mat = PRESETS[material]
     else:
-        mat = load_material(material)
+        mat = Material.load(material)
     mat.save(out / "material.json")
 
     # Skinning weights of the template's body part, transferred from Anny posed at frame 1.

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..avatar import Avatar, load_material
+from ..avatar import Avatar
 from ..body import Motion, linear_blend_skinning
 from ..capture import load_capture
 from ..errors import PhysavatarError
@@ -153,7 +153,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
 
 def _reference_materials(gt_root: Path, seed: int) -> list[tuple[str, Material]]:
     true_path = gt_root / "material.json"
-    return ([("true material", load_material(true_path))] if true_path.exists() else []) + \
+    return ([("true material", Material.load(true_path))] if true_path.exists() else []) + \
         [("random material", random_material(seed))]
 
 

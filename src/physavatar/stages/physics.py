@@ -886,8 +886,8 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
 
     The fitted material is the best one *for the simulation model it was fitted in* (time
     integrator and step): under model error the models prefer different materials, and the one
-    with the lower objective on the fitted window also predicted a held-out motion better in
-    every case measured (docs/physics.md, "Ninth session"). Implicit Euler at one step per frame
+    with the lower objective on the fitted window also predicted a held-out motion better in 8
+    of the 9 benchmark cases (docs/physics.md, "Which simulation model"). Implicit Euler at one step per frame
     (the paper's) damps the motion numerically; a ground truth from a less damped simulator
     (or real cloth) is fitted much better by BDF2 at the same cost per step, while data made by
     implicit Euler itself keep implicit Euler. The BDF2 fit starts from the implicit-Euler
@@ -897,12 +897,11 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
     """
     settings = settings or fit_settings()
     fits = {}
-    offset = 0
     t0 = time.perf_counter()
-    sims = 0
-    history = []
+    history = []  # both fits' rows, numbered, timed and counted on from the first fit's
     for integrator in ("euler", "bdf2"):
-        def tagged(row, integrator=integrator, offset=offset, t_before=time.perf_counter() - t0, sims_before=sims):
+        def tagged(row, integrator=integrator, offset=len(history), t_before=time.perf_counter() - t0,
+                   sims_before=sum(r.simulations for r in fits.values())):
             row = dict(row, iteration=row["iteration"] + offset, integrator=integrator,
                        wall_time_s=row["wall_time_s"] + t_before, simulations=row["simulations"] + sims_before)
             history.append(row)
@@ -910,11 +909,8 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
                 callback(row)
 
         start = initial if integrator == "euler" else dataclasses.replace(fits["euler"].material, name=initial.name)
-        res = fit_exact(data, start, dataclasses.replace(settings, integrator=integrator), iterations, fit_density,
-                        substeps, callback=tagged, shape_weight=shape_weight)
-        fits[integrator] = res
-        offset = len(history)
-        sims += res.simulations
+        fits[integrator] = fit_exact(data, start, dataclasses.replace(settings, integrator=integrator), iterations,
+                                     fit_density, substeps, callback=tagged, shape_weight=shape_weight)
     chosen = min(fits, key=lambda k: fits[k].objective)
     best = fits[chosen]
     best.model_selection = {
@@ -927,7 +923,7 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
     }
     best.history = history
     best.iterations = len(history) - 2
-    best.simulations = sims
+    best.simulations = sum(r.simulations for r in fits.values())
     best.wall_time = time.perf_counter() - t0
     best.initial = initial
     return best
@@ -952,12 +948,10 @@ def fit_material(data: PhysicsData, initial: Material | None = None, gradient: s
     if gradient == "fd":
         return fit_fd(data, initial, settings, iterations or PAPER_ITERATIONS, fit_density, workers, substeps, callback,
                       shape_weight=shape_weight)
-    if gradient == "exact" and select_integrator:
-        return fit_selecting_integrator(data, initial, settings, iterations or 15, fit_density, substeps,
-                                        callback=callback, shape_weight=shape_weight)
     if gradient == "exact":
-        return fit_exact(data, initial, settings, iterations or 15, fit_density, substeps, callback=callback,
-                         shape_weight=shape_weight)
+        fit = fit_selecting_integrator if select_integrator else fit_exact
+        return fit(data, initial, settings, iterations or 15, fit_density, substeps, callback=callback,
+                   shape_weight=shape_weight)
     raise PhysavatarError(None, f"gradient must be 'fd' or 'exact', got {gradient!r}")
 
 
