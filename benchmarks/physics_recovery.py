@@ -20,7 +20,7 @@ docs/physics.md "Coarse proxy"). The "true" row simulates the true material in t
 model. The fit starts from the clean rest state and knows ν. Friction is off (docs/physics.md:
 lagged friction makes L_sim rough at the 1 % scale).
 
-Three settings (``--settings noise,model_error,other_simulator``):
+Four settings (``--settings noise,model_error,other_simulator,foreign``):
 - "noise": the issue's literal setup (the fitting simulator's own ground truth + noise); the
   κb/ρ-within-10 % checks are made here.
 - "model_error": the ground truth above (``--truth-substeps`` implicit steps per frame).
@@ -28,7 +28,13 @@ Three settings (``--settings noise,model_error,other_simulator``):
   unseen simulator the issue will be checked with: BDF2 (``--other-integrator``) at 4 steps per
   frame (``--other-substeps``) with the neo-Hookean membrane (``--other-membrane``) instead of
   implicit Euler at 1 with StVK; optional mass damping (``--other-damping``).
-The held-out "within 10 % of true" checks are made in the two model-error settings, where the
+- "foreign": a ground truth from code that shares nothing with physavatar.sim
+  (benchmarks/foreign_cloth.py): an explicit mass-spring cloth (edge springs, so ν = 1/3 whatever
+  the fabric's; Bridson et al.'s hinge bending; air damping and spring dashpots; closest-point
+  collision with friction; symplectic Euler at tens of steps per frame), with the same fabric
+  parameters. The "true" rows simulate the preset in physavatar.sim, so they measure how far the
+  two simulators are apart as much as the estimator.
+The held-out "within 10 % of true" checks are made in the model-error settings, where the
 true material's distance is not ~0. κb/ρ's error there is *reported* against the same 10 % but
 is not a check: under model error the true material is not the fitting model's best one (in
 other_simulator the estimate predicts the held-out motion better than the true material), so
@@ -42,8 +48,9 @@ The exact estimator runs with the local-shape residuals
 fd-vs-exact comparison use L_sim.
 
     python benchmarks/physics_recovery.py [--quick] [--edge 0.07] [--window 12]
-        [--settings noise,model_error,other_simulator] [--truth-substeps 2] [--other-substeps 4]
+        [--settings noise,model_error,other_simulator,foreign] [--truth-substeps 2] [--other-substeps 4]
         [--other-integrator bdf2] [--other-membrane neohookean] [--other-damping 0]
+        [--foreign-alpha 0.2] [--foreign-beta 2e-4] [--foreign-friction 0.2]
         [--shape-weight 3] [--no-eq6-rows] [--proxy-vertices 0] [--fd-edge 0.10]
         [--fd-materials silk,cotton,denim] [--fd-setting noise] [--fd-iterations 100]
         [--fit-integrator auto|euler|bdf2] [--out JSON]
@@ -79,6 +86,7 @@ from physavatar.stages.proxy import GarmentProxy, make_proxy
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import cpu_name  # noqa: E402
+from foreign_cloth import ForeignCloth, ForeignSettings  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results" / "physics_recovery.json"
 
@@ -143,10 +151,11 @@ def fit_row(res, true, noise_floor):
         "fitted": {"stretch_stiffness": m.stretch_stiffness, "bend_stiffness": m.bend_stiffness,
                    "density_prior": m.density},
         "integrator": m.integrator,
+        "bdf2_blend": m.bdf2_blend if m.integrator == "bdf2" else None,
         "model_selection": None if res.model_selection is None else {
             "chosen": res.model_selection["chosen"],
-            **{f"{k}_{q}": v[q] for k, v in res.model_selection["fits"].items()
-               for q in ("objective", "loss", "bend_ratio", "stretch_ratio")}},
+            **{f"{k}_{q}": v.get(q) for k, v in res.model_selection["fits"].items()
+               for q in ("objective", "loss", "bend_ratio", "stretch_ratio", "bdf2_blend")}},
         "loss_history": [r["loss"] for r in res.history],
         "time_history_s": [r["wall_time_s"] for r in res.history],
     }
@@ -177,6 +186,13 @@ class Case:
         return (rollout(self.train, material, settings, substeps=substeps).positions,
                 rollout(self.held, material, settings, substeps=substeps).positions)
 
+    def foreign_truth(self, material, settings: ForeignSettings):
+        """Ground truth by the independent simulator (foreign_cloth.py) on the fine dress."""
+        sim = ForeignCloth(self.g.vertices, self.g.faces, self.train.boundary, material.density,
+                           material.stretch_stiffness, material.bend_stiffness, settings)
+        return tuple(sim.simulate(d.rest, d.boundary_targets, d.collider, d.collider_faces, d.fps)[0]
+                     for d in (self.train, self.held))
+
     def fit_data(self, gt_train):
         """What is fitted: the fine ground truth mapped onto the proxy (noise is added after)."""
         return on_proxy(dataclasses.replace(self.train, reference=gt_train, initial=gt_train[0]), self.proxy)
@@ -206,6 +222,10 @@ SETTINGS = {
     # a ground truth from a differently built simulator: another integrator, step and membrane law
     "other_simulator": "ground truth by {oi} at {ok} steps per frame with the {om} membrane{od} (Newton tol 1e-6) "
                        "+ 2 mm noise; fits implicit Euler, 1 step per frame, StVK",
+    # a ground truth from code that shares nothing with physavatar.sim (benchmarks/foreign_cloth.py)
+    "foreign": "ground truth by an independent explicit mass-spring simulator (benchmarks/foreign_cloth.py: "
+               "edge springs, Bridson hinge bending, mass damping {fa} 1/s, spring dashpots {fb} s, "
+               "closest-point collision with friction {fm}, symplectic Euler below its stability limit) + 2 mm noise",
 }
 
 
@@ -220,9 +240,10 @@ def main():
     ap.add_argument("--window", type=int, default=None, help="fitted frames")
     ap.add_argument("--heldout-frames", type=int, default=24)
     ap.add_argument("--materials", default="silk,cotton,denim")
-    ap.add_argument("--settings", default="noise,model_error,other_simulator",
+    ap.add_argument("--settings", default="noise,model_error,other_simulator,foreign",
                     help="comma-separated: noise (the fitting simulator's own ground truth + noise: the issue's "
-                         "literal setup), model_error (ground truth at --truth-substeps), other_simulator (--other-*)")
+                         "literal setup), model_error (ground truth at --truth-substeps), other_simulator (--other-*), "
+                         "foreign (the independent simulator of foreign_cloth.py, --foreign-*)")
     ap.add_argument("--fd-materials", default=None, help="comma-separated presets fitted with fd too ('' = none)")
     ap.add_argument("--fd-setting", default="noise",
                     help="the ground truth of the fd-vs-exact runs (default: the issue's literal setup)")
@@ -242,6 +263,12 @@ def main():
                     help="membrane model of the other_simulator ground truth (the fits use StVK)")
     ap.add_argument("--other-damping", type=float, default=0.0,
                     help="mass damping alpha [1/s] of the other_simulator ground truth (the fits use none)")
+    ap.add_argument("--foreign-alpha", type=float, default=ForeignSettings.alpha,
+                    help="mass (air) damping [1/s] of the foreign ground truth")
+    ap.add_argument("--foreign-beta", type=float, default=ForeignSettings.beta,
+                    help="spring dashpot coefficient [s] of the foreign ground truth (c = beta k)")
+    ap.add_argument("--foreign-friction", type=float, default=ForeignSettings.friction,
+                    help="body friction of the foreign ground truth")
     ap.add_argument("--noise-mm", type=float, default=2.0)
     ap.add_argument("--shape-weight", type=float, default=SHAPE_WEIGHT,
                     help="the exact estimator's local-shape residual weight (fit_residuals); the 'exact_eq6' rows and "
@@ -260,7 +287,9 @@ def main():
     unknown = set(settings_run + [args.fd_setting]) - set(SETTINGS)
     if unknown:
         ap.error(f"unknown settings {sorted(unknown)}; choose from {sorted(SETTINGS)}")
-    truth_substeps = {"noise": 1, "model_error": args.truth_substeps, "other_simulator": args.other_substeps}
+    truth_substeps = {"noise": 1, "model_error": args.truth_substeps, "other_simulator": args.other_substeps,
+                      "foreign": None}
+    foreign_settings = ForeignSettings(alpha=args.foreign_alpha, beta=args.foreign_beta, friction=args.foreign_friction)
     fd_materials = [m for m in (args.fd_materials if args.fd_materials is not None
                                 else args.materials).split(",") if m]
     # the ∞-norm stopping rule these tolerances were chosen with (stages/physics.fit_settings)
@@ -292,7 +321,8 @@ def main():
             if row["iteration"] % every == 0:
                 print(f"  [{name} {method}] it {row['iteration']:3d} loss {row['loss']:.5g} "
                       f"ks {row['stretch_stiffness']:.4g} kb {row['bend_stiffness']:.4g} "
-                      f"t {row['wall_time_s']:.0f} s", flush=True)
+                      + (f"gamma {row['bdf2_blend']:.3f} " if "bdf2_blend" in row else "")
+                      + f"t {row['wall_time_s']:.0f} s", flush=True)
         return log
 
     def exact_fit(data, start, callback, shape_weight):  # as fit-physics does (--integrator)
@@ -303,7 +333,10 @@ def main():
 
     def prepare(c, true, mi, setting):
         t0 = time.perf_counter()
-        gt_train, gt_held = c.truth(true, truth_settings[setting], truth_substeps[setting])
+        if setting == "foreign":
+            gt_train, gt_held = c.foreign_truth(true, foreign_settings)
+        else:
+            gt_train, gt_held = c.truth(true, truth_settings[setting], truth_substeps[setting])
         print(f"[{true.name} @ {c.edge} m, {setting}] ground truth simulated in {time.perf_counter() - t0:.0f} s",
               flush=True)
         # the fit starts from the clean rest state (the template), not the noisy frame 0
@@ -447,7 +480,8 @@ def main():
             "noise_mm": args.noise_mm, "initial": far_material().to_dict(), "materials": materials,
             "settings": {s: SETTINGS[s].format(
                 k=args.truth_substeps, ok=args.other_substeps, oi=args.other_integrator, om=args.other_membrane,
-                od=f", mass damping {args.other_damping} 1/s" if args.other_damping else "") for s in settings_run},
+                od=f", mass damping {args.other_damping} 1/s" if args.other_damping else "",
+                fa=args.foreign_alpha, fb=args.foreign_beta, fm=args.foreign_friction) for s in settings_run},
             "fd_materials": fd_materials, "fd_setting": args.fd_setting,
             "fd_iterations": args.fd_iterations, "exact_max_iterations": args.exact_iterations,
             "workers": args.workers, "fit_settings": {"friction": 0.0, "newton_tol": 1e-5, "dt": 0.04, "substeps": 1,
@@ -456,7 +490,10 @@ def main():
             "truth_settings": {s: {"friction": 0.0, "newton_tol": 1e-6, "dt": 0.04 / truth_substeps[s],
                                    "substeps": truth_substeps[s], "integrator": truth_settings[s].integrator,
                                    "membrane_model": truth_settings[s].membrane_model,
-                                   "damping_mass": truth_settings[s].damping_mass} for s in settings_run},
+                                   "damping_mass": truth_settings[s].damping_mass}
+                               if s != "foreign" else {"simulator": "benchmarks/foreign_cloth.py",
+                                                       **dataclasses.asdict(foreign_settings)}
+                               for s in settings_run},
             "model_error": (f"model_error: ground truth simulated with {args.truth_substeps} implicit steps per frame "
                             "and a 10x tighter Newton tolerance (1e-6 m/s); the fits and the held-out rows (the "
                             "'true' row too) take 1 step per frame at 1e-5 m/s"

@@ -682,9 +682,10 @@ def fit_physics(
     newton_tol: float = typer.Option(1e-4, "--newton-tol", help="Newton tolerance of the fitting simulations [m/s]"),
     substeps: int = typer.Option(1, help="implicit steps per frame of the fitting simulations (more: less "
                                          "time-discretisation error, proportionally slower)"),
-    integrator: str = typer.Option("auto", help="time integrator of the fitting simulations: auto (exact: fit with "
-                                                "euler and bdf2, keep the better; fd: euler), euler or bdf2. The "
-                                                "material records it and simulate/animate use it (docs/physics.md)"),
+    integrator: str = typer.Option("auto", help="time integrator of the fitting simulations: auto (exact: fit in "
+                                                "euler, then in bdf2 with its blend towards euler fitted too, keep "
+                                                "the better; fd: euler), euler or bdf2. The material records it and "
+                                                "simulate/animate use it (docs/physics.md)"),
     max_vertices: int = typer.Option(1200, "--max-vertices",
                                      help="fit on a coarse proxy of at most this many vertices when the garment has "
                                           "more (0 = always the full garment; docs/physics.md)"),
@@ -758,7 +759,8 @@ def fit_physics(
         task = bar.add_task("fit", total=(n_iter + (1 if gradient == "exact" else 0)) * (2 if select else 1))
 
         def report(row):
-            params = "  ".join(f"{k}={row[k]:.4g}" for k in ("density", "stretch_stiffness", "bend_stiffness") if k in row)
+            params = "  ".join(f"{k}={row[k]:.4g}" for k in ("density", "stretch_stiffness", "bend_stiffness",
+                                                              "bdf2_blend") if k in row)
             line = f"it {row['iteration']:3d}  loss {row['loss']:.4g} m² ({row['rms_mm']:.2f} mm)  {params}"
             if "integrator" in row:
                 line += f"  [{row['integrator']}]"
@@ -785,10 +787,18 @@ def fit_physics(
     for key, label in (("stretch_ratio", "ks/rho [m²/s²]"), ("bend_ratio", "kb/rho [m³/s²]")):
         iv = ci.get(key)
         t.add_row(label, f"{getattr(m, key):.4g}", "-" if not iv else f"[{iv[0]:.4g}, {iv[1]:.4g}]")
+    if m.integrator == "bdf2":
+        sd = result.log_std.get("bdf2_blend")
+        t.add_row("bdf2 blend γ (0 euler, 1 bdf2)", f"{m.bdf2_blend:.3g}",
+                  "fixed" if sd is None else f"± {1.96 * sd:.2g}")
     console.print(t)
     if result.model_selection:
         fits = result.model_selection["fits"]
-        console.print("time integrator: " + ", ".join(f"{k} objective {v['objective']:.4g} m²" for k, v in fits.items())
+        def label(k, v):
+            return k if v.get("bdf2_blend") is None else f"{k} (γ {v['bdf2_blend']:.3g})"
+
+        console.print("time integrator: " + ", ".join(f"{label(k, v)} objective {v['objective']:.4g} m²"
+                                                      for k, v in fits.items())
                       + f" -> kept {result.model_selection['chosen']} (recorded in material.json; simulate and "
                       "animate use it)")
     if result.at_bound():

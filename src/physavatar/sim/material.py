@@ -49,6 +49,10 @@ class Material:
             ``fit-physics`` records the one it selected). A fitted material is the best one for
             the simulation model it was fitted in, so :func:`simulate` (and everything built on
             it: ``simulate``, ``animate``) uses this integrator unless its settings are given.
+        bdf2_blend: γ ∈ [0, 1], with integrator "bdf2": the weight of the step's history
+            (solver ``step_base``): 1 is BDF2, 0 implicit Euler, in between a first-order blend
+            whose numerical damping lies between theirs. ``fit-physics`` fits it with the
+            stiffnesses; 1 for presets and older files.
     """
 
     density: float = 0.131
@@ -59,12 +63,14 @@ class Material:
     poisson: float = CODIM_BASE_POISSON
     name: str = "codim-ipc-base"
     integrator: str = "euler"
+    bdf2_blend: float = 1.0
 
     UNITS = {
         "density": "kg/m^2",
         "stretch_stiffness": "N/m",
         "bend_stiffness": "N*m",
         "poisson": "1",
+        "bdf2_blend": "1",
     }
 
     def __post_init__(self):
@@ -76,6 +82,8 @@ class Material:
             raise PhysavatarError(None, f"material poisson must be in [0, 0.5), got {self.poisson}")
         if self.integrator not in ("euler", "bdf2"):
             raise PhysavatarError(None, f"material integrator must be 'euler' or 'bdf2', got {self.integrator!r}")
+        if not (np.isfinite(self.bdf2_blend) and 0.0 <= self.bdf2_blend <= 1.0):
+            raise PhysavatarError(None, f"material bdf2_blend must be in [0, 1], got {self.bdf2_blend}")
 
     # -- derived quantities ------------------------------------------------------------------
 

@@ -618,7 +618,9 @@ class ClothSim:
         """(x̂, v̂, ĥ) of a step from (x, v): the inertial prediction is x̂ + ĥ v̂ and the step's
         velocity (x⁺ − x̂) / ĥ. Implicit Euler: (x, v, h). BDF2: (4/3 x − 1/3 xₚ,
         4/3 v − 1/3 vₚ, 2h/3) with (xₚ, vₚ) = ``history``, or the last step's input when (x, v)
-        is its output; with neither, an implicit-Euler step (x, v, h)."""
+        is its output; with neither, an implicit-Euler step (x, v, h). The material's
+        ``bdf2_blend`` γ < 1 weighs the history less: ((1 + γ/3) x − γ/3 xₚ, likewise v,
+        (1 − γ/3) h), a first-order blend between implicit Euler (γ = 0) and BDF2 (γ = 1)."""
         h = self.settings.dt
         if self.settings.integrator != "bdf2":
             return x, v, h
@@ -628,7 +630,8 @@ class ClothSim:
                 return x, v, h
             history = last[2:]
         xp, vp = (np.asarray(a, dtype=np.float64) for a in history)
-        return (4.0 * x - xp) / 3.0, (4.0 * v - vp) / 3.0, 2.0 * h / 3.0
+        g = self.material.bdf2_blend / 3.0  # γ/3: 1/3 is BDF2, 0 implicit Euler (Material.bdf2_blend)
+        return (1.0 + g) * x - g * xp, (1.0 + g) * v - g * vp, (1.0 - g) * h
 
     def _set_implicit_step(self, hh):
         """Make every h-dependent term use the implicit step ĥ (h, or BDF2's 2h/3)."""

@@ -46,7 +46,10 @@ from ..sim import ClothSim, Material, SimSettings, preset
 from ..sim.material import CODIM_BASE_POISSON, CODIM_BASE_THICKNESS, CODIM_BASE_YOUNG
 
 PARAMETERS = ("density", "stretch_stiffness", "bend_stiffness")
-SYMBOLS = {"density": "rho", "stretch_stiffness": "ks", "bend_stiffness": "kb"}
+# The BDF2 blend γ (Material.bdf2_blend) is a parameter of the simulation model, fitted with the
+# stiffnesses in BDF2 (fit_exact(fit_blend=True)); unlike them it is optimised as is, in [0, 1].
+BLEND = "bdf2_blend"
+SYMBOLS = {"density": "rho", "stretch_stiffness": "ks", "bend_stiffness": "kb", BLEND: "gamma"}
 
 # -- the paper's hyper-parameters (App. A.3.3 and the official Codim-IPC driver), in our units --
 #
@@ -71,6 +74,9 @@ FIT_NEWTON_TOL = 1e-5
 # bound; the shape residuals have their minimum near the true κb. w = 3 measured in
 # docs/physics.md ("Local shape"); 0 is the paper's L_sim.
 SHAPE_WEIGHT = 3.0
+# Where the fit of the BDF2 blend γ starts (fit_selecting_integrator): half way between implicit
+# Euler (0) and BDF2 (1); the benchmark's objectives had their minimum inside in 4 of 6 cases.
+BLEND_START = 0.5
 
 
 def fit_settings(**changes) -> SimSettings:
@@ -253,7 +259,13 @@ class Rollout:
 
 
 def _with_log_params(material: Material, names, log_values) -> Material:
-    return dataclasses.replace(material, **{n: float(math.exp(v)) for n, v in zip(names, log_values)})
+    """``material`` with the parameters ``names`` set from θ (log values; the blend γ as is)."""
+    return dataclasses.replace(material, **{n: float(min(max(v, 0.0), 1.0) if n == BLEND else math.exp(v))
+                                            for n, v in zip(names, log_values)})
+
+
+def _theta(material: Material, names) -> np.ndarray:
+    return np.array([getattr(material, n) if n == BLEND else math.log(getattr(material, n)) for n in names])
 
 
 def _solve_exact(H: sp.csr_matrix, rhs: np.ndarray, preconditioners=(), rtol: float = 1e-10) -> np.ndarray:
@@ -318,9 +330,9 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
     settings = settings or SimSettings()
     h = 1.0 / (data.fps * substeps)
     names = tuple(parameters or ())
-    unknown = set(names) - set(PARAMETERS)
+    unknown = set(names) - set(PARAMETERS) - {BLEND}
     if unknown:
-        raise ValueError(f"unknown parameters {sorted(unknown)}; choose from {PARAMETERS}")
+        raise ValueError(f"unknown parameters {sorted(unknown)}; choose from {PARAMETERS + (BLEND,)}")
     want = bool(names)
     if want and settings.damping_stiffness > 0:
         raise ValueError("exact sensitivities do not cover stiffness-proportional damping (lagged K(x_t))")
@@ -335,6 +347,8 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
     S = np.zeros((3 * N, P))  # ∂x_t/∂log θ (flat, vertex-major)
     V = np.zeros((3 * N, P))
     bdf2 = settings.integrator == "bdf2"
+    gamma = material.bdf2_blend / 3.0
+    jb = names.index(BLEND) if BLEND in names else None
     history = None  # (x, v, S, V) at t−1 (BDF2)
     jac = np.zeros((T, N, 3, P)) if want else None
     bodies = data.collider
@@ -349,9 +363,14 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
                 b0 = (1 - w0) * bodies[f - 1] + w0 * bodies[f]
                 b1 = (1 - w1) * bodies[f - 1] + w1 * bodies[f]
             target = (1 - w1) * tg[f - 1] + w1 * tg[f] if len(data.boundary) else None
+            blend = None  # (∂ĥ/∂γ, x̂, v̂) of a BDF2 step, when γ is a parameter
             if bdf2 and history is not None:  # the base of the step and its sensitivities
                 xp, vp, Sp, Vp = history
-                SB, VB = (4.0 * S - Sp) / 3.0, (4.0 * V - Vp) / 3.0
+                SB, VB = (1.0 + gamma) * S - gamma * Sp, (1.0 + gamma) * V - gamma * Vp
+                if jb is not None:  # x̂ = (1 + γ/3) xₜ − γ/3 xₜ₋₁ moves with γ itself
+                    SB[:, jb] += (x - xp).ravel() / 3.0
+                    VB[:, jb] += (v - vp).ravel() / 3.0
+                    blend = (-h / 3.0, (1.0 + gamma) * x - gamma * xp, (1.0 + gamma) * v - gamma * vp)
                 history = (x, v, S, V)
                 x, v, st = sim.step(x, v, b0, b1, faces_b, target, history=(xp, vp))
             else:  # implicit Euler (BDF2's first step too)
@@ -363,16 +382,23 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
             if not np.all(np.isfinite(x)):
                 raise FloatingPointError("simulation produced non-finite positions")
             if want:
-                S, V = _step_sensitivity(sim, x, b1, SB, VB, names, sim.h_implicit)
+                S, V = _step_sensitivity(sim, x, b1, SB, VB, names, sim.h_implicit, blend)
         out[f] = x
         if want:
             jac[f] = S.reshape(N, 3, P)
     return Rollout(out, jac, iters, converged, time.perf_counter() - t0)
 
 
-def _step_sensitivity(sim: ClothSim, x_new, body_new, S, V, names, h):
+def _step_sensitivity(sim: ClothSim, x_new, body_new, S, V, names, h, blend=None):
     """Propagate (S, V) = ∂(x̂, v̂)/∂log θ of the step's base (xₜ, vₜ for implicit Euler) through
-    the step ``sim`` just took, ``h`` its implicit step ĥ (see :func:`rollout`)."""
+    the step ``sim`` just took, ``h`` its implicit step ĥ (see :func:`rollout`).
+
+    blend: (∂ĥ/∂γ, x̂ [N, 3], v̂ [N, 3]) when the BDF2 blend γ is a parameter (column ``BLEND``;
+    None on steps γ does not enter, e.g. the first). γ moves the base (already in S, V) and ĥ:
+    ∂∇E/∂ĥ of inertia M(x − x̂ − ĥv̂)/ĥ² is −M v̂/ĥ² − 2M(x − x̃)/ĥ³, of mass damping
+    αM(x − x̂)/ĥ it is −αM(x − x̂)/ĥ², of friction ∇_v D((X − X̂)/ĥ) it is −H_f (X − X̂)/ĥ over
+    the cloth (the body's base moves with ĥ so that its velocity does not change), and the new
+    velocity (x⁺ − x̂)/ĥ gains −(x⁺ − x̂) ∂ĥ/ĥ²."""
     N = sim.n
     X = x_new if body_new is None else np.vstack([x_new, body_new])
     lin = sim.linearization
@@ -401,6 +427,16 @@ def _step_sensitivity(sim: ClothSim, x_new, body_new, S, V, names, h):
     for j, name in enumerate(names):
         if name == "stretch_stiffness":
             g = sim.membrane.gradient(X)
+        elif name == BLEND:
+            g = np.zeros(3 * N)
+            if blend is not None:
+                dh, xb, vb = blend
+                d_in = -(m / h**2) * vb.ravel() - 2.0 * (m / h**3) * (x_new - sim.inertia.target[:N]).ravel()
+                if sim.settings.damping_mass > 0:
+                    d_in -= (sim.settings.damping_mass * m / h**2) * (x_new - xb).ravel()
+                if len(sim.friction.tangential):
+                    d_in -= Hf @ ((X[:N] - sim.friction.previous[:N]).ravel() / h)
+                g = dh * d_in
         elif name == "bend_stiffness":
             g = sim.bending.gradient(X)
         else:
@@ -409,7 +445,11 @@ def _step_sensitivity(sim: ClothSim, x_new, body_new, S, V, names, h):
     sol = _solve_exact(H, rhs, _projected_preconditioners(sim, H.shape[0]))
     S_new = np.zeros_like(S)
     S_new[fidx] = sol[order]
-    return S_new, (S_new - S) / h
+    V_new = (S_new - S) / h
+    if blend is not None and BLEND in names:
+        dh, xb, _ = blend
+        V_new[:, names.index(BLEND)] -= (x_new - xb).ravel() * (dh / h**2)
+    return S_new, V_new
 
 
 def _projected_preconditioners(sim: ClothSim, n: int):
@@ -526,8 +566,8 @@ class FitResult:
     def at_bound(self) -> list:
         """Fitted parameters that ended on their search bound (:data:`BOUNDS`): the data pushed
         them out of the physical range — usually model error (e.g. a coarse proxy), not a fit."""
-        return [n for n in self.fitted
-                if min(abs(math.log(getattr(self.material, n) / b)) for b in BOUNDS[n]) < 1e-6]
+        return [n for n in self.fitted if n != BLEND  # γ = 0 or 1 is a model, not a failure
+                and min(abs(math.log(getattr(self.material, n) / b)) for b in BOUNDS[n]) < 1e-6]
 
     def to_json(self) -> dict:
         m = self.material
@@ -569,22 +609,27 @@ def ratio_intervals(jacobian: np.ndarray, residual: np.ndarray, names, material:
         jacobian: [M, P] ∂r/∂log θ (columns in ``names``); residual: [M].
 
     Only the ratios matter, and ∂r/∂log κ at fixed ρ is ∂r/∂log(κ/ρ), so the stiffness columns
-    are the Jacobian of the ratios. σ² = ‖r‖²/(M − 2), Cov = σ² (JᵀJ)⁻¹ in log space.
-    Returns (intervals {name: [lo, hi]}, log std {name: σ}).
+    are the Jacobian of the ratios. σ² = ‖r‖²/(M − P), Cov = σ² (JᵀJ)⁻¹ in log space, over the
+    stiffness columns and the blend γ's when it was fitted (the ratios' intervals then include
+    what γ's uncertainty does to them); ρ's column is left out (only the ratios are identifiable).
+    Returns (intervals {name: [lo, hi]}, log std {name: σ}; γ's std as "bdf2_blend").
     """
     cols = [names.index(n) for n in ("stretch_stiffness", "bend_stiffness") if n in names]
     keys = {"stretch_stiffness": "stretch_ratio", "bend_stiffness": "bend_ratio"}
     if not cols or jacobian is None:
         return {}, {}
-    J = jacobian[:, cols]
+    extra = [names.index(BLEND)] if BLEND in names else []
+    J = jacobian[:, cols + extra]
     M = len(residual)
-    sigma2 = float(residual @ residual) / max(M - len(cols), 1)
+    sigma2 = float(residual @ residual) / max(M - J.shape[1], 1)
     JtJ = J.T @ J
     try:
         cov = sigma2 * np.linalg.inv(JtJ)
     except np.linalg.LinAlgError:
-        cov = np.full((len(cols), len(cols)), np.inf)
+        cov = np.full((J.shape[1], J.shape[1]), np.inf)
     intervals, stds = {}, {}
+    if extra:  # γ is fitted as is: its std is absolute
+        stds[BLEND] = float(math.sqrt(max(cov[-1, -1], 0.0))) if np.isfinite(cov[-1, -1]) else math.inf
     for i, c in enumerate(cols):
         name = names[c]
         std = float(math.sqrt(max(cov[i, i], 0.0))) if np.isfinite(cov[i, i]) else math.inf
@@ -666,8 +711,9 @@ def _noop(_):
 
 
 def _bounds(names):
-    lo = np.array([math.log(BOUNDS[n][0]) for n in names])
-    hi = np.array([math.log(BOUNDS[n][1]) for n in names])
+    """Bounds of θ: log :data:`BOUNDS`, and [0, 1] for the blend γ."""
+    lo = np.array([0.0 if n == BLEND else math.log(BOUNDS[n][0]) for n in names])
+    hi = np.array([1.0 if n == BLEND else math.log(BOUNDS[n][1]) for n in names])
     return lo, hi
 
 
@@ -742,7 +788,7 @@ def _history_row(it, loss, data, names, theta, t_start, sims, objective=None):
     row = {"iteration": it, "loss": float(loss), "rms_mm": rms_mm(loss, data),
            "objective": float(loss if objective is None else objective)}
     for n, v in zip(names, theta):
-        row[n] = float(math.exp(v))
+        row[n] = float(v if n == BLEND else math.exp(v))
     row["wall_time_s"] = time.perf_counter() - t_start
     row["simulations"] = sims
     return row
@@ -795,7 +841,7 @@ def _lm_step(J, res, theta, lo, hi, lam, radius):
 def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None = None,
               iterations: int = 15, fit_density: bool = False, substeps: int = 1,
               tolerance: float = 1e-4, callback: Callable | None = None, max_rejections: int = 4,
-              radius: float = 1.0, shape_weight: float = 0.0) -> FitResult:
+              radius: float = 1.0, shape_weight: float = 0.0, fit_blend: bool = False) -> FitResult:
     """Levenberg–Marquardt on the trajectory residuals with exact Jacobians (:func:`rollout`).
 
     Each iteration simulates once with sensitivities (J [M, P], P = 2 or 3), solves
@@ -814,11 +860,18 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
     ``shape_weight`` w > 0 adds the local-shape residuals w·L(x_t − x̂_t) to the objective
     (:func:`fit_residuals`); the reported ``loss`` stays L_sim (Eq. 6), ``objective`` is what
     was minimised (and the intervals are its curvature's).
+
+    ``fit_blend`` (BDF2 only) fits the blend γ (Material.bdf2_blend, from the initial material's)
+    with the stiffnesses: how much numerical damping the model has, from the data.
     """
     settings = settings or fit_settings()
     names = PARAMETERS if fit_density else PARAMETERS[1:]
+    if fit_blend:
+        if settings.integrator != "bdf2":
+            raise ValueError("fit_blend: the blend γ is a parameter of BDF2 (settings.integrator='bdf2')")
+        names = names + (BLEND,)
     lo, hi = _bounds(names)
-    theta = np.clip(np.array([math.log(getattr(initial, n)) for n in names]), lo, hi)
+    theta = np.clip(_theta(initial, names), lo, hi)
     t_start = time.perf_counter()
     sims = 0
     history = []
@@ -882,18 +935,21 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
 def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: SimSettings | None = None,
                              iterations: int = 15, fit_density: bool = False, substeps: int = 1,
                              callback: Callable | None = None, shape_weight: float = SHAPE_WEIGHT) -> FitResult:
-    """Fit in implicit Euler and in BDF2, keep the model that reproduces the motion better.
+    """Fit in implicit Euler, then in BDF2 with its blend γ fitted too; keep the lower objective.
 
     The fitted material is the best one *for the simulation model it was fitted in* (time
-    integrator and step): under model error the models prefer different materials, and the one
-    with the lower objective on the fitted window also predicted a held-out motion better in 8
-    of the 9 benchmark cases (docs/physics.md, "Which simulation model"). Implicit Euler at one step per frame
-    (the paper's) damps the motion numerically; a ground truth from a less damped simulator
-    (or real cloth) is fitted much better by BDF2 at the same cost per step, while data made by
-    implicit Euler itself keep implicit Euler. The BDF2 fit starts from the implicit-Euler
-    estimate. The result is the chosen fit, its material records the integrator (which
-    :func:`physavatar.sim.simulate` then uses), ``model_selection`` both fits; simulations and
-    wall time count both.
+    integrator and step): under model error the models prefer different materials. Implicit
+    Euler at one step per frame (the paper's) damps the motion numerically; a ground truth from
+    a less damped simulator (or real cloth) is fitted much better by BDF2 at the same cost per
+    step. Choosing between the two by the fitted window's objective picked the model that
+    predicted a held-out motion worse in 3 of 12 benchmark cases (docs/physics.md, "Which
+    simulation model"): in each the objective was lowest between them. So the second fit
+    makes the choice continuous: (κs, κb, γ) in the blend of the two (Material.bdf2_blend; γ = 0
+    is implicit Euler, 1 BDF2), from the implicit-Euler estimate and γ = :data:`BLEND_START`.
+    The first fit stays: it is the paper's model, a good start, and a fallback should the
+    second end in a worse local minimum. The result is the chosen fit; its material records
+    the integrator and γ (which :func:`physavatar.sim.simulate` then uses), ``model_selection``
+    both fits; simulations and wall time count both.
     """
     settings = settings or fit_settings()
     fits = {}
@@ -908,9 +964,11 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
             if callback is not None:
                 callback(row)
 
-        start = initial if integrator == "euler" else dataclasses.replace(fits["euler"].material, name=initial.name)
+        start = initial if integrator == "euler" else dataclasses.replace(
+            fits["euler"].material, name=initial.name, bdf2_blend=BLEND_START)
         fits[integrator] = fit_exact(data, start, dataclasses.replace(settings, integrator=integrator), iterations,
-                                     fit_density, substeps, callback=tagged, shape_weight=shape_weight)
+                                     fit_density, substeps, callback=tagged, shape_weight=shape_weight,
+                                     fit_blend=integrator == "bdf2")
     chosen = min(fits, key=lambda k: fits[k].objective)
     best = fits[chosen]
     best.model_selection = {
@@ -919,6 +977,7 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
         "fits": {k: {"objective": r.objective, "loss": r.loss, "rms_mm": r.rms_mm, "iterations": r.iterations,
                      "simulations": r.simulations, "wall_time_s": r.wall_time,
                      "stretch_ratio": r.material.stretch_ratio, "bend_ratio": r.material.bend_ratio,
+                     "bdf2_blend": r.material.bdf2_blend if k == "bdf2" else None,
                      "material": r.material.to_dict()} for k, r in fits.items()},
     }
     best.history = history
@@ -1052,12 +1111,15 @@ def write_outputs(out: str | Path, result: FitResult) -> None:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "material.json", result.to_json())
-    cols = ["iteration", "loss", "rms_mm"] + list(result.fitted) + ["wall_time_s", "simulations"]
+    # the parameters of every row: with the integrator selection, the BDF2 fit's rows add γ
+    params = [n for n in PARAMETERS + (BLEND,) if n in result.fitted or any(n in r for r in result.history)]
+    cols = ["iteration", "loss", "rms_mm"] + params + ["wall_time_s", "simulations"]
     if any("integrator" in row for row in result.history):
         cols.append("integrator")  # fit_selecting_integrator: implicit Euler's iterations, then BDF2's
     lines = [",".join(cols)]
-    for row in result.history:
-        lines.append(",".join(f"{row[c]:.9g}" if isinstance(row[c], float) else str(row[c]) for c in cols))
+    for row in result.history:  # a parameter a row's fit did not have (γ in implicit Euler) is empty
+        lines.append(",".join("" if c not in row else f"{row[c]:.9g}" if isinstance(row[c], float) else str(row[c])
+                              for c in cols))
     write_text_atomic(out / "fit_log.csv", "\n".join(lines) + "\n")
     import matplotlib
 
@@ -1065,7 +1127,7 @@ def write_outputs(out: str | Path, result: FitResult) -> None:
     import matplotlib.pyplot as plt
 
     it = [r["iteration"] for r in result.history]
-    fig, axes = plt.subplots(1, 1 + len(result.fitted), figsize=(4 * (1 + len(result.fitted)), 3.2))
+    fig, axes = plt.subplots(1, 1 + len(params), figsize=(4 * (1 + len(params)), 3.2))
     axes[0].semilogy(it, [r["loss"] for r in result.history])
     axes[0].set_xlabel("iteration")
     axes[0].set_ylabel("L_sim [m²]")
@@ -1077,9 +1139,10 @@ def write_outputs(out: str | Path, result: FitResult) -> None:
             if first_bdf2 is not None:
                 ax.axvline(first_bdf2, color="0.6", lw=0.8, ls="--")
         axes[0].set_title(f"loss ({result.gradient}; euler | bdf2, kept {sel['chosen']})")
-    units = {"density": "kg/m²", "stretch_stiffness": "N/m", "bend_stiffness": "N·m"}
-    for ax, n in zip(axes[1:], result.fitted):
-        ax.semilogy(it, [r[n] for r in result.history])
+    units = {"density": "kg/m²", "stretch_stiffness": "N/m", "bend_stiffness": "N·m", BLEND: "0 euler, 1 bdf2"}
+    for ax, n in zip(axes[1:], params):
+        values = [r.get(n, math.nan) for r in result.history]
+        (ax.plot if n == BLEND else ax.semilogy)(it, values)
         ax.set_xlabel("iteration")
         ax.set_title(f"{n} [{units[n]}]")
     fig.tight_layout()
