@@ -228,7 +228,7 @@ def test_load_capture_and_cli_writes_material_json(tmp_path):
     sel = mj["model_selection"]
     assert set(sel["fits"]) == {"euler", "bdf2"} and mj["integrator"] == m["integrator"] == sel["chosen"]
     assert sel["fits"][sel["chosen"]]["objective"] == min(f["objective"] for f in sel["fits"].values())
-    assert mj["simulations"] == sum(f["simulations"] for f in sel["fits"].values())
+    assert mj["simulations"] == sum(f["simulations"] for f in sel["fits"].values()) + 4  # + γ's start scan
     # fit-physics' material.json is a material file for every command that takes one
     assert Material.load(tmp_path / "fit" / "material.json").integrator == sel["chosen"]
     assert (tmp_path / "fit" / "fit.png").stat().st_size > 1000
@@ -276,7 +276,9 @@ def test_integrator_selection_recovers_the_model_the_motion_came_from():
             assert sel["chosen"] == "bdf2" and sel["fits"]["bdf2"]["objective"] < 0.01 * sel["fits"]["euler"]["objective"]
         assert res.objective < 1e-6, sel  # the motion itself, up to the solver tolerance
         assert abs(m.bend_ratio / truth.bend_ratio - 1) < 0.02
-        assert res.simulations == sum(f["simulations"] for f in sel["fits"].values())
+        assert res.simulations == sum(f["simulations"] for f in sel["fits"].values()) + 4  # + γ's start scan
+        scan = sel["bdf2_blend_start_scan"]
+        assert scan["bdf2_blend"] == [0.25, 0.5, 0.75, 1.0] and len(scan["objective"]) == 4
         assert [r["integrator"] for r in res.history] == sorted([r["integrator"] for r in res.history],
                                                                 key=("euler", "bdf2").index)
         assert all("bdf2_blend" in r for r in res.history if r["integrator"] == "bdf2")
