@@ -525,7 +525,7 @@ def fit_residuals(positions: np.ndarray, data: PhysicsData, shape_weight: float 
     return r, (None if jac is None else np.concatenate(jac))
 
 
-def _objective(data: PhysicsData, material: Material, settings: SimSettings, substeps: int = 1,
+def _objective(data: PhysicsData, material: Material, settings: SimSettings | None = None, substeps: int = 1,
                shape_weight: float = 0.0) -> float:
     """The estimators' objective ‖r‖² (:func:`fit_residuals`) of one plain simulation (inf if it fails)."""
     try:
@@ -539,11 +539,7 @@ def _objective(data: PhysicsData, material: Material, settings: SimSettings, sub
 def simulation_loss(data: PhysicsData, material: Material, settings: SimSettings | None = None,
                     substeps: int = 1) -> float:
     """L_sim of ``material`` on ``data`` (inf when the simulation fails)."""
-    try:
-        r = rollout(data, material, settings, substeps=substeps)
-    except (FloatingPointError, np.linalg.LinAlgError, RuntimeError):
-        return math.inf
-    return trajectory_loss(r.positions, data.reference)
+    return _objective(data, material, settings, substeps)
 
 
 # -- results -------------------------------------------------------------------------------------
