@@ -40,9 +40,10 @@ is not a check: under model error the true material is not the fitting model's b
 other_simulator the estimate predicts the held-out motion better than the true material), so
 that error measures the model gap rather than the estimator. The paper's estimator's κb/ρ is
 reported the same way. The exact estimator fits as ``fit-physics`` does by default
-(``--fit-integrator auto``): in implicit Euler and in BDF2, keeping the lower objective
-(physics.fit_selecting_integrator); each material's held-out row is simulated in the model it
-was fitted in, and "true_bdf2" (the true material in BDF2) is added where an estimate kept BDF2.
+(``--fit-integrator auto``): in implicit Euler, in BDF2 and in their blend with γ fitted,
+keeping the lowest objective (physics.fit_selecting_integrator); each material's held-out row is
+simulated in the model it was fitted in (with its γ), and "true_bdf2" (the true material in BDF2,
+γ = 1) is added where an estimate kept BDF2 or the blend.
 The exact estimator runs with the local-shape residuals
 (``--shape-weight``, default 3) and, as "exact_eq6", on the paper's L_sim alone; fd and the
 fd-vs-exact comparison use L_sim.

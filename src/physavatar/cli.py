@@ -700,7 +700,7 @@ def fit_physics(
 
     from .sim import PRESETS as _SIM_PRESETS
     from .sim import Material
-    from .stages.physics import (PAPER_ITERATIONS, far_material, fit_material, fit_settings, load_physics_data,
+    from .stages.physics import (MODELS, PAPER_ITERATIONS, far_material, fit_material, fit_settings, load_physics_data,
                                  on_proxy, write_outputs)
     from .stages.proxy import make_proxy
 
@@ -756,7 +756,7 @@ def fit_physics(
                   f"garment over {data.frames} frames ({gradient} gradients, up to {n_iter} iterations)")
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task("fit", total=(n_iter + (1 if gradient == "exact" else 0)) * (2 if select else 1))
+        task = bar.add_task("fit", total=(n_iter + (1 if gradient == "exact" else 0)) * (len(MODELS) if select else 1))
 
         def report(row):
             params = "  ".join(f"{k}={row[k]:.4g}" for k in ("density", "stretch_stiffness", "bend_stiffness",

@@ -79,6 +79,11 @@ SHAPE_WEIGHT = 3.0
 # where it began against the other simulator (denim): under contact the objective is rough at
 # the 0.05 scale in γ, so four trust-region halvings were all rejected (docs/physics.md).
 BLEND_STARTS = (0.25, 0.5, 0.75, 1.0)
+# The fits fit_selecting_integrator makes, in this order: implicit Euler; BDF2 (γ = 1) from its
+# estimate; the blend with γ fitted. BDF2 itself stays a candidate because LM on γ can stop short
+# of γ = 1 on a rough objective (the other simulator, denim: γ 0.83, objective 1.549 against
+# 1.514 at γ = 1, held-out 0.133 against 0.102; docs/physics.md).
+MODELS = ("euler", "bdf2", "bdf2_blend")
 
 
 def fit_settings(**changes) -> SimSettings:
@@ -944,31 +949,34 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
 def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: SimSettings | None = None,
                              iterations: int = 15, fit_density: bool = False, substeps: int = 1,
                              callback: Callable | None = None, shape_weight: float = SHAPE_WEIGHT) -> FitResult:
-    """Fit in implicit Euler, then in BDF2 with its blend γ fitted too; keep the lower objective.
+    """Fit in implicit Euler, in BDF2, and in their blend with γ fitted; keep the lowest objective.
 
     The fitted material is the best one *for the simulation model it was fitted in* (time
     integrator and step): under model error the models prefer different materials. Implicit
     Euler at one step per frame (the paper's) damps the motion numerically; a ground truth from
     a less damped simulator (or real cloth) is fitted much better by BDF2 at the same cost per
-    step. Choosing between the two by the fitted window's objective picked the model that
-    predicted a held-out motion worse in 3 of 12 benchmark cases (docs/physics.md, "Which
-    simulation model"): in each the objective was lowest between them. So the second fit
-    makes the choice continuous: (κs, κb, γ) in the blend of the two (Material.bdf2_blend; γ = 0
-    is implicit Euler, 1 BDF2), from the implicit-Euler estimate and the γ of
-    :data:`BLEND_STARTS` with the lowest objective there (4 plain simulations). The first fit stays: it is the paper's model, a good start, and a fallback should the
-    second end in a worse local minimum. The result is the chosen fit; its material records
-    the integrator and γ (which :func:`physavatar.sim.simulate` then uses), ``model_selection``
-    both fits and the scan; simulations and wall time count all of them.
+    step. Choosing between those two by the fitted window's objective picked the model that
+    predicted a held-out motion worse in 2 of 12 benchmark cases (docs/physics.md, "Which
+    simulation model"), and in both the objective was lowest between them. So a third fit makes
+    the choice continuous: (κs, κb, γ) in the blend of the two (Material.bdf2_blend; γ = 0 is
+    implicit Euler, 1 BDF2), from the implicit-Euler estimate and the γ of :data:`BLEND_STARTS`
+    with the lowest objective there (4 plain simulations). The fits run in the order of
+    :data:`MODELS`, the BDF2 ones from the implicit-Euler estimate. The result is the chosen fit;
+    its material records the integrator and γ (which :func:`physavatar.sim.simulate` then
+    uses), ``model_selection`` every fit and the scan; simulations and wall time count all.
     """
     settings = settings or fit_settings()
     fits = {}
     t0 = time.perf_counter()
-    history = []  # both fits' rows, numbered, timed and counted on from the first fit's
+    history = []  # every fit's rows, numbered, timed and counted on from the first fit's
     scan = {}
-    for integrator in ("euler", "bdf2"):
-        if integrator == "euler":
+    for key in MODELS:
+        integrator = "euler" if key == "euler" else "bdf2"
+        if key == "euler":
             start = initial
-        else:  # γ's start: a coarse scan at the implicit-Euler estimate (plain simulations)
+        elif key == "bdf2":  # BDF2 itself (γ = 1), from the implicit-Euler estimate
+            start = dataclasses.replace(fits["euler"].material, name=initial.name, integrator="bdf2", bdf2_blend=1.0)
+        else:  # γ fitted; its start from a coarse scan at the implicit-Euler estimate (plain simulations)
             candidates = [dataclasses.replace(fits["euler"].material, name=initial.name, integrator="bdf2",
                                               bdf2_blend=g) for g in BLEND_STARTS]
             bdf2 = dataclasses.replace(settings, integrator="bdf2")
@@ -976,17 +984,17 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
                     "objective": [_objective(data, m, bdf2, substeps, shape_weight) for m in candidates]}
             start = candidates[int(np.argmin(scan["objective"]))]
 
-        def tagged(row, integrator=integrator, offset=len(history), t_before=time.perf_counter() - t0,
+        def tagged(row, key=key, offset=len(history), t_before=time.perf_counter() - t0,
                    sims_before=sum(r.simulations for r in fits.values()) + len(scan.get("objective", ()))):
-            row = dict(row, iteration=row["iteration"] + offset, integrator=integrator,
+            row = dict(row, iteration=row["iteration"] + offset, integrator=key,
                        wall_time_s=row["wall_time_s"] + t_before, simulations=row["simulations"] + sims_before)
             history.append(row)
             if callback is not None:
                 callback(row)
 
-        fits[integrator] = fit_exact(data, start, dataclasses.replace(settings, integrator=integrator), iterations,
-                                     fit_density, substeps, callback=tagged, shape_weight=shape_weight,
-                                     fit_blend=integrator == "bdf2")
+        fits[key] = fit_exact(data, start, dataclasses.replace(settings, integrator=integrator), iterations,
+                              fit_density, substeps, callback=tagged, shape_weight=shape_weight,
+                              fit_blend=key == "bdf2_blend")
     chosen = min(fits, key=lambda k: fits[k].objective)
     best = fits[chosen]
     best.model_selection = {
@@ -996,11 +1004,11 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
         "fits": {k: {"objective": r.objective, "loss": r.loss, "rms_mm": r.rms_mm, "iterations": r.iterations,
                      "simulations": r.simulations, "wall_time_s": r.wall_time,
                      "stretch_ratio": r.material.stretch_ratio, "bend_ratio": r.material.bend_ratio,
-                     "bdf2_blend": r.material.bdf2_blend if k == "bdf2" else None,
+                     "bdf2_blend": r.material.bdf2_blend if k != "euler" else None,
                      "material": r.material.to_dict()} for k, r in fits.items()},
     }
     best.history = history
-    best.iterations = len(history) - 2
+    best.iterations = len(history) - len(fits)
     best.simulations = sum(r.simulations for r in fits.values()) + len(scan["objective"])
     best.wall_time = time.perf_counter() - t0
     best.initial = initial
@@ -1153,11 +1161,12 @@ def write_outputs(out: str | Path, result: FitResult) -> None:
     axes[0].set_title(f"loss ({result.gradient})")
     sel = result.model_selection
     if sel:
-        first_bdf2 = next((r["iteration"] for r in result.history if r.get("integrator") == "bdf2"), None)
+        starts = [b["iteration"] for a, b in zip(result.history, result.history[1:])
+                  if a.get("integrator") != b.get("integrator")]  # where each further fit begins
         for ax in axes:
-            if first_bdf2 is not None:
-                ax.axvline(first_bdf2, color="0.6", lw=0.8, ls="--")
-        axes[0].set_title(f"loss ({result.gradient}; euler | bdf2, kept {sel['chosen']})")
+            for x in starts:
+                ax.axvline(x, color="0.6", lw=0.8, ls="--")
+        axes[0].set_title(f"loss ({result.gradient}; {' | '.join(sel['fits'])}, kept {sel['chosen']})")
     units = {"density": "kg/m²", "stretch_stiffness": "N/m", "bend_stiffness": "N·m", BLEND: "0 euler, 1 bdf2"}
     for ax, n in zip(axes[1:], params):
         values = [r.get(n, math.nan) for r in result.history]
