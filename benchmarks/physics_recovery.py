@@ -59,7 +59,7 @@ fd-vs-exact comparison use L_sim.
 --quick: dress edge 7 cm (299 vertices) for the accuracy runs (exact on all three materials),
 the fd-vs-exact comparison on all three materials in the issue's setting (noise) with a coarser
 dress (edge 10 cm, 152 vertices) so that the paper's 100 fd iterations finish; a 12-frame window, 24 held-out
-frames (~1 h on 2 idle cores, three settings; ``--fd-materials ''`` runs the accuracy part alone,
+frames (~1.5 h on 2 idle cores, four settings; ``--fd-materials ''`` runs the accuracy part alone,
 ``--settings ''`` the fd-vs-exact part alone, e.g. side by side into two ``--out`` files). Without --quick: edge 5 cm, the paper's 24-frame window, fd on all three (hours).
 """
 
