@@ -683,8 +683,8 @@ def fit_physics(
     substeps: int = typer.Option(1, help="implicit steps per frame of the fitting simulations (more: less "
                                          "time-discretisation error, proportionally slower)"),
     integrator: str = typer.Option("auto", help="time integrator of the fitting simulations: auto (exact: fit in "
-                                                "euler, then in bdf2 with its blend towards euler fitted too, keep "
-                                                "the better; fd: euler), euler or bdf2. The material records it and "
+                                                "euler, in bdf2 and in their blend with its weight fitted too, keep "
+                                                "the best; fd: euler), euler or bdf2. The material records it and "
                                                 "simulate/animate use it (docs/physics.md)"),
     max_vertices: int = typer.Option(1200, "--max-vertices",
                                      help="fit on a coarse proxy of at most this many vertices when the garment has "

@@ -354,7 +354,7 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
     S = np.zeros((3 * N, P))  # ∂x_t/∂log θ (flat, vertex-major)
     V = np.zeros((3 * N, P))
     bdf2 = settings.integrator == "bdf2"
-    gamma = material.bdf2_blend / 3.0
+    g3 = material.bdf2_blend / 3.0  # the base's weight on xₜ₋₁ (ClothSim.step_base)
     jb = names.index(BLEND) if BLEND in names else None
     history = None  # (x, v, S, V) at t−1 (BDF2)
     jac = np.zeros((T, N, 3, P)) if want else None
@@ -373,11 +373,12 @@ def rollout(data: PhysicsData, material: Material, settings: SimSettings | None 
             blend = None  # (∂ĥ/∂γ, x̂, v̂) of a BDF2 step, when γ is a parameter
             if bdf2 and history is not None:  # the base of the step and its sensitivities
                 xp, vp, Sp, Vp = history
-                SB, VB = (1.0 + gamma) * S - gamma * Sp, (1.0 + gamma) * V - gamma * Vp
+                SB, VB = (1.0 + g3) * S - g3 * Sp, (1.0 + g3) * V - g3 * Vp
                 if jb is not None:  # x̂ = (1 + γ/3) xₜ − γ/3 xₜ₋₁ moves with γ itself
                     SB[:, jb] += (x - xp).ravel() / 3.0
                     VB[:, jb] += (v - vp).ravel() / 3.0
-                    blend = (-h / 3.0, (1.0 + gamma) * x - gamma * xp, (1.0 + gamma) * v - gamma * vp)
+                    xb, vb, _ = sim.step_base(x, v, history=(xp, vp))
+                    blend = (-h / 3.0, xb, vb)
                 history = (x, v, S, V)
                 x, v, st = sim.step(x, v, b0, b1, faces_b, target, history=(xp, vp))
             else:  # implicit Euler (BDF2's first step too)
@@ -453,7 +454,7 @@ def _step_sensitivity(sim: ClothSim, x_new, body_new, S, V, names, h, blend=None
     S_new = np.zeros_like(S)
     S_new[fidx] = sol[order]
     V_new = (S_new - S) / h
-    if blend is not None and BLEND in names:
+    if blend is not None:  # only passed with γ among the parameters
         dh, xb, _ = blend
         V_new[:, names.index(BLEND)] -= (x_new - xb).ravel() * (dh / h**2)
     return S_new, V_new
