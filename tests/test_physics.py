@@ -13,8 +13,10 @@ from typer.testing import CliRunner
 from physavatar.cli import app
 from physavatar.files import PlyMesh, save_npz_atomic, write_ply
 from physavatar.sim import Material, SimSettings, preset
-from physavatar.stages.physics import (PhysicsData, far_material, fit_exact, fit_fd, fit_material, load_physics_data,
-                                       rollout, trajectory_loss, write_outputs)
+from physavatar.errors import PhysavatarError
+from physavatar.garment.geometry import count_intersections
+from physavatar.stages.physics import (START_CLEARANCE, PhysicsData, clear_start, far_material, fit_exact, fit_fd,
+                                       fit_material, load_physics_data, rollout, trajectory_loss, write_outputs)
 
 NAMES = ("density", "stretch_stiffness", "bend_stiffness")
 # tight Newton tolerance: the FD references differentiate the solver's output, so it must be
@@ -319,6 +321,86 @@ def test_cli_bad_input_exits_2(tmp_path):
     assert r.exit_code == 2 and "--gradient" in r.output
     r = runner.invoke(app, ["fit-physics", str(tmp_path / "bad"), "--out", str(tmp_path / "o"), "--integrator", "rk4"])
     assert r.exit_code == 2 and "--integrator" in r.output
+
+
+# -- the start state (another simulator's cloth may touch or cross the body) ---------------------
+
+
+def sphere_gap(V, B, F):
+    """Smallest vertex-to-surface distance of V to the mesh (B, F), by trimesh's exhaustive
+    closest points (independent of garment.body_clearance)."""
+    _, d, _ = trimesh.proximity.closest_point_naive(trimesh.Trimesh(B, F, process=False), V)
+    return float(d.min())
+
+
+def just_above(B, F, x, gap):
+    """The point ``gap`` above the mesh (B, F) along the normal of its face closest to ``x``."""
+    mesh = trimesh.Trimesh(B, F, process=False)
+    q, _, tri = trimesh.proximity.closest_point_naive(mesh, x[None])
+    return q[0] + gap * mesh.face_normals[tri[0]]
+
+
+def test_clear_start_pushes_a_touching_start_out_and_the_simulation_converges():
+    data = cloth_on_sphere(frames=4)
+    B, Fb = data.collider[0], data.collider_faces
+    x0 = data.rest.copy()
+    centre = int(np.argmin(np.linalg.norm(x0[:, :2], axis=1)))
+    x0[centre] = just_above(B, Fb, x0[centre], 2e-5)  # 0.02 mm above the sphere's top
+    assert sphere_gap(x0, B, Fb) < 3e-5
+    out, info = clear_start(dataclasses.replace(data, initial=x0))
+    assert info["crossing_pairs"] == 0 and info["min_gap_mm"] < 0.05 and info["pushed_vertices"] >= 1
+    moved = np.linalg.norm(out.initial - x0, axis=1)
+    assert moved[centre] > 0.9 * START_CLEARANCE and moved.max() < 3 * START_CLEARANCE
+    assert sphere_gap(out.initial, B, Fb) >= 0.99 * START_CLEARANCE
+    # the vertex, the triangles that dip with it and their neighbours (half way) move; beyond, nothing
+    assert np.all(moved[np.linalg.norm(x0[:, :2] - x0[centre, :2], axis=1) > 0.145] == 0)
+    settings = SimSettings(friction=0.0, newton_tol=1e-5, newton_norm="max")
+    assert rollout(out, preset("cotton"), settings).converged
+    # a start at a comfortable distance is left as it is
+    same, info = clear_start(data)
+    assert info["pushed_vertices"] == 0 and np.array_equal(same.initial, data.rest)
+
+
+def test_clear_start_refuses_a_start_through_the_body_and_names_clean_frames(tmp_path):
+    """A two-triangle sheet cut through by the sphere at frame 0 (every vertex outside it, as a
+    vertex-only collision handler leaves a cloth): pushing vertices cannot help; the sphere is
+    clear of it from frame 2 on."""
+    V = np.array([[-0.3, -0.3, 0.0], [0.3, -0.3, 0.0], [-0.3, 0.3, 0.0], [0.3, 0.3, 0.0]])
+    F = np.array([[0, 1, 2], [2, 1, 3]])
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    B = np.asarray(s.vertices)
+    bodies = np.stack([B, B - [0, 0, 0.05], B - [0, 0, 0.2], B - [0, 0, 0.3]])
+    data = PhysicsData(np.repeat(V[None], 4, 0), F, [0], collider=bodies, collider_faces=np.asarray(s.faces), rest=V)
+    assert [count_intersections(V, F, b, s.faces) > 0 for b in bodies] == [True, True, False, False]
+    with pytest.raises(PhysavatarError, match=r"frame 5 .*frames free of crossings: \[7, 8\]") as err:
+        clear_start(data, tmp_path / "seq.npz", frame=5)
+    assert "seq.npz" in str(err.value)
+    with pytest.raises(PhysavatarError, match=r"frames free of crossings: \[2, 3\]"):
+        clear_start(data.window(1, 3), frame=1, sequence=data)
+
+
+def test_cli_fit_physics_from_a_crossing_frame_exits_2_and_records_a_pushed_start(tmp_path):
+    write_capture(tmp_path / "cap", frames=4)
+    gt = tmp_path / "cap" / "ground_truth" / "meshes.npz"
+    z = dict(np.load(gt))
+    nb = 42  # the sphere's vertices come first
+    z["vertices"][0, nb:, 2] = 0.0  # frame 0: the garment's plane through the sphere's centre
+    save_npz_atomic(gt, **z)
+    r = CliRunner().invoke(app, ["fit-physics", str(tmp_path / "cap"), "--out", str(tmp_path / "fit"),
+                                 "--iterations", "1", "--integrator", "euler"])
+    assert r.exit_code == 2 and "crosses the body at frame 0" in r.output and "[1, 2, 3]" in r.output, r.output
+    assert "Traceback" not in r.output and not (tmp_path / "fit").exists()
+    # a start 0.02 mm above the sphere's top: pushed out, fitted, recorded
+    z["vertices"][0, nb:] = z["vertices"][1, nb:]
+    centre = nb + int(np.argmin(np.linalg.norm(z["vertices"][0, nb:, :2], axis=1)))
+    z["vertices"][0, centre] = just_above(z["vertices"][0, :nb].astype(float), z["faces"][:80],
+                                          z["vertices"][0, centre].astype(float), 2e-5)
+    save_npz_atomic(gt, **z)
+    r = CliRunner().invoke(app, ["fit-physics", str(tmp_path / "cap"), "--out", str(tmp_path / "fit"),
+                                 "--iterations", "1", "--integrator", "euler", "--window", "3"])
+    assert r.exit_code == 0, r.output
+    start = json.loads((tmp_path / "fit" / "material.json").read_text())["start_state"]
+    assert start["pushed_vertices"] >= 1 and start["min_gap_after_mm"] >= 0.99 * 1e3 * START_CLEARANCE
 
 
 # -- the coarse proxy (stages/proxy.py) --------------------------------------------------------

@@ -700,8 +700,8 @@ def fit_physics(
 
     from .sim import PRESETS as _SIM_PRESETS
     from .sim import Material
-    from .stages.physics import (MODELS, PAPER_ITERATIONS, far_material, fit_material, fit_settings, load_physics_data,
-                                 on_proxy, write_outputs)
+    from .stages.physics import (MODELS, PAPER_ITERATIONS, clear_start, far_material, fit_material, fit_settings,
+                                 load_physics_data, on_proxy, write_outputs)
     from .stages.proxy import make_proxy
 
     if gradient not in ("fd", "exact"):
@@ -737,11 +737,15 @@ def fit_physics(
         initial = Material.load(init)
     if density is not None:
         initial = _dc.replace(initial, density=density)
-    data = load_physics_data(source)
-    if start < 0 or start + 2 > data.frames:
-        _bad_option("--start", f"must leave at least 2 of the {data.frames} frames")
-    data = data.window(start, window)
-    data = _dc.replace(data, initial=data.reference[0])
+    sequence = load_physics_data(source)
+    if start < 0 or start + 2 > sequence.frames:
+        _bad_option("--start", f"must leave at least 2 of the {sequence.frames} frames")
+    # the simulation starts from the tracked frame `start` at rest; IPC needs it outside the body
+    data, start_info = clear_start(sequence.window(start, window), source, start, sequence)
+    if start_info["pushed_vertices"]:
+        console.print(f"[yellow]note:[/] frame {start} has the garment {start_info['crossing_pairs']} triangle pairs "
+                      f"through the body / {start_info['min_gap_mm']:.2f} mm from it: {start_info['pushed_vertices']} "
+                      f"vertices pushed out (at most {start_info['max_push_mm']:.1f} mm) to start the simulations")
     proxy = None
     n_fine = data.reference.shape[1]
     if max_vertices and n_fine > max_vertices:
@@ -772,6 +776,7 @@ def fit_physics(
                               fit_settings(friction=friction, newton_tol=newton_tol, integrator=integrator),
                               workers=workers, substeps=substeps, callback=report,
                               shape_weight=shape_weight, select_integrator=select)
+    result.start_state = start_info
     if proxy is not None:
         result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),
                         "mean_edge_m": proxy.mean_edge, "garment_vertices": n_fine, "max_vertices": max_vertices}

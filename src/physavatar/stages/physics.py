@@ -207,6 +207,64 @@ class PhysicsData:
         )
 
 
+# -- the start state ------------------------------------------------------------------------------
+
+# [m] a start vertex closer than this to the body is pushed out to START_CLEARANCE (the barrier
+# is infinite at contact and stiff far inside d̂; another simulator's cloth may lie on the skin)
+START_MIN_GAP = 2e-4
+START_CLEARANCE = 1e-3  # = the fits' d̂
+
+
+def clear_start(data: PhysicsData, source=None, frame: int = 0,
+                sequence: PhysicsData | None = None) -> tuple[PhysicsData, dict]:
+    """``data`` with an initial state the simulator can start from, and what was done to it.
+
+    The simulation of a window starts from ``data.initial`` (default the reference frame 0) and
+    IPC needs that state free of garment–body intersections, at a positive distance (its CCD
+    assumes it; from a crossing start the solver runs but its steps are not valid, and the fit
+    would follow a non-converged simulation without a word). Tracked garments and other
+    simulators' output need not be: a simulator that only keeps the cloth's *vertices* out of the
+    body lets limbs pass through the faces between them (benchmarks/foreign_cloth.py on the 7-cm
+    dress: 160–700 crossing triangle pairs in every walk frame after the first).
+
+    A start closer than :data:`START_MIN_GAP` or crossing the body is pushed out along the body
+    normal to :data:`START_CLEARANCE` (garment.push_out; the boundary vertices stay at their
+    targets). When it still crosses, this raises a :class:`PhysavatarError` naming ``source``, the
+    ``frame`` (``data``'s first frame in ``sequence``) and the crossing pairs, with the frames of
+    ``sequence`` (default ``data``, numbered from ``frame``) that are free of crossings, for
+    ``--start``. Returns (data with ``initial`` set, info dict for material.json).
+    """
+    from ..garment.garment import body_clearance, push_out
+    from ..garment.geometry import count_intersections
+
+    x0 = np.asarray(data.reference[0] if data.initial is None else data.initial, dtype=np.float64)
+    info = {"frame": int(frame), "crossing_pairs": 0, "min_gap_mm": None, "pushed_vertices": 0, "max_push_mm": 0.0}
+    if data.collider is None or data.collider_faces is None:
+        return dataclasses.replace(data, initial=x0), info
+    body, bfaces = data.collider[0], data.collider_faces
+    crossing = count_intersections(x0, data.faces, body, bfaces)
+    gap = body_clearance(x0, data.faces, body, bfaces)
+    info.update(crossing_pairs=int(crossing), min_gap_mm=1e3 * gap)
+    if crossing == 0 and gap >= START_MIN_GAP:
+        return dataclasses.replace(data, initial=x0), info
+    moved, _ = push_out(x0, data.faces, [(body, bfaces)], START_CLEARANCE)
+    moved[data.boundary] = x0[data.boundary]
+    left = count_intersections(moved, data.faces, body, bfaces)
+    if left:
+        seq, first = (sequence, 0) if sequence is not None else (data, frame)
+        clean = [first + f for f in range(min(seq.frames, 200))
+                 if not count_intersections(seq.reference[f], seq.faces, seq.collider[f], bfaces)]
+        where = (f"frames free of crossings: {clean[:12]}" + (" ..." if len(clean) > 12 else "")
+                 if clean else "no frame is free of crossings")
+        raise PhysavatarError(source, f"the garment crosses the body at frame {frame} ({crossing} intersecting "
+                                      f"triangle pairs, {left} after pushing it out): the simulation needs an "
+                                      f"intersection-free start; {where}")
+    step = np.linalg.norm(moved - x0, axis=1)
+    info.update(pushed_vertices=int(np.count_nonzero(step > 0)), max_push_mm=1e3 * float(step.max()),
+                min_gap_after_mm=1e3 * body_clearance(moved, data.faces, body, bfaces))
+    return dataclasses.replace(data, initial=moved), info
+
+
 # -- a coarse simulation proxy of a big garment (stages/proxy.py) ------------------------------
 
 PROXY_MAX_VERTICES = 400  # fit-physics default: garments above this are fitted on a proxy
@@ -577,6 +635,7 @@ class FitResult:
     shape_weight: float = 0.0  # weight of the local-shape residuals (fit_residuals)
     objective: float | None = None  # what was minimised (= loss when shape_weight is 0)
     model_selection: dict | None = None  # fit_selecting_integrator: both fits and the choice
+    start_state: dict | None = None  # clear_start: crossings and gap of the start frame, what was pushed
 
     def at_bound(self) -> list:
         """Fitted parameters that ended on their search bound (:data:`BOUNDS`): the data pushed
@@ -614,6 +673,7 @@ class FitResult:
             "integrator": m.integrator,
             "model_selection": self.model_selection,
             "proxy": self.proxy,
+            "start_state": self.start_state,
         }
 
 
