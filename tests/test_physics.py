@@ -403,6 +403,35 @@ def test_cli_fit_physics_from_a_crossing_frame_exits_2_and_records_a_pushed_star
     assert start["pushed_vertices"] >= 1 and start["min_gap_after_mm"] >= 0.99 * 1e3 * START_CLEARANCE
 
 
+def test_a_tracked_sequence_without_template_or_boundary_is_fitted(tmp_path):
+    """Another tool's sequence: tracked.npz alone (no template, so frame 0 is the rest shape) and
+    no boundary flags (a garment held by contact and friction, the square draped on the sphere)."""
+    traj = write_capture(tmp_path / "cap", frames=4)
+    z = dict(np.load(tmp_path / "cap" / "ground_truth" / "meshes.npz"))
+    (tmp_path / "seq").mkdir()
+    save_npz_atomic(tmp_path / "seq" / "tracked.npz", **z)
+    data = load_physics_data(tmp_path / "seq")
+    assert len(data.boundary) == 0 and np.array_equal(data.rest, z["vertices"][0, 42:].astype(float))
+    np.testing.assert_allclose(data.reference, traj, atol=1e-6)  # float32 on disk
+    r = CliRunner().invoke(app, ["fit-physics", str(tmp_path / "seq"), "--out", str(tmp_path / "fit"),
+                                 "--iterations", "1", "--integrator", "euler", "--window", "3"])
+    assert r.exit_code == 0 and "no boundary" in r.output, r.output
+    assert json.loads((tmp_path / "fit" / "material.json").read_text())["iterations"] >= 1
+    save_npz_atomic(tmp_path / "seq" / "tracked.npz", **z, boundary=np.ones(5, bool))
+    r = CliRunner().invoke(app, ["fit-physics", str(tmp_path / "seq"), "--out", str(tmp_path / "fit2")])
+    assert r.exit_code == 2 and "boundary has 5 flags for 67 vertices" in r.output, r.output
+
+
+def test_proxy_without_boundary_vertices_is_uniform():
+    from physavatar.stages.proxy import make_proxy
+    V, F = grid(30, 0.6)
+    p = make_proxy(V, F, np.zeros(0, np.int64), 300)
+    assert len(p.vertices) <= 300 and len(p.boundary) == 0
+    edges = np.concatenate([p.faces[:, [0, 1]], p.faces[:, [1, 2]], p.faces[:, [2, 0]]])
+    length = np.linalg.norm(p.vertices[edges[:, 0]] - p.vertices[edges[:, 1]], axis=1)
+    assert np.percentile(length, 95) < 2.5 * np.percentile(length, 5)  # no graded region
+
+
 # -- the coarse proxy (stages/proxy.py) --------------------------------------------------------
 
 

@@ -740,6 +740,9 @@ def fit_physics(
     sequence = load_physics_data(source)
     if start < 0 or start + 2 > sequence.frames:
         _bad_option("--start", f"must leave at least 2 of the {sequence.frames} frames")
+    if not len(sequence.boundary):
+        console.print("[yellow]note:[/] the garment has no boundary (attached) vertices: it is simulated as held "
+                      "by contact and friction alone" + (" (and --friction is 0)" if friction == 0 else ""))
     # the simulation starts from the tracked frame `start` at rest; IPC needs it outside the body
     data, start_info = clear_start(sequence.window(start, window), source, start, sequence)
     if start_info["pushed_vertices"]:

@@ -1112,7 +1112,10 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
 
     The garment is every vertex with label ≥ 1 (the first garment when there are several);
     the body (label 0) is the collider, and garment faces are those with all three corners on
-    the garment. The garment's rest shape is the template's (frame-1 mesh).
+    the garment. The garment's rest shape is the template's (frame-1 mesh); a ``tracked.npz``
+    with no template to be found (another tool's sequence) takes its frame 0 as the rest shape
+    and its own ``boundary`` flags, or none. A garment without boundary (Dirichlet) vertices
+    is simulated as held by contact and friction alone.
     """
     from ..files import load_npz
 
@@ -1151,6 +1154,9 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
         raise PhysavatarError(src, "faces must be [F, 3] indices into the vertices")
     if not np.all(np.isfinite(verts)):
         raise PhysavatarError(src, "vertices contain non-finite values")
+    if boundary is not None and len(boundary) != len(labels):
+        raise PhysavatarError(src, f"boundary has {len(boundary)} flags for {len(labels)} vertices")
+    ply = None
     if boundary is None or rest is None:
         ply = template_dir / "template" / "mesh.ply"
         if not ply.is_file() and (template_dir / "capture").is_dir():
@@ -1162,8 +1168,12 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
             cap = read_json(template_dir / "config.json").get("capture")
             if cap:
                 ply = Path(cap) / "template" / "mesh.ply"
-        if not ply.is_file():
-            raise PhysavatarError(template_dir, "no template/mesh.ply with the garment's boundary flags")
+        if not ply.is_file() and src.name == "tracked.npz":
+            rest = verts[0]  # a sequence on its own: its first frame is the template
+            ply = None
+        elif not ply.is_file():
+            raise PhysavatarError(template_dir, "no template/mesh.ply with the garment's rest shape and boundary flags")
+    if ply is not None and (boundary is None or rest is None):
         from ..files import read_ply
 
         try:
@@ -1182,9 +1192,7 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
         raise PhysavatarError(src, "no garment vertices (labels >= 1)")
     gidx, gfaces = submesh(faces, labels == garment_ids[0])
     bidx, bfaces = submesh(faces, labels == 0)
-    gboundary = np.flatnonzero(boundary[gidx])
-    if not len(gboundary):
-        raise PhysavatarError(src, "the garment has no boundary vertices (template 'boundary' flags)")
+    gboundary = np.flatnonzero(boundary[gidx]) if boundary is not None else np.zeros(0, np.int64)
     return PhysicsData(
         reference=verts[:, gidx], faces=gfaces, boundary=gboundary,
         collider=verts[:, bidx] if len(bidx) else None, collider_faces=bfaces if len(bidx) else None,

@@ -74,8 +74,6 @@ def make_proxy(vertices: np.ndarray, faces: np.ndarray, boundary: np.ndarray, ma
     boundary = np.unique(np.asarray(boundary, dtype=np.int64))
     if max_vertices < 20:
         raise PhysavatarError(None, f"a proxy needs at least 20 vertices, asked for {max_vertices}")
-    if not len(boundary):
-        raise PhysavatarError(None, "the garment has no boundary (Dirichlet) vertices")
     v, f, kind = collapse_decimate(V, F, boundary, max_vertices)
     query = MeshQuery(V, F, spacing=0.5 * _mean_edge(V, F))
     movable = kind == 0
@@ -118,7 +116,8 @@ def collapse_decimate(V: np.ndarray, F: np.ndarray, boundary: np.ndarray, max_ve
     # (straps); edges there collapse last, down to GRADING_NEAR × the size far away
     from scipy.spatial import cKDTree
 
-    dist = cKDTree(V[boundary]).query(V)[0]
+    # (a garment held by contact alone, without Dirichlet vertices, is decimated uniformly)
+    dist = cKDTree(V[boundary]).query(V)[0] if len(boundary) else np.full(n, np.inf)
     size = GRADING_NEAR + (1.0 - GRADING_NEAR) * np.minimum(1.0, dist / (GRADING_REACH * h_target))
     alive = n
     for _ in range(200):
