@@ -4,9 +4,11 @@ Three ground-truth materials (sim PRESETS silk / cotton / denim) on the built-in
 Anny collider body walking; the "tracked" reference is the ground truth plus 2 mm Gaussian
 noise. Both estimators start from the same far guess (the official driver's start: Codim-IPC
 base fabric, multipliers 1; density prior = the medium fabric's). Then the PhysAvatar Table 2
-comparison on a held-out motion ("dance"): garment Chamfer distance (×10³) of the LBS-skinned
-garment, and of simulations with a random, the estimated and the true material. Prints a table
-and writes benchmarks/results/physics_recovery.json.
+comparison on held-out motions (``--heldout-motions``, default dance, turn, twist and jump, 24
+frames each): garment Chamfer distance (×10³) of the LBS-skinned garment, and of simulations with
+a random, the estimated and the true material, per motion and their mean, which the checks judge
+(a single contact-rich clip moves by ~15 % between machines, as much as the differences judged).
+Prints a table and writes benchmarks/results/physics_recovery.json.
 
 Model error. A ground truth made by the fitting simulator itself gives the true material a
 held-out distance of ~0 (only the Newton tolerance), which makes "estimated within 10 % of
@@ -54,7 +56,7 @@ fd-vs-exact comparison use L_sim.
         [--foreign-alpha 0.2] [--foreign-beta 2e-4] [--foreign-friction 0.2]
         [--shape-weight 3] [--no-eq6-rows] [--proxy-vertices 0] [--fd-edge 0.10]
         [--fd-materials silk,cotton,denim] [--fd-setting noise] [--fd-iterations 100]
-        [--fit-integrator auto|euler|bdf2] [--out JSON]
+        [--fit-integrator auto|euler|bdf2] [--heldout-motions dance,turn,twist,jump] [--out JSON]
 
 --quick: dress edge 7 cm (299 vertices) for the accuracy runs (exact on all three materials),
 the fd-vs-exact comparison on all three materials in the issue's setting (noise) with a coarser
@@ -92,7 +94,10 @@ from foreign_cloth import ForeignCloth, ForeignSettings  # noqa: E402
 RESULTS = Path(__file__).parent / "results" / "physics_recovery.json"
 
 
-def scene(edge, window, heldout_frames, fps=25.0):
+HELDOUT_MOTIONS = ("dance", "turn", "twist", "jump")
+
+
+def scene(edge, window, heldout_frames, fps=25.0, heldout_motions=HELDOUT_MOTIONS):
     body = BodyModel(topology="collider")
     g = make_garment("dress", body, edge_length=edge)
     bidx = np.flatnonzero(g.boundary)
@@ -106,9 +111,11 @@ def scene(edge, window, heldout_frames, fps=25.0):
                            rest=g.vertices, boundary_targets=attachment_positions(g.attachment, bodies)), posed
 
     train, _ = data_for("walk", window)
-    held, held_posed = data_for("dance", heldout_frames)
     W = garment_skinning_weights(g.vertices, body, g.faces)
-    lbs = linear_blend_skinning(g.vertices, W, held_posed.bone_transforms[:heldout_frames])
+    held, lbs = {}, {}
+    for motion in heldout_motions:
+        held[motion], posed = data_for(motion, heldout_frames)
+        lbs[motion] = linear_blend_skinning(g.vertices, W, posed.bone_transforms[:heldout_frames])
     return body, g, train, held, lbs
 
 
@@ -168,9 +175,10 @@ class Case:
     (stages/proxy.py, as fit-physics does on a big garment), mapped by barycentric coordinates.
     With ``proxy_vertices`` 0 (or >= the dress's vertex count) the fit uses the dress itself."""
 
-    def __init__(self, truth_edge, proxy_vertices, window, heldout_frames):
+    def __init__(self, truth_edge, proxy_vertices, window, heldout_frames, heldout_motions=HELDOUT_MOTIONS):
         self.edge = truth_edge
-        self.body, self.g, self.train, self.held, lbs = scene(truth_edge, window, heldout_frames)
+        self.body, self.g, self.train, self.held, lbs = scene(truth_edge, window, heldout_frames,
+                                                              heldout_motions=heldout_motions)
         n = len(self.g.vertices)
         if 0 < proxy_vertices < n:
             self.proxy = make_proxy(self.g.vertices, self.g.faces, self.train.boundary, proxy_vertices)
@@ -178,40 +186,49 @@ class Case:
             ids = np.arange(n)
             self.proxy = GarmentProxy(self.g.vertices, self.g.faces, self.train.boundary,
                                       np.stack([ids, ids, ids], 1), np.tile([1.0, 0.0, 0.0], (n, 1)))
-        self.lbs = self.proxy.map(lbs)
+        self.lbs = {k: self.proxy.map(v) for k, v in lbs.items()}
         self.faces = self.proxy.faces
         self.n_fit = len(self.proxy.vertices)
 
     def truth(self, material, settings, substeps):
-        """Ground truth (fine mesh) of the training window and the held-out motion."""
-        return (rollout(self.train, material, settings, substeps=substeps).positions,
-                rollout(self.held, material, settings, substeps=substeps).positions)
+        """Ground truth (fine mesh) of the training window and of each held-out motion {name: [T, N, 3]}."""
+        run = lambda d: rollout(d, material, settings, substeps=substeps).positions  # noqa: E731
+        return run(self.train), {k: run(d) for k, d in self.held.items()}
 
     def foreign_truth(self, material, settings: ForeignSettings):
         """Ground truth by the independent simulator (foreign_cloth.py) on the fine dress."""
         sim = ForeignCloth(self.g.vertices, self.g.faces, self.train.boundary, material.density,
                            material.stretch_stiffness, material.bend_stiffness, settings)
-        return tuple(sim.simulate(d.rest, d.boundary_targets, d.collider, d.collider_faces, d.fps)[0]
-                     for d in (self.train, self.held))
+        run = lambda d: sim.simulate(d.rest, d.boundary_targets, d.collider, d.collider_faces, d.fps)[0]  # noqa: E731
+        return run(self.train), {k: run(d) for k, d in self.held.items()}
 
     def fit_data(self, gt_train):
         """What is fitted: the fine ground truth mapped onto the proxy (noise is added after)."""
         return on_proxy(dataclasses.replace(self.train, reference=gt_train, initial=gt_train[0]), self.proxy)
 
     def heldout_cd(self, materials, gt_held, settings):
-        """Chamfer ×10³ on the held-out motion between the fine ground truth mapped to the proxy
-        and each row's proxy simulation (the same proxy surface for all, same samples)."""
-        held = on_proxy(dataclasses.replace(self.held, reference=gt_held, initial=gt_held[0]), self.proxy)
-        gt = held.reference
-        cd = {"lbs": garment_chamfer_x1e3(self.lbs, gt, self.faces)}
-        for label, mat in materials:
-            try:  # each material in the model it was fitted in (the presets: implicit Euler)
-                s = dataclasses.replace(settings, integrator=mat.integrator)
-                cd[label] = garment_chamfer_x1e3(rollout(held, mat, s).positions, gt, self.faces)
-            except (FloatingPointError, RuntimeError) as e:
-                cd[label] = math.inf
-                print(f"  held-out {label} failed: {e}", flush=True)
-        return cd
+        """Chamfer ×10³ on each held-out motion between the fine ground truth mapped to the proxy
+        and each row's proxy simulation (the same proxy surface for all, same samples).
+
+        Returns (mean over the motions {row: CD}, per motion {motion: {row: CD}}). One contact-rich
+        24-frame clip is a noisy judge: the same row moved by ~15 % between runs of the same code
+        on two machines (docs/physics.md, "Eleventh session"), as much as the differences the
+        checks judge; the mean over four motions is what the checks use."""
+        per = {}
+        for motion, d in self.held.items():
+            held = on_proxy(dataclasses.replace(d, reference=gt_held[motion], initial=gt_held[motion][0]), self.proxy)
+            gt = held.reference
+            cd = {"lbs": garment_chamfer_x1e3(self.lbs[motion], gt, self.faces)}
+            for label, mat in materials:
+                try:  # each material in the model it was fitted in (the presets: implicit Euler)
+                    s = dataclasses.replace(settings, integrator=mat.integrator)
+                    cd[label] = garment_chamfer_x1e3(rollout(held, mat, s).positions, gt, self.faces)
+                except (FloatingPointError, RuntimeError) as e:
+                    cd[label] = math.inf
+                    print(f"  held-out {motion} {label} failed: {e}", flush=True)
+            per[motion] = cd
+        mean = {label: float(np.mean([cd[label] for cd in per.values()])) for label in next(iter(per.values()))}
+        return mean, per
 
 
 SETTINGS = {
@@ -240,6 +257,8 @@ def main():
     ap.add_argument("--fd-proxy-vertices", type=int, default=0, help="the same for the fd-vs-exact runs")
     ap.add_argument("--window", type=int, default=None, help="fitted frames")
     ap.add_argument("--heldout-frames", type=int, default=24)
+    ap.add_argument("--heldout-motions", default=",".join(HELDOUT_MOTIONS),
+                    help="built-in motions the estimates are judged on; the checks use the mean Chamfer over them")
     ap.add_argument("--materials", default="silk,cotton,denim")
     ap.add_argument("--settings", default="noise,model_error,other_simulator,foreign",
                     help="comma-separated: noise (the fitting simulator's own ground truth + noise: the issue's "
@@ -303,14 +322,18 @@ def main():
     load_start = list(os.getloadavg())
     t_all = time.perf_counter()
 
-    case = Case(edge, proxy_vertices, window, args.heldout_frames)
+    heldout_motions = tuple(m for m in args.heldout_motions.split(",") if m)
+    if not heldout_motions or "walk" in heldout_motions:
+        ap.error("--heldout-motions: one or more built-in motions other than the fitted walk")
+    case = Case(edge, proxy_vertices, window, args.heldout_frames, heldout_motions)
     same = (fd_edge, fd_proxy_vertices) == (edge, proxy_vertices)
-    fd_case = case if same else (Case(fd_edge, fd_proxy_vertices, window, args.heldout_frames) if fd_materials else None)
+    fd_case = case if same else (Case(fd_edge, fd_proxy_vertices, window, args.heldout_frames, heldout_motions)
+                                   if fd_materials else None)
     for c in {id(c): c for c in (case, fd_case) if c is not None}.values():
         print(f"ground truth: dress edge {c.edge} m, {len(c.g.vertices)} vertices, {len(c.train.boundary)} boundary; "
               f"fitted proxy: {c.n_fit} vertices ({len(c.proxy.boundary)} boundary, mean edge "
               f"{100 * c.proxy.mean_edge:.1f} cm); body {len(c.body.rest_vertices)} vertices", flush=True)
-    print(f"window {window} frames (walk), held-out {args.heldout_frames} (dance); settings {settings_run}; "
+    print(f"window {window} frames (walk), held-out {args.heldout_frames} of {', '.join(heldout_motions)}; settings {settings_run}; "
           f"model_error ground truth {args.truth_substeps} substeps/frame; other_simulator {args.other_integrator} "
           f"{args.other_substeps} substeps/frame {args.other_membrane}; fits implicit Euler 1 step/frame StVK",
           flush=True)
@@ -379,16 +402,20 @@ def main():
             # estimate was fitted in BDF2, the true material in BDF2 too (the check takes the better)
             trues = [("true", true)] + ([("true_bdf2", dataclasses.replace(true, integrator="bdf2"))]
                                         if any(m.integrator == "bdf2" for _, m in estimates) else [])
-            cd = case.heldout_cd([("random", rnd)] + estimates + trues, gt_held, fit_settings)
+            cd, cd_per = case.heldout_cd([("random", rnd)] + estimates + trues, gt_held, fit_settings)
             figures["per_material"][setting][name] = {
                 "true": {"stretch_ratio": true.stretch_ratio, "bend_ratio": true.bend_ratio},
                 "random_material": {"stretch_stiffness": rnd.stretch_stiffness, "bend_stiffness": rnd.bend_stiffness},
                 "noise_floor_loss_m2": noise_floor,
                 "heldout_chamfer_x1e3": cd,
+                "heldout_chamfer_x1e3_per_motion": cd_per,
                 "estimators": {k: rows[(setting, name, k)] for k in ("exact", "exact_eq6", "fd")
                                if (setting, name, k) in rows},
             }
-            print(f"[{name} {setting}] held-out CD×1e3: " + ", ".join(f"{k} {v:.4f}" for k, v in cd.items()),
+            for motion, c in cd_per.items():
+                print(f"[{name} {setting}] held-out {motion} CD×1e3: " + ", ".join(f"{k} {v:.4f}" for k, v in c.items()),
+                      flush=True)
+            print(f"[{name} {setting}] held-out mean CD×1e3: " + ", ".join(f"{k} {v:.4f}" for k, v in cd.items()),
                   flush=True)
 
     if fd_case is not None and fd_case is not case:
@@ -402,11 +429,12 @@ def main():
             rows[(setting, name, "exact@fd_edge")] = fit_row(ex, true, noise_floor)
             rows[(setting, name, "fd")] = fit_row(fd, true, noise_floor)
             rnd = random_material(np.random.default_rng(100 + mi), start.density)
-            cd = fd_case.heldout_cd([("random", rnd), ("estimated_exact", ex.material), ("estimated_fd", fd.material),
-                                     ("true", true)], gt_held, fit_settings)
+            cd, cd_per = fd_case.heldout_cd([("random", rnd), ("estimated_exact", ex.material),
+                                             ("estimated_fd", fd.material), ("true", true)], gt_held, fit_settings)
             figures["fd_comparison"][name] = {
                 "setting": setting, "edge_length_m": fd_edge, "garment_vertices": len(fd_case.g.vertices),
                 "fitted_vertices": fd_case.n_fit, "noise_floor_loss_m2": noise_floor, "heldout_chamfer_x1e3": cd,
+                "heldout_chamfer_x1e3_per_motion": cd_per,
                 "estimators": {"exact": rows[(setting, name, "exact@fd_edge")], "fd": rows[(setting, name, "fd")]},
             }
             print(f"[{name} @ {fd_edge} m] held-out CD×1e3: " + ", ".join(f"{k} {v:.4f}" for k, v in cd.items()),
@@ -477,7 +505,8 @@ def main():
             "fd_garment_vertices": len(fd_case.g.vertices) if fd_case is not None else None,
             "fd_fitted_proxy_vertices": fd_case.n_fit if fd_case is not None else None,
             "body": "Anny collider topology", "train_motion": "walk", "window_frames": window,
-            "heldout_motion": "dance", "heldout_frames": args.heldout_frames, "fps": 25.0,
+            "heldout_motions": list(heldout_motions), "heldout_frames": args.heldout_frames, "fps": 25.0,
+            "heldout_judged_by": "mean over the held-out motions of the garment Chamfer distance",
             "noise_mm": args.noise_mm, "initial": far_material().to_dict(), "materials": materials,
             "settings": {s: SETTINGS[s].format(
                 k=args.truth_substeps, ok=args.other_substeps, oi=args.other_integrator, om=args.other_membrane,
@@ -519,10 +548,12 @@ def main():
         print(f"{setting:16s} {name:8s} {method:14s} {r['integrator']:6s} {r['bend_ratio_rel_error']:+10.3f} "
               f"{r['stretch_ratio_rel_error']:+10.3f} {r['loss_over_noise_floor']:10.3f} {r['simulations']:5d} "
               f"{r['wall_time_s']:7.0f}")
-    print("\nheld-out Chamfer x1e3 (dance):")
+    print(f"\nheld-out Chamfer x1e3, mean over {', '.join(heldout_motions)} (and each motion):")
     for setting, per in figures["per_material"].items():
         for name, fig in per.items():
             print(f"  {setting:16s} {name:8s} " + "  ".join(f"{k} {v:.4g}" for k, v in fig["heldout_chamfer_x1e3"].items()))
+            for motion, c in fig["heldout_chamfer_x1e3_per_motion"].items():
+                print(f"  {'':16s} {'':8s}   {motion:6s} " + "  ".join(f"{k} {v:.4g}" for k, v in c.items()))
     for name, fig in figures["fd_comparison"].items():
         print(f"  {fig['setting']:12s} {name:8s} @ {fig['edge_length_m']} m " + "  ".join(
             f"{k} {v:.4g}" for k, v in fig["heldout_chamfer_x1e3"].items()))
