@@ -105,3 +105,29 @@ def test_garment_crossing_the_first_collider_frame_is_refused(skirt_run, tmp_pat
                             "--out", str(tmp_path / "o"), "--no-preview"])
     assert r.exit_code == 2 and "crosses the body's first frame" in r.output and "Traceback" not in r.output
     assert not (tmp_path / "o" / "garment_sequence.npz").exists()
+
+
+def test_fit_physics_reads_a_simulated_sequence_back(skirt_run, tmp_path):
+    """simulate's folder (garment_sequence.npz: garment, boundary, body, fps, rest shape) is an
+    input of fit-physics as it is: started from the material that made it, the fit's simulation
+    reproduces the sequence (which needs the rest shape, boundary, body and fps read right)."""
+    from physavatar.stages.physics import load_physics_data
+
+    z = np.load(skirt_run / "garment_sequence.npz")
+    data = load_physics_data(skirt_run)
+    assert data.reference.shape == z["vertices"].shape and np.array_equal(data.boundary, z["boundary"])
+    assert data.collider.shape == z["body_vertices"].shape and data.fps == float(z["fps"])
+    np.testing.assert_array_equal(data.rest, z["rest_vertices"].astype(float))
+    r = runner.invoke(app, ["fit-physics", str(skirt_run), "--out", str(tmp_path / "fit"), "--init",
+                            str(skirt_run / "material.json"), "--window", "5", "--iterations", "1",
+                            "--integrator", "euler", "--newton-tol", "1e-3"])
+    assert r.exit_code == 0, r.output
+    fit = json.loads((tmp_path / "fit" / "material.json").read_text())
+    assert fit["initial_rms_mm"] < 0.5 and fit["window_frames"] == 5
+    # the same file given by name, and a broken one
+    assert load_physics_data(skirt_run / "garment_sequence.npz").reference.shape == data.reference.shape
+    bad = dict(z)
+    bad["body_vertices"] = bad["body_vertices"][:3]
+    np.savez(tmp_path / "bad.npz", **bad)
+    r = runner.invoke(app, ["fit-physics", str(tmp_path / "bad.npz"), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "bad.npz" in r.output and "body_vertices must be [T=11" in r.output, r.output

@@ -382,7 +382,8 @@ def simulate(
         console.print(f"checked {len(X)} frames: no garment-body intersection, no NaN")
     out.mkdir(parents=True, exist_ok=True)
     save_npz_atomic(out / "garment_sequence.npz", vertices=X.astype(np.float32), faces=part.faces,
-                    boundary=part.boundary, body_vertices=bodies.astype(np.float32), body_faces=body_faces, fps=fps)
+                    boundary=part.boundary, body_vertices=bodies.astype(np.float32), body_faces=body_faces, fps=fps,
+                    rest_vertices=part.vertices.astype(np.float32))
     for f in range(len(X)):
         write_ply(out / "meshes" / f"{f:06d}.ply", PlyMesh(X[f], part.faces))
     mat.save(out / "material.json")
@@ -666,7 +667,9 @@ def pose(
 @app.command("fit-physics")
 @handle_errors
 def fit_physics(
-    source: Path = typer.Argument(..., help="tracked folder (tracked.npz) or capture with ground_truth/meshes.npz"),
+    source: Path = typer.Argument(..., help="tracked folder (tracked.npz), capture with ground_truth/meshes.npz, or a "
+                                            "garment sequence (simulate's folder / garment_sequence.npz, any .npz of "
+                                            "vertices, faces, boundary, body_vertices, body_faces, fps)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder (material.json, fit_log.csv, fit.png)"),
     gradient: str = typer.Option("exact", help="fd (the paper: finite differences + Adam) or exact (sensitivities + Gauss-Newton)"),
     window: int = typer.Option(24, help="frames fitted (the paper: 24)"),

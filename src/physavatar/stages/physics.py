@@ -1108,7 +1108,9 @@ def fit_material(data: PhysicsData, initial: Material | None = None, gradient: s
 def load_physics_data(folder: str | Path) -> PhysicsData:
     """A tracked folder (``tracked.npz``: vertices [T, V, 3], faces, labels) or a capture with
     ``ground_truth/meshes.npz``; the boundary flags come from the capture template (the
-    tracked folder's ``boundary`` array, or its capture's ``template/mesh.ply``).
+    tracked folder's ``boundary`` array, or its capture's ``template/mesh.ply``). A folder with
+    ``garment_sequence.npz`` (``physavatar simulate``'s output), or an .npz without ``labels``
+    given by name, is a garment sequence (:func:`load_garment_sequence`).
 
     The garment is every vertex with label ≥ 1 (the first garment when there are several);
     the body (label 0) is the collider, and garment faces are those with all three corners on
@@ -1120,9 +1122,18 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
     from ..files import load_npz
 
     folder = Path(folder)
-    if not folder.is_dir():
-        raise PhysavatarError(folder, "not a folder (expected a tracked folder or a capture)")
-    tracked = folder / "tracked.npz"
+    if folder.is_file() and folder.suffix == ".npz":
+        z = load_npz(folder)
+        if "labels" not in z:
+            return load_garment_sequence(folder, z)
+        tracked, folder = folder, folder.parent  # a tracked.npz-style file given by name
+    elif not folder.is_dir():
+        raise PhysavatarError(folder, "not a folder or .npz (expected a tracked folder, a capture or a garment sequence)")
+    else:
+        tracked = folder / "tracked.npz"
+        if not tracked.is_file() and not (folder / "ground_truth" / "meshes.npz").is_file() \
+                and (folder / "garment_sequence.npz").is_file():
+            return load_garment_sequence(folder / "garment_sequence.npz")
     boundary = None
     rest = None
     fps = 25.0
@@ -1137,7 +1148,7 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
     else:
         src = folder / "ground_truth" / "meshes.npz"
         if not src.is_file():
-            raise PhysavatarError(folder, "neither tracked.npz nor ground_truth/meshes.npz found")
+            raise PhysavatarError(folder, "none of tracked.npz, ground_truth/meshes.npz, garment_sequence.npz found")
         z = load_npz(src)
         if "fps" in z:
             fps = float(z["fps"])
@@ -1198,6 +1209,56 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
         collider=verts[:, bidx] if len(bidx) else None, collider_faces=bfaces if len(bidx) else None,
         fps=fps, rest=np.asarray(rest, np.float64)[gidx],
     )
+
+
+def load_garment_sequence(path: str | Path, z=None) -> PhysicsData:
+    """A garment simulated on a moving body, as ``physavatar simulate`` writes it
+    (``garment_sequence.npz``) and as any cloth simulator can: ``vertices`` [T, N, 3] (the garment),
+    ``faces`` [F, 3]; optional ``boundary`` (per-vertex flags [N] or vertex ids [K]: the attached
+    vertices, none = held by contact alone), ``body_vertices`` [T, Nb, 3] with ``body_faces``
+    (the collider), ``fps`` (25) and ``rest_vertices`` [N, 3] (the stress-free shape; default
+    frame 0)."""
+    from ..files import load_npz
+
+    path = Path(path)
+    z = load_npz(path) if z is None else z
+    for key in ("vertices", "faces"):
+        if key not in z:
+            raise PhysavatarError(path, f"missing array {key!r} (a garment sequence needs vertices [T, N, 3] and faces)")
+    V = np.asarray(z["vertices"], np.float64)
+    F = np.asarray(z["faces"], np.int64)
+    if V.ndim != 3 or V.shape[2] != 3 or len(V) < 2:
+        raise PhysavatarError(path, f"vertices must be [T >= 2, N, 3], got {V.shape}")
+    n = V.shape[1]
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or F.min() < 0 or F.max() >= n:
+        raise PhysavatarError(path, f"faces must be [F, 3] indices into the {n} garment vertices")
+    if not np.all(np.isfinite(V)):
+        raise PhysavatarError(path, "vertices contain non-finite values")
+    b = np.asarray(z["boundary"]) if "boundary" in z else np.zeros(0, np.int64)
+    if b.dtype == bool or (len(b) == n and set(np.unique(b).tolist()) <= {0, 1}):
+        b = np.flatnonzero(b)
+    b = b.astype(np.int64)
+    if len(b) and (b.min() < 0 or b.max() >= n):
+        raise PhysavatarError(path, f"boundary must be {n} flags or ids into the garment vertices")
+    rest = np.asarray(z["rest_vertices"], np.float64) if "rest_vertices" in z else V[0]
+    if rest.shape != (n, 3) or not np.all(np.isfinite(rest)):
+        raise PhysavatarError(path, f"rest_vertices must be [{n}, 3] finite, got {rest.shape}")
+    body = body_faces = None
+    if "body_vertices" in z:
+        if "body_faces" not in z:
+            raise PhysavatarError(path, "body_vertices without body_faces")
+        body = np.asarray(z["body_vertices"], np.float64)
+        body_faces = np.asarray(z["body_faces"], np.int64)
+        if body.ndim != 3 or body.shape[0] != len(V) or body.shape[2] != 3:
+            raise PhysavatarError(path, f"body_vertices must be [T={len(V)}, Nb, 3], got {body.shape}")
+        if body_faces.ndim != 2 or body_faces.shape[1] != 3 or body_faces.min() < 0 or body_faces.max() >= body.shape[1]:
+            raise PhysavatarError(path, "body_faces must be [F, 3] indices into the body vertices")
+        if not np.all(np.isfinite(body)):
+            raise PhysavatarError(path, "body_vertices contain non-finite values")
+    fps = float(z["fps"]) if "fps" in z else 25.0
+    if not fps > 0:
+        raise PhysavatarError(path, f"fps must be positive, got {fps}")
+    return PhysicsData(reference=V, faces=F, boundary=b, collider=body, collider_faces=body_faces, fps=fps, rest=rest)
 
 
 def write_outputs(out: str | Path, result: FitResult) -> None:
