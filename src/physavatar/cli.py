@@ -412,6 +412,14 @@ def _garment_file(path: Path):
 
     if path.suffix == ".npz":
         z = load_npz(path)
+        if "vertices" in z and np.ndim(z["vertices"]) == 3:
+            # a garment sequence (simulate's garment_sequence.npz, another simulator's): its rest shape
+            from .stages.physics import load_garment_sequence
+
+            d = load_garment_sequence(path, z)
+            if not len(d.boundary):
+                raise PhysavatarError(path, "the garment sequence has no boundary (attached) vertices")
+            return GarmentPart(np.arange(len(d.rest)), d.rest, d.faces, d.boundary)
         if not {"vertices", "faces", "boundary"} <= set(z):
             raise PhysavatarError(path, "garment .npz needs 'vertices', 'faces' and 'boundary'")
         V, F, b = z["vertices"], z["faces"], np.asarray(z["boundary"])

@@ -79,7 +79,8 @@ def simulate_on_body_job(part: GarmentPart, body_sequence: np.ndarray, body_face
 # -- inputs of `physavatar simulate` -----------------------------------------------------------
 
 def load_mesh_sequence(path) -> tuple[np.ndarray, np.ndarray]:
-    """An animated mesh [T, V, 3] + faces [F, 3]: an .npz (``vertices``, ``faces``) or a folder of
+    """An animated mesh [T, V, 3] + faces [F, 3]: an .npz (``vertices``, ``faces``; or the body of a
+    garment sequence, ``body_vertices``, ``body_faces``, as ``simulate`` writes it) or a folder of
     OBJ/PLY files, one per frame in name order, all with the same topology."""
     from pathlib import Path
 
@@ -91,6 +92,8 @@ def load_mesh_sequence(path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     if path.is_file() and path.suffix == ".npz":
         z = load_npz(path)
+        if "body_vertices" in z and "body_faces" in z:  # a garment sequence: its body
+            z = {"vertices": z["body_vertices"], "faces": z["body_faces"]}
         if "vertices" not in z or "faces" not in z:
             raise PhysavatarError(path, "needs arrays 'vertices' [T, V, 3] and 'faces' [F, 3]")
         V, F = np.asarray(z["vertices"], np.float64), np.asarray(z["faces"], np.int64)
