@@ -6,7 +6,8 @@ noise. Both estimators start from the same far guess (the official driver's star
 base fabric, multipliers 1; density prior = the medium fabric's). Then the PhysAvatar Table 2
 comparison on held-out motions (``--heldout-motions``, default dance, turn, twist and jump, 24
 frames each): garment Chamfer distance (×10³) of the LBS-skinned garment, and of simulations with
-a random, the estimated and the true material, per motion and their mean, which the checks judge
+random materials (``--random-draws``, 5: the check takes their median, one draw can land near the
+truth), the estimated and the true material, per motion and their mean, which the checks judge
 (a single contact-rich clip moves by ~15 % between machines, as much as the differences judged).
 Prints a table and writes benchmarks/results/physics_recovery.json.
 
@@ -56,7 +57,8 @@ fd-vs-exact comparison use L_sim.
         [--foreign-alpha 0.2] [--foreign-beta 2e-4] [--foreign-friction 0.2]
         [--shape-weight 3] [--no-eq6-rows] [--proxy-vertices 0] [--fd-edge 0.10]
         [--fd-materials silk,cotton,denim] [--fd-setting noise] [--fd-iterations 100]
-        [--fit-integrator auto|euler|bdf2] [--heldout-motions dance,turn,twist,jump] [--out JSON]
+        [--fit-integrator auto|euler|bdf2] [--heldout-motions dance,turn,twist,jump] [--random-draws 5]
+        [--out JSON]
 
 --quick: dress edge 7 cm (299 vertices) for the accuracy runs (exact on all three materials),
 the fd-vs-exact comparison on all three materials in the issue's setting (noise) with a coarser
@@ -290,6 +292,8 @@ def main():
     ap.add_argument("--foreign-friction", type=float, default=ForeignSettings.friction,
                     help="body friction of the foreign ground truth")
     ap.add_argument("--noise-mm", type=float, default=2.0)
+    ap.add_argument("--random-draws", type=int, default=5,
+                    help="random materials per case; the check compares with their median held-out error")
     ap.add_argument("--shape-weight", type=float, default=SHAPE_WEIGHT,
                     help="the exact estimator's local-shape residual weight (fit_residuals); the 'exact_eq6' rows and "
                          "the fd-vs-exact comparison use 0 (the paper's L_sim)")
@@ -322,6 +326,8 @@ def main():
     load_start = list(os.getloadavg())
     t_all = time.perf_counter()
 
+    if args.random_draws < 1:
+        ap.error("--random-draws must be at least 1")
     heldout_motions = tuple(m for m in args.heldout_motions.split(",") if m)
     if not heldout_motions or "walk" in heldout_motions:
         ap.error("--heldout-motions: one or more built-in motions other than the fitted walk")
@@ -396,16 +402,28 @@ def main():
                                 callback=logger(name, "fd", 10))
                 rows[(setting, name, "fd")] = fit_row(fd_res, true, noise_floor)
                 estimates.append(("estimated_fd", fd_res.material))
-            # Table 2 on the held-out motion; "true" = the true material in the fitting model
+            # Table 2 on the held-out motion; "true" = the true material in the fitting model.
+            # "random": one draw as before (the same sequence of draws); "random_median": the median
+            # over --random-draws draws (one lucky draw can land near the truth: foreign denim's
+            # first, κs/ρ −32 %, κb/ρ +6 %, predicted that motion better than the true material)
             rnd = random_material(rng, start.density)
+            extra_rng = np.random.default_rng(1000 + mi)  # the same extra draws in every setting too
+            rnds = [("random", rnd)] + [(f"random_{k + 2}", random_material(extra_rng, start.density))
+                                        for k in range(args.random_draws - 1)]
             # "true": the true material as the simulator runs a preset (implicit Euler); where an
             # estimate was fitted in BDF2, the true material in BDF2 too (the check takes the better)
             trues = [("true", true)] + ([("true_bdf2", dataclasses.replace(true, integrator="bdf2"))]
                                         if any(m.integrator == "bdf2" for _, m in estimates) else [])
-            cd, cd_per = case.heldout_cd([("random", rnd)] + estimates + trues, gt_held, fit_settings)
+            cd, cd_per = case.heldout_cd(rnds + estimates + trues, gt_held, fit_settings)
+            for c in [cd] + list(cd_per.values()):
+                c["random_median"] = float(np.median([c[k] for k, _ in rnds]))
             figures["per_material"][setting][name] = {
                 "true": {"stretch_ratio": true.stretch_ratio, "bend_ratio": true.bend_ratio},
                 "random_material": {"stretch_stiffness": rnd.stretch_stiffness, "bend_stiffness": rnd.bend_stiffness},
+                "random_materials": {k: {"stretch_stiffness": m.stretch_stiffness, "bend_stiffness": m.bend_stiffness,
+                                         "stretch_ratio_rel_error": m.stretch_ratio / true.stretch_ratio - 1,
+                                         "bend_ratio_rel_error": m.bend_ratio / true.bend_ratio - 1}
+                                     for k, m in rnds},
                 "noise_floor_loss_m2": noise_floor,
                 "heldout_chamfer_x1e3": cd,
                 "heldout_chamfer_x1e3_per_motion": cd_per,
@@ -472,9 +490,11 @@ def main():
                     "value": est / true_cd if true_cd > 0 else math.inf,
                     "target": "<= 1.10 (true: the better of implicit Euler and, if an estimate chose it, BDF2)",
                     "unit": "CD ratio", "setting": setting, "pass": est <= 1.10 * true_cd}
+            rnd_cd = cd.get("random_median", cd["random"])
             checks[f"{setting}:{name}_heldout_cd_estimated_below_lbs_and_random"] = {
-                "value": est, "target": f"< min(lbs {cd['lbs']:.4g}, random {cd['random']:.4g})", "unit": "CD x1e3",
-                "setting": setting, "pass": est < min(cd["lbs"], cd["random"])}
+                "value": est, "target": f"< min(lbs {cd['lbs']:.4g}, random {rnd_cd:.4g}: the median over "
+                                        f"{args.random_draws} draws; the first draw alone {cd['random']:.4g})",
+                "unit": "CD x1e3", "setting": setting, "pass": est < min(cd["lbs"], rnd_cd)}
     for name, fig in figures["fd_comparison"].items():
         fd, ex = fig["estimators"]["fd"], fig["estimators"]["exact"]
         setting = fig["setting"]
