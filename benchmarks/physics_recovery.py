@@ -490,7 +490,7 @@ def main():
                     "value": est / true_cd if true_cd > 0 else math.inf,
                     "target": "<= 1.10 (true: the better of implicit Euler and, if an estimate chose it, BDF2)",
                     "unit": "CD ratio", "setting": setting, "pass": est <= 1.10 * true_cd}
-            rnd_cd = cd.get("random_median", cd["random"])
+            rnd_cd = cd["random_median"]
             checks[f"{setting}:{name}_heldout_cd_estimated_below_lbs_and_random"] = {
                 "value": est, "target": f"< min(lbs {cd['lbs']:.4g}, random {rnd_cd:.4g}: the median over "
                                         f"{args.random_draws} draws; the first draw alone {cd['random']:.4g})",

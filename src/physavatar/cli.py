@@ -408,7 +408,7 @@ def _garment_file(path: Path):
     import numpy as np
 
     from .files import load_npz, read_ply
-    from .garment_sim import GarmentPart
+    from .garment_sim import GarmentPart, boundary_ids
 
     if path.suffix == ".npz":
         z = load_npz(path)
@@ -422,9 +422,12 @@ def _garment_file(path: Path):
             return GarmentPart(np.arange(len(d.rest)), d.rest, d.faces, d.boundary)
         if not {"vertices", "faces", "boundary"} <= set(z):
             raise PhysavatarError(path, "garment .npz needs 'vertices', 'faces' and 'boundary'")
-        V, F, b = z["vertices"], z["faces"], np.asarray(z["boundary"])
-        bidx = np.flatnonzero(b) if len(b) == len(V) else b  # a per-vertex flag, or indices
-        return GarmentPart(np.arange(len(V)), np.asarray(V, float), np.asarray(F, np.int64), np.asarray(bidx, np.int64))
+        V, F = z["vertices"], z["faces"]
+        try:
+            bidx = boundary_ids(z["boundary"], len(V))  # per-vertex flags, or indices
+        except ValueError as e:
+            raise PhysavatarError(path, str(e)) from None
+        return GarmentPart(np.arange(len(V)), np.asarray(V, float), np.asarray(F, np.int64), bidx)
     m = read_ply(path)
     if "boundary" not in m.vertex_data:
         raise PhysavatarError(path, "needs a per-vertex 'boundary' property (1 = attached to the body)")

@@ -78,6 +78,18 @@ def simulate_on_body_job(part: GarmentPart, body_sequence: np.ndarray, body_face
 
 # -- inputs of `physavatar simulate` -----------------------------------------------------------
 
+def boundary_ids(values, n: int) -> np.ndarray:
+    """Boundary (attached) vertices as sorted ids, from per-vertex flags [n] (bool or 0/1) or from
+    vertex ids [K]. Out-of-range ids raise ValueError (callers name their file)."""
+    b = np.asarray(values).ravel()
+    if b.dtype == bool or (len(b) == n and set(np.unique(b).tolist()) <= {0, 1}):
+        b = np.flatnonzero(b)
+    b = np.unique(b.astype(np.int64))
+    if len(b) and (b[0] < 0 or b[-1] >= n):
+        raise ValueError(f"boundary must be {n} flags or ids into the {n} garment vertices")
+    return b
+
+
 def load_mesh_sequence(path) -> tuple[np.ndarray, np.ndarray]:
     """An animated mesh [T, V, 3] + faces [F, 3]: an .npz (``vertices``, ``faces``; or the body of a
     garment sequence, ``body_vertices``, ``body_faces``, as ``simulate`` writes it) or a folder of

@@ -1122,6 +1122,7 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
     from ..files import load_npz
 
     folder = Path(folder)
+    z = None  # the tracked arrays, when a file given by name was read already
     if folder.is_file() and folder.suffix == ".npz":
         z = load_npz(folder)
         if "labels" not in z:
@@ -1138,7 +1139,7 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
     rest = None
     fps = 25.0
     if tracked.is_file():
-        z = load_npz(tracked)
+        z = load_npz(tracked) if z is None else z
         src = tracked
         if "boundary" in z:
             boundary = np.asarray(z["boundary"]).astype(bool)
@@ -1219,6 +1220,7 @@ def load_garment_sequence(path: str | Path, z=None) -> PhysicsData:
     (the collider), ``fps`` (25) and ``rest_vertices`` [N, 3] (the stress-free shape; default
     frame 0)."""
     from ..files import load_npz
+    from ..garment_sim import boundary_ids
 
     path = Path(path)
     z = load_npz(path) if z is None else z
@@ -1234,12 +1236,10 @@ def load_garment_sequence(path: str | Path, z=None) -> PhysicsData:
         raise PhysavatarError(path, f"faces must be [F, 3] indices into the {n} garment vertices")
     if not np.all(np.isfinite(V)):
         raise PhysavatarError(path, "vertices contain non-finite values")
-    b = np.asarray(z["boundary"]) if "boundary" in z else np.zeros(0, np.int64)
-    if b.dtype == bool or (len(b) == n and set(np.unique(b).tolist()) <= {0, 1}):
-        b = np.flatnonzero(b)
-    b = b.astype(np.int64)
-    if len(b) and (b.min() < 0 or b.max() >= n):
-        raise PhysavatarError(path, f"boundary must be {n} flags or ids into the garment vertices")
+    try:
+        b = boundary_ids(z["boundary"], n) if "boundary" in z else np.zeros(0, np.int64)
+    except ValueError as e:
+        raise PhysavatarError(path, str(e)) from None
     rest = np.asarray(z["rest_vertices"], np.float64) if "rest_vertices" in z else V[0]
     if rest.shape != (n, 3) or not np.all(np.isfinite(rest)):
         raise PhysavatarError(path, f"rest_vertices must be [{n}, 3] finite, got {rest.shape}")
