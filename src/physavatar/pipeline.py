@@ -1,0 +1,279 @@
+"""``physavatar run CAPTURE OUT``: the whole pipeline, in process, resumable.
+
+track -> fit-physics -> fit-appearance -> build-avatar -> animate (held-out motion) -> render ->
+relight -> export -> evaluate. :func:`plan` lists the stages as :class:`Step` s: a stage function
+(``run(inputs..., out=, config=, progress=)`` of its module in ``stages/``), its inputs and its
+config. :func:`run` calls them in order, each writing ``OUT/<stage>/``.
+
+What is skipped: a stage whose final output exists and whose hash (its config and its inputs:
+the capture's files, or the hashes of the stages it reads from; :func:`stages.base.stage_hash`)
+equals the one recorded in ``OUT/run.json`` when it last finished. So an interrupted run resumes
+where it stopped, a changed setting re-runs that stage and everything downstream of it, and the
+stages' own resume logic (tracking per frame, appearance checkpoints) picks up inside a stage.
+
+What runs beside: stages marked ``background`` need nothing from the stages between them and their
+consumers; one scheduler starts them in a child process on a spare core (``PHYSAVATAR_WORKERS=1``,
+output to ``OUT/<stage>/stage.log``) while the next stages run here, and a stage that needs one of
+them waits for it. The evaluation's reference simulations run beside tracking (single-threaded),
+fit-appearance (Mitsuba) beside fit-physics. On a one-core machine everything runs in line.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import multiprocessing
+import os
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import PhysavatarError
+from .files import read_json, write_json_atomic
+from .parallel import default_workers
+from .stages.base import stage_hash, to_dict
+
+
+@dataclass
+class Step:
+    """One stage of a run. ``fn``: ``"module:function"`` (importable in a child process);
+    ``inputs``: keyword arguments that are inputs (paths, or names of earlier steps given as
+    ``("step", NAME)`` whose folder ``OUT/NAME`` is passed and whose hash enters this one's);
+    ``done_file``: relative to ``OUT/<name>`` (``out_file`` when the stage writes one file);
+    ``after``: background steps this one must wait for."""
+
+    name: str
+    fn: str
+    config: Any
+    inputs: dict = field(default_factory=dict)
+    done_file: str = ""
+    out_file: str | None = None  # the stage's ``out`` is OUT/<name>/<out_file> instead of the folder
+    after: tuple[str, ...] = ()
+    background: bool = False
+    command: list[str] = field(default_factory=list)  # the equivalent command line, for the report
+
+    def out(self, root: Path) -> Path:
+        return root / self.name / self.out_file if self.out_file else root / self.name
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """``physavatar run``'s settings (saved in ``OUT/run.json``)."""
+
+    quick: bool = False
+    track_frames: int | None = None
+    eval_frames: int | None = None
+    motion: str | None = None  # None: the capture's held-out motion (then also evaluated), else "dance"
+
+
+def _resolve(value, out: Path):
+    if isinstance(value, tuple) and len(value) == 2 and value[0] == "step":
+        return out / value[1]
+    return value
+
+
+def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
+    """The stages of a run, in order (see the module docstring)."""
+    from .stages import animate, appearance, avatar, evaluate, export, physics, render, track
+
+    capture = Path(capture)
+    held_file = capture / "ground_truth" / "heldout" / "motion.npz"
+    motion = cfg.motion or (str(held_file) if held_file.exists() else "dance")
+    cap = {"capture": capture}
+    steps = [
+        Step("track", "physavatar.stages.track:run", track.pipeline_config(cfg.track_frames), cap, "tracked.npz"),
+        # fit-appearance (Mitsuba, multi-threaded) runs beside fit-physics (single-threaded
+        # simulations): both need only the tracking.
+        Step("appearance", "physavatar.stages.appearance:run", appearance.pipeline_config(cfg.quick),
+             cap | {"tracked": ("step", "track")}, "texture.png", background=True),
+        Step("physics", "physavatar.stages.physics:run", physics.pipeline_config(cfg.quick),
+             {"source": ("step", "track")}, "material.json"),
+        Step("avatar", "physavatar.stages.avatar:run", avatar.AvatarConfig(),
+             cap | {"material": ("step", "physics"), "appearance": ("step", "appearance")}, "avatar.json",
+             after=("appearance",)),
+        Step("animate", "physavatar.stages.animate:run", animate.pipeline_config(motion, cfg.eval_frames),
+             {"avatar": ("step", "avatar")}, "sequence.json"),
+        Step("render", "physavatar.stages.render:run", render.pipeline_config("fitted", cfg.quick),
+             {"sequence": ("step", "animate")}, "render.json"),
+        Step("relight", "physavatar.stages.render:run", render.pipeline_config("sky", cfg.quick),
+             {"sequence": ("step", "animate")}, "render.json"),
+        Step("export", "physavatar.stages.export:run", export.ExportConfig(format="usd"),
+             {"sequence": ("step", "animate")}, "avatar.usdc", out_file="avatar.usdc"),
+        Step("export-glb", "physavatar.stages.export:run", export.ExportConfig(format="glb"),
+             {"sequence": ("step", "animate")}, "avatar.glb", out_file="avatar.glb"),
+    ]
+    # Evaluation needs ground truth: synthetic captures only.
+    if held_file.exists() and (capture / "ground_truth" / "heldout" / "meshes.npz").exists():
+        # The true- and random-material rows need nothing fitted: simulated on the second core
+        # while tracking (single-threaded) runs on the first.
+        steps.insert(0, Step("references", "physavatar.stages.evaluate:run_references",
+                             evaluate.ReferencesConfig(frames=cfg.eval_frames), cap, "references.json",
+                             background=True))
+        inputs = cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track"),
+                        "references": ("step", "references")}
+        if cfg.motion is None:  # the animate stage ran the held-out motion: reuse it
+            inputs["sequence"] = ("step", "animate")
+        steps.append(Step("evaluate", "physavatar.stages.evaluate:run",
+                          evaluate.EvaluateConfig(frames=cfg.eval_frames), inputs, "metrics.json",
+                          after=("references",)))
+    for st in steps:
+        st.command = _command(st, out)
+    return steps
+
+
+def _command(st: Step, out: Path) -> list[str]:
+    """The ``physavatar`` command line equivalent to a step (shown in the report)."""
+    from .stages.base import to_argv
+
+    names = {"track": "track", "appearance": "fit-appearance", "physics": "fit-physics", "avatar": "build-avatar",
+             "animate": "animate", "render": "render", "relight": "render", "export": "export",
+             "export-glb": "export", "references": "reference-sims", "evaluate": "evaluate"}
+    args = [names.get(st.name, st.name)]
+    first, *rest = list(st.inputs.items()) or [(None, None)]
+    if first[0] is not None:
+        args.append(str(_resolve(first[1], out)))
+    args += ["--out", str(st.out(out))]
+    for k, v in rest:
+        args += [f"--{k}", str(_resolve(v, out))]
+    return args + to_argv(st.config)
+
+
+def _hash(st: Step, out: Path, record: dict) -> str:
+    inputs = {}
+    for k, v in st.inputs.items():
+        if isinstance(v, tuple) and v[:1] == ("step",):
+            inputs[k] = {"step": v[1], "hash": record.get(v[1], {}).get("hash")}
+        elif isinstance(v, (str, Path)) and Path(v).exists():
+            inputs[k] = Path(v)
+        else:
+            inputs[k] = v
+    return stage_hash(st.config, inputs)
+
+
+def _call(st: Step, out: Path, progress) -> Any:
+    mod, fn = st.fn.split(":")
+    func = getattr(importlib.import_module(mod), fn)
+    kwargs = {k: _resolve(v, out) for k, v in st.inputs.items()}
+    return func(**kwargs, out=st.out(out), config=st.config, progress=progress)
+
+
+def _child(st: Step, out: Path, log_path: Path, conn) -> None:
+    """A background stage in its own process: output to its log, the result through ``conn``."""
+    os.environ["PHYSAVATAR_WORKERS"] = "1"  # one core: the other runs the next stages
+    fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", force=True)
+    try:
+        _call(st, out, progress=False)
+        conn.send(("ok", None, time.time()))
+    except PhysavatarError as e:
+        print(f"error: {e}", flush=True)
+        conn.send(("error", str(e), time.time()))
+    except KeyboardInterrupt:
+        conn.send(("interrupted", None, time.time()))
+    except BaseException:  # noqa: BLE001 - reported to the parent, which names the log
+        traceback.print_exc()
+        conn.send(("error", "an unexpected error (traceback in the log)", time.time()))
+    finally:
+        conn.close()
+
+
+@dataclass
+class _Running:
+    step: Step
+    proc: Any
+    conn: Any
+    t0: float
+    hash: str
+
+
+def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, only: list[str] | None = None,
+        say=print) -> dict:
+    """Run (or resume) every stage; returns the run record (per-stage hash, seconds and status).
+
+    ``say(text)`` prints one line (the CLI passes its console's print)."""
+    capture, out = Path(capture), Path(out)
+    if not capture.is_dir():
+        raise PhysavatarError(capture, "capture folder not found")
+    out.mkdir(parents=True, exist_ok=True)
+    rec_path = out / "run.json"
+    record = read_json(rec_path) if rec_path.exists() else {}
+    record["_capture"] = str(capture)
+    record["_config"] = to_dict(cfg)
+    steps = plan(capture, out, cfg)
+    cores = default_workers(64)
+    t_all = time.time()
+    running: dict[str, _Running] = {}
+    ctx = multiprocessing.get_context("spawn")
+
+    def save(st: Step, h: str, status: str, secs: float, background: bool = False) -> None:
+        record[st.name] = {"hash": h, "seconds": round(secs, 1), "status": status,
+                           "command": st.command, "config": to_dict(st.config)} | ({"background": True} if background else {})
+        write_json_atomic(rec_path, record)
+
+    def finish(name: str) -> None:
+        """Wait for background stage ``name`` and record it; raise if it failed."""
+        r = running.pop(name)
+        if r.proc.is_alive() and not r.conn.poll():
+            say(f"waiting for {name} (running beside since {time.time() - r.t0:.0f} s; "
+                f"log: {out / name / 'stage.log'})")
+        try:
+            status, msg, t_end = r.conn.recv()
+        except EOFError:  # died without a word (killed)
+            status, msg, t_end = "error", "the process ended unexpectedly", time.time()
+        r.proc.join()
+        if status == "interrupted":
+            raise KeyboardInterrupt
+        ok = status == "ok"
+        save(r.step, r.hash, "ok" if ok else "failed", t_end - r.t0, background=True)
+        say(f"{name} (beside the other stages): {'done' if ok else 'failed'} after {record[name]['seconds']} s")
+        if not ok:
+            raise PhysavatarError(out / name / "stage.log", f"stage {name!r} failed: {msg}; fix the cause and run "
+                                  "again to resume")
+
+    try:
+        for i, st in enumerate(steps, 1):
+            if only and st.name not in only:
+                continue
+            for name in [n for n, r in running.items() if not r.proc.is_alive() or r.conn.poll()]:
+                finish(name)  # ended meanwhile: its core is free again
+            for name in st.after:
+                if name in running:
+                    finish(name)
+            h = _hash(st, out, record)
+            prev = record.get(st.name, {})
+            if (out / st.name / st.done_file).exists() and prev.get("hash") == h and prev.get("status") == "ok":
+                say(f"[{i}/{len(steps)}] {st.name}: done earlier ({prev.get('seconds', '?')} s), skipped")
+                continue
+            (out / st.name).mkdir(parents=True, exist_ok=True)
+            if st.background and len(running) < cores - 1:
+                parent, child = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_child, args=(st, out, out / st.name / "stage.log", child), daemon=False)
+                proc.start()
+                child.close()
+                running[st.name] = _Running(st, proc, parent, time.time(), h)
+                say(f"[{i}/{len(steps)}] {st.name}: physavatar {' '.join(st.command)}  (beside the next stages on "
+                    f"another core; log: {out / st.name / 'stage.log'})")
+                continue
+            say(f"[{i}/{len(steps)}] {st.name}: physavatar {' '.join(st.command)}")
+            t0 = time.time()
+            try:
+                _call(st, out, progress=True)
+            except PhysavatarError as e:
+                save(st, h, "failed", time.time() - t0)
+                raise PhysavatarError(None, f"stage {st.name!r} failed: {e}; fix the cause and run again to "
+                                      "resume") from None
+            save(st, h, "ok", time.time() - t0)
+        for name in list(running):
+            finish(name)
+    finally:
+        for r in running.values():  # interrupted or failed: stop what runs beside
+            r.proc.terminate()
+            r.proc.join()
+    record["_total_seconds_this_run"] = round(time.time() - t_all, 1)
+    write_json_atomic(rec_path, record)
+    return record
+
