@@ -6,7 +6,7 @@ import pytest
 from physavatar.avatar import Avatar, build_avatar
 from physavatar.body import BodyModel, Motion, builtin_motion
 from physavatar.capture import load_capture
-from physavatar.garment.geometry import count_intersections
+from physavatar.geometry import count_intersections
 from physavatar.stages.animate import Sequence, animate
 
 

@@ -10,7 +10,7 @@ from physavatar.capture import check_template_mesh
 from physavatar.files import read_ply
 from physavatar.garment import (Garment, MIN_CLEARANCE, attachment_positions, combine_template,
                                 garment_skinning_weights, make_attachment, make_garment)
-from physavatar.garment.geometry import MeshQuery, count_intersections
+from physavatar.geometry import MeshQuery, count_intersections
 
 KINDS = ("dress", "skirt", "tshirt")
 # open boundary loops: dress (hem, neck, two armholes), skirt (hem, waist), T-shirt (hem, neck, sleeves)

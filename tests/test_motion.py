@@ -136,7 +136,7 @@ def test_arm_clearance_raises_only_the_arms_and_only_where_the_hands_come_too_cl
 
     from physavatar.body import builtin_motion
     from physavatar.body.motion import _TRUNK_PARTS, arm_clearance
-    from physavatar.garment.surface import bone_vertex_mask
+    from physavatar.body.model import bone_vertex_mask
 
     walk = builtin_motion("walk", body.bone_names, 25.0, 1.2)
     _, before = arm_clearance(walk, body, clearance=0.0)  # measures only

@@ -14,7 +14,7 @@ from physavatar.cli import app
 from physavatar.files import PlyMesh, save_npz_atomic, write_ply
 from physavatar.sim import Material, SimSettings, preset
 from physavatar.errors import PhysavatarError
-from physavatar.garment.geometry import count_intersections
+from physavatar.geometry import count_intersections
 from physavatar.stages.physics import (START_CLEARANCE, PhysicsData, clear_start, far_material, fit_exact, fit_fd,
                                        fit_material, load_physics_data, rollout, trajectory_loss, write_outputs)
 
@@ -478,7 +478,7 @@ def fine_hanging_cloth(n=13, frames=8):
 
 
 def test_proxy_is_coarse_well_shaped_on_the_surface_and_attached():
-    from physavatar.garment.geometry import MeshQuery
+    from physavatar.geometry import MeshQuery
     from physavatar.stages.proxy import make_proxy
 
     d = fine_hanging_cloth(n=25)
@@ -607,7 +607,7 @@ def test_lm_step_is_the_box_constrained_minimum_of_the_damped_model():
     (|δ| ≤ radius and the bounds), with one parameter's scale 100× the other's (as κs vs κb)."""
     from scipy.optimize import minimize
 
-    from physavatar.stages.physics import _lm_step
+    from physavatar.optim import lm_step as _lm_step
 
     rng = np.random.default_rng(3)
     for trial in range(6):

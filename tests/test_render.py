@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from physavatar.camera import Camera, intrinsics, look_at
+from physavatar.geometry import split_uv_seams
 from physavatar.render import (
     Ambient,
     AreaLight,
@@ -31,7 +32,6 @@ from physavatar.render import (
     render_views,
     sky_envmap,
     soft_studio,
-    split_uv_seams,
     srgb_to_linear,
     write_png,
 )

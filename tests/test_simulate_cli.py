@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from physavatar.cli import app
 from physavatar.files import PlyMesh, write_ply
-from physavatar.garment.geometry import count_intersections
+from physavatar.geometry import count_intersections
 
 runner = CliRunner()
 

@@ -43,7 +43,7 @@ def test_tiny_capture_is_valid(tiny):
     assert np.linalg.norm(V[-1, g] - V[0, g], axis=1).max() > 0.01
     body_ids, body_faces, part = split_template(cap.template.vertices, cap.template.faces,
                                                 cap.template.labels, cap.template.boundary)
-    from physavatar.garment.geometry import count_intersections
+    from physavatar.geometry import count_intersections
 
     for t in range(cfg.frames):
         assert count_intersections(V[t, part.vertex_ids], part.faces, V[t, body_ids], body_faces) == 0

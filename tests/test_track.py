@@ -245,7 +245,7 @@ def test_anchor_and_collision_losses_by_hand():
 def test_adam_uniform_steps():
     """First step of AdamUniform (bias-corrected moments m = g, v = g^2): quantile 1 is
     lr g_i / max_j |g_j| (largesteps' AdamUniform), quantile 0 is lr g_i / |g_i| per row."""
-    from physavatar.stages.track import AdamUniform
+    from physavatar.optim.uniform import AdamUniform
 
     g = torch.tensor([[3.0, 4.0, 0.0], [0.3, 0.0, 0.4], [0.0, 0.0, 1.0]])
     for q, denom in ((1.0, torch.full((3, 1), 5.0)), (0.0, g.norm(dim=1, keepdim=True))):

@@ -26,7 +26,7 @@ from .body.transfer import transfer_skinning_weights
 from .capture import Capture, Template, load_capture
 from .errors import PhysavatarError
 from .files import load_npz, read_json, read_ply, save_npz_atomic, write_json_atomic
-from .garment.geometry import submesh
+from .geometry import submesh
 from .sim import Material
 
 AVATAR_VERSION = 1

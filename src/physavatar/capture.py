@@ -27,10 +27,9 @@ from .body.model import PHENOTYPES, BodyShape
 from .camera import Camera
 from .errors import CaptureError, PhysavatarError
 from .files import PlyMesh, atomic_path, load_npz, read_json, read_ply, save_npz_atomic, write_json_atomic, write_ply
+from .labels import LABEL_BODY, MAX_LABEL
 
 FORMAT_VERSION = 1
-LABEL_BODY = 0
-MAX_LABEL = 15  # garments are labelled 1..MAX_LABEL
 
 
 def frame_name(frame_id: int) -> str:

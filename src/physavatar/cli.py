@@ -358,7 +358,7 @@ def simulate(
         _bad_option("--capture/--garment/--collider", "say what to simulate: --capture C, or --garment KIND --motion M, or --collider SEQ --garment FILE")
     if len(part.boundary) == 0:
         _bad_option("--garment", "the garment has no boundary vertices to attach to the body")
-    from .garment.geometry import count_intersections
+    from .geometry import count_intersections
 
     n_cross = count_intersections(part.vertices, part.faces, bodies[0], body_faces)
     if n_cross:

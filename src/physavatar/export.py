@@ -29,6 +29,7 @@ import numpy as np
 
 from .errors import PhysavatarError
 from .files import PlyMesh, atomic_path, write_bytes_atomic, write_ply, write_text_atomic
+from .geometry import split_uv_seams, vertex_normals
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -127,20 +128,6 @@ def _texture_png(texture, path) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(img).save(buf, format="PNG")
     return buf.getvalue()
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals: [..., V, 3] for vertices [..., V, 3], faces [F, 3]."""
-    v = np.asarray(vertices, dtype=np.float64)
-    flat = v.reshape(-1, v.shape[-2], 3)
-    out = np.zeros_like(flat)
-    for b in range(len(flat)):
-        tri = flat[b][faces]
-        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2·area·unit normal
-        for k in range(3):
-            np.add.at(out[b], faces[:, k], fn)
-    length = np.linalg.norm(out, axis=-1, keepdims=True)
-    return (out / np.where(length > 0, length, 1.0)).reshape(v.shape)
 
 
 # -- USD -----------------------------------------------------------------------------------------
@@ -264,18 +251,6 @@ def _usd_material(stage, mesh, mat_path: str, tex_name: str | None) -> None:
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
-def split_uv_seams(faces: np.ndarray, uvs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-vertex UVs from per-corner UVs by duplicating vertices on UV seams.
-
-    faces [F, 3], uvs [F, 3, 2] -> (new_faces [F, 3], source_vertex [V'], vertex_uv [V', 2]):
-    new vertex i copies original vertex ``source_vertex[i]`` and has UV ``vertex_uv[i]``.
-    glTF (and PLY importers) store one UV per vertex, so a seam vertex needs one copy per side.
-    """
-    keys = np.concatenate([faces.reshape(-1, 1).astype(np.float64), uvs.reshape(-1, 2)], axis=1)
-    uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
-    return inverse.reshape(faces.shape), uniq[:, 0].astype(np.int64), uniq[:, 1:]
-
-
 def export_glb(path: str | Path, seq: MeshSequence, *, interpolation: str = "LINEAR",
                name: str = "avatar") -> Path:
     """Write ``seq`` as a binary glTF with morph-target animation; returns the path written.
@@ -297,8 +272,9 @@ def export_glb(path: str | Path, seq: MeshSequence, *, interpolation: str = "LIN
     seq = seq.validated(path)
     v, f, uv = seq.vertices, seq.faces, seq.uvs
     if uv is not None:
-        f, src, vuv = split_uv_seams(f, uv)
-        v = v[:, src]
+        split = split_uv_seams(v[0], f, uv)
+        f, vuv = split.faces, split.uvs
+        v = v[:, split.vertex_map]
     frames = (v @ Z_UP_TO_Y_UP.T).astype(np.float32)  # [T, V', 3]
     T = seq.n_frames
 
@@ -466,5 +442,5 @@ def export(path: str | Path, seq: MeshSequence, fmt: str | None = None, **option
 
 
 __all__ = ["ExportError", "MeshSequence", "export", "export_usd", "export_glb",
-           "export_obj_sequence", "export_ply_sequence", "split_uv_seams", "vertex_normals",
+           "export_obj_sequence", "export_ply_sequence",
            "frame_name", "Z_UP_TO_Y_UP"]

@@ -289,3 +289,11 @@ def linear_blend_skinning(rest_points: np.ndarray, weights: np.ndarray, bone_tra
     """
     A = np.einsum("nb,tbij->tnij", weights, bone_transforms[:, :, :3, :])
     return np.einsum("tnij,nj->tni", A[..., :3], rest_points) + A[..., 3]
+
+
+def bone_vertex_mask(body: BodyModel, prefixes) -> np.ndarray:
+    """[V] bool: vertices whose dominant skinning bone starts with one of ``prefixes``."""
+    names = body.bone_names
+    dom = np.argmax(body.skinning_weights, axis=1)
+    sel = np.array([any(n.startswith(p) for p in prefixes) for n in names])
+    return sel[dom]

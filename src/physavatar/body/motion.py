@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import PhysavatarError
 from ..files import load_npz, save_npz_atomic
-from .model import BodyModel, axis_angle_to_matrix, matrix_to_axis_angle
+from .model import BodyModel, axis_angle_to_matrix, bone_vertex_mask, matrix_to_axis_angle
 
 
 @dataclass
@@ -288,22 +288,6 @@ def builtin_motion(name: str, bone_names: list[str], fps: float = 25.0, duration
     return Motion(name, fps, bone_names, R, tr, {"source": "builtin", "duration": duration})
 
 
-def load_motion(spec: str, bone_names: list[str], fps: float = 25.0, duration: float = 4.0) -> Motion:
-    """A motion by built-in name, ``.npz`` file or ``.bvh`` file, resampled to ``fps``."""
-    if spec in BUILTIN:
-        return builtin_motion(spec, bone_names, fps, duration)
-    path = Path(spec)
-    if path.suffix.lower() == ".bvh":
-        from .bvh import import_bvh
-
-        return import_bvh(path).resample(fps).for_bones(bone_names)
-    if path.suffix.lower() == ".npz":
-        return Motion.load(path).resample(fps).for_bones(bone_names)
-    if not path.exists():
-        raise PhysavatarError(path, f"not a built-in motion ({', '.join(BUILTIN)}) and no such file")
-    raise PhysavatarError(path, "motion files must be .npz or .bvh")
-
-
 _ARM_PARTS = ("lowerarm", "wrist", "hand", "finger", "thumb", "metacarpal")
 _TRUNK_PARTS = ("root", "pelvis", "spine", "upperleg")
 
@@ -321,8 +305,6 @@ def arm_clearance(motion: Motion, body: BodyModel, clearance: float = 0.03, samp
     """
     from scipy.ndimage import gaussian_filter1d, maximum_filter1d
     from scipy.spatial import cKDTree
-
-    from ..garment.surface import bone_vertex_mask
 
     m = motion.for_bones(body.bone_names)
     rots, trs = m.rotations.copy(), m.root_translation

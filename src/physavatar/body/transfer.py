@@ -18,6 +18,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..geometry import MeshQuery, vertex_normals
+
 
 def cotangent_laplacian(V: np.ndarray, F: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     """(L, M): L [V, V] negative semi-definite cotangent Laplacian, M [V, V] lumped (barycentric) mass."""
@@ -43,14 +45,6 @@ def cotangent_laplacian(V: np.ndarray, F: np.ndarray) -> tuple[sp.csr_matrix, sp
     return L.tocsr(), M.tocsr()
 
 
-def _vertex_normals(V, F):
-    n = np.zeros_like(V)
-    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    for k in range(3):
-        np.add.at(n, F[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-
-
 def closest_point_transfer(target_V, target_F, source_V, source_F, source_W, max_distance: float = 0.03,
                            max_angle_deg: float = 30.0):
     """Weights [N, B] at the closest source points and the matched mask [N].
@@ -59,16 +53,14 @@ def closest_point_transfer(target_V, target_F, source_V, source_F, source_W, max
         target_V: [N, 3], target_F: [Ft, 3]: the mesh receiving weights.
         source_V: [Ns, 3], source_F: [Fs, 3], source_W: [Ns, B]: the posed Anny body and its weights.
     """
-    from ..garment.geometry import MeshQuery
-
     _, f, bary, q = MeshQuery(source_V, source_F).closest(np.asarray(target_V, np.float64))
     tri = np.asarray(source_F)[f]
     W = np.einsum("nk,nkb->nb", bary, np.asarray(source_W)[tri])
     d = np.linalg.norm(np.asarray(target_V) - q, axis=1)
-    ns = _vertex_normals(np.asarray(source_V, np.float64), np.asarray(source_F))
+    ns = vertex_normals(np.asarray(source_V, np.float64), np.asarray(source_F), eps=1e-12)
     n_src = np.einsum("nk,nkd->nd", bary, ns[tri])
     n_src /= np.maximum(np.linalg.norm(n_src, axis=1, keepdims=True), 1e-12)
-    n_tgt = _vertex_normals(np.asarray(target_V, np.float64), np.asarray(target_F))
+    n_tgt = vertex_normals(np.asarray(target_V, np.float64), np.asarray(target_F), eps=1e-12)
     cos = np.abs(np.einsum("nd,nd->n", n_src, n_tgt))  # orientation-agnostic (flipped scans)
     matched = (d <= max_distance) & (cos >= np.cos(np.radians(max_angle_deg)))
     return W, matched

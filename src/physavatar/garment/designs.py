@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..body.model import bone_vertex_mask
 from . import surface as S
 from .pattern import Panel, Piece
 
@@ -39,9 +40,9 @@ class BodyMeasure:
     @staticmethod
     def of(body, seed: int = 0) -> "BodyMeasure":
         g = S.body_grid(body)
-        arm = S.bone_vertex_mask(body, S.ARM_BONES)
-        head = S.bone_vertex_mask(body, S.HEAD_BONES)
-        fore = S.bone_vertex_mask(body, S.FOREARM_BONES)
+        arm = bone_vertex_mask(body, S.ARM_BONES)
+        head = bone_vertex_mask(body, S.HEAD_BONES)
+        fore = bone_vertex_mask(body, S.FOREARM_BONES)
         keeps = {"torso": ~arm & ~head, "upper": ~head & ~fore, "arms": arm & ~fore, "all": np.ones(len(arm), bool)}
         ymin, ymax = {}, {}
         for k, keep in keeps.items():

@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture import LABEL_BODY, MAX_LABEL, Template
+from ..capture import Template
 from ..files import atomic_path
-from .geometry import MeshQuery, adjacency, mesh_quality
+from ..geometry import MeshQuery, adjacency, mesh_quality
+from ..labels import LABEL_BODY, MAX_LABEL
 
 MIN_CLEARANCE = 0.004  # m; every garment vertex at least this far from both body topologies
 

@@ -28,14 +28,6 @@ FOREARM_BONES = ("lowerarm", "wrist", "finger", "metacarpal")
 HEAD_BONES = ("neck", "head", "eye")
 
 
-def bone_vertex_mask(body, prefixes) -> np.ndarray:
-    """[V] bool: vertices whose dominant skinning bone starts with one of ``prefixes``."""
-    names = body.bone_names
-    dom = np.argmax(body.skinning_weights, axis=1)
-    sel = np.array([any(n.startswith(p) for p in prefixes) for n in names])
-    return sel[dom]
-
-
 @dataclass
 class Grid:
     x0: float

@@ -19,7 +19,7 @@ from .lights import (
     sky_envmap,
     soft_studio,
 )
-from .mesh import MeshSpec, SplitMesh, bsdf_dict, split_uv_seams, to_mitsuba_mesh
+from .mesh import MeshSpec, bsdf_dict, to_mitsuba_mesh
 from .scene import (
     ParamKeys,
     RenderResult,
@@ -44,7 +44,6 @@ __all__ = [
     "PointLight",
     "RenderResult",
     "SceneSpec",
-    "SplitMesh",
     "SunLight",
     "alpha_to_uint8",
     "bsdf_dict",
@@ -65,7 +64,6 @@ __all__ = [
     "sensor_dict",
     "sky_envmap",
     "soft_studio",
-    "split_uv_seams",
     "srgb_to_linear",
     "to_mitsuba_mesh",
     "to_uint8",

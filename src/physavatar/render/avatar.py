@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..garment.geometry import submesh
-from .mesh import MeshSpec, split_uv_seams
+from ..geometry import split_uv_seams, submesh
+from .mesh import MeshSpec
 
 
 def avatar_specs(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, face_uvs: np.ndarray | None,

@@ -205,7 +205,7 @@ class SurfaceCarry:
     def __init__(self, V, F, P, k=8):
         from scipy.spatial import cKDTree
 
-        from ..garment.geometry import closest_point_triangle
+        from ..geometry import closest_point_triangle
 
         V, P = np.asarray(V, dtype=np.float64), np.asarray(P, dtype=np.float64)
         self.F = np.asarray(F, dtype=np.int64)

@@ -16,6 +16,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..geometry import mesh_edges
+
 
 def _gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
@@ -66,17 +68,6 @@ def linear_to_srgb(x: torch.Tensor) -> torch.Tensor:
     # the pow branch sees only values where it is selected or a safe constant: no inf gradient at 0
     hi = 1.055 * torch.pow(x.clamp(min=0.0031308), 1.0 / 2.4) - 0.055
     return torch.where(x <= 0.0031308, 12.92 * x, hi)
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    x = np.clip(np.asarray(x, dtype=np.float64), 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
-
-
-def mesh_edges(faces: np.ndarray) -> np.ndarray:
-    """[E, 2] unique undirected edges (i < j) of a triangle mesh."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
 
 
 def face_adjacency(faces: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ from ..avatar import Avatar
 from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
 from ..errors import PhysavatarError
 from ..files import PlyMesh, save_npz_atomic, write_json_atomic, write_ply
-from ..garment.geometry import count_intersections
+from ..geometry import count_intersections
 from ..garment_sim import simulate_on_body, split_template
 from ..sim import SimSettings
 

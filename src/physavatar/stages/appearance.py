@@ -59,7 +59,8 @@ from ..camera import Camera
 from ..capture import Capture, Template, frame_name, load_capture, save_png
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, save_npz_atomic, write_json_atomic, write_text_atomic
-from ..garment.geometry import submesh
+from ..geometry import split_uv_seams, submesh
+from ..optim import Adam
 from ..render import (
     Ambient,
     AreaLight,
@@ -76,7 +77,6 @@ from ..render import (
     mitsuba,
     render,
     sky_envmap,
-    split_uv_seams,
     srgb_to_linear,
 )
 
@@ -528,36 +528,6 @@ def image_face_colors(data: AppearanceData, frame_stride: int = 1, erode_px: int
 VISIBILITY_FRAMES = 8  # frames over which face visibility is counted when tracked colours exist
 
 
-class _Adam:
-    """Adam on numpy arrays (β = 0.9, 0.999, ε = 1e-8, Mitsuba's defaults), kept here rather
-    than ``mi.ad.Adam`` so that its moments can be checkpointed and a run resumed exactly."""
-
-    def __init__(self, shapes: dict[str, tuple]):
-        self.m = {k: np.zeros(s, np.float64) for k, s in shapes.items()}
-        self.v = {k: np.zeros(s, np.float64) for k, s in shapes.items()}
-        self.t = 0
-
-    def step(self, params: dict[str, np.ndarray], grads: dict[str, np.ndarray], lrs: dict[str, float]) -> None:
-        self.t += 1
-        b1, b2, eps = 0.9, 0.999, 1e-8
-        for k, g in grads.items():
-            self.m[k] = b1 * self.m[k] + (1 - b1) * g
-            self.v[k] = b2 * self.v[k] + (1 - b2) * g * g
-            mh = self.m[k] / (1 - b1 ** self.t)
-            vh = self.v[k] / (1 - b2 ** self.t)
-            params[k] = params[k] - lrs[k] * mh / (np.sqrt(vh) + eps)
-
-    def state(self) -> dict:
-        return {"adam_t": np.int64(self.t), **{f"adam_m_{k}": v for k, v in self.m.items()},
-                **{f"adam_v_{k}": v for k, v in self.v.items()}}
-
-    def load(self, z: dict) -> None:
-        self.t = int(z["adam_t"])
-        for k in self.m:
-            self.m[k] = z[f"adam_m_{k}"]
-            self.v[k] = z[f"adam_v_{k}"]
-
-
 class InverseRenderer:
     """One differentiable Mitsuba scene of the avatar whose vertex positions are swapped per
     frame; renders the shared texture and lights and returns loss and gradients.
@@ -802,7 +772,7 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
         if key0 is not None:
             state["key"] = key0
         fitted_keys = ["texture"] + ([k for k in ("ambient", "key") if k in state] if cfg.fit_light else [])
-        adam = _Adam({k: state[k].shape for k in fitted_keys})
+        adam = Adam({k: state[k].shape for k in fitted_keys})
         log: list[dict] = []
         start = 0
         exposure = None
@@ -811,7 +781,7 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
             if json.loads(str(z["resume_key"])) == _resume_key(cfg):
                 for k in state:
                     state[k] = z[k]
-                adam.load(z)
+                adam.load_state_dict(z)
                 start = int(z["iteration"])
                 log = _read_log(out / "fit_log.csv")[:start]
                 exposure = float(z["exposure"])
@@ -858,7 +828,7 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
             bar.advance(task)
             if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == cfg.iterations:
                 save_npz_atomic(ckpt, iteration=np.int64(it + 1), resume_key=np.array(json.dumps(_resume_key(cfg))),
-                                exposure=np.float64(exposure), **state, **adam.state())
+                                exposure=np.float64(exposure), **state, **adam.state_dict())
                 _write_log(out / "fit_log.csv", log)
         # per-iteration time from the log, so that a resumed run reports the same figure
         sec_it = float(np.mean([r["seconds"] for r in log])) if log else float("nan")

@@ -29,7 +29,7 @@ from ..body import Motion, linear_blend_skinning
 from ..capture import load_capture
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, write_json_atomic, write_text_atomic
-from ..garment.geometry import submesh
+from ..geometry import submesh
 from ..sim import Material
 
 ROWS = ("LBS", "random material", "estimated material", "true material")

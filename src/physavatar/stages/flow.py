@@ -394,7 +394,7 @@ class FlowPrediction:
         deep into a limb on the side it came from (the closest point at ``X`` would be the far side)."""
         if self.collider_faces is None or self.collision_weight <= 0 or len(self.collider_faces) == 0:
             return None
-        from ..garment.geometry import MeshQuery, vertex_normals
+        from ..geometry import MeshQuery, vertex_normals
 
         d, f, w, _ = MeshQuery(X0, self.collider_faces).closest(X0[self.ids], max_dist=self.contact_range)
         near = d < self.contact_range

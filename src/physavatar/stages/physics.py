@@ -41,7 +41,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from ..errors import PhysavatarError
-from ..garment.geometry import submesh
+from ..geometry import submesh
+from ..optim import Adam, lm_step
 from ..sim import ClothSim, Material, SimSettings, preset
 from ..sim.material import CODIM_BASE_POISSON, CODIM_BASE_THICKNESS, CODIM_BASE_YOUNG
 
@@ -235,7 +236,7 @@ def clear_start(data: PhysicsData, source=None, frame: int = 0,
     ``--start``. Returns (data with ``initial`` set, info dict for material.json).
     """
     from ..garment.garment import body_clearance, push_out
-    from ..garment.geometry import count_intersections
+    from ..geometry import count_intersections
 
     x0 = np.asarray(data.reference[0] if data.initial is None else data.initial, dtype=np.float64)
     info = {"frame": int(frame), "crossing_pairs": 0, "min_gap_mm": None, "pushed_vertices": 0, "max_push_mm": 0.0}
@@ -810,9 +811,7 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
     delta = np.array([FD_STEP[n] for n in names])
     lr0 = np.array([ADAM_LR[n] for n in names])
     lo, hi = _bounds(names)
-    b1, b2, eps = 0.9, 0.999, 1e-8
-    m_adam = np.zeros(len(names))
-    v_adam = np.zeros(len(names))
+    adam = Adam({"theta": theta.shape})
     t_start = time.perf_counter()
     history = []
     best = (math.inf, theta.copy(), None, None, math.inf)
@@ -843,11 +842,7 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
                 callback(row)
             # Adam (bias-corrected) with the official driver's cosine learning-rate schedule
             lr = lr0 * (ADAM_LR_FINAL_FRACTION + (1 - ADAM_LR_FINAL_FRACTION) * 0.5 * (1 + math.cos(math.pi * it / iterations)))
-            m_adam = b1 * m_adam + (1 - b1) * grad
-            v_adam = b2 * v_adam + (1 - b2) * grad**2
-            mh = m_adam / (1 - b1 ** (it + 1))
-            vh = v_adam / (1 - b2 ** (it + 1))
-            theta = np.clip(theta - lr * mh / (np.sqrt(vh) + eps), lo, hi)
+            theta = np.clip(adam.step({"theta": theta}, {"theta": grad}, lr)["theta"], lo, hi)
     finally:
         ev.close()
     objective, theta_best, fd_jac, resid, loss = best
@@ -880,39 +875,6 @@ def _settings_dict(settings, substeps, fps):
 # -- exact gradients: forward sensitivities + Levenberg–Marquardt --------------------------------
 
 
-def _lm_step(J, res, theta, lo, hi, lam, radius):
-    """One box-constrained Levenberg–Marquardt step in log space.
-
-    Minimises the damped linear model ‖r + Jδ‖² + λ δᵀ diag(JᵀJ) δ over the box |δ_p| ≤
-    ``radius`` ∩ the bounds (no parameter moves more than a factor e^radius per iteration; the
-    residual model is only locally linear, and a far start otherwise overshoots into unstable
-    materials). Solving over the box, rather than scaling or clipping the unconstrained step:
-    κb is ~100× less constrained than κs, so its Gauss–Newton step is long; scaling the step
-    to the box shrank κs's part with it (κs stayed 19 % off while κb crawled to its bound),
-    and clipping at a bound turned the free parameters' direction. P ≤ 3, so the box problem
-    runs on the P×P Cholesky factor of JᵀJ + λD. Returns (trial θ, predicted decrease).
-    """
-    from scipy.optimize import lsq_linear
-
-    g = J.T @ res
-    JtJ = J.T @ J
-    d = np.maximum(np.diag(JtJ), 1e-12 * max(np.max(np.diag(JtJ)), 1e-300))
-    A = JtJ + lam * np.diag(d)
-    R = np.linalg.cholesky(A).T  # RᵀR = A: ‖Rδ + R⁻ᵀg‖² = δᵀAδ + 2gᵀδ + const
-    rhs = -np.linalg.solve(R.T, g)
-    lower = np.maximum(lo - theta, -radius)
-    upper = np.minimum(hi - theta, radius)
-    lower, upper = np.minimum(lower, 0.0), np.maximum(upper, 0.0)
-    fixed = upper - lower < 1e-12  # a parameter pinned on a bound with no room (lsq_linear needs lb < ub)
-    delta = np.zeros_like(theta)
-    if (~fixed).any():
-        Rf = R[:, ~fixed]
-        delta[~fixed] = lsq_linear(Rf, rhs, bounds=(lower[~fixed], upper[~fixed]), method="bvls").x
-    delta = np.clip(theta + delta, lo, hi) - theta
-    predicted = -(2.0 * g @ delta + delta @ JtJ @ delta)  # ‖r‖² − ‖r + Jδ‖²
-    return theta + delta, float(predicted)
-
-
 def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None = None,
               iterations: int = 15, fit_density: bool = False, substeps: int = 1,
               tolerance: float = 1e-4, callback: Callable | None = None, max_rejections: int = 4,
@@ -920,7 +882,7 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
     """Levenberg–Marquardt on the trajectory residuals with exact Jacobians (:func:`rollout`).
 
     Each iteration simulates once with sensitivities (J [M, P], P = 2 or 3), solves
-    (JᵀJ + λ diag JᵀJ) δ = −Jᵀr within a box around θ and the bounds (:func:`_lm_step`), and
+    (JᵀJ + λ diag JᵀJ) δ = −Jᵀr within a box around θ and the bounds (:func:`lm_step`), and
     tries θ + δ (a second simulation, which also provides the next Jacobian when accepted).
     A box trust region in log space (max norm, ``radius`` to start) follows the gain ratio ϱ of the
     actual to the predicted loss decrease (Nielsen / Moré): ϱ > 0.75 doubles it (up to 2), ϱ <
@@ -966,7 +928,7 @@ def fit_exact(data: PhysicsData, initial: Material, settings: SimSettings | None
     if callback is not None:
         callback(row)
     for it in range(1, iterations + 1):
-        trial, predicted = _lm_step(J, res, theta, lo, hi, lam, radius)
+        trial, predicted = lm_step(J, res, theta, lo, hi, lam, radius)
         tried = float(np.max(np.abs(trial - theta)))
         if tried < 1e-12 or predicted <= 0:
             break  # every free parameter is held on a bound: a constrained stationary point

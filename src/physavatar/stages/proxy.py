@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from ..errors import PhysavatarError
-from ..garment.geometry import MeshQuery, vertex_normals
+from ..geometry import MeshQuery, vertex_normals
 
 
 GRADING_NEAR = 0.4  # relative edge length at the attachment

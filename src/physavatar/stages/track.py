@@ -46,9 +46,12 @@ from ..camera import Camera
 from ..capture import Capture, frame_name, load_capture
 from ..errors import PhysavatarError
 from ..files import PlyMesh, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
+from ..geometry import mesh_edges
+from ..optim.uniform import AdamUniform
+from ..render.image import srgb_to_linear
 from ..splat import longest_edge_index, mesh_to_gaussians, rasterize
 from .flow import to_gray8
-from ._losses import AnchorLoss, CollisionLoss, IsometryLoss, NormalLoss, linear_to_srgb, srgb_to_linear, ssim
+from ._losses import AnchorLoss, CollisionLoss, IsometryLoss, NormalLoss, linear_to_srgb, ssim
 
 LOG_COLUMNS = ("frame", "iterations", "loss", "render", "l1", "ssim", "mask", "iso", "normal", "anchor", "collision", "seconds")
 
@@ -406,52 +409,6 @@ def initial_colors(vertices: np.ndarray, faces: np.ndarray, views: list[View]) -
     return srgb_to_linear(med).astype(np.float32)
 
 
-class AdamUniform(torch.optim.Optimizer):
-    """Adam whose second moment is normalised by one value for the whole tensor, not per entry
-    (Nicolet et al. 2021, ``largesteps.optimize.AdamUniform``, uses the maximum).
-
-    Per-entry Adam moves every vertex about one step size per iteration however weak its
-    gradient: body vertices hidden under the garment or on low-contrast skin, whose photometric
-    gradient is tiny noise, then wander as far as the well-observed ones (measured on the demo
-    capture: the body, started exactly on its skinned pose, moved 5 mm in one frame). With one
-    normaliser the update keeps the gradient's relative sizes: the best-observed vertex moves
-    about a step, a vertex with a hundredth of its gradient a hundredth of that.
-
-    ``quantile`` < 1: rows (vertices) whose RMS gradient is above that quantile over rows take
-    per-row Adam steps, the others steps proportional to their gradient. With the maximum a few
-    vertices on high-contrast edges set the scale and the garment hardly moved (tiny capture:
-    the error stayed that of skinning alone); the median keeps weak vertices still and lets the
-    well-observed half move at the full step.
-    """
-
-    def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8,
-                 quantile: float = 1.0):
-        super().__init__(params, dict(lr=lr, betas=betas, eps=eps, quantile=quantile))
-
-    @torch.no_grad()
-    def step(self, closure=None):
-        for group in self.param_groups:
-            b1, b2 = group["betas"]
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                st = self.state[p]
-                if not st:
-                    st["step"] = 0
-                    st["m"] = torch.zeros_like(p)
-                    st["v"] = torch.zeros_like(p)
-                st["step"] += 1
-                st["m"].mul_(b1).add_(p.grad, alpha=1 - b1)
-                st["v"].mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
-                m = st["m"] / (1 - b1 ** st["step"])
-                v = st["v"] / (1 - b2 ** st["step"])
-                # per row (vertex) RMS gradient; the normaliser is at least its quantile over rows
-                rms = v.reshape(len(v), -1).sum(1).sqrt()
-                floor = rms.max() if group["quantile"] >= 1 else torch.quantile(rms, group["quantile"])
-                denom = torch.maximum(rms, floor).reshape((-1,) + (1,) * (v.ndim - 1))
-                p.sub_(group["lr"] * m / (denom + group["eps"]))
-
-
 class SmoothedSolve(torch.autograd.Function):
     """x = M^-1 u for the fixed SPD matrix M = I + λ L (L the graph Laplacian of the mesh).
 
@@ -477,8 +434,6 @@ def smoothing_solver(n_vertices: int, faces: np.ndarray, lam: float):
     """A function [V, 3] -> [V, 3] applying (I + lam L)^-1 (sparse LU, factorized once)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
-
-    from ._losses import mesh_edges
 
     e = mesh_edges(np.asarray(faces))
     A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))

@@ -1,10 +1,11 @@
-"""Closest points on triangle meshes, mesh quality and mesh adjacency (numpy + scipy only)."""
+"""Closest points on triangle meshes: the point-triangle test and a mesh query (numpy + scipy)."""
 
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.spatial import cKDTree
+
+from .mesh import vertex_normals
 
 
 def closest_point_triangle(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -50,15 +51,6 @@ def closest_point_triangle(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nd
         vv, ww = vb * den, vc * den
         put(np.ones(n, bool), c3(1 - vv - ww, vv, ww))
     return w
-
-
-def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """[V, 3] area-weighted unit vertex normals."""
-    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    n = np.zeros_like(V)
-    for k in range(3):
-        np.add.at(n, F[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
 
 class MeshQuery:
@@ -125,77 +117,3 @@ class MeshQuery:
         s = np.sign(((P - q) * n).sum(1))
         s[s == 0] = 1.0
         return s * d, q, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-
-
-def mesh_quality(V: np.ndarray, F: np.ndarray) -> dict:
-    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-    def ang(p, q, r):
-        u, v = q - p, r - p
-        cosv = (u * v).sum(1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1))
-        return np.degrees(np.arccos(np.clip(cosv, -1, 1)))
-
-    angles = np.c_[ang(a, b, c), ang(b, c, a), ang(c, a, b)]
-    edges = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
-    el = np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1)
-    return {"min_angle_deg": float(angles.min()), "max_angle_deg": float(angles.max()),
-            "area_ratio": float(area.max() / area.min()), "mean_edge": float(el.mean()),
-            "n_vertices": int(len(V)), "n_faces": int(len(F))}
-
-
-def adjacency(F: np.ndarray, n: int) -> sp.csr_matrix:
-    """[n, n] symmetric 0/1 vertex adjacency of a triangle mesh."""
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-    A.data[:] = 1.0
-    return A
-
-
-def submesh(faces: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The part of a mesh on the vertices where ``mask`` [V] is true: (vertex ids [n] into the
-    whole mesh, faces [f, 3] re-indexed on those ids); faces with all three corners selected."""
-    mask = np.asarray(mask, bool)
-    ids = np.flatnonzero(mask)
-    remap = -np.ones(len(mask), np.int64)
-    remap[ids] = np.arange(len(ids))
-    return ids, remap[faces[mask[faces].all(1)]]
-
-
-def mesh_edges(F: np.ndarray) -> np.ndarray:
-    return np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
-
-
-def _edge_triangle_hits(EV, E, TV, T) -> int:
-    """Number of (edge of mesh 1, triangle of mesh 2) pairs that intersect (ipctk's exact test on
-    candidates whose bounding spheres overlap)."""
-    import ipctk
-
-    a, b = EV[E[:, 0]], EV[E[:, 1]]
-    mid, r_e = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=1)
-    tri = TV[T]
-    cen = tri.mean(1)
-    r_t = np.linalg.norm(tri - cen[:, None], axis=2).max(1)
-    tree = cKDTree(cen)
-    lists = tree.query_ball_point(mid, r_e + r_t.max())
-    hits = 0
-    for i, cand in enumerate(lists):
-        if not cand:
-            continue
-        cand = np.asarray(cand)
-        cand = cand[np.linalg.norm(cen[cand] - mid[i], axis=1) <= r_e[i] + r_t[cand]]
-        for t in cand:
-            if ipctk.is_edge_intersecting_triangle(a[i], b[i], tri[t, 0], tri[t, 1], tri[t, 2]):
-                hits += 1
-    return hits
-
-
-def count_intersections(V1, F1, V2, F2) -> int:
-    """Intersecting edge-triangle pairs between two meshes, both ways (0: the surfaces are apart).
-
-    ``ipctk.has_intersections`` on the union cannot be used here: the Anny body intersects itself
-    in its rest pose (fingers, armpits), so only pairs across the two meshes are tested.
-    """
-    V1, V2 = np.asarray(V1, float), np.asarray(V2, float)
-    return (_edge_triangle_hits(V1, mesh_edges(F1), V2, np.asarray(F2))
-            + _edge_triangle_hits(V2, mesh_edges(F2), V1, np.asarray(F1)))
