@@ -236,10 +236,6 @@ def soft_studio(
 
 # -- lights by name ------------------------------------------------------------------------------
 
-LIGHT_NAMES = ("fitted", "studio", "ambient", "sky", "sun", "point")
-"""The names :func:`named_lights` knows; any path ending in .hdr or .exr is an environment map."""
-
-
 def light_center(vertices: np.ndarray) -> np.ndarray:
     """[3] the point named lights aim at (and orbit cameras circle): the mean of ``vertices``
     [V, 3] in x and y, the middle of their height in z."""
@@ -264,6 +260,9 @@ NAMED_LIGHTS = {
     "point": lambda c, strength: _point_pair(np.asarray(c, dtype=np.float64)),
 }
 
+LIGHT_NAMES = ("fitted", *NAMED_LIGHTS)
+"""The names :func:`named_lights` knows; any path ending in .hdr or .exr is an environment map."""
+
 
 def named_lights(name: str, center, *, fitted: list | str | os.PathLike | None = None,
                  strength: float = 1.0) -> list[Light]:
@@ -281,14 +280,14 @@ def named_lights(name: str, center, *, fitted: list | str | os.PathLike | None =
         strength: scale of the environment maps (``sky`` and files).
     """
     if name == "fitted":
-        if fitted is None:
-            raise PhysavatarError(None, "light 'fitted' needs fitted lights (a light.json from fit-appearance); "
-                                        "choose another --light")
         if isinstance(fitted, (str, os.PathLike)):
             path = Path(fitted)
             if not path.is_file():
                 raise PhysavatarError(path.parent, f"has no {path.name} (run fit-appearance, or choose another --light)")
             return load_lights(path)
+        if not fitted:
+            raise PhysavatarError(None, "light 'fitted' needs fitted lights (a light.json from fit-appearance); "
+                                        "choose another --light")
         return list(fitted)
     if name in NAMED_LIGHTS:
         return NAMED_LIGHTS[name](center, strength)
