@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from physavatar.capture import load_capture
-from physavatar.render import Ambient
+from physavatar.render import Ambient, light_to_json
 from physavatar.stages.appearance import (
     AppearanceConfig,
     baked_shading,
@@ -115,8 +115,7 @@ def main() -> int:
             # the fit loop's own time from its log (a resumed run would otherwise report ~0)
             "fit_loop_seconds": float(sum(r["seconds"] for r in res.log)), "wall_seconds_this_run": fit_s,
             "loss_first_tenth": float(loss[:k].mean()), "loss_last_tenth": float(loss[-k:].mean()),
-            "lights": [{"type": type(l).__name__, **{a: (list(v) if isinstance(v, tuple) else v)
-                                                      for a, v in l.__dict__.items()}} for l in res.lights],
+            "lights": [light_to_json(l) for l in res.lights],
             "per_view_psnr": [round(r["psnr"], 2) for r in held["per_view"]],
         }
         print(f"{mode}: " + ", ".join(f"{a}={b:.4g}" for a, b in results[mode].items() if isinstance(b, float)))

@@ -11,9 +11,9 @@ import pytest
 
 from physavatar.capture import load_capture
 from physavatar.render import Ambient, AreaLight
+from physavatar.render.avatar import AvatarMeshes
 from physavatar.stages.appearance import (
     AppearanceConfig,
-    AvatarMeshes,
     InverseRenderer,
     baked_shading,
     covered_texels,
@@ -164,7 +164,7 @@ def test_short_fit_reduces_loss_and_moves_texture_to_truth(tiny, tmp_path, light
 def test_relight_matches_the_capture_under_its_own_lights(tiny):
     # The true texture relit with the capture's own lights reproduces the capture's image.
     from physavatar.render import srgb_to_linear
-    from physavatar.stages.appearance import load_lights
+    from physavatar.render.lights import load_lights
 
     lights = load_lights(tiny.root / "ground_truth" / "lighting.json")
     gt_tex = np.load(tiny.root / "ground_truth" / "texture_linear.npy")

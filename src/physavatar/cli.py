@@ -497,7 +497,8 @@ def animate(
 def render(
     seq: Path = typer.Argument(..., help="sequence folder (animate)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder (frames/ and MP4)"),
-    light: str = typer.Option("studio", help="fitted, studio, ambient, sky, sun, or an .hdr environment map"),
+    light: str = typer.Option("studio", help="fitted, studio, ambient, sky, sun, point, or an .hdr/.exr environment map "
+                              "(docs/rendering.md)"),
     capture: Optional[Path] = typer.Option(None, help="render from this capture's cameras instead of an orbit"),
     cameras: str = typer.Option("", help="with --capture: comma-separated camera names (default all)"),
     spp: int = typer.Option(32, help="samples per pixel"),
@@ -943,7 +944,8 @@ def fit_appearance_cmd(
 def relight(
     source: Path = typer.Argument(..., help="capture folder (ground-truth mesh) or tracking folder (tracked.npz)"),
     texture: Path = typer.Option(..., "--texture", help="fit-appearance output folder"),
-    light: str = typer.Option("sky", "--light", help="ambient, studio (fitted), sun, sky, point, or an .hdr/.exr file"),
+    light: str = typer.Option("sky", "--light", help="fitted, studio, ambient, sky, sun, point, or an .hdr/.exr "
+                              "environment map (docs/rendering.md)"),
     frame: Optional[int] = typer.Option(None, "--frame", help="frame id (default: the first)"),
     out: Path = typer.Option(..., "--out", "-o", help="contact sheet PNG"),
     capture: Optional[Path] = typer.Option(None, "--capture", help="capture folder for the cameras (when SOURCE is a tracking folder)"),
@@ -956,7 +958,8 @@ def relight(
     from .files import load_npz, read_json
     from .capture import save_png
     from .render import contact_sheet
-    from .stages.appearance import FittedAppearance, named_lights, relight as run_relight
+    from .render.lights import light_center, named_lights
+    from .stages.appearance import FittedAppearance, relight as run_relight
 
     if out.suffix.lower() != ".png":
         _bad_option("--out", f"{out} must end in .png")
@@ -985,7 +988,7 @@ def relight(
     t = cap.template
     if fit.face_uvs.shape != (len(t.faces), 3, 2):
         raise PhysavatarError(texture / "atlas.npz", "the atlas does not match this capture's template")
-    lights = named_lights(light, target=tuple(V.mean(0)), fitted=fit.lights, strength=strength)
+    lights = named_lights(light, light_center(V), fitted=fit.lights, strength=strength)
     imgs = []
     for cam in cap.cameras:
         r = run_relight(V, t.faces, fit.face_uvs, fit.texture, cam.scaled(scale), lights, labels=t.labels, spp=spp)

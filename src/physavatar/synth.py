@@ -224,11 +224,11 @@ def pose_sequences(scene: _Scene, motions: list, progress: bool = True, on_frame
 
 def _render_frame(scene: _Scene, vertices: np.ndarray, cameras: list[Camera], seed: int):
     from .render import SceneSpec, load_scene, render
-    from .render.avatar import avatar_specs
+    from .render.avatar import AvatarMeshes
 
     t = scene.template
-    s = load_scene(SceneSpec(meshes=avatar_specs(vertices, t.faces, t.labels, t.face_uvs, scene.texture),
-                             lights=scene.lights))
+    meshes = AvatarMeshes.build(vertices, t.faces, t.face_uvs, t.labels)
+    s = load_scene(SceneSpec(meshes=meshes.specs(vertices, scene.texture), lights=scene.lights))
     return [render(s, cam, spp=scene.cfg.spp, seed=seed + i) for i, cam in enumerate(cameras)]
 
 
@@ -236,7 +236,7 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
     """Write a complete capture folder for ``cfg`` into ``out`` (resumable; see module doc)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from .render import soft_studio
+    from .render import save_lights, soft_studio
 
     out = Path(out)
     if out.exists() and any(out.iterdir()):
@@ -323,8 +323,7 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
     template.save(work / "template" / "mesh.ply")
     save_png(gt / "texture.png", _srgb8(texture))
     np.save(gt / "texture_linear.npy", texture)
-    write_json_atomic(gt / "lighting.json", {"lights": [_light_json(l) for l in lights],
-                                             "note": "Mitsuba emitters; radiance in linear RGB"})
+    save_lights(gt / "lighting.json", lights, {"note": "Mitsuba emitters; radiance in linear RGB"})
     if cfg.material:
         from .sim import preset
 
@@ -350,13 +349,6 @@ def _srgb8(linear: np.ndarray) -> np.ndarray:
     from .render import linear_to_srgb8
 
     return linear_to_srgb8(linear)
-
-
-def _light_json(light) -> dict:
-    d = {"type": type(light).__name__}
-    for k, v in asdict(light).items() if hasattr(light, "__dataclass_fields__") else []:
-        d[k] = np.asarray(v).tolist() if isinstance(v, (np.ndarray, tuple, list)) else v
-    return d
 
 
 def contact_sheet_for(capture_root: str | Path, frame: int | None = None) -> np.ndarray:

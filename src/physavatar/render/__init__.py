@@ -9,6 +9,7 @@ Conventions and lighting options: docs/rendering.md. Entry points::
 from .backend import choose_variant, mitsuba, variant
 from .image import alpha_to_uint8, linear_to_srgb, linear_to_srgb8, read_png, srgb_to_linear, to_uint8, write_png
 from .lights import (
+    LIGHT_NAMES,
     Ambient,
     AreaLight,
     EnvMap,
@@ -16,6 +17,11 @@ from .lights import (
     PointLight,
     SunLight,
     envmap_directions,
+    light_center,
+    light_to_json,
+    load_lights,
+    named_lights,
+    save_lights,
     sky_envmap,
     soft_studio,
 )
@@ -35,6 +41,7 @@ from .sensor import make_sensor, sensor_dict
 from .sheet import contact_sheet
 
 __all__ = [
+    "LIGHT_NAMES",
     "Ambient",
     "AreaLight",
     "EnvMap",
@@ -51,15 +58,20 @@ __all__ = [
     "contact_sheet",
     "differentiable_scene",
     "envmap_directions",
+    "light_center",
+    "light_to_json",
     "linear_to_srgb",
     "linear_to_srgb8",
+    "load_lights",
     "load_scene",
     "make_sensor",
     "mitsuba",
+    "named_lights",
     "param_keys",
     "read_png",
     "render",
     "render_views",
+    "save_lights",
     "scene_dict",
     "sensor_dict",
     "sky_envmap",

@@ -16,11 +16,13 @@ the other, and ``rotation_deg`` turns the map about +z (counter-clockwise seen f
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import PhysavatarError
+from ..files import read_json, write_json_atomic
 from .backend import mitsuba
 
 # Columns: world images of Mitsuba's envmap-local x, y, z axes. Mitsuba's lookup is
@@ -230,3 +232,115 @@ def soft_studio(
         Ambient(ambient),
         AreaLight(tuple(center), tuple(target), (key_size, key_size), key_radiance, name="key"),
     ]
+
+
+# -- lights by name ------------------------------------------------------------------------------
+
+def light_center(vertices: np.ndarray) -> np.ndarray:
+    """[3] the point named lights aim at (and orbit cameras circle): the mean of ``vertices``
+    [V, 3] in x and y, the middle of their height in z."""
+    V = np.asarray(vertices, dtype=np.float64)
+    c = V.mean(0)
+    c[2] = 0.5 * (V[:, 2].max() + V[:, 2].min())
+    return c
+
+
+def _point_pair(c: np.ndarray) -> list[Light]:
+    return [PointLight(tuple(c + [1.2, -1.5, 0.8]), (4.0, 3.0, 2.0), name="point_warm"),
+            PointLight(tuple(c + [-1.5, -1.0, 0.3]), (1.0, 1.8, 3.0), name="point_cool"),
+            Ambient(0.05)]
+
+
+# name -> lights(center [3], strength); ``strength`` scales environment maps only.
+NAMED_LIGHTS = {
+    "studio": lambda c, strength: soft_studio(target=tuple(float(x) for x in c)),
+    "ambient": lambda c, strength: [Ambient(1.0)],
+    "sky": lambda c, strength: [EnvMap(sky_envmap(), scale=1.0 * strength)],
+    "sun": lambda c, strength: [Ambient(0.25), SunLight(to_sun=(0.4, -0.6, 0.7), irradiance=3.0)],
+    "point": lambda c, strength: _point_pair(np.asarray(c, dtype=np.float64)),
+}
+
+LIGHT_NAMES = ("fitted", *NAMED_LIGHTS)
+"""The names :func:`named_lights` knows; any path ending in .hdr or .exr is an environment map."""
+
+
+def named_lights(name: str, center, *, fitted: list | str | os.PathLike | None = None,
+                 strength: float = 1.0) -> list[Light]:
+    """The lights called ``name`` (docs/rendering.md, "Lights by name").
+
+    Args:
+        name: ``fitted`` (the lights of a fit-appearance ``light.json``), ``studio`` (the
+            synthetic captures' :func:`soft_studio` aimed at ``center``), ``ambient`` (uniform
+            radiance 1), ``sky`` (the generated :func:`sky_envmap`), ``sun`` (a sun from
+            above-front plus ambient fill), ``point`` (a warm and a cool point light beside
+            ``center``), or the path of an ``.hdr``/``.exr`` environment map.
+        center: [3] where the lights aim (:func:`light_center` of the avatar).
+        fitted: the fitted lights, or the ``light.json`` to read them from (only ``fitted``
+            uses it).
+        strength: scale of the environment maps (``sky`` and files).
+    """
+    if name == "fitted":
+        if isinstance(fitted, (str, os.PathLike)):
+            path = Path(fitted)
+            if not path.is_file():
+                raise PhysavatarError(path.parent, f"has no {path.name} (run fit-appearance, or choose another --light)")
+            return load_lights(path)
+        if not fitted:
+            raise PhysavatarError(None, "light 'fitted' needs fitted lights (a light.json from fit-appearance); "
+                                        "choose another --light")
+        return list(fitted)
+    if name in NAMED_LIGHTS:
+        return NAMED_LIGHTS[name](center, strength)
+    p = Path(name)
+    if p.suffix.lower() in (".hdr", ".exr"):
+        if not p.is_file():
+            raise PhysavatarError(p, "environment map not found")
+        return [EnvMap(str(p), scale=1.0 * strength)]
+    raise PhysavatarError(None, f"unknown light {name!r}: choose {', '.join(LIGHT_NAMES)} or an .hdr/.exr file")
+
+
+# -- lights as JSON ------------------------------------------------------------------------------
+
+_LIGHT_TYPES = {cls.__name__: cls for cls in (Ambient, EnvMap, PointLight, AreaLight, SunLight)}
+
+
+def light_to_json(light: Light) -> dict:
+    """``{"type": class name, field: value, ...}`` with tuples as lists. An environment map is
+    written by its file path; one held as an array cannot be written."""
+    d = {"type": type(light).__name__}
+    for f in fields(light):
+        v = getattr(light, f.name)
+        if isinstance(v, np.ndarray):
+            raise ValueError(f"light {light.name!r}: an array environment map cannot be written to JSON")
+        if isinstance(v, os.PathLike):
+            v = str(v)
+        elif isinstance(v, (tuple, list)):
+            v = np.asarray(v).tolist()
+        elif isinstance(v, np.generic):
+            v = v.item()
+        d[f.name] = v
+    return d
+
+
+def save_lights(path: str | os.PathLike, lights, extra: dict | None = None) -> None:
+    """Write ``{"lights": [...], **extra}`` to ``path`` atomically (the format of ``light.json``
+    and ``lighting.json``)."""
+    write_json_atomic(path, {"lights": [light_to_json(l) for l in lights], **(extra or {})})
+
+
+def load_lights(path: str | os.PathLike) -> list[Light]:
+    """The lights of a file written by :func:`save_lights`."""
+    path = Path(path)
+    out = []
+    for l in read_json(path).get("lights", []):
+        kind = l.get("type")
+        if kind not in _LIGHT_TYPES:
+            raise PhysavatarError(path, f"unsupported light type {kind!r}")
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in l.items() if k != "type"}
+        try:
+            out.append(_LIGHT_TYPES[kind](**kw))
+        except TypeError as e:
+            raise PhysavatarError(path, f"light {kind}: {e}") from None
+    if not out:
+        raise PhysavatarError(path, "no lights")
+    return out

@@ -59,12 +59,10 @@ from ..camera import Camera
 from ..capture import Capture, Template, frame_name, load_capture, save_png
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, save_npz_atomic, write_json_atomic, write_text_atomic
-from ..geometry import split_uv_seams, submesh
 from ..optim import Adam
 from ..render import (
     Ambient,
     AreaLight,
-    EnvMap,
     MeshSpec,
     PointLight,
     RenderResult,
@@ -76,9 +74,10 @@ from ..render import (
     make_sensor,
     mitsuba,
     render,
-    sky_envmap,
     srgb_to_linear,
 )
+from ..render.avatar import AvatarMeshes
+from ..render.lights import light_center, load_lights, named_lights, save_lights
 
 LOG_COLUMNS = ("iteration", "loss", "lr", "ambient_r", "ambient_g", "ambient_b", "key", "seconds")
 LIGHT_MODES = ("ambient", "studio")
@@ -392,77 +391,6 @@ def load_target(capture: Capture, cam: Camera, frame: int, scale: float, erode_p
 
 # -- scenes ----------------------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class AvatarMeshes:
-    """The template split into Mitsuba meshes: body (one-sided, like the capture renderer) and
-    garments (two-sided, seen from inside), UV seams split. ``vertex_maps[name]`` takes a
-    template-vertex array to that mesh's split vertices."""
-
-    names: tuple[str, ...]
-    faces: dict
-    uvs: dict
-    vertex_maps: dict
-    twosided: dict
-
-    @staticmethod
-    def build(template_vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray,
-              labels: np.ndarray | None) -> "AvatarMeshes":
-        garment = np.zeros(len(template_vertices), bool) if labels is None else np.asarray(labels) > 0
-        parts = [("body", ~garment, False), ("garment", garment, True)]
-        if not garment.any() or garment.all():
-            # one label only: one two-sided mesh (a closed body's inside is never seen anyway)
-            parts = [("avatar", np.ones(len(template_vertices), bool), True)]
-        names, F, UV, M, TS = [], {}, {}, {}, {}
-        for name, sel, twosided in parts:
-            fsel = sel[faces].all(1)
-            if not fsel.any():
-                continue
-            idx, sub_faces = submesh(faces, sel)
-            sm = split_uv_seams(template_vertices[idx], sub_faces, face_uvs[fsel])
-            names.append(name)
-            F[name], UV[name], M[name], TS[name] = sm.faces, sm.uvs, idx[sm.vertex_map], twosided
-        return AvatarMeshes(tuple(names), F, UV, M, TS)
-
-    def specs(self, vertices: np.ndarray, texture: np.ndarray) -> list[MeshSpec]:
-        """Mesh specs at template-vertex positions ``vertices`` [V, 3] with ``texture``."""
-        return [MeshSpec(n, vertices[self.vertex_maps[n]], self.faces[n], uvs=self.uvs[n], texture=texture,
-                         twosided=self.twosided[n]) for n in self.names]
-
-
-def _load_lighting_json(path: Path) -> list:
-    d = read_json(path)
-    out = []
-    for l in d.get("lights", []):
-        kind = l.get("type")
-        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in l.items() if k != "type"}
-        try:
-            cls = {"Ambient": Ambient, "AreaLight": AreaLight, "PointLight": PointLight, "SunLight": SunLight}[kind]
-        except KeyError:
-            raise PhysavatarError(path, f"unsupported light type {kind!r}") from None
-        out.append(cls(**kw))
-    if not out:
-        raise PhysavatarError(path, "no lights")
-    return out
-
-
-def light_to_json(light) -> dict:
-    d = {"type": type(light).__name__}
-    for k, v in asdict(light).items():
-        if isinstance(v, np.ndarray):
-            continue  # array env maps are not serialised
-        d[k] = list(v) if isinstance(v, tuple) else v
-    return d
-
-
-def save_lights(path: Path, lights: list, extra: dict | None = None) -> None:
-    write_json_atomic(path, {"lights": [light_to_json(l) for l in lights], **(extra or {})})
-
-
-def load_lights(path: str | Path) -> list:
-    """Lights of a ``light.json`` written by the fit (or a capture's ``lighting.json``)."""
-    return _load_lighting_json(Path(path))
-
-
 def initial_lights(cfg: AppearanceConfig, capture: Capture, lighting: str | Path | None = None) -> list:
     """The lights the fit starts from: ``Ambient(ambient_init)`` (the paper, A.4.1), or for
     ``studio`` the known studio lights (``lighting`` or ``ground_truth/lighting.json``)."""
@@ -471,7 +399,7 @@ def initial_lights(cfg: AppearanceConfig, capture: Capture, lighting: str | Path
     path = Path(lighting) if lighting is not None else (capture.root / "ground_truth" / "lighting.json")
     if not path.is_file():
         raise PhysavatarError(path, "light model 'studio' needs the studio's lights (a lighting.json; pass --lighting)")
-    lights = _load_lighting_json(path)
+    lights = load_lights(path)
     if sum(isinstance(l, Ambient) for l in lights) == 0:
         lights = [Ambient((cfg.ambient_init,) * 3)] + lights
     return lights
@@ -905,36 +833,6 @@ def plot_loss(log: list[dict], path: Path) -> None:
 
 # -- relighting ------------------------------------------------------------------------------------
 
-def named_lights(name: str, *, target=(0.0, 0.0, 1.0), fitted: list | None = None, strength: float = 1.0) -> list:
-    """Lights for a name: ``ambient`` (the fitted L_a when ``fitted`` is given, else 1),
-    ``studio`` (the fitted lights), ``sun`` (sun from above-front plus a dim sky fill), ``sky``
-    (the generated :func:`sky_envmap`), ``point`` (two coloured point lights), or a path to an
-    ``.hdr``/``.exr`` environment map. ``strength`` scales the environment maps."""
-    low = name.lower()
-    fitted_amb = next((l for l in (fitted or []) if isinstance(l, Ambient)), None)
-    if low == "ambient":
-        return [fitted_amb or Ambient(1.0)]
-    if low == "studio":
-        if not fitted:
-            raise PhysavatarError(None, "light 'studio' needs fitted lights (light.json)")
-        return list(fitted)
-    if low == "sun":
-        return [SunLight(to_sun=(0.4, -0.6, 0.7), irradiance=(3.0, 2.85, 2.6)), Ambient((0.08, 0.1, 0.14))]
-    if low == "sky":
-        return [EnvMap(sky_envmap(), scale=0.3 * strength)]
-    if low == "point":
-        c = np.asarray(target, float)
-        return [PointLight(tuple(c + [1.2, -1.5, 0.8]), (4.0, 3.0, 2.0), name="point_warm"),
-                PointLight(tuple(c + [-1.5, -1.0, 0.3]), (1.0, 1.8, 3.0), name="point_cool"),
-                Ambient(0.05)]
-    p = Path(name)
-    if p.suffix.lower() in (".hdr", ".exr"):
-        if not p.is_file():
-            raise PhysavatarError(p, "environment map not found")
-        return [EnvMap(str(p), scale=strength)]
-    raise PhysavatarError(None, f"light {name!r}: use ambient, studio, sun, sky, point or an .hdr/.exr file")
-
-
 def relight(mesh_vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray, texture: np.ndarray, camera: Camera,
             light, *, labels: np.ndarray | None = None, spp: int = 128, seed: int = 0, max_depth: int = 3) -> RenderResult:
     """Render a textured avatar under new light.
@@ -943,7 +841,8 @@ def relight(mesh_vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray, 
         mesh_vertices: [V, 3] one frame (tracked, simulated or ground truth).
         faces: [F, 3]; face_uvs: [F, 3, 2] the atlas of ``texture``; texture: [H, W, 3] linear albedo.
         camera: OpenCV camera.
-        light: a light of ``physavatar.render``, a list of them, or a name for :func:`named_lights`.
+        light: a light of ``physavatar.render``, a list of them, or a name of
+            :func:`physavatar.render.lights.named_lights` (aimed at :func:`~physavatar.render.lights.light_center`).
         labels: [V] 0 body / >0 garment, to render the body one-sided and garments two-sided
             like the capture (None: one two-sided mesh).
     Returns:
@@ -951,8 +850,7 @@ def relight(mesh_vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray, 
     """
     V = np.asarray(mesh_vertices, np.float64)
     if isinstance(light, str):
-        c = V.mean(0)
-        light = named_lights(light, target=tuple(c))
+        light = named_lights(light, light_center(V))
     lights = list(light) if isinstance(light, (list, tuple)) else [light]
     m = AvatarMeshes.build(V, np.asarray(faces), np.asarray(face_uvs, np.float64), labels)
     spec = SceneSpec(meshes=m.specs(V, np.asarray(texture, np.float32)), lights=lights, max_depth=max_depth)

@@ -250,17 +250,19 @@ def _appearance(cap, av, seq, held_dir: Path, out: Path, spp: int) -> dict:
     from ..capture import save_png
     from ..metrics import lpips, psnr, ssim
     from ..render import SceneSpec, linear_to_srgb8, load_scene, render
-    from ..render.avatar import avatar_specs
-    from .render_seq import make_lights
+    from ..render.avatar import AvatarMeshes
+    from ..render.lights import named_lights
 
     cams = [Camera.from_dict(c) for c in read_json(held_dir / "cameras.json")]
-    lights = make_lights("fitted" if av.light_path else "studio", seq.vertices[0].mean(0), av.root)
+    lights = named_lights("fitted" if av.light_path else "studio", seq.vertices[0].mean(0), fitted=av.light_path)
+    textured = av.texture is not None and seq.face_uvs is not None
+    meshes = AvatarMeshes.build(seq.vertices[0], seq.faces, seq.face_uvs if textured else None, seq.labels)
     rows = []
     n = len(seq.vertices)
     frames = sorted({0, n // 2, n - 1})
     for f in frames:
-        scene = load_scene(SceneSpec(meshes=avatar_specs(seq.vertices[f], seq.faces, seq.labels, seq.face_uvs,
-                                                         av.texture), lights=lights))
+        scene = load_scene(SceneSpec(meshes=meshes.specs(seq.vertices[f], av.texture if textured else None),
+                                     lights=lights))
         for cam in cams:
             gt_img = np.asarray(Image.open(held_dir / "images" / cam.name / f"{f:06d}.png").convert("RGB"), np.float32) / 255
             mask = np.asarray(Image.open(held_dir / "masks" / cam.name / f"{f:06d}.png").convert("L"), np.float32) / 255

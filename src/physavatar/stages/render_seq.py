@@ -8,38 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera, intrinsics, look_at
-from ..errors import PhysavatarError
 from ..files import write_json_atomic
-
-LIGHTS = ("fitted", "studio", "ambient", "sky", "sun")
-
-
-def make_lights(spec: str, center, avatar_dir: Path | None):
-    """Lights by name: ``fitted`` (the avatar's light.json), ``studio`` (ambient + soft key),
-    ``ambient``, ``sky`` (a generated HDR sky), ``sun``, or an .hdr/.exr environment map file."""
-    from ..render import Ambient, EnvMap, SunLight, sky_envmap, soft_studio
-
-    c = tuple(float(x) for x in center)
-    if spec == "fitted":
-        if avatar_dir is None or not (Path(avatar_dir) / "light.json").exists():
-            raise PhysavatarError(avatar_dir, "has no light.json (run fit-appearance, or choose another --light)")
-        from .appearance import load_lights
-
-        return load_lights(Path(avatar_dir) / "light.json")
-    if spec == "studio":
-        return soft_studio(target=c)
-    if spec == "ambient":
-        return [Ambient(1.0)]
-    if spec == "sky":
-        return [EnvMap(sky_envmap(), scale=1.0)]
-    if spec == "sun":
-        return [Ambient(0.25), SunLight(to_sun=(0.4, -0.6, 0.7), irradiance=3.0)]
-    p = Path(spec)
-    if p.suffix.lower() in (".hdr", ".exr"):
-        if not p.is_file():
-            raise PhysavatarError(p, "environment map not found")
-        return [EnvMap(str(p))]
-    raise PhysavatarError(None, f"unknown light {spec!r}: choose {', '.join(LIGHTS)} or an .hdr file")
+from ..progress import resolve
+from ..render.lights import light_center, named_lights
 
 
 def orbit_cameras(center, n: int, radius: float = 3.2, height: float = 1.1, width: int = 512,
@@ -58,27 +29,28 @@ def orbit_cameras(center, n: int, radius: float = 3.2, height: float = 1.1, widt
 
 def render_sequence(seq, out: str | Path, *, cameras: list[Camera] | None = None, orbit: bool = True,
                     light: str = "studio", texture: np.ndarray | None = None, spp: int = 32,
-                    width: int = 512, height: int = 512, progress: bool = True, fps: float | None = None) -> dict:
+                    width: int = 512, height: int = 512, progress=True, fps: float | None = None) -> dict:
     """Render every frame of ``seq`` (a stages.animate.Sequence) into ``out``/frames + video.mp4.
 
     With ``cameras``, frame t is seen from every camera (one subfolder each, one video each);
-    otherwise from an orbiting camera (one per frame).
+    otherwise from an orbiting camera (one per frame). ``light`` is a name of
+    :func:`physavatar.render.lights.named_lights` (``fitted``: the avatar's light.json), aimed at
+    the first frame. ``progress``: anything :func:`physavatar.progress.resolve` accepts.
     """
-    from rich.progress import Progress
-
     from ..body.preview import write_video
     from ..capture import save_png
     from ..render import SceneSpec, linear_to_srgb8, load_scene, render
-    from ..render.avatar import avatar_specs
+    from ..render.avatar import AvatarMeshes
 
     out = Path(out)
     V = seq.vertices
-    center = V[0].mean(0)
-    center[2] = 0.5 * (V[0, :, 2].max() + V[0, :, 2].min())
-    lights = make_lights(light, center, seq.avatar)
+    center = light_center(V[0])
+    lights = named_lights(light, center, fitted=Path(seq.avatar) / "light.json" if seq.avatar is not None else None)
     if texture is None and seq.avatar is not None:
         p = Path(seq.avatar) / "texture_linear.npy"
         texture = np.load(p).astype(np.float32) if p.exists() else None
+    textured = texture is not None and seq.face_uvs is not None
+    meshes = AvatarMeshes.build(V[0], seq.faces, seq.face_uvs if textured else None, seq.labels)
     if cameras is None:
         cameras_per_frame = [[c] for c in orbit_cameras(center, len(V), width=width, height_px=height)] if orbit \
             else [[orbit_cameras(center, 1, width=width, height_px=height)[0]]] * len(V)
@@ -87,16 +59,14 @@ def render_sequence(seq, out: str | Path, *, cameras: list[Camera] | None = None
         cameras_per_frame = [cameras] * len(V)
         names = [c.name for c in cameras]
     frames = {n: [] for n in names}
-    with Progress(disable=not progress) as bar:
-        task = bar.add_task("rendering", total=len(V))
+    with resolve(progress).task("rendering", total=len(V)) as task:
         for t in range(len(V)):
-            scene = load_scene(SceneSpec(meshes=avatar_specs(V[t], seq.faces, seq.labels, seq.face_uvs, texture),
-                                         lights=lights))
+            scene = load_scene(SceneSpec(meshes=meshes.specs(V[t], texture if textured else None), lights=lights))
             for name, cam in zip(names, cameras_per_frame[t]):
                 img = linear_to_srgb8(render(scene, cam, spp=spp, seed=t).rgb)
                 save_png(out / "frames" / name / f"{t:06d}.png", img)
                 frames[name].append(img)
-            bar.advance(task)
+            task.advance()
     videos = []
     for name, imgs in frames.items():
         path = out / (f"{name}.mp4")
