@@ -7,7 +7,8 @@ from physavatar.avatar import Avatar, build_avatar
 from physavatar.body import BodyModel, Motion, builtin_motion
 from physavatar.capture import load_capture
 from physavatar.geometry import count_intersections
-from physavatar.stages.animate import Sequence, animate
+from physavatar.data.animated import AnimatedSequence
+from physavatar.stages.animate import animate
 
 
 @pytest.fixture(scope="module")
@@ -56,5 +57,5 @@ def test_new_motion_with_warmup(tiny):
         assert count_intersections(seq.vertices[t, g], cap.template.faces[g[cap.template.faces].all(1)] - g.argmax(),
                                    posed.vertices[t], body.faces) == 0
     seq.save(root / "seq", {"command": "test"})
-    s2 = Sequence.load(root / "seq")
+    s2 = AnimatedSequence.load(root / "seq")
     assert np.allclose(s2.vertices, seq.vertices, atol=1e-6) and s2.avatar == av.root

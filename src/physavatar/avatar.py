@@ -24,6 +24,7 @@ import numpy as np
 from .body import BodyModel, BodyShape
 from .body.transfer import transfer_skinning_weights
 from .capture import Capture, Template, load_capture
+from .data.material import resolve_material
 from .errors import PhysavatarError
 from .files import load_npz, read_json, read_ply, save_npz_atomic, write_json_atomic
 from .geometry import submesh
@@ -94,8 +95,6 @@ def build_avatar(capture: str | Path | Capture, out: str | Path, *, material: st
         template_vertices: [V, 3] frame-1 positions to use instead of the capture's template
             (e.g. the tracked frame 1).
     """
-    from .sim import PRESETS
-
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -109,13 +108,7 @@ def build_avatar(capture: str | Path | Capture, out: str | Path, *, material: st
         if uv is not None and uv.shape == (len(t.faces), 3, 2):
             t = Template(t.vertices, t.faces, t.labels, t.boundary, np.asarray(uv, np.float64))
     t.save(out / "template.ply")
-    if isinstance(material, Material):
-        mat = material
-    elif isinstance(material, str) and material in PRESETS:
-        mat = PRESETS[material]
-    else:
-        mat = Material.load(material)
-    mat.save(out / "material.json")
+    resolve_material(material).save(out / "material.json")
 
     # Skinning weights of the template's body part, transferred from Anny posed at frame 1.
     body = BodyModel(cap.body.shape, topology=cap.body.topology)

@@ -288,16 +288,12 @@ def simulate(
     """
     import numpy as np
 
-    from .files import PlyMesh, save_npz_atomic, write_json_atomic, write_ply
+    from .data.garment_sequence import FILE as GARMENT_SEQUENCE, GarmentSequence
+    from .data.material import resolve_material
+    from .files import PlyMesh, write_json_atomic, write_ply
     from .garment_sim import GarmentPart, load_mesh_sequence, simulate_on_body, split_template
-    from .sim import Material, PRESETS
 
-    if material in PRESETS:
-        mat = PRESETS[material]
-    elif material.endswith(".json"):
-        mat = Material.load(material)
-    else:
-        _bad_option("--material", f"{material!r} is not one of {', '.join(PRESETS)} or a .json file")
+    mat = resolve_material(material, option="--material")
     if fps <= 0 or substeps < 1:
         _bad_option("--fps/--substeps", "must be positive")
     if integrator is None:
@@ -381,9 +377,7 @@ def simulate(
     else:
         console.print(f"checked {len(X)} frames: no garment-body intersection, no NaN")
     out.mkdir(parents=True, exist_ok=True)
-    save_npz_atomic(out / "garment_sequence.npz", vertices=X.astype(np.float32), faces=part.faces,
-                    boundary=part.boundary, body_vertices=bodies.astype(np.float32), body_faces=body_faces, fps=fps,
-                    rest_vertices=part.vertices.astype(np.float32))
+    GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.vertices).save(out / GARMENT_SEQUENCE)
     for f in range(len(X)):
         write_ply(out / "meshes" / f"{f:06d}.ply", PlyMesh(X[f], part.faces))
     mat.save(out / "material.json")
@@ -407,19 +401,18 @@ def simulate(
 def _garment_file(path: Path):
     import numpy as np
 
+    from .data.garment_sequence import GarmentSequence, boundary_ids
     from .files import load_npz, read_ply
-    from .garment_sim import GarmentPart, boundary_ids
+    from .garment_sim import GarmentPart
 
     if path.suffix == ".npz":
         z = load_npz(path)
         if "vertices" in z and np.ndim(z["vertices"]) == 3:
             # a garment sequence (simulate's garment_sequence.npz, another simulator's): its rest shape
-            from .stages.physics import load_garment_sequence
-
-            d = load_garment_sequence(path, z)
+            d = GarmentSequence.from_arrays(z, path)
             if not len(d.boundary):
                 raise PhysavatarError(path, "the garment sequence has no boundary (attached) vertices")
-            return GarmentPart(np.arange(len(d.rest)), d.rest, d.faces, d.boundary)
+            return GarmentPart(np.arange(len(d.rest_vertices)), d.rest_vertices, d.faces, d.boundary)
         if not {"vertices", "faces", "boundary"} <= set(z):
             raise PhysavatarError(path, "garment .npz needs 'vertices', 'faces' and 'boundary'")
         V, F = z["vertices"], z["faces"]
@@ -446,15 +439,13 @@ def build_avatar_cmd(
     tracked: Optional[Path] = typer.Option(None, help="tracking output folder: use the tracked frame 1 as the template"),
 ):
     """Bundle template, transferred skinning weights, material, texture and light into an avatar folder."""
-    import numpy as np
-
     from .avatar import build_avatar
 
     tv = None
     if tracked is not None:
-        from .files import load_npz
+        from .data.tracked import TrackedSequence
 
-        tv = load_npz(tracked / "tracked.npz")["vertices"][0]
+        tv = TrackedSequence.load(tracked).vertices[0]
     av = build_avatar(capture, out, material=material, texture_dir=appearance, template_vertices=tv)
     console.print(f"wrote avatar {out}: {len(av.template.vertices)} vertices "
                   f"({int(av.template.garment_mask.sum())} garment), material {av.material.name or 'fitted'}, "
@@ -505,10 +496,10 @@ def render(
     size: int = typer.Option(512, help="orbit image size (pixels)"),
 ):
     """Render a sequence to PNG frames and MP4 under the fitted or a new light."""
-    from .stages.animate import Sequence
+    from .data.animated import AnimatedSequence
     from .stages.render_seq import render_sequence
 
-    s = Sequence.load(seq)
+    s = AnimatedSequence.load(seq)
     cams = None
     if capture is not None:
         from .capture import load_capture
@@ -534,11 +525,11 @@ def export(
     fmt: str = typer.Option("", "--format", help="usd, glb, obj or ply (default: from --out's extension)"),
 ):
     """Export a sequence: USD (time-sampled points, UVs, textured material), glTF binary, OBJ/PLY sequences."""
+    from .data.animated import AnimatedSequence
     from .export import MeshSequence
     from .export import export as run_export
-    from .stages.animate import Sequence
 
-    s = Sequence.load(seq)
+    s = AnimatedSequence.load(seq)
     tex = None
     if s.avatar is not None and (Path(s.avatar) / "texture.png").exists():
         tex = Path(s.avatar) / "texture.png"
@@ -713,8 +704,7 @@ def fit_physics(
 
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from .sim import PRESETS as _SIM_PRESETS
-    from .sim import Material
+    from .data.material import resolve_material
     from .stages.physics import (MODELS, PAPER_ITERATIONS, clear_start, far_material, fit_material, fit_settings,
                                  load_physics_data, on_proxy, write_outputs)
     from .stages.proxy import make_proxy
@@ -744,12 +734,7 @@ def fit_physics(
         _bad_option("--max-vertices", "must be 0 (no proxy) or at least 20")
     if shape_weight is not None and not shape_weight >= 0:
         _bad_option("--shape-weight", "must be >= 0")
-    if init == "far":
-        initial = far_material()
-    elif init in _SIM_PRESETS:
-        initial = _SIM_PRESETS[init]
-    else:
-        initial = Material.load(init)
+    initial = far_material() if init == "far" else resolve_material(init)
     if density is not None:
         initial = _dc.replace(initial, density=density)
     sequence = load_physics_data(source)
@@ -954,9 +939,9 @@ def relight(
     scale: float = typer.Option(1.0, "--scale", help="image resolution factor"),
 ):
     """Render the avatar with its fitted texture under a new light, from every capture camera."""
-    from .capture import load_capture
+    from .capture import load_capture, save_png
+    from .data.tracked import FILE as TRACKED, TrackedSequence
     from .files import load_npz, read_json
-    from .capture import save_png
     from .render import contact_sheet
     from .render.lights import light_center, named_lights
     from .stages.appearance import FittedAppearance, relight as run_relight
@@ -966,9 +951,9 @@ def relight(
     if spp < 1 or not (0 < scale <= 1):
         _bad_option("--spp/--scale", "spp >= 1 and scale in (0, 1]")
     fit = FittedAppearance.load(texture)
-    if (source / "tracked.npz").is_file():
-        tr = load_npz(source / "tracked.npz")
-        V_all, frames = tr["vertices"], [int(f) for f in tr["frames"]]
+    if (source / TRACKED).is_file():
+        tr = TrackedSequence.load(source, require=("vertices", "frames"))
+        V_all, frames = tr.vertices, [int(f) for f in tr.frames]
         if capture is None:
             cfg_path = source / "config.json"
             guess = read_json(cfg_path).get("capture") if cfg_path.is_file() else None

@@ -78,18 +78,6 @@ def simulate_on_body_job(part: GarmentPart, body_sequence: np.ndarray, body_face
 
 # -- inputs of `physavatar simulate` -----------------------------------------------------------
 
-def boundary_ids(values, n: int) -> np.ndarray:
-    """Boundary (attached) vertices as sorted ids, from per-vertex flags [n] (bool or 0/1) or from
-    vertex ids [K]. Out-of-range ids raise ValueError (callers name their file)."""
-    b = np.asarray(values).ravel()
-    if b.dtype == bool or (len(b) == n and set(np.unique(b).tolist()) <= {0, 1}):
-        b = np.flatnonzero(b)
-    b = np.unique(b.astype(np.int64))
-    if len(b) and (b[0] < 0 or b[-1] >= n):
-        raise ValueError(f"boundary must be {n} flags or ids into the {n} garment vertices")
-    return b
-
-
 def load_mesh_sequence(path) -> tuple[np.ndarray, np.ndarray]:
     """An animated mesh [T, V, 3] + faces [F, 3]: an .npz (``vertices``, ``faces``; or the body of a
     garment sequence, ``body_vertices``, ``body_faces``, as ``simulate`` writes it) or a folder of
@@ -98,6 +86,7 @@ def load_mesh_sequence(path) -> tuple[np.ndarray, np.ndarray]:
 
     import trimesh
 
+    from .data.garment_sequence import GarmentSequence
     from .errors import PhysavatarError
     from .files import load_npz, read_ply
 
@@ -105,7 +94,8 @@ def load_mesh_sequence(path) -> tuple[np.ndarray, np.ndarray]:
     if path.is_file() and path.suffix == ".npz":
         z = load_npz(path)
         if "body_vertices" in z and "body_faces" in z:  # a garment sequence: its body
-            z = {"vertices": z["body_vertices"], "faces": z["body_faces"]}
+            seq = GarmentSequence.from_arrays(z, path)
+            z = {"vertices": seq.body_vertices, "faces": seq.body_faces}
         if "vertices" not in z or "faces" not in z:
             raise PhysavatarError(path, "needs arrays 'vertices' [T, V, 3] and 'faces' [F, 3]")
         V, F = np.asarray(z["vertices"], np.float64), np.asarray(z["faces"], np.int64)

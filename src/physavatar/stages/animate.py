@@ -10,53 +10,17 @@ but not returned, so the garment never starts from a jump.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..avatar import Avatar
 from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
+from ..data.animated import AnimatedSequence
 from ..errors import PhysavatarError
-from ..files import PlyMesh, save_npz_atomic, write_json_atomic, write_ply
 from ..geometry import count_intersections
 from ..garment_sim import simulate_on_body, split_template
 from ..sim import SimSettings
-
-
-@dataclass
-class Sequence:
-    """An animated avatar: vertices [T, V, 3] in template order, with what rendering needs."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    labels: np.ndarray
-    face_uvs: np.ndarray | None
-    fps: float
-    avatar: Path | None = None
-
-    def save(self, out: Path, meta: dict, ply: bool = True) -> None:
-        out.mkdir(parents=True, exist_ok=True)
-        save_npz_atomic(out / "sequence.npz", vertices=self.vertices.astype(np.float32), faces=self.faces,
-                        labels=self.labels.astype(np.uint8), fps=np.float64(self.fps),
-                        **({"face_uvs": self.face_uvs.astype(np.float32)} if self.face_uvs is not None else {}))
-        if ply:
-            for t in range(len(self.vertices)):
-                write_ply(out / "meshes" / f"{t:06d}.ply", PlyMesh(self.vertices[t], self.faces,
-                                                                  {"label": self.labels.astype(np.uint8)}, self.face_uvs))
-        write_json_atomic(out / "sequence.json", {**meta, "avatar": str(self.avatar) if self.avatar else None,
-                                                  "frames": int(len(self.vertices)), "fps": self.fps})
-
-    @staticmethod
-    def load(path: str | Path) -> "Sequence":
-        from ..files import load_npz, read_json
-
-        path = Path(path)
-        z = load_npz(path / "sequence.npz")
-        meta = read_json(path / "sequence.json")
-        return Sequence(z["vertices"].astype(np.float64), z["faces"], z["labels"].astype(np.int64),
-                        z["face_uvs"] if "face_uvs" in z else None, float(z["fps"]),
-                        Path(meta["avatar"]) if meta.get("avatar") else None)
 
 
 def transition(r0: np.ndarray, t0: np.ndarray, r1: np.ndarray, t1: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -88,7 +52,7 @@ def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> i
 
 
 def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
-            progress: bool = True, report=None) -> tuple[Sequence, dict]:
+            progress: bool = True, report=None) -> tuple[AnimatedSequence, dict]:
     """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats).
     ``report``: called with 1 after every simulated frame (:mod:`physavatar.parallel`)."""
     fps = avatar.fps
@@ -123,7 +87,7 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     stats = {"frames": int(len(V)), "warmup_frames": n_warm, "simulation_s": round(secs, 2),
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
              "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps}
-    return Sequence(V, t.faces, t.labels, t.face_uvs, fps, avatar.root), stats
+    return AnimatedSequence(V, t.faces, t.labels, t.face_uvs, fps, avatar.root), stats
 
 
 def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, **kw) -> np.ndarray:
@@ -134,7 +98,7 @@ def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, *
     return animate(av, motion, progress=False, report=report, **kw)[0].vertices
 
 
-def animate_to_folder(avatar_dir: str | Path, motion: Motion, out: str | Path, **kw) -> Sequence:
+def animate_to_folder(avatar_dir: str | Path, motion: Motion, out: str | Path, **kw) -> AnimatedSequence:
     avatar = Avatar.load(avatar_dir)
     seq, stats = animate(avatar, motion, **kw)
     seq.save(Path(out), {"command": "animate", **stats})

@@ -57,6 +57,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..capture import Capture, Template, frame_name, load_capture, save_png
+from ..data.tracked import TrackedSequence
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, save_npz_atomic, write_json_atomic, write_text_atomic
 from ..optim import Adam
@@ -318,16 +319,13 @@ def load_appearance_data(capture: str | Path | Capture, tracked: str | Path | No
     colors = None
     tr = None
     if tracked is not None:
-        tr = load_npz(Path(tracked) / "tracked.npz")
-        for k in ("vertices", "face_colors", "frames"):
-            if k not in tr:
-                raise PhysavatarError(Path(tracked) / "tracked.npz", f"missing array {k!r}")
-        if tr["vertices"].shape[1:] != t.vertices.shape or tr["face_colors"].shape[1:] != (len(t.faces), 3):
-            raise PhysavatarError(Path(tracked) / "tracked.npz", "vertices/face_colors do not match the template")
+        tr = TrackedSequence.load(tracked, require=("vertices", "face_colors", "frames"))
+        if tr.vertices.shape[1:] != t.vertices.shape or tr.face_colors.shape[1:] != (len(t.faces), 3):
+            raise PhysavatarError(tr.path, "vertices/face_colors do not match the template")
     if meshes == "tracked":
         if tr is None:
             raise PhysavatarError(None, "meshes 'tracked' needs a tracked folder (--tracked DIR), or use --meshes gt")
-        V, frames, colors = tr["vertices"], [int(f) for f in tr["frames"]], tr["face_colors"]
+        V, frames, colors = tr.vertices, [int(f) for f in tr.frames], tr.face_colors
     elif meshes == "gt":
         if cap.ground_truth is None:
             raise PhysavatarError(cap.root, "meshes 'gt' needs ground_truth/meshes.npz (synthetic captures only)")
@@ -338,9 +336,9 @@ def load_appearance_data(capture: str | Path | Capture, tracked: str | Path | No
                                   f"({len(t.vertices)} vertices) and {len(cap.frames)} frames")
         frames = list(cap.frames)
         if tr is not None:  # tracked Gaussian colours for the frames the tracker covered
-            tf = [int(f) for f in tr["frames"]]
+            tf = [int(f) for f in tr.frames]
             keep = [frames.index(f) for f in tf]
-            V, frames, colors = V[keep], tf, tr["face_colors"]
+            V, frames, colors = V[keep], tf, tr.face_colors
     else:
         raise PhysavatarError(None, f"meshes must be 'tracked' or 'gt', got {meshes!r}")
     if not np.isfinite(V).all():

@@ -27,6 +27,8 @@ import numpy as np
 from ..avatar import Avatar
 from ..body import Motion, linear_blend_skinning
 from ..capture import load_capture
+from ..data.animated import META as SEQUENCE_META, NPZ as SEQUENCE_NPZ, AnimatedSequence
+from ..data.tracked import TrackedSequence
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, write_json_atomic, write_text_atomic
 from ..geometry import submesh
@@ -172,7 +174,7 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     """
     from ..avatar import build_avatar
     from ..parallel import Job, run_jobs
-    from .animate import Sequence, animate_job, simulated_frames
+    from .animate import animate_job, simulated_frames
 
     cap = load_capture(capture)
     gt_root = cap.ground_truth
@@ -190,7 +192,7 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     seqs = run_jobs(jobs, progress=progress, title="reference materials: simulating")
     t = av.template
     for (row, mat), V in zip(refs, seqs):
-        Sequence(V, t.faces, t.labels, None, av.fps, av.root).save(
+        AnimatedSequence(V, t.faces, t.labels, None, av.fps, av.root).save(
             out / REFERENCE_FOLDERS[row], {"command": "reference-sims", "material": mat.to_dict(),
                                            "motion": held.name, "seed": seed}, ply=False)
     write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames), "seed": seed,
@@ -213,7 +215,7 @@ def _reuse_references(path: Path, av, refs: dict, n_frames: int) -> dict:
     rows = {}
     for row, mat in refs.items():
         folder = path / REFERENCE_FOLDERS[row]
-        used = read_json(folder / "sequence.json").get("material") if (folder / "sequence.json").is_file() else None
+        used = read_json(folder / SEQUENCE_META).get("material") if (folder / SEQUENCE_META).is_file() else None
         if used is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
         if Material.from_dict(used) != mat:
@@ -225,12 +227,10 @@ def _reuse_references(path: Path, av, refs: dict, n_frames: int) -> dict:
 
 def _reuse_sequence(path, av, n_frames: int):
     """The ``animate`` output at ``path`` (checked against the avatar and the frame count)."""
-    from .animate import Sequence
-
     path = Path(path)
-    if not (path / "sequence.npz").is_file():
-        raise PhysavatarError(path, "no sequence.npz (pass an `animate` output folder)")
-    seq = Sequence.load(path)
+    if not (path / SEQUENCE_NPZ).is_file():
+        raise PhysavatarError(path, f"no {SEQUENCE_NPZ} (pass an `animate` output folder)")
+    seq = AnimatedSequence.load(path)
     t = av.template
     if seq.vertices.shape[1] != len(t.vertices) or not np.array_equal(seq.faces, t.faces):
         raise PhysavatarError(path, f"sequence has {seq.vertices.shape[1]} vertices / other faces than the avatar "
@@ -280,9 +280,8 @@ def _appearance(cap, av, seq, held_dir: Path, out: Path, spp: int) -> dict:
 def _tracking(cap, tracked: Path) -> dict:
     from ..metrics import vertex_error_mm
 
-    z = load_npz(tracked / "tracked.npz")
+    V = TrackedSequence.load(tracked).vertices
     gt = load_npz(cap.ground_truth / "meshes.npz")["vertices"]
-    V = z["vertices"]
     n = min(len(V), len(gt))
     labels = cap.template.labels
     out = {}

@@ -1081,6 +1081,8 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
     and its own ``boundary`` flags, or none. A garment without boundary (Dirichlet) vertices
     is simulated as held by contact and friction alone.
     """
+    from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
+    from ..data.tracked import FILE as TRACKED, TrackedSequence
     from ..files import load_npz
 
     folder = Path(folder)
@@ -1093,43 +1095,25 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
     elif not folder.is_dir():
         raise PhysavatarError(folder, "not a folder or .npz (expected a tracked folder, a capture or a garment sequence)")
     else:
-        tracked = folder / "tracked.npz"
+        tracked = folder / TRACKED
         if not tracked.is_file() and not (folder / "ground_truth" / "meshes.npz").is_file() \
-                and (folder / "garment_sequence.npz").is_file():
-            return load_garment_sequence(folder / "garment_sequence.npz")
-    boundary = None
-    rest = None
-    fps = 25.0
+                and (folder / GARMENT_SEQUENCE).is_file():
+            return load_garment_sequence(folder / GARMENT_SEQUENCE)
     if tracked.is_file():
-        z = load_npz(tracked) if z is None else z
         src = tracked
-        if "boundary" in z:
-            boundary = np.asarray(z["boundary"]).astype(bool)
-        if "fps" in z:
-            fps = float(z["fps"])
-        template_dir = folder
     else:
         src = folder / "ground_truth" / "meshes.npz"
         if not src.is_file():
             raise PhysavatarError(folder, "none of tracked.npz, ground_truth/meshes.npz, garment_sequence.npz found")
-        z = load_npz(src)
-        if "fps" in z:
-            fps = float(z["fps"])
-        template_dir = folder
-    for key in ("vertices", "faces", "labels"):
-        if key not in z:
-            raise PhysavatarError(src, f"missing array {key!r}")
-    verts = np.asarray(z["vertices"], dtype=np.float64)
-    faces = np.asarray(z["faces"], dtype=np.int64)
-    labels = np.asarray(z["labels"]).astype(np.int64)
-    if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[1] != len(labels) or len(verts) < 2:
-        raise PhysavatarError(src, f"vertices must be [T >= 2, V={len(labels)}, 3], got {verts.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(labels):
-        raise PhysavatarError(src, "faces must be [F, 3] indices into the vertices")
-    if not np.all(np.isfinite(verts)):
-        raise PhysavatarError(src, "vertices contain non-finite values")
-    if boundary is not None and len(boundary) != len(labels):
-        raise PhysavatarError(src, f"boundary has {len(boundary)} flags for {len(labels)} vertices")
+    # a capture's ground-truth meshes have the tracked format (its boundary flags are the template's)
+    seq = TrackedSequence.from_arrays(load_npz(src) if z is None else z, src,
+                                      require=("vertices", "faces", "labels"), min_frames=2)
+    boundary = seq.boundary if src == tracked else None
+    rest = None
+    fps = 25.0 if seq.fps is None else seq.fps
+    template_dir = folder
+    verts = np.asarray(seq.vertices, dtype=np.float64)
+    faces, labels = seq.faces, seq.labels
     ply = None
     if boundary is None or rest is None:
         ply = template_dir / "template" / "mesh.ply"
@@ -1181,55 +1165,23 @@ def load_garment_sequence(path: str | Path, z=None) -> PhysicsData:
     vertices, none = held by contact alone), ``body_vertices`` [T, Nb, 3] with ``body_faces``
     (the collider), ``fps`` (25) and ``rest_vertices`` [N, 3] (the stress-free shape; default
     frame 0)."""
+    from ..data.garment_sequence import GarmentSequence
     from ..files import load_npz
-    from ..garment_sim import boundary_ids
 
     path = Path(path)
-    z = load_npz(path) if z is None else z
-    for key in ("vertices", "faces"):
-        if key not in z:
-            raise PhysavatarError(path, f"missing array {key!r} (a garment sequence needs vertices [T, N, 3] and faces)")
-    V = np.asarray(z["vertices"], np.float64)
-    F = np.asarray(z["faces"], np.int64)
-    if V.ndim != 3 or V.shape[2] != 3 or len(V) < 2:
-        raise PhysavatarError(path, f"vertices must be [T >= 2, N, 3], got {V.shape}")
-    n = V.shape[1]
-    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0 or F.min() < 0 or F.max() >= n:
-        raise PhysavatarError(path, f"faces must be [F, 3] indices into the {n} garment vertices")
-    if not np.all(np.isfinite(V)):
-        raise PhysavatarError(path, "vertices contain non-finite values")
-    try:
-        b = boundary_ids(z["boundary"], n) if "boundary" in z else np.zeros(0, np.int64)
-    except ValueError as e:
-        raise PhysavatarError(path, str(e)) from None
-    rest = np.asarray(z["rest_vertices"], np.float64) if "rest_vertices" in z else V[0]
-    if rest.shape != (n, 3) or not np.all(np.isfinite(rest)):
-        raise PhysavatarError(path, f"rest_vertices must be [{n}, 3] finite, got {rest.shape}")
-    body = body_faces = None
-    if "body_vertices" in z:
-        if "body_faces" not in z:
-            raise PhysavatarError(path, "body_vertices without body_faces")
-        body = np.asarray(z["body_vertices"], np.float64)
-        body_faces = np.asarray(z["body_faces"], np.int64)
-        if body.ndim != 3 or body.shape[0] != len(V) or body.shape[2] != 3:
-            raise PhysavatarError(path, f"body_vertices must be [T={len(V)}, Nb, 3], got {body.shape}")
-        if body_faces.ndim != 2 or body_faces.shape[1] != 3 or body_faces.min() < 0 or body_faces.max() >= body.shape[1]:
-            raise PhysavatarError(path, "body_faces must be [F, 3] indices into the body vertices")
-        if not np.all(np.isfinite(body)):
-            raise PhysavatarError(path, "body_vertices contain non-finite values")
-    fps = float(z["fps"]) if "fps" in z else 25.0
-    if not fps > 0:
-        raise PhysavatarError(path, f"fps must be positive, got {fps}")
-    return PhysicsData(reference=V, faces=F, boundary=b, collider=body, collider_faces=body_faces, fps=fps, rest=rest)
+    seq = GarmentSequence.from_arrays(load_npz(path) if z is None else z, path)
+    return PhysicsData(reference=seq.vertices, faces=seq.faces, boundary=seq.boundary, collider=seq.body_vertices,
+                       collider_faces=seq.body_faces, fps=seq.fps, rest=seq.rest_vertices)
 
 
 def write_outputs(out: str | Path, result: FitResult) -> None:
     """material.json, fit_log.csv and fit.png in ``out`` (atomic writes)."""
-    from ..files import atomic_path, write_json_atomic, write_text_atomic
+    from ..data.material import FILE as MATERIAL, FittedMaterial
+    from ..files import atomic_path, write_text_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out / "material.json", result.to_json())
+    FittedMaterial.from_json(result.to_json()).save(out / MATERIAL)
     # the parameters of every row: with the integrator selection, the BDF2 fit's rows add γ
     params = [n for n in PARAMETERS + (BLEND,) if n in result.fitted or any(n in r for r in result.history)]
     cols = ["iteration", "loss", "rms_mm"] + params + ["wall_time_s", "simulations"]

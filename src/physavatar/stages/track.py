@@ -44,6 +44,7 @@ from PIL import Image
 
 from ..camera import Camera
 from ..capture import Capture, frame_name, load_capture
+from ..data.tracked import FILE as TRACKED, TrackedSequence
 from ..errors import PhysavatarError
 from ..files import PlyMesh, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
 from ..geometry import mesh_edges
@@ -1017,8 +1018,7 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                                                     f"loss {res.terms['loss']:.4f}, {dt:.1f} s")
     V = np.stack(verts).astype(np.float32)
     C = np.stack(cols).astype(np.float32)
-    save_npz_atomic(out / "tracked.npz", vertices=V, faces=t.faces, labels=t.labels.astype(np.uint8),
-                    boundary=t.boundary.astype(np.uint8), face_colors=C, frames=np.asarray(frames, np.int64),
+    TrackedSequence(V, t.faces, t.labels, t.boundary, C, np.asarray(frames, np.int64),
                     log_scales=model.log_scales.numpy(), opacity_logits=model.opacity_logits.numpy(),
-                    edge_index=model.edge_index.numpy(), fps=np.float64(cap.fps))
+                    edge_index=model.edge_index.numpy(), fps=float(cap.fps)).save(out / TRACKED)
     return TrackResult(out, list(frames), V, C, computed, seconds)
