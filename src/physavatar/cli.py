@@ -291,7 +291,8 @@ def simulate(
     from .data.garment_sequence import FILE as GARMENT_SEQUENCE, GarmentSequence
     from .data.material import resolve_material
     from .files import PlyMesh, write_json_atomic, write_ply
-    from .garment_sim import GarmentPart, load_mesh_sequence, simulate_on_body, split_template
+    from .data.mesh_sequence import load_mesh_sequence
+    from .garment_sim import GarmentPart, simulate_on_body, split_template
 
     mat = resolve_material(material, option="--material")
     if fps <= 0 or substeps < 1:
