@@ -7,7 +7,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from physavatar.cli_config import config_command
+from physavatar.cli.options import config_command
 from physavatar.errors import PhysavatarError
 from physavatar.progress import ProgressEvent, resolve
 from physavatar.stages.base import apply_options, option, setting, stage_hash, to_argv

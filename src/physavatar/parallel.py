@@ -7,7 +7,7 @@ the random material on the held-out motion) use this.
 
 Each job is a picklable top-level function called as ``fn(*args, report=report, **kwargs)``;
 ``report(k)`` tells the parent that k units (frames) of the job are done, and the parent shows one
-progress bar per job. With one worker (or one job) the jobs run in this process, one after the
+progress task per job (:mod:`physavatar.progress`). With one worker (or one job) the jobs run in this process, one after the
 other, through the same interface, so results never depend on the worker count (each job is a
 deterministic single-threaded computation).
 """
@@ -57,7 +57,7 @@ def _child(fn, args, kwargs, q, idx):
     return fn(*args, report=report, **kwargs)
 
 
-def run_jobs(jobs: list[Job], *, workers: int | None = None, progress: bool = True,
+def run_jobs(jobs: list[Job], *, workers: int | None = None, progress=True,
              title: str = "simulating", on_item: Callable | None = None) -> list[Any]:
     """Run ``jobs``; returns their results in order. An exception in a job is raised here (the
     other jobs are cancelled); Ctrl-C stops all of them.
@@ -66,18 +66,17 @@ def run_jobs(jobs: list[Job], *, workers: int | None = None, progress: bool = Tr
     makes with an item (e.g. a finished frame), in the order each job reported them, while the
     jobs run: this process can use the results as they come (synth renders finished frames).
     """
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from .progress import resolve
 
     workers = default_workers(len(jobs)) if workers is None else max(1, min(workers, len(jobs)))
-    cols = (TextColumn(f"[bold]{title}[/] {{task.description}}"), BarColumn(), MofNCompleteColumn(),
-            TimeElapsedColumn())
-    with Progress(*cols, disable=not progress) as bar:
-        tasks = [bar.add_task(j.label, total=j.total) for j in jobs]
+    prog = resolve(progress)
+    tasks = [prog.task(f"{title} {j.label}", total=j.total) for j in jobs]
+    try:
         if workers == 1:
             out = []
             for i, (j, t) in enumerate(zip(jobs, tasks)):
                 def report(k=1, item=None, t=t, i=i):
-                    bar.advance(t, k)
+                    t.advance(k)
                     if item is not None and on_item is not None:
                         on_item(i, item)
 
@@ -93,18 +92,21 @@ def run_jobs(jobs: list[Job], *, workers: int | None = None, progress: bool = Tr
                     for r in res:  # the first failure stops everything (terminate below)
                         if r.ready() and not r.successful():
                             r.get()
-                    if not _drain(q, bar, tasks, on_item):
+                    if not _drain(q, tasks, on_item):
                         time.sleep(0.2)
-                _drain(q, bar, tasks, on_item)
+                _drain(q, tasks, on_item)
                 out = [r.get() for r in res]
                 pool.close()
                 return out
             finally:
                 pool.terminate()
                 pool.join()
+    finally:
+        for t in tasks:
+            t.end()
 
 
-def _drain(q, bar, tasks, on_item=None) -> bool:
+def _drain(q, tasks, on_item=None) -> bool:
     """Apply the queued reports; True when there were any."""
     got = False
     while True:
@@ -113,6 +115,6 @@ def _drain(q, bar, tasks, on_item=None) -> bool:
         except _queue.Empty:
             return got
         got = True
-        bar.advance(tasks[idx], k)
+        tasks[idx].advance(k)
         if item is not None and on_item is not None:
             on_item(idx, item)

@@ -77,6 +77,35 @@ PRESETS: dict[str, SynthConfig] = {
 }
 
 
+
+def preset_config(preset: str, *, garment: str | None = None, motion: str | None = None, frames: int | None = None,
+                  seed: int | None = None) -> SynthConfig:
+    """The preset's config with the given overrides, each checked (one message naming the option)."""
+    from .body.motion import BUILTIN
+    from .garment import GARMENTS
+
+    def bad(flag, problem):
+        raise PhysavatarError(None, f"option {flag}: {problem}")
+
+    if preset not in PRESETS:
+        bad("--preset", f"{preset!r} is not one of {', '.join(PRESETS)}")
+    changes = {}
+    if garment is not None:
+        if garment not in GARMENTS:
+            bad("--garment", f"{garment!r} is not one of {', '.join(GARMENTS)}")
+        changes["garment"] = garment
+    if motion is not None:
+        if motion not in BUILTIN:
+            bad("--motion", f"{motion!r} is not a built-in motion ({', '.join(BUILTIN)})")
+        changes["motion"] = motion
+    if frames is not None:
+        if frames < 2:
+            bad("--frames", "needs at least 2 frames")
+        changes["frames"] = frames
+    if seed is not None:
+        changes["seed"] = seed
+    return replace(PRESETS[preset], **changes)
+
 # -- textures ------------------------------------------------------------------------------------
 
 def _value_noise(size: int, cells: int, rng: np.random.Generator) -> np.ndarray:
@@ -175,7 +204,7 @@ def build_template(cfg: SynthConfig) -> tuple[BodyModel, Template, np.ndarray]:
     return body, template, weights
 
 
-def pose_sequences(scene: _Scene, motions: list, progress: bool = True, on_frame=None) -> list[np.ndarray]:
+def pose_sequences(scene: _Scene, motions: list, progress=True, on_frame=None) -> list[np.ndarray]:
     """[T, V, 3] template vertices along each motion: the body posed, the garment simulated with
     the config's material (or skinned when it names none). The simulations run side by side
     (:mod:`physavatar.parallel`); ``on_frame(motion_index, frame, vertices [V, 3])`` is called in
@@ -232,10 +261,10 @@ def _render_frame(scene: _Scene, vertices: np.ndarray, cameras: list[Camera], se
     return [render(s, cam, spp=scene.cfg.spp, seed=seed + i) for i, cam in enumerate(cameras)]
 
 
-def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
-    """Write a complete capture folder for ``cfg`` into ``out`` (resumable; see module doc)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
+def synthesize(out: str | Path, cfg: SynthConfig, progress=True) -> Path:
+    """Write a complete capture folder for ``cfg`` into ``out`` (resumable; see module doc).
+    ``progress``: see :mod:`physavatar.progress`."""
+    from .progress import resolve
     from .render import save_lights, soft_studio
 
     out = Path(out)
@@ -277,11 +306,10 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
         return all((base / "images" / c.name / f"{frame_name(f)}.png").exists()
                    and (base / "masks" / c.name / f"{frame_name(f)}.png").exists() for c in cams)
 
-    cols = (TextColumn("[bold]synth[/] {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*cols, transient=False, disable=progress is False) as bar:
-        total = cfg.frames + cfg.heldout_frames
-        task = bar.add_task(f"rendering {len(cameras)} views x {cfg.frames} frames + held-out", total=total)
-        bar.advance(task, sum(done(p, f) for p in views for f in range(n_frames[p])))
+    prog = resolve(progress)
+    total = cfg.frames + cfg.heldout_frames
+    with prog.task(f"synth: rendering {len(cameras)} views x {cfg.frames} frames + held-out", total=total) as task:
+        task.advance(sum(done(p, f) for p in views for f in range(n_frames[p])))
 
         def render_frame(prefix, f, v):
             if done(prefix, f):
@@ -291,7 +319,7 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
             for c, r in zip(cams, results):
                 save_png(base / "masks" / c.name / f"{frame_name(f)}.png", r.alpha8())
                 save_png(base / "images" / c.name / f"{frame_name(f)}.png", r.srgb8())
-            bar.advance(task)
+            task.advance()
 
         if meshes_file.exists() and held_file.exists():  # resuming: the simulation is done
             verts = np.load(meshes_file)["vertices"].astype(np.float64)
@@ -300,9 +328,7 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress=None) -> Path:
             # Frames are rendered here as the simulations (one process each) produce them, so
             # no core idles once the shorter held-out simulation is done; a frame whose images
             # exist is skipped, so an interrupted build resumes.
-            # (the rendering bar shows the simulations' progress too: one live display at a time)
-            bar.update(task, description=f"simulating + rendering {len(cameras)} views x {cfg.frames} frames + held-out")
-            verts, held_verts = pose_sequences(scene, [motion, held], False,
+            verts, held_verts = pose_sequences(scene, [motion, held], prog,
                                                on_frame=lambda i, f, v: render_frame(("", "heldout")[i], f, v))
             # kept at once: a build interrupted while rendering resumes without simulating again
             save_npz_atomic(meshes_file, vertices=verts.astype(np.float32), faces=template.faces,

@@ -6,20 +6,55 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import PhysavatarError
 from .bvh import import_bvh
-from .motion import BUILTIN, Motion, builtin_motion
+from .model import BodyModel
+from .motion import BUILTIN, Motion, arm_clearance, builtin_motion
 
 
-def load_motion(spec: str, bone_names: list[str], fps: float = 25.0, duration: float = 4.0) -> Motion:
-    """A motion by built-in name, ``.npz`` file or ``.bvh`` file, resampled to ``fps``."""
+def load_motion(spec: str, fps: float = 25.0, duration: float = 4.0, *, mapping: str | Path | None = None,
+                body: BodyModel | None = None) -> Motion:
+    """A motion by built-in name (``duration`` seconds), ``.npz`` file or ``.bvh`` file (retargeted
+    onto ``body``, default Anny's collider topology, with ``mapping`` overrides), at ``fps``."""
+    if fps <= 0 or duration <= 0:
+        raise PhysavatarError(None, "option --fps/--duration: must be positive")
+    body = body or BodyModel(topology="collider")
     if spec in BUILTIN:
-        return builtin_motion(spec, bone_names, fps, duration)
+        return builtin_motion(spec, body.bone_names, fps, duration)
     path = Path(spec)
     if path.suffix.lower() == ".bvh":
-        return import_bvh(path).resample(fps).for_bones(bone_names)
+        return import_bvh(path, body, mapping=mapping).resample(fps)
     if path.suffix.lower() == ".npz":
-        return Motion.load(path).resample(fps).for_bones(bone_names)
+        return Motion.load(path).resample(fps).for_bones(body.bone_names)
     if not path.exists():
         raise PhysavatarError(path, f"not a built-in motion ({', '.join(BUILTIN)}) and no such file")
-    raise PhysavatarError(path, "motion files must be .npz or .bvh")
+    raise PhysavatarError(path, "motion files must be .bvh or .npz")
+
+
+def with_arm_clearance(motion: Motion, spec: str, body: BodyModel, clearance: float) -> tuple[Motion, dict | None]:
+    """Motion capture (``.bvh``) with the arms raised where the hands would pinch the garment
+    against the trunk (:func:`arm_clearance`); other motions unchanged. Returns the motion and a
+    per-side summary of what changed (None when nothing was done)."""
+    if clearance < 0:
+        raise PhysavatarError(None, "option --arm-clearance: must be >= 0")
+    if clearance == 0 or not str(spec).lower().endswith(".bvh"):
+        return motion, None
+    m2, info = arm_clearance(motion, body, clearance)
+    summary = {side: {"frames_raised": int(np.sum(d["angle_rad"] > 1e-3)),
+                      "max_angle_deg": round(float(np.degrees(d["angle_rad"].max())), 1),
+                      "min_distance_before_m": round(float(d["distance_before_m"].min()), 4),
+                      "min_distance_after_m": round(float(d["distance_after_m"].min()), 4)} for side, d in info.items()}
+    return m2, summary
+
+
+def describe_clearance(summary: dict | None, clearance: float) -> str | None:
+    """One line saying which arms were raised and by how much (None when none was)."""
+    raised = {k: v for k, v in (summary or {}).items() if v["frames_raised"]}
+    if not raised:
+        return None
+    return "arm clearance: " + "; ".join(
+        f"{side} arm raised in {v['frames_raised']} frames (up to {v['max_angle_deg']} deg), hand-to-trunk "
+        f"{1000 * v['min_distance_before_m']:.0f} -> {1000 * v['min_distance_after_m']:.0f} mm"
+        for side, v in raised.items()) + f" (--arm-clearance {clearance:g} m; 0 keeps the motion as it is)"

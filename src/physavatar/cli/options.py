@@ -17,7 +17,7 @@ from typing import Any, Callable, Optional
 
 import typer
 
-from .stages.base import apply_options, options
+from ..stages.base import apply_options, options
 
 
 def _cli_type(spec) -> Any:
