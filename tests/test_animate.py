@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from physavatar.avatar import Avatar, build_avatar
+from physavatar.data.avatar import Avatar
+from physavatar.stages.avatar import build_avatar
 from physavatar.body import BodyModel, Motion, builtin_motion
 from physavatar.capture import load_capture
 from physavatar.geometry import count_intersections

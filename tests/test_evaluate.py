@@ -5,7 +5,7 @@ import shutil
 import numpy as np
 import pytest
 
-from physavatar.avatar import build_avatar
+from physavatar.stages.avatar import build_avatar
 from physavatar.files import save_npz_atomic
 from physavatar.stages.evaluate import random_material
 
@@ -47,7 +47,7 @@ def test_random_material_is_seeded_and_in_range():
 
 def test_reused_sequence_gives_the_same_row_and_bad_ones_are_refused(result, tiny_capture):
     """`evaluate --sequence` (the animate stage's output) = simulating the estimated row again."""
-    from physavatar.avatar import Avatar
+    from physavatar.data.avatar import Avatar
     from physavatar.body import Motion
     from physavatar.errors import PhysavatarError
     from physavatar.stages.animate import animate

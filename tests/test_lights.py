@@ -25,8 +25,8 @@ def scene_of(tmp_path_factory, tiny_capture):
     """A fit-appearance folder, an avatar built from it and a sequence whose first frame is the
     capture's frame 2; returns ``build(argv) -> (SceneSpec, scene dict)`` of the first scene the
     command builds."""
-    from physavatar.avatar import build_avatar
-    from physavatar.stages.animate import Sequence
+    from physavatar.stages.avatar import build_avatar
+    from physavatar.data.animated import AnimatedSequence as Sequence
 
     root = tmp_path_factory.mktemp("lights")
     cap = load_capture(tiny_capture)

@@ -7,7 +7,13 @@ from typing import Optional
 
 import typer
 
-from ._common import app, bad_option, console, handle_errors, say_clearance
+from ..stages.animate import AnimateConfig
+from ..stages.evaluate import EvaluateConfig, ReferencesConfig
+from ..stages.export import ExportConfig
+from ..stages.render import RenderConfig
+from ._common import app, console, handle_errors, say_clearance
+from .options import config_command
+
 
 @app.command("build-avatar")
 @handle_errors
@@ -19,154 +25,81 @@ def build_avatar_cmd(
     tracked: Optional[Path] = typer.Option(None, help="tracking output folder: use the tracked frame 1 as the template"),
 ):
     """Bundle template, transferred skinning weights, material, texture and light into an avatar folder."""
-    from ..avatar import build_avatar
+    from ..stages.avatar import run
 
-    tv = None
-    if tracked is not None:
-        from ..data.tracked import TrackedSequence
-
-        tv = TrackedSequence.load(tracked).vertices[0]
-    av = build_avatar(capture, out, material=material, texture_dir=appearance, template_vertices=tv)
+    av = run(capture, out=out, material=material, appearance=appearance, tracked=tracked)
     console.print(f"wrote avatar {out}: {len(av.template.vertices)} vertices "
                   f"({int(av.template.garment_mask.sum())} garment), material {av.material.name or 'fitted'}, "
                   f"texture {'yes' if av.texture is not None else 'no'}, "
                   f"skinning matched {av.meta['skinning_matched_fraction']:.0%} (rest inpainted)")
 
 
-@app.command()
-@handle_errors
-def animate(
-    avatar: Path = typer.Argument(..., help="avatar folder (build-avatar)"),
-    motion: str = typer.Option(..., help="built-in name, .bvh or .npz"),
-    out: Path = typer.Option(..., "--out", "-o", help="sequence folder"),
-    duration: float = typer.Option(4.0, help="seconds (built-in motions)"),
-    warmup: float = typer.Option(1.0, help="seconds of transition from the capture pose to the motion's first pose"),
-    max_frames: Optional[int] = typer.Option(None, help="at most this many frames"),
-    arm_clearance: float = typer.Option(0.03, "--arm-clearance",
-                                        help="with a .bvh motion: raise the arms where a hand comes closer than this "
-                                             "[m] to the hips/trunk, so the garment is not pinched (0 = off)"),
-):
+@config_command(app, "animate", AnimateConfig, wrap=handle_errors)
+def animate(avatar: Path = typer.Argument(..., help="avatar folder (build-avatar)"),
+            out: Path = typer.Option(..., "--out", "-o", help="sequence folder"), *, config: AnimateConfig):
     """Drive the avatar with a new motion: body by skinning, garment simulated with its material."""
-    from ..avatar import Avatar
-    from ..body import BodyModel
-    from ..stages.animate import animate as run_animate
+    from ..stages.animate import run
 
-    av = Avatar.load(avatar)
-    from ..body.load import load_motion, with_arm_clearance
-
-    m = load_motion(motion, av.fps, duration)
-    if arm_clearance and str(motion).lower().endswith(".bvh"):
-        m, info = with_arm_clearance(m, motion, BodyModel(av.shape, topology="collider"), arm_clearance)
-        say_clearance(info, arm_clearance)
-    if max_frames:
-        m = m.slice(0, max_frames)
-    seq, stats = run_animate(av, m, warmup_s=warmup)
-    seq.save(out, {"command": "animate", "motion_spec": motion, **stats})
-    console.print(f"animated {stats['frames']} frames (+{stats['warmup_frames']} warm-up) at {stats['sim_fps']:.2f} "
+    r = run(avatar, out=out, config=config, progress=True)
+    say_clearance(r.clearance, config.arm_clearance)
+    st = r.stats
+    console.print(f"animated {st['frames']} frames (+{st['warmup_frames']} warm-up) at {st['sim_fps']:.2f} "
                   f"simulated frames/s; wrote {out}/sequence.npz, meshes/")
 
 
-@app.command()
-@handle_errors
-def render(
-    seq: Path = typer.Argument(..., help="sequence folder (animate)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder (frames/ and MP4)"),
-    light: str = typer.Option("studio", help="fitted, studio, ambient, sky, sun, point, or an .hdr/.exr environment map "
-                              "(docs/rendering.md)"),
-    capture: Optional[Path] = typer.Option(None, help="render from this capture's cameras instead of an orbit"),
-    cameras: str = typer.Option("", help="with --capture: comma-separated camera names (default all)"),
-    spp: int = typer.Option(32, help="samples per pixel"),
-    size: int = typer.Option(512, help="orbit image size (pixels)"),
-):
+@config_command(app, "render", RenderConfig, wrap=handle_errors)
+def render(seq: Path = typer.Argument(..., help="sequence folder (animate)"),
+           out: Path = typer.Option(..., "--out", "-o", help="output folder (frames/ and MP4)"),
+           capture: Optional[Path] = typer.Option(None, help="render from this capture's cameras instead of an orbit"),
+           *, config: RenderConfig):
     """Render a sequence to PNG frames and MP4 under the fitted or a new light."""
-    from ..data.animated import AnimatedSequence
-    from ..stages.render_seq import render_sequence
+    from ..stages.render import run
 
-    s = AnimatedSequence.load(seq)
-    cams = None
-    if capture is not None:
-        from ..capture import load_capture
-
-        cams = load_capture(capture).cameras
-        if cameras:
-            want = cameras.split(",")
-            unknown = [c for c in want if c not in {k.name for k in cams}]
-            if unknown:
-                bad_option("--cameras", f"unknown camera(s) {unknown}")
-            cams = [c for c in cams if c.name in want]
-    if spp < 1 or size < 16:
-        bad_option("--spp/--size", "spp must be >= 1 and size >= 16")
-    r = render_sequence(s, out, cameras=cams, light=light, spp=spp, width=size, height=size)
+    r = run(seq, out=out, config=config, capture=capture, progress=True)
     console.print(f"rendered {r['frames']} frames; wrote {', '.join(r['videos'])}")
 
 
-@app.command()
-@handle_errors
-def export(
-    seq: Path = typer.Argument(..., help="sequence folder (animate)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output file (.usd/.usdc/.usda/.glb) or folder (obj, ply)"),
-    fmt: str = typer.Option("", "--format", help="usd, glb, obj or ply (default: from --out's extension)"),
-):
+@config_command(app, "export", ExportConfig, wrap=handle_errors)
+def export(seq: Path = typer.Argument(..., help="sequence folder (animate)"),
+           out: Path = typer.Option(..., "--out", "-o", help="output file (.usd/.usdc/.usda/.glb) or folder (obj, ply)"),
+           *, config: ExportConfig):
     """Export a sequence: USD (time-sampled points, UVs, textured material), glTF binary, OBJ/PLY sequences."""
     from ..data.animated import AnimatedSequence
-    from ..export import MeshSequence
-    from ..export import export as run_export
+    from ..stages.export import run
 
-    s = AnimatedSequence.load(seq)
-    tex = None
-    if s.avatar is not None and (Path(s.avatar) / "texture.png").exists():
-        tex = Path(s.avatar) / "texture.png"
-    fmt = fmt or {".usd": "usd", ".usdc": "usd", ".usda": "usd", ".glb": "glb"}.get(out.suffix.lower(), "")
-    if fmt not in ("usd", "glb", "obj", "ply"):
-        bad_option("--format", "choose usd, glb, obj or ply (or give --out a .usd/.glb name)")
-    if fmt == "usd" and out.suffix.lower() not in (".usd", ".usdc", ".usda"):
-        out = out.with_suffix(".usdc")
-    if fmt == "glb" and out.suffix.lower() != ".glb":
-        out = out.with_suffix(".glb")
-    ms = MeshSequence(s.vertices, s.faces, uvs=s.face_uvs, texture=tex, fps=s.fps)
-    run_export(out, ms, fmt)
-    console.print(f"exported {len(s.vertices)} frames as {fmt}: {out}")
+    path = run(seq, out=out, config=config)
+    frames = len(AnimatedSequence.load(seq).vertices)
+    console.print(f"exported {frames} frames as {config.format or path.suffix.lstrip('.')}: {path}")
 
 
-# -- evaluation and the whole pipeline -----------------------------------------------------------
-
-@app.command()
-@handle_errors
+@config_command(app, "evaluate", EvaluateConfig, wrap=handle_errors)
 def evaluate(
     capture: Path = typer.Argument(..., help="synthetic capture (with ground_truth/)"),
     avatar: Path = typer.Option(..., help="avatar folder (build-avatar)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder: metrics.json, report.md, views/"),
     tracked: Optional[Path] = typer.Option(None, help="tracking output: also report tracking error"),
-    frames: Optional[int] = typer.Option(None, help="evaluate the first N held-out frames"),
-    points: int = typer.Option(10000, help="points sampled per surface for Chamfer / F-score"),
     sequence: Optional[Path] = typer.Option(None, help="animate output on the held-out motion: reuse it as the estimated-material row"),
     references: Optional[Path] = typer.Option(None, help="reference-sims output of this capture: reuse its true- and random-material rows"),
+    *, config: EvaluateConfig,
 ):
     """Metrics against ground truth: garment/full Chamfer and F-scores on the held-out motion for LBS,
     random, estimated and true material; PSNR/SSIM/LPIPS on held-out views; tracking error."""
-    from ..stages.evaluate import evaluate as run_eval
+    from ..stages.evaluate import run
 
-    if points < 100:
-        bad_option("--points", "use at least 100 points")
-    run_eval(capture, avatar, out, tracked=tracked, frames=frames, n_points=points, sequence=sequence,
-             references=references)
+    run(capture, out=out, config=config, avatar=avatar, tracked=tracked, sequence=sequence, references=references,
+        progress=True)
     console.print((out / "report.md").read_text())
 
 
-@app.command("reference-sims")
-@handle_errors
-def reference_sims(
-    capture: Path = typer.Argument(..., help="synthetic capture (with ground_truth/)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder: avatar/, true/, random/, references.json"),
-    frames: Optional[int] = typer.Option(None, help="the first N held-out frames"),
-):
+@config_command(app, "reference-sims", ReferencesConfig, wrap=handle_errors)
+def reference_sims(capture: Path = typer.Argument(..., help="synthetic capture (with ground_truth/)"),
+                   out: Path = typer.Option(..., "--out", "-o", help="output folder: avatar/, true/, random/, references.json"),
+                   *, config: ReferencesConfig):
     """The evaluation's reference rows ahead of time: the garment on the held-out motion with the
     true and with the random material (they need nothing fitted; `run` makes them while tracking)."""
-    from ..stages.evaluate import reference_sequences
+    from ..stages.evaluate import run_references
 
-    if frames is not None and frames < 2:
-        bad_option("--frames", "use at least 2 frames")
-    reference_sequences(capture, out, frames=frames)
+    run_references(capture, out=out, config=config, progress=True)
     console.print(f"wrote {out}/true, {out}/random")
 
 

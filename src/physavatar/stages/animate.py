@@ -10,17 +10,19 @@ but not returned, so the garment never starts from a jump.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..avatar import Avatar
+from ..data.avatar import Avatar
 from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
 from ..data.animated import AnimatedSequence
 from ..errors import PhysavatarError
 from ..geometry import count_intersections
 from ..garment_sim import simulate_on_body, split_template
 from ..sim import SimSettings
+from .base import option, to_dict
 
 
 def transition(r0: np.ndarray, t0: np.ndarray, r1: np.ndarray, t1: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -52,9 +54,10 @@ def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> i
 
 
 def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
-            progress: bool = True, report=None) -> tuple[AnimatedSequence, dict]:
+            progress=True, report=None) -> tuple[AnimatedSequence, dict]:
     """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats).
-    ``report``: called with 1 after every simulated frame (:mod:`physavatar.parallel`)."""
+    ``progress``: see :mod:`physavatar.progress`; ``report``: called with 1 after every simulated
+    frame instead (:mod:`physavatar.parallel`)."""
     fps = avatar.fps
     body = BodyModel(avatar.shape, topology="collider")
     m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s)
@@ -78,7 +81,7 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     t0 = time.time()
     cb = None if report is None else (lambda f, x, st: report(1))
     Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, settings=settings,
-                          progress=progress and report is None, callback=cb)
+                          progress=progress if report is None else False, callback=cb)
     secs = time.time() - t0
     V = np.empty((len(rots), len(t.vertices), 3))
     V[:, body_ids] = Vb
@@ -98,8 +101,49 @@ def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, *
     return animate(av, motion, progress=False, report=report, **kw)[0].vertices
 
 
-def animate_to_folder(avatar_dir: str | Path, motion: Motion, out: str | Path, **kw) -> AnimatedSequence:
-    avatar = Avatar.load(avatar_dir)
-    seq, stats = animate(avatar, motion, **kw)
-    seq.save(Path(out), {"command": "animate", **stats})
-    return seq
+def _nonnegative(v):
+    return None if v >= 0 else "must be >= 0"
+
+
+@dataclass(frozen=True)
+class AnimateConfig:
+    motion: str = option("", "built-in name, .bvh or .npz", check=lambda v: None if v else "give a motion")
+    duration: float = option(4.0, "seconds (built-in motions)", check=lambda v: None if v > 0 else "must be positive")
+    warmup: float = option(1.0, "seconds of transition from the capture pose to the motion's first pose",
+                           check=_nonnegative)
+    max_frames: int | None = option(None, "at most this many frames",
+                                    check=lambda v: None if v >= 1 else "must be at least 1")
+    arm_clearance: float = option(0.03, "with a .bvh motion: raise the arms where a hand comes closer than this [m] "
+                                  "to the hips/trunk, so the garment is not pinched (0 = off)", check=_nonnegative)
+
+
+def pipeline_config(motion: str, eval_frames: int | None) -> AnimateConfig:
+    """What ``physavatar run`` animates: the held-out motion, its first ``eval_frames`` frames."""
+    return AnimateConfig(motion=motion, max_frames=eval_frames)
+
+
+@dataclass
+class AnimateResult:
+    sequence: AnimatedSequence
+    stats: dict
+    clearance: dict | None
+
+
+def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> AnimateResult:
+    """Drive the avatar folder ``avatar`` with ``config.motion``; writes ``out`` (sequence.npz,
+    sequence.json with the config and stats, meshes/)."""
+    from ..body.load import load_motion, with_arm_clearance
+
+    if not config.motion:
+        raise PhysavatarError(None, "option --motion: give a motion (built-in name, .bvh or .npz)")
+    av = Avatar.load(avatar)
+    m = load_motion(config.motion, av.fps, config.duration)
+    info = None
+    if config.arm_clearance and str(config.motion).lower().endswith(".bvh"):
+        m, info = with_arm_clearance(m, config.motion, BodyModel(av.shape, topology="collider"), config.arm_clearance)
+    if config.max_frames:
+        m = m.slice(0, config.max_frames)
+    seq, stats = animate(av, m, warmup_s=config.warmup, progress=progress)
+    seq.save(Path(out), {"command": "animate", "motion_spec": config.motion, "config": to_dict(config),
+                         "arm_clearance": info, **stats})
+    return AnimateResult(seq, stats, info)

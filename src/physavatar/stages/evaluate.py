@@ -20,11 +20,12 @@ for garment and body.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..avatar import Avatar
+from ..data.avatar import Avatar
 from ..body import Motion, linear_blend_skinning
 from ..capture import load_capture
 from ..data.animated import META as SEQUENCE_META, NPZ as SEQUENCE_NPZ, AnimatedSequence
@@ -33,6 +34,7 @@ from ..errors import PhysavatarError
 from ..files import load_npz, read_json, write_json_atomic, write_text_atomic
 from ..geometry import submesh
 from ..sim import Material
+from .base import option, setting
 
 ROWS = ("LBS", "random material", "estimated material", "true material")
 
@@ -60,7 +62,7 @@ def _surface_rows(pred: np.ndarray, gt: np.ndarray, faces: np.ndarray, n_points:
 def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tracked: str | Path | None = None,
              frames: int | None = None, n_points: int = 10000, views_spp: int = 64, seed: int = 0,
              sequence: str | Path | None = None, references: str | Path | None = None,
-             progress: bool = True) -> dict:
+             progress=True) -> dict:
     """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics.
 
     ``references``: a :func:`reference_sequences` folder of this capture; its true- and
@@ -163,7 +165,7 @@ REFERENCE_FOLDERS = {"true material": "true", "random material": "random"}
 
 
 def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | None = None, seed: int = 0,
-                        progress: bool = True) -> Path:
+                        progress=True) -> Path:
     """The true- and random-material rows of :func:`evaluate` simulated ahead of time.
 
     They depend on the capture alone (its template, body shape and frame-1 pose; the held-out
@@ -172,7 +174,7 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     ``out/avatar`` (a bare avatar of the capture), ``out/true`` and ``out/random`` (``animate``
     folders, without PLYs) and ``out/references.json``.
     """
-    from ..avatar import build_avatar
+    from .avatar import build_avatar
     from ..parallel import Job, run_jobs
     from .animate import animate_job, simulated_frames
 
@@ -328,3 +330,35 @@ def report_markdown(m: dict) -> str:
         lines += ["", f"Relative error of κs/ρ: {rel(e['stretch_stiffness'] / e['density'], tr['stretch_stiffness'] / tr['density']):.1%}; "
                   f"of κb/ρ: {rel(e['bend_stiffness'] / e['density'], tr['bend_stiffness'] / tr['density']):.1%}.", ""]
     return "\n".join(lines) + "\n"
+
+
+# -- the stage entry points ----------------------------------------------------------------------
+
+def _frames_ok(v):
+    return None if v >= 2 else "use at least 2 frames"
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    frames: int | None = option(None, "evaluate the first N held-out frames", check=_frames_ok)
+    points: int = option(10000, "points sampled per surface for Chamfer / F-score",
+                         check=lambda v: None if v >= 100 else "use at least 100 points")
+
+
+@dataclass(frozen=True)
+class ReferencesConfig:
+    frames: int | None = option(None, "the first N held-out frames", check=_frames_ok)
+    seed: int = setting(0)
+
+
+def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), avatar: Path,
+        tracked: Path | None = None, sequence: Path | None = None, references: Path | None = None,
+        progress=None) -> dict:
+    """:func:`evaluate` as a stage: metrics.json and report.md in ``out``."""
+    return evaluate(capture, avatar, out, tracked=tracked, frames=config.frames, n_points=config.points,
+                    sequence=sequence, references=references, progress=progress)
+
+
+def run_references(capture: Path, *, out: Path, config: ReferencesConfig = ReferencesConfig(), progress=None) -> Path:
+    """:func:`reference_sequences` as a stage (``physavatar reference-sims``)."""
+    return reference_sequences(capture, out, frames=config.frames, seed=config.seed, progress=progress)
