@@ -117,11 +117,11 @@ def tracking_time(capture: Path, frames: int) -> dict:
     import shutil
     import tempfile
 
-    from physavatar.stages.track import TrackConfig, track
+    from physavatar.stages.track import TrackConfig, run as run_track
 
     work = Path(tempfile.mkdtemp(prefix="splat_speed_track_"))
     try:
-        res = track(capture, work / "track", TrackConfig(n_frames=frames), progress=False)
+        res = run_track(capture, out=work / "track", config=TrackConfig(n_frames=frames), progress=False)
         secs = [float(res.seconds[f]) for f in res.frames]
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from physavatar.metrics import vertex_error_mm
-from physavatar.stages.track import TrackConfig, track
+from physavatar.stages.base import set_path, to_dict
+from physavatar.stages.track import TrackConfig, run as run_track
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -52,7 +53,7 @@ def errors(pred: np.ndarray, gt: np.ndarray, labels: np.ndarray) -> dict:
 def run(capture: Path, cfg: TrackConfig, work: Path, resume: bool = False) -> tuple[dict, list[float]]:
     if not resume:
         shutil.rmtree(work, ignore_errors=True)
-    res = track(capture, work, cfg, progress=True)
+    res = run_track(capture, out=work, config=cfg, progress=True)
     gt = np.load(capture / "ground_truth" / "meshes.npz")
     G = gt["vertices"][: len(res.frames)]
     with open(work / "track_log.csv", newline="") as f:  # frames resumed from an earlier run
@@ -92,11 +93,14 @@ def main(argv=None) -> int:
     worst_drift = max(d["ratio"] for d in drift.values())
 
     abl = {}
-    for name, change in (("full", {}), ("no_iso", {"iso_weight": 0.0}), ("no_normal", {"normal_weight": 0.0})):
+    for name, change in (("full", {}), ("no_iso", {"loss.iso_weight": 0.0}), ("no_normal", {"loss.normal_weight": 0.0})):
         if name == "full" and n_abl <= T:
             e = float(mean[:n_abl].mean())
         else:
-            ea, _ = run(args.capture, replace(cfg, n_frames=n_abl, **change), tmp / name, resume)
+            abl_cfg = replace(cfg, n_frames=n_abl)
+            for path, value in change.items():
+                abl_cfg = set_path(abl_cfg, path, value)
+            ea, _ = run(args.capture, abl_cfg, tmp / name, resume)
             e = float(np.mean(ea["all"]["mean_mm"]))
         abl[name] = e
 
@@ -122,7 +126,7 @@ def main(argv=None) -> int:
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                           # other jobs share the 2 cores: timings are pessimistic under load
                           "load_average_start": list(load_start), "load_average_end": list(load_end)},
-              "config": dict(main_cfg.to_json(), capture=str(args.capture), quick=args.quick), "figures": fig,
+              "config": dict(to_dict(main_cfg), capture=str(args.capture), quick=args.quick), "figures": fig,
               "checks": checks}
     print(f"{'frame':>5} {'all mean':>9} {'all p95':>8} " + " ".join(f"{p + ' mean':>13}" for p in err if p != "all") + f" {'s':>6}")
     for i in range(T):

@@ -44,7 +44,6 @@ REASON = re.compile(r"(over|more than|longer than)\s+~?600\s+lines", re.IGNORECA
 OVERSIZE_ALLOWED = {
     "stages/physics.py",
     "stages/appearance.py",
-    "stages/track.py",
     "sim/solver.py",
 }
 

@@ -1,4 +1,4 @@
-"""Scene flow for tracking (physavatar.stages.flow): each part against an independent reference.
+"""Scene flow for tracking (physavatar.stages.track.flow): each part against an independent reference.
 
 - rasterize: against a slow per-pixel ray cast (Moller-Trumbore), depth, face and barycentrics;
 - optical_flow: recovers a known sub-pixel shift of a textured image;
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from physavatar.camera import Camera, intrinsics, look_at, ring_rig
-from physavatar.stages.flow import (FlowObservation, FlowPrediction, ReferenceAppearance, optical_flow, rasterize,
-                                    sample_bilinear, visible_vertices)
+from physavatar.stages.track.flow import (FlowObservation, FlowPrediction, ReferenceAppearance, optical_flow,
+                                          rasterize, sample_bilinear, visible_vertices)
 
 
 def _grid(n: int, size: float, z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -240,7 +240,7 @@ def _fold(V: np.ndarray, degrees: float) -> np.ndarray:
 
 
 def test_hinge_pairs_are_the_vertices_opposite_each_interior_edge():
-    from physavatar.stages.flow import _hinge_pairs
+    from physavatar.stages.track.flow import _hinge_pairs
 
     F = np.array([[0, 1, 2], [2, 1, 3], [2, 3, 4]])  # interior edges 1-2 and 2-3
     got = {tuple(sorted(p)) for p in _hinge_pairs(F, np.ones(5, bool))}

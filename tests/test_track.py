@@ -10,8 +10,9 @@ from typer.testing import CliRunner
 from physavatar.cli import app
 from physavatar.metrics import ssim as ssim_reference
 from physavatar.metrics import vertex_error_mm
-from physavatar.stages._losses import IsometryLoss, NormalLoss, ssim
-from physavatar.stages.track import TrackConfig, _midpoint_subdivide, track
+from physavatar.stages.track import FitConfig, LossConfig, TrackConfig, track
+from physavatar.stages.track.gaussians import _midpoint_subdivide
+from physavatar.stages.track.losses import IsometryLoss, NormalLoss, ssim
 
 
 # -- losses --------------------------------------------------------------------------------------
@@ -135,8 +136,8 @@ def body_capture(tmp_path_factory):
 
 
 # anchor_weight 0: the body starts on its skinned pose and only the images keep it there
-FAST = TrackConfig(scale=1.0, levels=(0.5, 1.0), iters_first=40, iters=40, subdivide=0, lr_vertices=5e-3,
-                   anchor_weight=0.0)
+FAST = TrackConfig(fit=FitConfig(scale=1.0, levels=(0.5, 1.0), iters_first=40, iters=40, lr_vertices=5e-3),
+                   subdivide=0, loss=LossConfig(anchor_weight=0.0))
 
 
 @pytest.fixture(scope="module")
@@ -172,7 +173,7 @@ def test_template_skinning_follows_the_body_poses(body_capture):
     body (the independent reference: BodyModel.pose run by the fixture), and the carried residual
     comes back in the new frame's local frame."""
     from physavatar.capture import load_capture
-    from physavatar.stages.track import TemplateSkinning
+    from physavatar.stages.track.prediction import TemplateSkinning
 
     root, gt = body_capture
     skin = TemplateSkinning.from_capture(load_capture(root), body_residual=1.0)
@@ -186,7 +187,7 @@ def test_template_skinning_follows_the_body_poses(body_capture):
     np.testing.assert_allclose(skin.predict(2, tracked, velocity=0.0), skin.skin(2, gt[0] + off), atol=1e-5)
     assert np.linalg.norm(skin.predict(2, tracked, 0.0) - gt[2], axis=1).mean() == pytest.approx(0.01, rel=0.05)
     # TrackConfig's default carries none of the body's residual: frame 2 starts on the body pose
-    body_only = TemplateSkinning.from_capture(load_capture(root), body_residual=TrackConfig().body_residual)
+    body_only = TemplateSkinning.from_capture(load_capture(root), body_residual=TrackConfig().prediction.body_residual)
     np.testing.assert_allclose(body_only.predict(2, tracked, 0.0), gt[2], atol=1e-5)
 
 
@@ -194,7 +195,8 @@ def test_mixed_prediction_skins_body_and_extrapolates_garment(body_capture):
     """init="mixed": flagged vertices take the skinned template (the fixture's posed body),
     the others x_{t-1} + k (x_{t-1} - x_{t-2}), optionally with the difference low-passed."""
     from physavatar.capture import load_capture
-    from physavatar.stages.track import TemplateSkinning, mixed_prediction, smoothing_solver
+    from physavatar.stages.track.fit import smoothing_solver
+    from physavatar.stages.track.prediction import TemplateSkinning, mixed_prediction
 
     root, gt = body_capture
     skin = TemplateSkinning.from_capture(load_capture(root), 0.0, 0.0)
@@ -215,7 +217,7 @@ def test_mixed_prediction_skins_body_and_extrapolates_garment(body_capture):
 
 
 def test_anchor_and_collision_losses_by_hand():
-    from physavatar.stages._losses import AnchorLoss, CollisionLoss
+    from physavatar.stages.track.losses import AnchorLoss, CollisionLoss
 
     anchor = AnchorLoss(np.array([0, 2]), scale=0.01)
     X = np.zeros((3, 3))
@@ -269,17 +271,17 @@ def test_resume_recomputes_only_missing_frame(body_capture, tracked):
     from physavatar.errors import PhysavatarError
 
     with pytest.raises(PhysavatarError, match="another config"):
-        track(root, out, TrackConfig(scale=1.0, iters=3), progress=False)
+        track(root, out, TrackConfig(fit=FitConfig(scale=1.0, iters=3)), progress=False)
     # a run folder written before an option existed resumes when the option is at its default
     import json
     from dataclasses import replace
 
     cfg = json.loads((out / "config.json").read_text())
-    del cfg["level_iters"]
+    del cfg["fit"]["level_iters"]
     (out / "config.json").write_text(json.dumps(cfg))
     assert track(root, out, FAST, progress=False).computed == []
     with pytest.raises(PhysavatarError, match="level_iters"):
-        track(root, out, replace(FAST, level_iters=(3, 2)), progress=False)
+        track(root, out, replace(FAST, fit=replace(FAST.fit, level_iters=(3, 2))), progress=False)
 
 
 def test_cli_bad_input_exits_2(body_capture, tmp_path):
@@ -322,7 +324,7 @@ def test_physics_prediction_is_one_simulate_on_body_step():
     while constant velocity is centimetres off (gravity and the ball's push)."""
     from physavatar.garment_sim import simulate_on_body, split_template
     from physavatar.sim import SimSettings, preset
-    from physavatar.stages.track import PhysicsPrediction
+    from physavatar.stages.track.prediction import PhysicsPrediction
 
     V, F, labels, boundary, bodies = _cloth_over_ball()
     body_ids, body_faces, part = split_template(V, F, labels, boundary)
@@ -360,17 +362,20 @@ def test_level_iters_sets_each_levels_iterations(body_capture):
 
     from physavatar.capture import load_capture
     from physavatar.errors import PhysavatarError
-    from physavatar.stages.track import MeshGaussians, _check_config, fit_frame, load_views
+    from physavatar.stages.track.fit import fit_frame
+    from physavatar.stages.track.gaussians import MeshGaussians
+    from physavatar.stages.track.stage import _check_config
+    from physavatar.stages.track.views import load_views
 
     root, gt = body_capture
     cap = load_capture(root)
-    cfg = replace(FAST, level_iters=(3, 2))  # min_iters 20: no early stop
+    cfg = replace(FAST, fit=replace(FAST.fit, level_iters=(3, 2)))  # min_iters 20: no early stop
     model = MeshGaussians.init(gt[0], cap.template.faces, 0, cfg.opacity, cfg.antialiased)
-    pyr = [load_views(cap, 1, cap.cameras, lv) for lv in cfg.levels]
+    pyr = [load_views(cap, 1, cap.cameras, lv) for lv in cfg.fit.levels]
     assert fit_frame(model, gt[1], pyr, cfg, first=False).iterations == 5
     with pytest.raises(PhysavatarError, match="level_iters"):
-        _check_config(replace(FAST, level_iters=(3,)), cap)
+        _check_config(replace(FAST, fit=replace(FAST.fit, level_iters=(3,))), cap)
     with pytest.raises(PhysavatarError, match="garment_prediction"):
-        _check_config(replace(FAST, garment_prediction="lbs"), cap)
+        _check_config(replace(FAST, prediction=replace(FAST.prediction, garment="lbs")), cap)
     with pytest.raises(PhysavatarError, match="flow_corrections"):
-        _check_config(replace(FAST, flow_corrections=-1), cap)
+        _check_config(replace(FAST, flow=replace(FAST.flow, corrections=-1)), cap)

@@ -6,6 +6,8 @@
 - :class:`IsometryLoss` — Eq. 2: edge lengths of the 1-ring against the first frame, averaged per
   vertex over its ring, then over vertices.
 - :class:`NormalLoss` — Eq. 3: 1 - n(f) . n(f') over pairs of faces sharing an edge.
+- :class:`CollisionLoss`, :class:`AnchorLoss` — the garment kept outside the body, the body and
+  the garment boundary held near their skinned pose.
 - :func:`linear_to_srgb` — the sRGB transfer curve (IEC 61966-2-1), so splats can be composited in
   linear light like the renderer that made the capture, then compared to the sRGB images.
 """
@@ -16,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..geometry import mesh_edges
+from ...geometry import mesh_edges
 
 
 def _gaussian_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -117,9 +119,9 @@ class NormalLoss:
     ``rest_vertices`` given: the "rest" variant, 2/|F| sum_pairs |cos_t - cos_1|, the change of
     each dihedral's cosine since frame 1. The paper's meshes (ActorHQ scans) are dense, so its
     plain term is a small smoothness prior; on a coarse template (a 1,229-vertex body, 2 cm cloth
-    edges) the plain term is dominated by the template's own curvature and flattens it (measured
-    in docs/tracking.md), while the rest variant is zero for any rigid motion and for the
-    template itself and still penalises the noisy creases the paper's Fig. 10 shows.
+    edges) the plain term is dominated by the template's own curvature and flattens it, while the
+    rest variant is zero for any rigid motion and for the template itself and still penalises the
+    noisy creases the paper's Fig. 10 shows.
     """
 
     def __init__(self, faces: np.ndarray, rest_vertices: np.ndarray | None = None):
@@ -151,11 +153,10 @@ class CollisionLoss:
 
     The body is known from the capture's poses, so it sits where skinning puts it; the garment
     sinking into it is the easiest way for a photometric fit to slide an unobserved fold.
-    The closest point is taken on the body's triangles, not at its closest vertex: on the coarse
-    demo collider (2-3 cm faces) the plane through the closest vertex with its averaged normal
-    lies outside the surface between vertices, and the true dress scored 1.1 on the old
-    closest-vertex term (margin 3 mm) and a fit pushed it out by centimetres; on triangles 99.9 %
-    of its vertices have d >= 0 (docs/tracking.md).
+    The closest point is taken on the body's triangles, not at its closest vertex: on a coarse
+    collider (2-3 cm faces) the plane through the closest vertex with its averaged normal lies
+    outside the surface between vertices, so a garment resting on the body would be penalised
+    and pushed out by centimetres.
 
     Args:
         garment: [G] garment vertex indices. body: [B] body vertex indices.

@@ -2,8 +2,8 @@
 
 The tracking stage (Sec. 3.1) refines each frame photometrically from a start, and its basin is
 small: the per-face Gaussians at the fitting resolution (a 2-cm face is about one 128² pixel)
-correct a start error of up to ~9 mm (docs/tracking.md), while a swinging hem moves 15-30 mm
-between frames. Dense optical flow between consecutive images of the same camera sees that
+correct a start error of several millimetres, while a swinging hem moves centimetres between
+frames. Dense optical flow between consecutive images of the same camera sees that
 motion at the capture's full resolution, in the cloth's own texture, with a coarse-to-fine
 search that covers tens of pixels. :class:`FlowPrediction` lifts it to 3D:
 
@@ -25,13 +25,9 @@ search that covers tens of pixels. :class:`FlowPrediction` lifts it to 3D:
    with their closest collider point where the observations were made (frame t-1, or the current
    estimate, both outside the body), and a penalty kappa (n.(x - q) - margin)^2 on that point's
    plane, moved with the collider to where the caller put it, holds them outside. A garment vertex
-   inside the body is hidden from every camera, so no later flow would bring it back: on the
-   demo, without it, 10 % of the free dress was inside the legs by frame 14, carrying a third of
-   the error (docs/tracking.md).
+   inside the body is hidden from every camera, so no later flow would bring it back.
 
-Measured on the demo capture (docs/tracking.md): started from the true frame t-1, the free
-garment lands 2.4 mm from the true frame t on average over frames 2-11, against 6.2 mm for the
-constant-velocity prediction x_{t-1} + (x_{t-1} - x_{t-2}).
+docs/tracking.md measures the prediction against constant velocity on the demo capture.
 """
 
 from __future__ import annotations
@@ -42,7 +38,7 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from ..camera import Camera
+from ...camera import Camera
 
 
 @numba.njit(cache=True)
@@ -154,8 +150,8 @@ def optical_flow(image0: np.ndarray, image1: np.ndarray, preset: str = "medium")
     a, b = to_gray8(image0), to_gray8(image1)
     dis = cv2.DISOpticalFlow_create(presets[preset])
     if preset == "fine":
-        # "medium" searches down to half resolution; the finest level halves the flow error of
-        # a swinging hem (demo: median 0.8 -> 0.5 px) at ~5x the time
+        # "medium" searches down to half resolution; the finest level roughly halves the flow
+        # error of a swinging hem at ~5x the time
         dis.setFinestScale(0)
     return dis.calc(a, b, None).astype(np.float64)
 
@@ -284,7 +280,7 @@ class FlowPrediction:
         return FlowObservation(cam, idx[ok], uv[ok] + f[ok])
 
     def correct(self, vertices: np.ndarray, cameras: list[Camera], images: list[np.ndarray],
-                reference: "ReferenceAppearance", iterations: int = 2, smoothness: float = 1.0,
+                reference: ReferenceAppearance, iterations: int = 2, smoothness: float = 1.0,
                 prior_weight: float = 0.1, preset: str = "fine", iso_weight: float | None = None,
                 bend_weight: float | None = None) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
@@ -394,7 +390,7 @@ class FlowPrediction:
         deep into a limb on the side it came from (the closest point at ``X`` would be the far side)."""
         if self.collider_faces is None or self.collision_weight <= 0 or len(self.collider_faces) == 0:
             return None
-        from ..geometry import MeshQuery, vertex_normals
+        from ...geometry import MeshQuery, vertex_normals
 
         d, f, w, _ = MeshQuery(X0, self.collider_faces).closest(X0[self.ids], max_dist=self.contact_range)
         near = d < self.contact_range
@@ -551,8 +547,8 @@ def _hinge_pairs(faces: np.ndarray, solve: np.ndarray) -> np.ndarray:
 
 def _spd_solve(M: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
     """``M``^-1 ``rhs`` for a symmetric positive definite ``M``: SuperLU with a symmetric ordering
-    and no pivoting (a Cholesky in effect). spsolve's default column ordering took 4x as long on
-    the demo dress with the bending term (0.84 s against 0.20 s a solve; without it 0.16 / 0.14)."""
+    and no pivoting (a Cholesky in effect), several times faster than spsolve's default column
+    ordering once the bending term fills the matrix."""
     from scipy.sparse.linalg import splu
 
     lu = splu(M.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))

@@ -1,0 +1,228 @@
+"""The tracking stage's settings: :class:`TrackConfig` and its groups (saved as config.json).
+
+Fields with a command-line flag carry it (:func:`physavatar.stages.base.option`); the others are
+settings (:func:`~physavatar.stages.base.setting`). docs/tracking.md explains the defaults and the
+measurements behind them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..base import option, setting
+
+
+def _camera_list(text: str) -> tuple[str, ...]:
+    """'cam01, cam06' -> ('cam01', 'cam06'); '' -> () (no camera held out)."""
+    return tuple(h.strip() for h in text.split(",") if h.strip())
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """The photometric fit of each frame: image pyramid, optimizer and schedule.
+
+    Attributes:
+        scale: resolution factor of the finest pyramid level w.r.t. the capture's images.
+        levels: pyramid levels as fractions of ``scale``, coarse to fine.
+        iters_first, iters: maximum iterations per level for frame 1 and for later frames.
+        level_iters: maximum iterations of frames t > 1 per level (coarse to fine); None:
+            ``iters`` on every level.
+        min_iters, check_every, plateau_tol: a level stops early once the mean loss of the last
+            ``check_every`` steps improved on the window before by less than ``plateau_tol``
+            (relative), after at least ``min_iters`` steps.
+        lr_vertices: Adam step size of the vertices at the finest level [m]; a level whose
+            pixels are k times larger uses k times this.
+        lr_decay: every level's step sizes decay exponentially to this fraction at its last step.
+        lr_colors, lr_scales, lr_opacity: Adam step sizes on frame 1 (linear RGB, log-scale,
+            logit). Scales and opacities stay fixed by default (0): per-face scales and
+            opacities fitted to frame 1's silhouettes do not transfer to the faces that make the
+            silhouette later.
+        lr_colors_track: colour step size on frames t > 1 (0: fixed after frame 1). Colours that
+            chase every frame's image absorb misalignment instead of exposing it to the vertices.
+        vertex_optimizer: "uniform" (:class:`~physavatar.optim.uniform.AdamUniform`: one
+            second-moment normaliser for all vertices) or "adam" (per-coordinate Adam).
+        uniform_quantile: the uniform normaliser's quantile.
+        smoothing: λ of the vertex update's smoothing (I + λ L)^-1
+            (:class:`~physavatar.stages.track.fit.SmoothedSolve`); 0 optimizes the vertices directly.
+        target_blur: Gaussian blur (px) of the target images and masks at each level, meant to
+            match the splats' 0.3 px² low-pass (0: off).
+    """
+
+    scale: float = option(0.25, "resolution factor of the finest level, in (0, 1]")
+    levels: tuple[float, ...] = setting((0.5, 1.0))
+    iters_first: int = option(150, "max iterations per pyramid level, frame 1")
+    iters: int = option(15, "max iterations per pyramid level, later frames")
+    level_iters: tuple[int, ...] | None = setting(None)
+    min_iters: int = setting(20)
+    check_every: int = setting(10)
+    plateau_tol: float = setting(2e-3)
+    lr_vertices: float = setting(4e-3)
+    lr_decay: float = setting(0.1)
+    lr_colors: float = setting(0.01)
+    lr_scales: float = setting(0.0)
+    lr_opacity: float = setting(0.0)
+    lr_colors_track: float = setting(0.0)
+    vertex_optimizer: str = setting("uniform")
+    uniform_quantile: float = setting(0.5)
+    smoothing: float = setting(10.0)
+    target_blur: float = setting(0.0)
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """The weights of the tracking loss (Eq. 4 plus an anchor and a collision term).
+
+    Attributes:
+        l1_weight: λ of Eq. 1 (0.8 as the official code: 0.8 L1 + 0.2 (1 - SSIM)).
+        mask_weight: weight of |rendered alpha - mask| (0 ignores the masks) on frame 1;
+            mask_weight_track on later frames (with colours fixed, the silhouette is the part of
+            the image the frame-1 appearance model gets right).
+        iso_weight, normal_weight: λ_iso, λ_n of Eq. 4 (0 for the ablation: ``--no-iso``,
+            ``--no-normal``).
+        normal_mode: "paper" (Eq. 3 as printed) or "rest" (change of each dihedral since frame
+            1; see :class:`~physavatar.stages.track.losses.NormalLoss`).
+        anchor_weight: weight of :class:`~physavatar.stages.track.losses.AnchorLoss` (1 cm units)
+            holding the body and the garment boundary near their skinned pose under
+            ``init="mixed"``: the capture's body poses place the body better than the images do.
+        collision_weight, collision_margin: garment-body penalty
+            (:class:`~physavatar.stages.track.losses.CollisionLoss`, the official code has one)
+            and its margin [m]; 0 = off (with an unbiased silhouette it pushes penetrated cloth
+            out on the wrong side as often as on the right one).
+    """
+
+    l1_weight: float = setting(0.8)
+    mask_weight: float = setting(0.5)
+    mask_weight_track: float = setting(1.0)
+    iso_weight: float = setting(20.0)
+    normal_weight: float = setting(0.1)
+    normal_mode: str = setting("rest")
+    anchor_weight: float = setting(1.0)
+    collision_weight: float = setting(0.0)
+    collision_margin: float = setting(0.001)
+
+
+@dataclass(frozen=True)
+class PredictionConfig:
+    """Where each frame t > 1 starts before its fit (:mod:`physavatar.stages.track.prediction`).
+
+    Attributes:
+        init: "mixed" (default, :func:`~physavatar.stages.track.prediction.mixed_prediction`):
+            body and garment boundary skinned to the body pose of frame t, the rest of the garment
+            started by ``garment``. "lbs": the template skinned to the capture's body pose of
+            frame t (body.npz, the body model's LBS; garment weights transferred from the closest
+            body point), plus the previous frames' tracked residual from that skinning, carried in
+            each vertex's local skinning frame and extrapolated with ``velocity``
+            (:class:`~physavatar.stages.track.prediction.TemplateSkinning`). "velocity":
+            v_{t-1} + velocity (v_{t-1} - v_{t-2}).
+        garment: how the free garment starts under ``init="mixed"`` (``--garment-start``):
+            "flow" (:mod:`physavatar.stages.track.flow`: the multi-view optical flow
+            I_{t-1} -> I_t of the training cameras at full resolution lifted to the garment
+            vertices, then model-based corrections against the first frame's projective texture;
+            settings in :class:`FlowConfig`), "velocity" (x_{t-1} + velocity S(x_{t-1} - x_{t-2}))
+            or "physics" (one implicit-Euler step of the cloth simulator from the last two tracked
+            frames with that velocity, the body skinned to frames t-1 and t as collider:
+            :class:`~physavatar.stages.track.prediction.PhysicsPrediction`; frames whose tracked
+            garment intersects the body fall back to "velocity").
+        velocity: factor of the constant-velocity term of each frame's prediction (0: none).
+        velocity_smoothing: λ of a (I + λ L)^-1 low-pass of that velocity under ``init="mixed"``
+            (0: the raw difference of the last two tracked frames).
+        body_residual, garment_residual: the share of the body's / garment's tracked residual
+            from skinning carried to the next frame with ``init="lbs"``. Below one, the start of
+            each frame leans back toward the skinned pose, which bounds the drift: a per-frame
+            fitting error b adds up to b / (1 - share) instead of growing without end.
+        material: simulator material preset of the physics prediction (the garment's material is
+            not known when tracking: a prior).
+        newton_iterations: cap on the physics step's Newton iterations (capped too low, the step
+            stays in the phase where the body sweeps into the cloth).
+    """
+
+    init: str = option("mixed", "start of each frame: mixed (body and garment boundary skinned from body.npz, the rest "
+                                "of the garment by --garment-start; default), lbs (all skinned + carried residual) or "
+                                "velocity", choices=("mixed", "lbs", "velocity"))
+    garment: str = option("flow", "start of the free garment under --init mixed: flow (multi-view optical flow + "
+                                  "model-based corrections; default), velocity or physics",
+                          flag="--garment-start", choices=("flow", "velocity", "physics"))
+    velocity: float = setting(1.0)
+    velocity_smoothing: float = setting(30.0)
+    body_residual: float = setting(0.0)
+    garment_residual: float = setting(0.5)
+    material: str = setting("cotton")
+    newton_iterations: int = setting(40)
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    """The optical-flow start of the free garment (``garment="flow"``;
+    :class:`~physavatar.stages.track.flow.FlowPrediction`, :class:`~physavatar.stages.track.flow.FlowStart`).
+
+    Attributes:
+        smoothness: membrane smoothness of the flow lift (dimensionless).
+        corrections: model-based flow corrections per frame before the fit (0: prediction only).
+        iso: weight of the edge-length term of the flow lift, toward the template's lengths (the
+            hem seen by one or two cameras is otherwise free to stretch along the rays).
+        bend: weight of the bending term of the flow lift (distances across the garment's interior
+            edges toward the template's: its folds' dihedral angles), so a fold cannot slide along
+            itself where the edge lengths alone allow it.
+        collision: penalty weight holding the free garment outside the body in every flow lift
+            (0: off); a garment vertex inside the body is hidden from every camera, so no later
+            flow would bring it back.
+        final_corrections: model-based corrections after the photometric fit (the fit's own
+            optimum at the fitting resolution lies a little off a corrected start).
+        correction_smoothness, correction_prior, correction_iso, correction_bend: the
+            corrections' lift: membrane smoothness, pull toward the estimate, edge-length and
+            bending terms.
+    """
+
+    smoothness: float = setting(3.0)
+    corrections: int = setting(3)
+    iso: float = setting(3.0)
+    bend: float = setting(10.0)
+    collision: float = setting(1e3)
+    final_corrections: int = setting(1)
+    correction_smoothness: float = setting(0.1)
+    correction_prior: float = setting(0.01)
+    correction_iso: float = setting(10.0)
+    correction_bend: float = setting(5.0)
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Everything that defines a tracking run (saved as config.json, nested by group).
+
+    Attributes:
+        n_frames: track only the first N frames (None: all). Not part of the resume check or the
+            stage hash, so a run can be extended.
+        holdout: camera names excluded from fitting; None = the default rule
+            (:func:`~physavatar.stages.track.stage.default_holdout`: two cameras when the capture
+            has at least six).
+        fit, loss, prediction, flow: the groups (:class:`FitConfig`, :class:`LossConfig`,
+            :class:`PredictionConfig`, :class:`FlowConfig`).
+        subdivide: midpoint subdivisions of the template for the Gaussians (4^k splats per face,
+            attached at fixed barycentric positions, so gradients still reach the template
+            vertices). One flat colour per coarse face cannot show texture finer than the mesh.
+        opacity: every splat's opacity (fixed unless ``fit.lr_opacity`` > 0): an opaque surface.
+        antialiased: render with the mass-conserving low-pass (:func:`physavatar.splat.rasterize`).
+            The plain 3DGS low-pass widens the silhouette of a surface of sub-pixel splats and
+            the fit shrinks the garment to undo it.
+        threads: numba and torch threads during the fit (1 is fastest on a small machine: the
+            per-view work at these image sizes is too small to pay for thread start-up).
+        seed: torch seed (the fit itself uses no randomness; kept for reproducibility).
+    """
+
+    n_frames: int | None = option(None, "track only the first N frames", flag="--frames", hash=False)
+    holdout: tuple[str, ...] | None = option(None, "cameras excluded from fitting, CAM,CAM ('' for none; default: two)",
+                                             parse=_camera_list)
+    fit: FitConfig = field(default_factory=FitConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    prediction: PredictionConfig = field(default_factory=PredictionConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    subdivide: int = setting(0)
+    opacity: float = setting(0.99)
+    antialiased: bool = setting(True)
+    threads: int = setting(1)
+    seed: int = setting(0)
+
+
+def pipeline_config(track_frames: int | None) -> TrackConfig:
+    """The config ``physavatar run`` tracks with: the defaults, ``track_frames`` frames (None: all)."""
+    return TrackConfig(n_frames=track_frames)
