@@ -281,13 +281,14 @@ class NewtonLinearSolver:
     The preconditioner is the Cholesky factor of a *sparsified* H: the entries coupling the
     two tips of a hinge (vertices that share no edge; only bending puts them in the pattern)
     are dropped and their magnitudes added to both diagonals (H₁ = H − Drop + D with
-    D ⪰ Drop, so H₁ ⪰ H ≻ 0 stays positive definite). H₁ has the 1-ring pattern: on the
-    benchmark garment its factor has half the nonzeros and costs ~1/4 of factorising H, and
-    CG reaches ‖H d − b‖ ≤ ``rtol`` ‖b‖ (1e-6: the Newton iterates match a direct solve) in
-    ~20 iterations of ~1 ms. The factor is also reused across the Newton iterations of a step
-    while CG converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`);
-    after a solve that needed more than ``refresh_cg`` iterations it is recomputed from the next H, and when CG fails within ``max_cg`` (the
-    state or contacts changed a lot) it is recomputed from the current H at once.
+    D ⪰ Drop, so H₁ ⪰ H ≻ 0 stays positive definite). H₁ has the 1-ring pattern: its factor
+    is much cheaper than H's, and CG reaches ‖H d − b‖ ≤ ``rtol`` ‖b‖ (1e-6: the Newton
+    iterates match a direct solve) in a few tens of iterations (docs/simulation.md "The
+    step"). The factor is also reused across the Newton iterations of a step while CG
+    converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`); after a
+    solve that needed more than ``refresh_cg`` iterations it is recomputed from the next H,
+    and when CG fails within ``max_cg`` (the state or contacts changed a lot) it is recomputed
+    from the current H at once.
 
     ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
     """
@@ -306,8 +307,8 @@ class NewtonLinearSolver:
         self._stale = True
 
     def mark_stale(self):
-        """Take a fresh factor at the next solve (a new step: the old factor preconditioned
-        the previous step's matrices, and CG spent its 100 iterations on it before refactoring)."""
+        """Take a fresh factor at the next solve (a new step: the old factor preconditioned the
+        previous step's matrices, which rarely fit well enough to be worth trying)."""
         self._stale = True
 
     def _refactor(self, M):

@@ -40,8 +40,9 @@ class ContactScene:
             self.mesh.can_collide = ipctk.make_vertex_patches_filter(patch)
         self.dhat = float(dhat)
         self.dmin = float(dmin)
-        # AdditiveCCD (C-IPC's CCD): >100× faster than Tight Inclusion on cloth sliding along
-        # the body, with a conservative 10% margin of the initial separation.
+        # AdditiveCCD (C-IPC's CCD; far faster than Tight Inclusion on cloth sliding along the
+        # body, docs/simulation.md "The step"), with a conservative 10% margin of the initial
+        # separation.
         self.ccd = ipctk.AdditiveCCD(conservative_rescaling=ccd_rescaling)
         self.broad_phase = ipctk.LBVH()
         self.candidates = ipctk.Candidates()

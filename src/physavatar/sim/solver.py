@@ -15,14 +15,13 @@ iterations of ``_newton_direction``, ``_line_search``, ``_adapt_barrier_stiffnes
 the body is not at its pose, ``_penalty_phase``; ``_finish_step`` reports and keeps the
 linearization that sensitivity.py differentiates.
 
-Moving body (docs/simulation.md "Moving collider"): the prescribed motion (body t → t+1 and
-Dirichlet vertices → targets) is first swept with CCD against the cloth at xₜ. If it is
-collision-free it is applied at once and those DOFs are eliminated. Otherwise the cloth is
-carried with the body (start.follow_body) or, when that move is cut too, the prescribed
-vertices become unknowns pulled to their targets by a stiff penalty (KinematicPenalty), so
-every Newton step — body included — is limited by CCD and the barrier pushes the cloth ahead
-of the body; once they are within tolerance of their targets and the last bit of motion is
-collision-free, they are snapped and eliminated (IPC's Dirichlet treatment).
+Moving body (docs/simulation.md "Moving collider"): the prescribed motion (body t → t+1,
+Dirichlet vertices → targets) is swept with CCD against the cloth at xₜ; if it is collision-
+free it is applied and those DOFs eliminated. Otherwise the cloth is carried with the body
+(start.follow_body) or, when that move is cut too, the prescribed vertices become unknowns
+pulled to their targets by a stiff penalty (KinematicPenalty): every Newton step is limited by
+CCD and the barrier pushes the cloth ahead of the body, until they are snapped (IPC's
+Dirichlet treatment).
 """
 
 from __future__ import annotations
@@ -106,20 +105,15 @@ class ClothSim:
 
     # -- setup ---------------------------------------------------------------------------------
 
-    @staticmethod
-    def _collider(vertices, faces):
-        """(vertices [Nb, 3], faces [Fb, 3]) of a collider; None: no body (an empty collider)."""
-        if vertices is None:
-            return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-        return np.asarray(vertices, dtype=np.float64).reshape(-1, 3), faces
-
     def prepare(self, collider_vertices, collider_faces):
-        """Build the terms and the contact scene for this body (``step`` does it when the body
-        changes; call it to inspect :meth:`active_terms` before the first step)."""
-        bt, faces = self._collider(collider_vertices, collider_faces)
+        """Build the terms and the contact scene for this body (None: no body); ``step`` does it
+        when the body changes; call it to inspect :meth:`active_terms` before the first step."""
+        if collider_vertices is None:  # no body: an empty collider
+            collider_vertices, collider_faces = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+        bt = np.asarray(collider_vertices, dtype=np.float64).reshape(-1, 3)
         if (self.scene is None or len(bt) != self.nb
-                or not np.array_equal(np.asarray(faces).reshape(-1, 3), self._body_faces)):
-            self._setup(bt, faces)
+                or not np.array_equal(np.asarray(collider_faces).reshape(-1, 3), self._body_faces)):
+            self._setup(bt, collider_faces)
 
     def _setup(self, body_vertices, body_faces):
         s, m = self.settings, self.material
@@ -242,16 +236,15 @@ class ClothSim:
         return x_new, v_new, stats
 
     def _begin_step(self, x, v, body_t, body_t1, body_faces, boundary_targets, history, stats):
-        """The step's :class:`StepState`, handed to every term's ``begin_step``, and the
-        inertial prediction x̃ = x̂ + ĥ v̂ [N, 3].
-
-        x̂, v̂, ĥ: implicit Euler (xₜ, vₜ, h) or BDF2 (ĥ = 2h/3, step_base); friction and
-        damping measure velocities as (x − x̂) / ĥ, the body's from the matching constant-
-        velocity base (exact for a body moving at constant velocity)."""
+        """The step's :class:`StepState` (x̂, v̂, ĥ from step_base; the body at the matching
+        constant-velocity base), handed to every term's ``begin_step``, and the inertial
+        prediction x̃ = x̂ + ĥ v̂ [N, 3]."""
         h = self.settings.dt
-        bt, body_faces = self._collider(body_t, body_faces)
-        bt1 = bt if body_t is None else np.asarray(body_t1, dtype=np.float64).reshape(-1, 3)
-        self.prepare(bt, body_faces)
+        self.prepare(body_t, body_faces)
+        if body_t is None:
+            body_t = body_t1 = np.zeros((0, 3))
+        bt = np.asarray(body_t, dtype=np.float64).reshape(-1, 3)
+        bt1 = np.asarray(body_t1, dtype=np.float64).reshape(-1, 3)
         lag, self._body_lag = self._body_lag, None
         if lag is not None and np.array_equal(lag[0], bt):
             bt = lag[1]  # the last step's body stopped short of this pose: go on from where it is
