@@ -62,7 +62,7 @@ def factorization_time(part, bodies, body_faces, material, settings, x_last, rep
     sim.step(x_last, np.zeros_like(x_last), bodies[-1], bodies[-1], body_faces, tgt[order])
     X = np.vstack([x_last, bodies[-1]])
     sim.scene.prepare_static(X)
-    H = sim.assembler_free.assemble([t.hessian(X, project=True) for t in sim._active_terms(False)])
+    H = sim.assembler_free.assemble([t.hessian(X, project=True) for t in sim.active_terms()])
     P = sim.assembler_free.preconditioner_matrix(H)
     out = []
     for M in (H, P):

@@ -554,8 +554,8 @@ def test_sensitivity_solve_is_gmres_on_an_indefinite_hessian_not_lu(monkeypatch)
     the LU fallback must not be needed."""
     import scipy.sparse as sp
 
+    from physavatar.sim import sensitivity as ph
     from physavatar.sim.assembly import Factorization
-    from physavatar.stages import physics as ph
 
     n = 300
     A = sp.random(n, n, density=0.02, random_state=0, format="csr")

@@ -7,7 +7,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from physavatar.sim.assembly import Assembler, NewtonLinearSolver, pcg
-from physavatar.sim.energies import Bending, Diagonal, Membrane
+from physavatar.sim.energies import Bending, Membrane
+from physavatar.sim.terms import Diagonal
 from physavatar.sim.mesh import ClothTopology
 
 

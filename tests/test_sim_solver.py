@@ -213,7 +213,7 @@ def test_surface_carry_moves_points_rigidly_with_a_rigid_body():
     triangle's frame) moves exactly as the body does under a rigid motion, wherever it is."""
     from scipy.spatial.transform import Rotation
 
-    from physavatar.sim.solver import SurfaceCarry
+    from physavatar.sim.start import SurfaceCarry
 
     B, BF = sphere()
     P = np.random.default_rng(3).normal(size=(200, 3)) * 0.08  # inside, on and outside

@@ -1,8 +1,11 @@
 """Cloth simulator: implicit Euler in the C-IPC formulation on top of the IPC Toolkit.
 
-Energies (energies.py): inertia, gravity, StVK / Neo-Hookean membrane, discrete-shell bending,
-Rayleigh damping; contact (contact.py): ipctk barrier, lagged friction, CCD; Newton solver and
-the public API (solver.py). Units and defaults: docs/simulation.md.
+The term protocol (terms.py: energy, gradient, one Hessian type, ``begin_step(state)``, the
+declared ``parameter``); energies (energies.py): inertia, gravity, StVK / Neo-Hookean membrane,
+discrete-shell bending, Rayleigh damping; contact (contact.py): ipctk barrier, lagged friction,
+CCD; assembly and linear solves (assembly.py); the Newton step (solver.py, settings.py, where it
+starts: start.py); a whole sequence (simulate.py); forward sensitivities of a simulation with
+respect to the terms' parameters (sensitivity.py). Units and defaults: docs/simulation.md.
 """
 
 import ipctk as _ipctk
@@ -12,8 +15,11 @@ import ipctk as _ipctk
 # intersection-free and finite; the tests run ipctk's intersection check), so only errors show.
 _ipctk.set_logger_level(_ipctk.LoggerLevel.error)
 
+from .assembly import Linearization  # noqa: E402
 from .material import PRESETS, Material, preset  # noqa: E402
-from .solver import ClothSim, Linearization, SimSettings, StepStats, simulate  # noqa: E402
+from .settings import SimSettings, StepStats  # noqa: E402
+from .simulate import simulate  # noqa: E402
+from .solver import ClothSim  # noqa: E402
 
 __all__ = [
     "ClothSim",

@@ -2,9 +2,9 @@
 
 Each kernel has a plain-numpy twin in energies.py / assembly.py (the reference) and
 tests/test_sim_kernels.py holds the fast one to it. The loops are serial on purpose: a
-gradient is ~0.2 ms and a Hessian a few ms of work, and with numba's parallel=True on the
-shared 2-core machine the thread start/barrier cost measured 16 ms for a 0.2 ms gradient
-(10-100x slower under load). Scatters into shared vertex rows / CSR slots must be serial anyway.
+gradient is well under a millisecond of work, less than numba's parallel=True costs in thread
+start and barriers on a loaded machine (docs/simulation.md "The step"). Scatters into shared
+vertex rows / CSR slots must be serial anyway.
 
 Conventions are those of energies.py: x [N, 3], gradients [N, 3] (flattened by the caller),
 membrane blocks [F, 9, 9] and hinge blocks [H, 12, 12] ordered (vertex, axis).
@@ -515,8 +515,8 @@ def csr_slots(indptr, indices, rows, cols):
 
 # -- conjugate gradients -------------------------------------------------------------------------
 # The vector operations of assembly.pcg. numpy's 1-D dot / norm call the threaded BLAS, whose
-# threads wake and spin on every call: on the shared 2-core machine a 14k-long dot measured
-# 2 ms (and the spinning slowed everything around it) against 3 µs in a plain loop.
+# threads wake and spin on every call, far slower for these short vectors than a plain loop
+# (docs/simulation.md "The step").
 
 
 @numba.njit(cache=True)

@@ -5,6 +5,7 @@ entry of each element block, the slot it adds into are computed once (a "scatter
 assembling is then a numba scatter. Contact Hessians (ipctk) are scattered into the same
 pattern when their entries lie in it, else added with scipy on top. Newton systems are solved
 by CG preconditioned with a reused Cholesky factor of a sparsified matrix (NewtonLinearSolver).
+A step's system at its solution is kept as a :class:`Linearization` (for sensitivities).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ except ImportError:  # pragma: no cover - cholespy is a dependency
     cholespy = None
 
 from . import _kernels
-from .energies import Blocks, Diagonal
+from .terms import Blocks, Diagonal, as_hessian
 
 
 class Assembler:
@@ -137,30 +138,31 @@ class Assembler:
         return out
 
     def assemble(self, hessians) -> sp.csr_matrix:
-        """Sum Blocks / Diagonal / scipy-sparse (full-DOF) Hessians into one reduced CSR.
+        """Sum Hessians (terms.Hessian, or scipy-sparse over all DOFs) into one reduced CSR.
 
         Blocks and diagonals go through their precomputed slots (numba scatter). A sparse
         (contact) Hessian whose entries all lie in the fixed pattern is scattered the same way,
         so the matrix keeps its pattern (and its cached symbolic factorization); otherwise it
-        is added with scipy and the pattern grows. :meth:`assemble_numpy` is the twin.
+        is added with scipy and the pattern grows. Blocks over an element set the assembler
+        was not built with (a new term's) take the sparse path. :meth:`assemble_numpy` is the
+        twin.
         """
         data = np.zeros(self.nnz + 1)  # the last slot collects entries on eliminated DOFs
         extra = []
         for h in hessians:
-            if h is None:
-                continue
-            for b in (h if isinstance(h, list) else [h]):
-                if isinstance(b, Blocks):
-                    _kernels.scatter_add(data, self.scatter[id(b.index)],
-                                         np.ascontiguousarray(b.values, dtype=np.float64).ravel())
+            for b in as_hessian(h).parts():
+                slot = self.scatter.get(id(b.index)) if isinstance(b, Blocks) else None
+                if slot is not None:
+                    _kernels.scatter_add(data, slot, np.ascontiguousarray(b.values, dtype=np.float64).ravel())
                 elif isinstance(b, Diagonal):
                     keep = self.dof_map[: len(b.values)] >= 0
                     _kernels.scatter_add(data, self.diag_slot[self.dof_map[: len(b.values)][keep]],
                                          np.ascontiguousarray(b.values[keep], dtype=np.float64))
                 else:
-                    slot, values = self._sparse_slots(b)
+                    M = b.to_sparse(len(self.dof_map))
+                    slot, values = self._sparse_slots(M)
                     if slot is None:
-                        extra.append(b)
+                        extra.append(M)
                     else:
                         _kernels.scatter_add(data, slot, values)
         H = sp.csr_matrix((data[: self.nnz], self.indices, self.indptr), shape=(self.n, self.n))
@@ -204,21 +206,16 @@ class Assembler:
         slots, values = [], []
         extra = []
         for h in hessians:
-            if h is None:
-                continue
-            if isinstance(h, list):
-                for b in h:
+            for b in as_hessian(h).parts():
+                if isinstance(b, Blocks) and id(b.index) in self.scatter:
                     slots.append(self.scatter[id(b.index)])
                     values.append(b.values.ravel())
-            elif isinstance(h, Blocks):
-                slots.append(self.scatter[id(h.index)])
-                values.append(h.values.ravel())
-            elif isinstance(h, Diagonal):
-                keep = self.dof_map[: len(h.values)] >= 0
-                slots.append(self.diag_slot[self.dof_map[: len(h.values)][keep]])
-                values.append(h.values[keep])
-            else:
-                extra.append(h)
+                elif isinstance(b, Diagonal):
+                    keep = self.dof_map[: len(b.values)] >= 0
+                    slots.append(self.diag_slot[self.dof_map[: len(b.values)][keep]])
+                    values.append(b.values[keep])
+                else:
+                    extra.append(b.to_sparse(len(self.dof_map)))
         data = np.bincount(
             np.concatenate(slots) if slots else np.zeros(0, np.int64),
             weights=np.concatenate(values) if values else None,
@@ -284,13 +281,14 @@ class NewtonLinearSolver:
     The preconditioner is the Cholesky factor of a *sparsified* H: the entries coupling the
     two tips of a hinge (vertices that share no edge; only bending puts them in the pattern)
     are dropped and their magnitudes added to both diagonals (H₁ = H − Drop + D with
-    D ⪰ Drop, so H₁ ⪰ H ≻ 0 stays positive definite). H₁ has the 1-ring pattern: on the
-    benchmark garment its factor has half the nonzeros and costs ~1/4 of factorising H, and
-    CG reaches ‖H d − b‖ ≤ ``rtol`` ‖b‖ (1e-6: the Newton iterates match a direct solve) in
-    ~20 iterations of ~1 ms. The factor is also reused across the Newton iterations of a step
-    while CG converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`);
-    after a solve that needed more than ``refresh_cg`` iterations it is recomputed from the next H, and when CG fails within ``max_cg`` (the
-    state or contacts changed a lot) it is recomputed from the current H at once.
+    D ⪰ Drop, so H₁ ⪰ H ≻ 0 stays positive definite). H₁ has the 1-ring pattern: its factor
+    is much cheaper than H's, and CG reaches ‖H d − b‖ ≤ ``rtol`` ‖b‖ (1e-6: the Newton
+    iterates match a direct solve) in a few tens of iterations (docs/simulation.md "The
+    step"). The factor is also reused across the Newton iterations of a step while CG
+    converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`); after a
+    solve that needed more than ``refresh_cg`` iterations it is recomputed from the next H,
+    and when CG fails within ``max_cg`` (the state or contacts changed a lot) it is recomputed
+    from the current H at once.
 
     ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
     """
@@ -309,8 +307,8 @@ class NewtonLinearSolver:
         self._stale = True
 
     def mark_stale(self):
-        """Take a fresh factor at the next solve (a new step: the old factor preconditioned
-        the previous step's matrices, and CG spent its 100 iterations on it before refactoring)."""
+        """Take a fresh factor at the next solve (a new step: the old factor preconditioned the
+        previous step's matrices, which rarely fit well enough to be worth trying)."""
         self._stale = True
 
     def _refactor(self, M):
@@ -364,6 +362,55 @@ class NewtonLinearSolver:
         self._refactor(H)
         self._stale = True
         return self.factor.solve(b)
+
+
+class Linearization:
+    """The step's system at (or next to) its solution, for adjoint/forward sensitivities.
+
+    dof_map: [3(N+Nb)] reduced row of each DOF (-1 = prescribed). matrix: the last projected
+    Newton matrix (CSR over the reduced DOFs). factorization: its Cholesky factor, computed on
+    first access (the Newton solve itself may have used an older factor as a CG
+    preconditioner, assembly.NewtonLinearSolver). hessian: exact unprojected ∇²E at the
+    solution ``positions`` (CSR over the free DOFs), or None unless
+    SimSettings.keep_linearization. preconditioner: the factor the free system's Newton solver
+    held at the end of the step (of a sparsified projected matrix), or None.
+    """
+
+    def __init__(self, dof_map: np.ndarray, matrix, hessian=None, factorization=None, positions=None,
+                 preconditioner=None):
+        self.dof_map = dof_map
+        self.matrix = matrix
+        self.hessian = hessian
+        self.positions = positions
+        self.preconditioner = preconditioner
+        self._factorization = factorization
+
+    @property
+    def factorization(self) -> Factorization | None:
+        if self._factorization is None and self.matrix is not None:
+            self._factorization = Factorization(self.matrix)
+        return self._factorization
+
+    def preconditioners(self, n: int):
+        """Solves with Cholesky factors of the step's PSD-projected Newton matrix over the free
+        DOFs, cheapest first: the (sparsified) factor the Newton solver held, then a factor of
+        the last projected matrix itself (computed only when asked). Each is a callable that
+        returns a solve ([n] -> [n]) or None when it does not have ``n`` rows (a step that
+        ended in penalty mode)."""
+
+        def held():
+            f = self.preconditioner
+            return f.solve if f is not None and getattr(f, "n", -1) == n else None
+
+        def fresh():
+            if self.matrix is None or self.matrix.shape[0] != n:
+                return None
+            try:
+                return self.factorization.solve
+            except (RuntimeError, ValueError):
+                return None
+
+        return (held, fresh)
 
 
 def pcg(A, b, precondition, rtol, max_iterations, x0=None):

@@ -4,13 +4,15 @@ Cloth and body share one ipctk CollisionMesh: vertices [cloth (N); body (Nb)]. B
 are prescribed; a collision filter rejects body–body pairs and, unless garment self-contact is
 on, cloth–cloth pairs. Nothing of the contact model is written here: distances, barrier,
 friction, CCD and the adaptive stiffness are ipctk's; this module only keeps their state and
-exposes the term protocol of energies.py on the stacked positions X [N + Nb, 3].
+exposes the term protocol (terms.py) on the stacked positions X [N + Nb, 3].
 """
 
 from __future__ import annotations
 
 import ipctk
 import numpy as np
+
+from .terms import Diagonal, HessianSum, SparseHessian, StepState, StepTangent, Term
 
 
 class ContactScene:
@@ -38,8 +40,9 @@ class ContactScene:
             self.mesh.can_collide = ipctk.make_vertex_patches_filter(patch)
         self.dhat = float(dhat)
         self.dmin = float(dmin)
-        # AdditiveCCD (C-IPC's CCD): >100× faster than Tight Inclusion on cloth sliding along
-        # the body, with a conservative 10% margin of the initial separation.
+        # AdditiveCCD (C-IPC's CCD; far faster than Tight Inclusion on cloth sliding along the
+        # body, docs/simulation.md "The step"), with a conservative 10% margin of the initial
+        # separation.
         self.ccd = ipctk.AdditiveCCD(conservative_rescaling=ccd_rescaling)
         self.broad_phase = ipctk.LBVH()
         self.candidates = ipctk.Candidates()
@@ -98,14 +101,16 @@ class ContactScene:
         return ipctk.world_bbox_diagonal_length(X)
 
 
-class Barrier:
+class Barrier(Term):
     """κ Σ_k b(d_k(X)): ipctk's IPC log barrier over the active set (energy units, J).
 
     κ is adapted by ipctk's initial_barrier_stiffness / update_barrier_stiffness (solver.py);
-    it scales with the average mass, so the term scales with ρ like the rest of E.
+    it scales with the average mass, so the term scales with ρ like the rest of E (its
+    ``parameter``; κ's dependence on the stiffnesses through ipctk's gradient balance is not
+    differentiated: docs/physics.md "Exact gradients").
     """
 
-    parameter = "barrier_stiffness"
+    parameter = "density"
 
     def __init__(self, scene: ContactScene, stiffness: float = 1.0):
         self.scene = scene
@@ -128,23 +133,24 @@ class Barrier:
     def hessian(self, X, project=True):
         c = self.scene.collisions_at(X)
         if not len(c):
-            return None
+            return HessianSum()
         method = ipctk.PSDProjectionMethod.CLAMP if project else ipctk.PSDProjectionMethod.NONE
-        return self.potential.hessian(c, self.scene.mesh, X, method)
+        return SparseHessian(self.potential.hessian(c, self.scene.mesh, X, method))
 
 
-class Friction:
-    """Lagged IPC friction h·D(v), v = (X − Xₜ)/h, with ipctk's smoothed Coulomb potential D.
+class Friction(Term):
+    """Lagged IPC friction ĥ·D(v), v = (X − X̂)/ĥ, with ipctk's smoothed Coulomb potential D.
 
-    ipctk's D is a function of velocities (eps_v in m/s). Multiplying by h makes its gradient
-    with respect to positions the friction force ∇_v D (the chain rule's 1/h cancels, as the
-    ipctk tutorial prescribes), and the Hessian (1/h) ∇²_v D. Normal forces λ and tangent
-    bases are lagged: :meth:`lag` freezes them at one configuration (start of the step), so
-    within the Newton solve the term is a smooth potential. λ = κ |b'| scales with κ, hence
-    with mass.
+    ipctk's D is a function of velocities (eps_v in m/s). Multiplying by ĥ makes its gradient
+    with respect to positions the friction force ∇_v D (the chain rule's 1/ĥ cancels, as the
+    ipctk tutorial prescribes), and the Hessian (1/ĥ) ∇²_v D. X̂ (``previous``) and ĥ are the
+    step's base and implicit step (:meth:`begin_step`). Normal forces λ and tangent bases are
+    lagged: :meth:`lag` freezes them at one configuration (start of the step), so within the
+    Newton solve the term is a smooth potential. λ = κ |b'| scales with κ, hence with mass (ρ,
+    its ``parameter``).
     """
 
-    parameter = "friction (mu × barrier_stiffness)"
+    parameter = "density"
 
     def __init__(self, scene: ContactScene, mu: float, eps_v: float, dt: float):
         self.scene = scene
@@ -154,9 +160,24 @@ class Friction:
         self.tangential = ipctk.TangentialCollisions()
         self.previous = None
 
-    def lag(self, X, barrier: Barrier, X_prev):
-        """Freeze λ and tangent bases at X; velocities are measured from X_prev."""
-        self.previous = X_prev
+    def begin_step(self, state: StepState):
+        self.dt = state.h
+        self.previous = state.x_base
+        self.tangential = ipctk.TangentialCollisions()
+
+    def state_derivative(self, X, d: StepTangent):
+        """∇E = ∇_v D((X − X̂)/ĥ): −H dX̂ − H (X − X̂)/ĥ dĥ, H = this term's exact Hessian
+        (λ and the tangent bases held, as within the step)."""
+        if not len(self.tangential):
+            return None
+        H = self.hessian(X, project=False).matrix
+        out = -(H @ d.x_base)
+        if np.any(d.h):
+            out -= (H @ ((X - self.previous).ravel() / self.dt))[:, None] * d.h[None, :]
+        return out
+
+    def lag(self, X, barrier: Barrier):
+        """Freeze λ and tangent bases at X (velocities are measured from the step's base)."""
         self.tangential = ipctk.TangentialCollisions()
         if self.mu > 0:
             c = self.scene.collisions_at(X)
@@ -178,28 +199,42 @@ class Friction:
 
     def hessian(self, X, project=True):
         if not len(self.tangential):
-            return None
+            return HessianSum()
         method = ipctk.PSDProjectionMethod.CLAMP if project else ipctk.PSDProjectionMethod.NONE
-        return self.potential.hessian(self.tangential, self.scene.mesh, self._v(X), method) / self.dt
+        return SparseHessian(self.potential.hessian(self.tangential, self.scene.mesh, self._v(X), method) / self.dt)
 
 
-class KinematicPenalty:
-    """(k/2) Σ_{i ∈ K} w_i ‖X_i − X̂_i‖² pulling prescribed vertices to their targets.
+class KinematicPenalty(Term):
+    """(w/2) Σ_{i ∈ K} ‖X_i − X̂_i‖² pulling prescribed vertices to their targets X̂_i.
 
     Used only while the prescribed motion (body, Dirichlet vertices) cannot be applied in one
     collision-free move: the prescribed vertices then become unknowns, CCD limits every Newton
     step, and the barrier pushes the cloth ahead of the body (IPC's treatment of Dirichlet
-    boundaries, Li et al. 2020 Sec. 4.5). Weights w_i = mean cloth vertex mass / h², so the
-    term scales with ρ.
+    boundaries, Li et al. 2020 Sec. 4.5). The weight w = ``unit_weight`` / ĥ² (unit_weight =
+    the settings' kinematic_penalty × mean cloth vertex mass, so the term scales with ρ) is
+    reset by :meth:`begin_step`; the solver stiffens it within a step when the targets stall.
     """
 
     parameter = "density"
 
-    def __init__(self, kinematic: np.ndarray, weight: float, n_total: int):
+    def __init__(self, kinematic: np.ndarray, unit_weight: float, n_total: int, h: float):
         self.kinematic = kinematic  # [K] vertex ids
-        self.weight = float(weight)
+        self.unit_weight = float(unit_weight)
+        self.h = float(h)
+        self.weight = self.unit_weight / self.h**2
         self.target = None
         self.n_total = n_total
+
+    def begin_step(self, state: StepState):
+        self.h = state.h
+        self.weight = self.unit_weight / state.h**2
+        self.target = state.x_goal[self.kinematic]
+
+    def state_derivative(self, X, d: StepTangent):
+        """The targets are prescribed (they do not move with θ); w ∝ 1/ĥ²: −2∇E/ĥ dĥ."""
+        if not np.any(d.h):
+            return None
+        return (-2.0 / self.h * self.gradient(X))[:, None] * d.h[None, :]
 
     def energy(self, X):
         d = X[self.kinematic] - self.target
@@ -211,8 +246,6 @@ class KinematicPenalty:
         return out.ravel()
 
     def hessian(self, X, project=True):
-        from .energies import Diagonal
-
         diag = np.zeros((self.n_total, 3))
         diag[self.kinematic] = self.weight
         return Diagonal(diag.ravel())

@@ -1,44 +1,27 @@
-"""Terms of the incremental potential of one implicit-Euler step (cloth DOFs only).
+"""Terms of the incremental potential of one implicit step (cloth DOFs; the term protocol: terms.py).
 
-    E(x) = ½‖x − x̃‖²_M / h² + gravity + membrane + bending + damping (+ contact, contact.py)
+    E(x) = ½‖x − x̃‖²_M / ĥ² + gravity + membrane + bending + damping (+ contact, contact.py)
 
-Each term is a small object with ``energy(x)``, ``gradient(x)`` and ``hessian(x, project)``
-(the protocol of ipctk's python/examples/solver.py); the Newton solver only sums them.
-``x`` is always the cloth positions [N, 3]; gradients are flat [3N] (vertex-major: 3i + k).
-
-Hessians come back as :class:`Blocks` (per-element dense blocks plus their vertex indices,
-scattered into a fixed sparse pattern by :mod:`physavatar.sim.assembly`) or as a diagonal.
+Each term gives ``energy(x)``, ``gradient(x)`` and ``hessian(x, project)`` (the protocol of
+ipctk's python/examples/solver.py) and ``begin_step(state)``; the Newton solver only sums them.
+``x`` is the stacked positions [N, 3]; gradients are flat [3N] (vertex-major: 3i + k).
+Hessians are :class:`~physavatar.sim.terms.Hessian` s (per-element :class:`Blocks`, scattered
+into a fixed sparse pattern by :mod:`physavatar.sim.assembly`, or a :class:`Diagonal`).
 
 Every term is linear in one material parameter (``term.parameter`` names it, ``term.scale``
 is its value): inertia, gravity and mass damping in ρ, membrane in κs, bending in κb. Hence
-∂(∇E)/∂θ = ∇E_term / θ, which later makes the mixed derivative ∂²E/∂x∂θ of the adjoint free.
+∂(∇E)/∂log θ = ∇E_term, and the sensitivity pass (sensitivity.py) needs nothing else.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 
 from . import _kernels
 from .mesh import ClothTopology
+from .terms import Blocks, Diagonal, HessianSum, StepState, StepTangent, Term
 
 GRAVITY = np.array([0.0, 0.0, -9.81])  # DESIGN.md: z up, m/s²
-
-
-@dataclasses.dataclass
-class Blocks:
-    """Per-element Hessian blocks: ``values`` [M, 3k, 3k] over vertices ``index`` [M, k]."""
-
-    index: np.ndarray
-    values: np.ndarray
-
-
-@dataclasses.dataclass
-class Diagonal:
-    """A diagonal Hessian: ``values`` [3N]."""
-
-    values: np.ndarray
 
 
 def project_psd(blocks: np.ndarray) -> np.ndarray:
@@ -60,11 +43,13 @@ def project_psd(blocks: np.ndarray) -> np.ndarray:
 # -- inertia and gravity -------------------------------------------------------------------------
 
 
-class Inertia:
-    """½ (x − x̃)ᵀ M (x − x̃) / h² over the free vertices; M = ρ × lumped area (linear in ρ).
+class Inertia(Term):
+    """½ (x − x̃)ᵀ M (x − x̃) / ĥ² over the free vertices; M = ρ × lumped area (linear in ρ).
 
-    Dirichlet vertices get no inertia: their positions are prescribed, so their mass would
-    only add a constant (or fight the prescription while they are penalised, solver.py).
+    x̃ = X̂ + ĥ V̂ is the step's inertial prediction and ĥ its implicit step (``dt``), both
+    from the step's state (:meth:`begin_step`). Dirichlet vertices get no inertia: their
+    positions are prescribed, so their mass would only add a constant (or fight the
+    prescription while they are penalised, solver.py).
     """
 
     parameter = "density"
@@ -74,6 +59,22 @@ class Inertia:
         self.dt = float(dt)
         self.unit_mass = topo.vertex_area * free_mask  # [N] mass per unit density
         self.target = topo.rest.copy()  # x̃, set per step
+        self.v_base = np.zeros_like(self.target)
+
+    def begin_step(self, state: StepState):
+        self.dt = state.h
+        self.v_base = state.v_base
+        self.target = state.x_base + state.h * state.v_base
+
+    def state_derivative(self, x, d: StepTangent):
+        """∇E = M (x − X̂ − ĥV̂)/ĥ²: −M (dX̂ + ĥ dV̂)/ĥ² − (M V̂/ĥ² + 2M (x − x̃)/ĥ³) dĥ."""
+        h = self.dt
+        m = np.repeat(self.mass, 3)
+        out = -(m / h**2)[:, None] * (d.x_base + h * d.v_base)
+        if np.any(d.h):
+            dh = -(m / h**2) * self.v_base.ravel() - 2.0 * (m / h**3) * (x - self.target).ravel()
+            out += dh[:, None] * d.h[None, :]
+        return out
 
     @property
     def mass(self) -> np.ndarray:
@@ -91,7 +92,7 @@ class Inertia:
         return Diagonal(np.repeat(self.mass / self.dt**2, 3))
 
 
-class Gravity:
+class Gravity(Term):
     """−Σ m_i g·x_i (linear in ρ)."""
 
     parameter = "density"
@@ -108,14 +109,15 @@ class Gravity:
         return (-self.scale * self.unit_mass[:, None] * self.g[None, :]).ravel()
 
     def hessian(self, x, project=True):
-        return None  # linear
+        return HessianSum()  # linear
 
 
-class MassDamping:
-    """Mass-proportional (Rayleigh α) damping as a potential: α/(2h) ‖x − xₜ‖²_M.
+class MassDamping(Term):
+    """Mass-proportional (Rayleigh α) damping as a potential: α/(2ĥ) ‖x − X̂‖²_M.
 
-    Its gradient α M (x − xₜ)/h = α M v is the damping force of the implicit-Euler velocity,
-    so the term is exactly a dissipative potential (linear in ρ, scales with mass).
+    Its gradient α M (x − X̂)/ĥ = α M v is the damping force of the step's velocity, so the
+    term is exactly a dissipative potential (linear in ρ, scales with mass). X̂ (``previous``)
+    and ĥ come from the step's state.
     """
 
     parameter = "density"
@@ -123,14 +125,27 @@ class MassDamping:
     def __init__(self, inertia: Inertia, alpha: float):
         self.inertia = inertia
         self.alpha = float(alpha)
-        self.previous = inertia.target.copy()  # xₜ, set per step
+        self.h = inertia.dt
+        self.previous = inertia.target.copy()  # X̂, set per step
 
     @property
     def scale(self):
         return self.inertia.scale
 
+    def begin_step(self, state: StepState):
+        self.h = state.h
+        self.previous = state.x_base
+
+    def state_derivative(self, x, d: StepTangent):
+        """∇E = αM (x − X̂)/ĥ: −αM dX̂/ĥ − αM (x − X̂) dĥ/ĥ²."""
+        m = np.repeat(self.inertia.mass, 3)
+        out = -(self.alpha * m / self.h)[:, None] * d.x_base
+        if np.any(d.h):
+            out -= ((self.alpha * m / self.h**2) * (x - self.previous).ravel())[:, None] * d.h[None, :]
+        return out
+
     def _w(self):
-        return self.alpha * self.inertia.mass / self.inertia.dt
+        return self.alpha * self.inertia.mass / self.h
 
     def energy(self, x):
         d = x - self.previous
@@ -143,14 +158,15 @@ class MassDamping:
         return Diagonal(np.repeat(self._w(), 3))
 
 
-class StiffnessDamping:
-    """Stiffness-proportional (Rayleigh β) damping: β/(2h) (x − xₜ)ᵀ K(xₜ) (x − xₜ).
+class StiffnessDamping(Term):
+    """Stiffness-proportional (Rayleigh β) damping: β/(2ĥ) (x − xₜ)ᵀ K(xₜ) (x − xₜ).
 
     K(xₜ) is the PSD-projected elastic Hessian at the start of the step (lagged, as friction
-    is), so the term is a fixed quadratic per step; it is linear in κs and κb through K.
+    is), so the term is a fixed quadratic per step; it depends on κs and κb through K (not
+    linearly on one parameter, and on xₜ through K: no exact sensitivities).
     """
 
-    parameter = "stretch_stiffness, bend_stiffness"
+    parameter = ("stretch_stiffness", "bend_stiffness")
 
     def __init__(self, beta: float, dt: float, elastic_terms):
         self.beta = float(beta)
@@ -159,7 +175,9 @@ class StiffnessDamping:
         self.previous = None
         self.blocks: list[Blocks] = []
 
-    def begin_step(self, x_prev):
+    def begin_step(self, state: StepState):
+        x_prev = state.x_prev
+        self.dt = state.h
         self.previous = x_prev.copy()
         c = self.beta / self.dt
         self.blocks = []
@@ -186,7 +204,7 @@ class StiffnessDamping:
         return self._matvec(x - self.previous).ravel()
 
     def hessian(self, x, project=True):
-        return list(self.blocks)
+        return HessianSum(self.blocks)
 
 
 # -- membrane ------------------------------------------------------------------------------------
@@ -198,7 +216,7 @@ for _i in range(3):
         _DF_BASIS[2 * _i + _j, _i, _j] = 1.0
 
 
-class Membrane:
+class Membrane(Term):
     """Isotropic membrane energy Σ_t A_t W(F_t) of linear triangles (plane stress).
 
     F [3, 2] maps the 2D rest frame to world, C = FᵀF. With κs = Young's modulus × thickness
@@ -380,7 +398,7 @@ def dihedral_angle_hessian(X):
     return 0.5 * (H + np.swapaxes(H, 1, 2))
 
 
-class Bending:
+class Bending(Term):
     """Discrete-shell hinge bending (Grinspun et al. 2003): Σ_e (κb/2) w_e (θ_e − θ̄_e)².
 
     w_e = ‖ē‖² / Ā_e with ē the rest edge and Ā_e the summed rest area of its two triangles

@@ -1,4 +1,4 @@
-"""Implicit-Euler cloth stepping in the C-IPC formulation (Newton on the incremental potential).
+"""Implicit cloth stepping in the C-IPC formulation (Newton on the incremental potential).
 
 One step minimises
 
@@ -9,13 +9,19 @@ over the free cloth vertices; Dirichlet vertices sit at their prescribed targets
 at its pose at t+1. Newton with per-element PSD-projected Hessians, sparse Cholesky, and a
 backtracking line search that starts from ipctk's collision-free step size (AdditiveCCD).
 
-Moving body (docs/simulation.md "Moving collider"): the prescribed motion (body t → t+1 and
-Dirichlet vertices → targets) is first swept with CCD against the cloth at xₜ. If it is
-collision-free it is applied at once and those DOFs are eliminated. Otherwise the prescribed
-vertices become unknowns pulled to their targets by a stiff penalty (KinematicPenalty), so
-every Newton step — body included — is limited by CCD and the barrier pushes the cloth ahead
-of the body; once they are within tolerance of their targets and the last bit of motion is
-collision-free, they are snapped and eliminated (IPC's Dirichlet treatment).
+:meth:`ClothSim.step` is made of named parts: ``_begin_step`` (the step's state, handed to
+every term's ``begin_step``), ``_start`` (the prescribed motion; start.py), then Newton
+iterations of ``_newton_direction``, ``_line_search``, ``_adapt_barrier_stiffness`` and, while
+the body is not at its pose, ``_penalty_phase``; ``_finish_step`` reports and keeps the
+linearization that sensitivity.py differentiates.
+
+Moving body (docs/simulation.md "Moving collider"): the prescribed motion (body t → t+1,
+Dirichlet vertices → targets) is swept with CCD against the cloth at xₜ; if it is collision-
+free it is applied and those DOFs eliminated. Otherwise the cloth is carried with the body
+(start.follow_body) or, when that move is cut too, the prescribed vertices become unknowns
+pulled to their targets by a stiff penalty (KinematicPenalty): every Newton step is limited by
+CCD and the barrier pushes the cloth ahead of the body, until they are snapped (IPC's
+Dirichlet treatment).
 """
 
 from __future__ import annotations
@@ -26,227 +32,35 @@ import time
 import ipctk
 import numpy as np
 
-from .assembly import Assembler, Factorization, NewtonLinearSolver
+from .assembly import Assembler, Linearization, NewtonLinearSolver
 from .contact import Barrier, ContactScene, Friction, KinematicPenalty
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
 from .material import Material
 from .mesh import ClothTopology
-
-
-@dataclasses.dataclass(frozen=True)
-class SimSettings:
-    """Solver settings (SI units). Defaults: the official PhysAvatar Codim-IPC setup.
-
-    Attributes:
-        dt: time step [s] (0.04 = one step per frame at 25 fps).
-        integrator: "euler" (implicit Euler, the paper's and Codim-IPC's) or "bdf2" (the
-            two-step backward differentiation formula, IPC's other integrator: second order, so
-            far less numerical damping at the same step; docs/simulation.md "Time integration").
-            BDF2 is implicit Euler with step 2h/3 from x̂ = 4/3 xₜ − 1/3 xₜ₋₁ with velocity
-            4/3 vₜ − 1/3 vₜ₋₁; the previous state comes from ``step(history=...)`` or, when the
-            step continues the last one, from the sim itself; without one (the first step) the
-            step is implicit Euler (a second-order start: the velocity error is O(h²)).
-        dhat: barrier activation distance d̂ [m].
-        dmin: minimum separation kept between surfaces [m] (a thickness offset; 0 = none).
-        friction: Coulomb coefficient μ (0 turns friction off).
-        friction_eps_v: velocity below which friction is static [m/s] (ipctk ε_v).
-        friction_iterations: lagged-friction updates per step (1 = λ, T from the step start).
-        self_contact: resolve garment–garment contact too.
-        membrane_model: "stvk" (the paper) or "neohookean" (Codim-IPC default).
-        damping_mass: Rayleigh α [1/s], damping force −α M v.
-        damping_stiffness: Rayleigh β [s], damping force −β K(xₜ) v.
-        newton_tol: stop when the Newton step Δx, as a velocity Δx / h, is below newton_tol
-            [m/s] in the norm ``newton_norm``.
-        newton_norm: "rms" (default; Codim-IPC's, the official PhysAvatar setup): the root
-            mean square over the free cloth vertices of ‖Δx_i‖ / h, the step is taken, and the
-            solve ends once ``newton_window`` consecutive steps were below newton_tol (Codim-IPC
-            uses 3; 1 here: docs/simulation.md "Session 6" measures both). "max": ‖Δx‖∞ / h
-            (no vertex's implicit velocity changes by more than newton_tol), the step is not
-            taken (the reference behaviour of earlier sessions; stricter).
-        newton_window: see newton_norm ("rms" only).
-        bending_hessian: PSD approximation of the hinge Hessians in the Newton matrix:
-            "gauss_newton" (c ∇θ∇θᵀ, PSD by construction, no eigendecomposition; the cloth-
-            solver standard) or "eigen" (exact Hessian with eigenvalues clamped at 0). Only the
-            search direction depends on it, not the solution.
-        warm_start: start Newton from the CCD-clipped inertial prediction xₜ + h vₜ when its
-            energy is lower than at xₜ (else from xₜ).
-        follow_body: when the body's move to its pose at t+1 is cut by CCD (which would start
-            the kinematic-penalty phase), first try a start where every free cloth vertex within
-            this distance [m] of the body is carried rigidly with its closest body triangle
-            (fading to the inertial prediction at twice the distance). If that move is
-            collision-free, Newton starts there with the body at its pose and no penalty phase;
-            otherwise the penalty phase starts from its collision-free part. 0 = off. Changes
-            the path to the minimiser, not the minimiser.
-        step_expansion: when a full Newton step was accepted but the residual fell by less
-            than 30%, also try 2, 4, ... 64 times the step (CCD- and energy-checked;
-            ClothSim._expand_step). Changes the path to the minimiser, not the minimiser.
-        linear_rtol, max_cg_iterations: the Newton system is solved by CG, preconditioned
-            with the Cholesky factor of a sparsified (1-ring) Newton matrix, to relative
-            residual linear_rtol; max_cg_iterations bounds CG before a fresh factor is taken
-            (0 = factorise the Newton matrix itself every iteration, a direct solve).
-        newton_forcing: relative CG residual of the Newton directions that do not end the
-            solve (inexact Newton; most are cut by CCD anyway). The direction that passes the
-            stopping test is always refined to 1e-10, so only the path changes. Penalty-mode
-            systems keep 1e-10 (their path decides where friction is re-lagged).
-        max_newton_iterations: give up (and report converged=False) after this many.
-        max_penalty_iterations: give up the kinematic-penalty phase after this many iterations
-            (the body could not reach its pose: cloth pinched between body parts that leave it
-            no room). The step keeps the intersection-free state it reached, and the body
-            *lags*: the next step starts from where the body got to, not from the pose it was
-            given (``StepStats.body_gap`` says how far short it stopped), so the state stays
-            intersection-free and the body catches up once the pinch opens.
-        barrier_stiffness_scale: ipctk min_barrier_stiffness_scale of the adaptive κ.
-        kinematic_penalty: penalty weight of the prescribed vertices, × mean mass / h².
-        keep_linearization: also assemble the exact (unprojected) Hessian at the solution and
-            keep it with the last factorization in ``ClothSim.linearization`` (for adjoints).
-        deterministic: run ipctk single-threaded so results are bit-identical run to run.
-        ccd_threads: threads of the CCD narrow phase (ipctk; with ``deterministic``). Its
-            result is a minimum over the candidates, the same bits on any number of threads;
-            1 by default: on the shared 2-core machine (load ≈ 4) two threads were slower
-            (18 ms against 14 ms a call), and process pools run one simulation per core.
-        gravity: [3] m/s².
-    """
-
-    dt: float = 0.04
-    integrator: str = "euler"
-    dhat: float = 1e-3
-    dmin: float = 0.0
-    friction: float = 0.2
-    friction_eps_v: float = 1e-3
-    friction_iterations: int = 1
-    self_contact: bool = False
-    membrane_model: str = "stvk"
-    damping_mass: float = 0.0
-    damping_stiffness: float = 0.0
-    newton_tol: float = 1e-3
-    newton_norm: str = "rms"
-    newton_window: int = 1
-    bending_hessian: str = "gauss_newton"
-    warm_start: bool = True
-    follow_body: float = 0.04
-    follow_segments: int = 4
-    follow_lift: float = 1.0
-    follow_retry: int = 3
-    step_expansion: bool = True
-    linear_rtol: float = 1e-6
-    newton_forcing: float = 1e-3
-    max_cg_iterations: int = 100
-    max_newton_iterations: int = 100
-    max_penalty_iterations: int = 40
-    barrier_stiffness_scale: float = 1e11
-    kinematic_penalty: float = 1e6
-    keep_linearization: bool = False
-    deterministic: bool = True
-    ccd_threads: int = 1
-    gravity: tuple = (0.0, 0.0, -9.81)
+from .settings import SimSettings, StepStats
+from .start import follow_body, warm_start
+from .terms import StepState
 
 
 @dataclasses.dataclass
-class StepStats:
-    """What one step did. Times in seconds."""
+class _Solve:
+    """The running state of one step's Newton solve (ClothSim.step)."""
 
-    newton_iterations: int = 0
-    converged: bool = False
-    line_search_iterations: int = 0
-    step_expansions: int = 0  # line-search doublings beyond α = 1 (ClothSim._expand_step)
-    penalty_iterations: int = 0
-    body_follows: int = 0  # times the cloth was carried with the body (SimSettings.follow_body)
-    body_gap: float = 0.0  # [m] how far the body (or a Dirichlet vertex) stopped short of its pose
-    body_lagged: bool = False  # the step started from where the last step's body got to
-    barrier_stiffness: float = 0.0
-    min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]
-    n_contacts: int = 0
-    residual: float = float("inf")  # last ‖Δx‖∞ / h [m/s]
-    factorizations: int = 0  # sparse Cholesky factorisations (the rest were CG solves)
-    cg_iterations: int = 0
-    time: dict = dataclasses.field(
-        default_factory=lambda: dict(
-            assembly=0.0, contact=0.0, linear_solve=0.0, ccd=0.0, line_search=0.0, total=0.0
-        )
-    )
-
-
-class Linearization:
-    """The step's system at (or next to) its solution, for adjoint/forward sensitivities.
-
-    dof_map: [3(N+Nb)] reduced row of each DOF (-1 = prescribed). matrix: the last projected
-    Newton matrix (CSR over the reduced DOFs). factorization: its Cholesky factor, computed on
-    first access (the Newton solve itself may have used an older factor as a CG
-    preconditioner, solver.NewtonLinearSolver). hessian: exact unprojected ∇²E at the solution
-    (CSR over the free DOFs), or None unless SimSettings.keep_linearization.
-    """
-
-    def __init__(self, dof_map: np.ndarray, matrix, hessian=None, factorization=None):
-        self.dof_map = dof_map
-        self.matrix = matrix
-        self.hessian = hessian
-        self._factorization = factorization
-
-    @property
-    def factorization(self) -> Factorization | None:
-        if self._factorization is None and self.matrix is not None:
-            self._factorization = Factorization(self.matrix)
-        return self._factorization
-
-
-class SurfaceCarry:
-    """Points carried rigidly by their closest triangles of a deforming surface.
-
-    Each point p is written as q + δ, q = Σ w_k v_k the closest point on a triangle (barycentric
-    w) and δ in that triangle's orthonormal frame (first edge, in-plane normal, face normal);
-    ``at(V)`` rebuilds the points on the surface posed as V. Exact for a rigid motion of each
-    triangle. The closest triangle is searched among the k with the nearest centroids: not
-    always the global one (a long triangle's centroid can be far), which only matters where
-    the carry is a heuristic (the solver's start, checked by CCD).
-
-    Attributes: distance [m] (|δ|), face, bary, side (+1 where p lies on the normal's side).
-    """
-
-    def __init__(self, V, F, P, k=8):
-        from scipy.spatial import cKDTree
-
-        from ..geometry import closest_point_triangle
-
-        V, P = np.asarray(V, dtype=np.float64), np.asarray(P, dtype=np.float64)
-        self.F = np.asarray(F, dtype=np.int64)
-        k = min(k, len(self.F))
-        _, cand = cKDTree(V[self.F].mean(1)).query(P, k=k)
-        cand = cand.reshape(len(P), k)
-        t = self.F[cand.ravel()]
-        Pr = np.repeat(P, k, axis=0)
-        w = closest_point_triangle(Pr, V[t[:, 0]], V[t[:, 1]], V[t[:, 2]])
-        q = np.einsum("nk,nkd->nd", w, V[t])
-        dist = np.linalg.norm(Pr - q, axis=1).reshape(len(P), k)
-        j = np.argmin(dist, axis=1)
-        r = np.arange(len(P))
-        self.distance = dist[r, j]
-        self.face = cand[r, j]
-        self.bary = w.reshape(len(P), k, 3)[r, j]
-        q = q.reshape(len(P), k, 3)[r, j]
-        R, _ = self._frames(V)
-        self.local = np.einsum("mij,mj->mi", R, P - q)
-        self.side = np.where(self.local[:, 2] < 0, -1.0, 1.0)
-
-    def _frames(self, V):
-        tri = V[self.F[self.face]]  # [m, 3 (vertex), 3]
-        e1 = tri[:, 1] - tri[:, 0]
-        nrm = np.cross(e1, tri[:, 2] - tri[:, 0])
-        e1 = e1 / np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-300)
-        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-        return np.stack([e1, np.cross(nrm, e1), nrm], axis=1), tri  # rows: the frame's axes
-
-    def at(self, V, lift=None):
-        """The carried points on the surface posed as V [Nv, 3]; ``lift`` [m] (per point) is
-        added along the face normal."""
-        R, tri = self._frames(np.asarray(V, dtype=np.float64))
-        P = np.einsum("mk,mkd->md", self.bary, tri) + np.einsum("mij,mi->mj", R, self.local)
-        if lift is not None:
-            P = P + np.asarray(lift)[:, None] * R[:, 2]
-        return P
+    X: np.ndarray  # the iterate [N + Nb, 3]
+    penalty: bool  # the prescribed vertices are unknowns (kinematic-penalty phase)
+    X_goal: np.ndarray  # the prescribed positions at t+1
+    diag: float  # bounding-box diagonal (ipctk's κ update)
+    lag_left: int  # friction re-lags still allowed (SimSettings.friction_iterations)
+    prev_min_dist: float
+    prev_residual: float = np.inf
+    below_count: int = 0  # consecutive directions below newton_tol ("rms")
+    penalty_iters: int = 0
+    matrix: object = None  # the last Newton matrix
+    linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
 
 
 class ClothSim:
-    """Implicit-Euler C-IPC cloth simulator for one garment against one moving body.
+    """Implicit-Euler / BDF2 C-IPC cloth simulator for one garment against one moving body.
 
     Args:
         rest_vertices: [N, 3] garment rest positions (its stress-free shape).
@@ -254,10 +68,12 @@ class ClothSim:
         material: :class:`Material`.
         settings: :class:`SimSettings`.
         boundary_indices: [K] Dirichlet vertices (follow prescribed targets every step).
+        extra_terms: further terms of E (the protocol of terms.py), added after the built-in
+            ones; they see the stacked positions [cloth; body] like every term.
     """
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
-                 boundary_indices=()):
+                 boundary_indices=(), extra_terms=()):
         if settings.newton_norm not in ("rms", "max") or settings.newton_window < 1:
             raise ValueError(f"newton_norm {settings.newton_norm!r} / newton_window {settings.newton_window}: "
                              "expected 'rms' or 'max' and a window >= 1")
@@ -272,11 +88,13 @@ class ClothSim:
         self.topo = ClothTopology.build(rest_vertices, faces)
         self.n = len(self.topo.rest)
         self.boundary = np.unique(np.asarray(boundary_indices, dtype=np.int64))
+        self.extra_terms = list(extra_terms)
         self.scene = None
         self.barrier_stiffness = 0.0
         self.max_barrier_stiffness = 0.0
         self._kappa_balanced = False
         self.linearization = None
+        self.step_state: StepState | None = None  # the last step's state (StepState)
         self._body_faces = None
         self.linear_solver = NewtonLinearSolver(settings.linear_rtol, settings.max_cg_iterations)
         # The penalty-mode system (body DOFs unknown too) keeps its own preconditioner, so
@@ -286,6 +104,16 @@ class ClothSim:
         self.linear_solver_all = NewtonLinearSolver(1e-10, settings.max_cg_iterations)
 
     # -- setup ---------------------------------------------------------------------------------
+
+    def prepare(self, collider_vertices, collider_faces):
+        """Build the terms and the contact scene for this body (None: no body); ``step`` does it
+        when the body changes; call it to inspect :meth:`active_terms` before the first step."""
+        if collider_vertices is None:  # no body: an empty collider
+            collider_vertices, collider_faces = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+        bt = np.asarray(collider_vertices, dtype=np.float64).reshape(-1, 3)
+        if (self.scene is None or len(bt) != self.nb
+                or not np.array_equal(np.asarray(collider_faces).reshape(-1, 3), self._body_faces)):
+            self._setup(bt, collider_faces)
 
     def _setup(self, body_vertices, body_faces):
         s, m = self.settings, self.material
@@ -314,14 +142,13 @@ class ClothSim:
         self.friction = Friction(self.scene, s.friction, s.friction_eps_v, self.h_implicit)
         self.terms = [self.inertia, self.gravity, self.membrane, self.bending]
         if s.damping_mass > 0:
-            self.mass_damping = MassDamping(self.inertia, s.damping_mass)
-            self.terms.append(self.mass_damping)
+            self.terms.append(MassDamping(self.inertia, s.damping_mass))
         if s.damping_stiffness > 0:
-            self.stiffness_damping = StiffnessDamping(s.damping_stiffness, self.h_implicit, [self.membrane, self.bending])
-            self.terms.append(self.stiffness_damping)
-        mean_mass = m.density * float(np.mean(self.topo.vertex_area))
+            self.terms.append(StiffnessDamping(s.damping_stiffness, self.h_implicit, [self.membrane, self.bending]))
+        self.terms += self.extra_terms
+        self._mean_mass = m.density * float(np.mean(self.topo.vertex_area))
         kinematic = np.r_[self.boundary, np.arange(self.n, n_total)]
-        self.penalty = KinematicPenalty(kinematic, s.kinematic_penalty * mean_mass / self.h_implicit**2, n_total)
+        self.penalty = KinematicPenalty(kinematic, s.kinematic_penalty * self._mean_mass, n_total, self.h_implicit)
         # Two reduced systems: free cloth DOFs only, and everything (penalty mode).
         dof_free = np.full(3 * n_total, -1, dtype=np.int64)
         free_dofs = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
@@ -334,7 +161,7 @@ class ClothSim:
         self.assembler_all = Assembler(np.arange(3 * n_total), elements, tips)
         # ipctk's adaptive κ expects the mass of an energy ½‖x − x̃‖²_M + h²Ψ; ours is that
         # divided by h², so the matching "average mass" is m̄ / h² (κ then scales with ρ).
-        self._average_mass = mean_mass / self.h_implicit**2
+        self._average_mass = self._mean_mass / self.h_implicit**2
         self._n_free = max(1, self.n - len(self.boundary))
 
     def reset(self):
@@ -345,17 +172,30 @@ class ClothSim:
 
     # -- energy --------------------------------------------------------------------------------
 
+    def active_terms(self, penalty: bool = False) -> list:
+        """The terms of E: elastic and inertial ones, barrier, friction (and the kinematic
+        penalty while the prescribed vertices are unknowns)."""
+        terms = self.terms + [self.barrier, self.friction]
+        return terms + [self.penalty] if penalty else terms
+
     def _energy(self, X, penalty):
         total = 0.0
-        for t in self._active_terms(penalty):
+        for t in self.active_terms(penalty):
             total += t.energy(X)
             if not np.isfinite(total):
                 return np.inf
         return total
 
-    def _active_terms(self, penalty):
-        terms = self.terms + [self.barrier, self.friction]
-        return terms + [self.penalty] if penalty else terms
+    def exact_hessian(self, X):
+        """(H, dof_map): the exact (unprojected) ∇²E at X over the free DOFs (CSR) and the DOF
+        map (reduced row of each DOF, -1 = prescribed). The one the last step kept
+        (SimSettings.keep_linearization) when X is its solution, else assembled here."""
+        lin = self.linearization
+        if lin is not None and lin.hessian is not None and np.array_equal(X, lin.positions):
+            return lin.hessian, lin.dof_map
+        self.scene.prepare_static(X)
+        H = self.assembler_free.assemble([t.hessian(X, project=False) for t in self.active_terms()])
+        return H, self.assembler_free.dof_map
 
     # -- one step ------------------------------------------------------------------------------
 
@@ -378,241 +218,294 @@ class ClothSim:
         Returns:
             (x_new [N, 3], v_new [N, 3], StepStats).
         """
-        s = self.settings
-        h = s.dt
         t_start = time.perf_counter()
         # ipctk's threaded reductions sum in a scheduling-dependent order; one thread makes a
         # step bit-reproducible (DESIGN.md: same inputs, same outputs).
-        if s.deterministic:
+        if self.settings.deterministic:
             ipctk.set_num_threads(1)
         stats = StepStats()
         x = np.asarray(x, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
-        if collider_vertices_t is None:  # no body: an empty collider
-            collider_vertices_t = collider_vertices_t1 = np.zeros((0, 3))
-            collider_faces = np.zeros((0, 3), dtype=np.int64)
-        bt = np.asarray(collider_vertices_t, dtype=np.float64).reshape(-1, 3)
-        bt1 = np.asarray(collider_vertices_t1, dtype=np.float64).reshape(-1, 3)
-        if (self.scene is None or len(bt) != self.nb
-                or not np.array_equal(np.asarray(collider_faces).reshape(-1, 3), self._body_faces)):
-            self._setup(bt, collider_faces)
+        state, x_pred = self._begin_step(x, v, collider_vertices_t, collider_vertices_t1, collider_faces,
+                                         boundary_targets, history, stats)
+        solve = self._start(state, x, x_pred, stats)
+        self._newton(solve, stats)
+        x_new, v_new = self._finish_step(solve, state, stats)
+        self._last_step = (x_new, v_new, x.copy(), v.copy())
+        stats.time["total"] = time.perf_counter() - t_start
+        return x_new, v_new, stats
+
+    def _begin_step(self, x, v, body_t, body_t1, body_faces, boundary_targets, history, stats):
+        """The step's :class:`StepState` (x̂, v̂, ĥ from step_base; the body at the matching
+        constant-velocity base), handed to every term's ``begin_step``, and the inertial
+        prediction x̃ = x̂ + ĥ v̂ [N, 3]."""
+        h = self.settings.dt
+        self.prepare(body_t, body_faces)
+        if body_t is None:
+            body_t = body_t1 = np.zeros((0, 3))
+        bt = np.asarray(body_t, dtype=np.float64).reshape(-1, 3)
+        bt1 = np.asarray(body_t1, dtype=np.float64).reshape(-1, 3)
         lag, self._body_lag = self._body_lag, None
         if lag is not None and np.array_equal(lag[0], bt):
             bt = lag[1]  # the last step's body stopped short of this pose: go on from where it is
             stats.body_lagged = True
         X_prev = np.vstack([x, bt])
-        # x̃ = x̂ + ĥ v̂: implicit Euler (x̂, v̂ = xₜ, vₜ; ĥ = h) or BDF2 (ĥ = 2h/3); friction and
-        # damping measure velocities as (x − x̂) / ĥ, the body's from the matching constant-
-        # velocity base (exact for a body moving at constant velocity)
         base, vbase, hh = self.step_base(x, v, history)
-        self._set_implicit_step(hh)
-        X_base = np.vstack([base, bt + (1.0 - hh / h) * (bt1 - bt)])
-        x_pred = base + hh * vbase
+        self.h_implicit = hh
+        self._average_mass = self._mean_mass / hh**2
         X_goal = X_prev.copy()
         X_goal[self.n:] = bt1
         if len(self.boundary) and boundary_targets is not None:
             X_goal[self.boundary] = np.asarray(boundary_targets, dtype=np.float64)
-        self.inertia.target = np.vstack([x_pred, bt1])
-        if s.damping_mass > 0:
-            self.mass_damping.previous = X_base
-        if s.damping_stiffness > 0:
-            self.stiffness_damping.begin_step(X_prev)
-        self.penalty.target = X_goal[self.penalty.kinematic]
+        state = StepState(
+            x_prev=X_prev, x_base=np.vstack([base, bt + (1.0 - hh / h) * (bt1 - bt)]),
+            v_base=np.vstack([vbase, (bt1 - bt) / h]), x_goal=X_goal, h=hh, dt=h,
+        )
+        for t in self.active_terms(penalty=True):
+            t.begin_step(state)
+        self.step_state = state
+        return state, base + hh * vbase
 
+    def _start(self, state, x, x_pred, stats) -> _Solve:
+        """Where Newton starts, and in which mode: the prescribed move swept with CCD; if it is
+        free, the prescribed DOFs are eliminated at their targets (and the cloth starts from
+        the inertial prediction when that lowers E, start.warm_start); if not, the cloth is
+        carried with the body (start.follow_body) or the penalty phase starts."""
+        s = self.settings
+        X_prev, X_goal = state.x_prev, state.x_goal
         tc = time.perf_counter()
         alpha = self.scene.collision_free_stepsize(X_prev, X_goal)
         stats.time["ccd"] += time.perf_counter() - tc
         penalty = alpha < 1.0
         X = X_prev.copy() if penalty else X_goal.copy()
+        free = self.inertia.unit_mass[: self.n] > 0
         if penalty and s.follow_body > 0 and self.nb:
-            X, reached = self._follow_body(X_prev, X_goal, x_pred, stats)
+            X, reached = follow_body(self.scene, self._body_faces, free, s, X_prev, X_goal, x_pred, stats)
             penalty = not reached
             stats.body_follows += int(reached)
         elif not penalty and s.warm_start and np.any(x_pred != x):
-            X = self._warm_start(X, x_pred, stats)
-
+            # friction is not lagged yet at this point
+            X = warm_start(self.scene, self.terms + [self.barrier], free, X, x_pred, stats)
         diag = self.scene.bbox_diagonal(X_goal)
         self.scene.prepare_static(X)
         self._update_stiffness_init(X)
-        lag_left = max(1, s.friction_iterations)
-        self.friction.lag(X, self.barrier, X_base)
-        lag_left -= 1
-        prev_min_dist = self.scene.min_distance(X)
-        prev_residual = np.inf
-        below_count = 0  # consecutive directions below newton_tol ("rms")
-        factor = None
-        penalty_iters = 0
+        self.friction.lag(X, self.barrier)
+        return _Solve(X=X, penalty=penalty, X_goal=X_goal, diag=diag,
+                      lag_left=max(1, s.friction_iterations) - 1, prev_min_dist=self.scene.min_distance(X))
+
+    def _newton(self, sv: _Solve, stats):
+        """Newton iterations until the stopping rule (SimSettings.newton_norm) holds."""
+        s = self.settings
         solvers = (self.linear_solver, self.linear_solver_all)
         for ls in solvers:  # the last step's factors no longer fit (body, x̃, contacts moved)
             ls.mark_stale()
-        linear_solver = self.linear_solver
+        sv.linear_solver = self.linear_solver
         n_fact0 = sum(ls.factorizations for ls in solvers)
         n_cg0 = sum(ls.cg_iterations for ls in solvers)
         for it in range(s.max_newton_iterations):
             stats.newton_iterations = it + 1
-            assembler = self.assembler_all if penalty else self.assembler_free
-            self._update_stiffness_init(X)
-            active = self._active_terms(penalty)
-            # gradient and Hessian
-            ta = time.perf_counter()
-            grads_el, hess_el, grads_c, hess_c = [], [], [], []
-            for t in active:
-                contact = t is self.barrier or t is self.friction
-                tt = time.perf_counter()
-                g = t.gradient(X)
-                H = t.hessian(X, project=True)
-                if contact:
-                    grads_c.append(g)
-                    hess_c.append(H)
-                    stats.time["contact"] += time.perf_counter() - tt
-                else:
-                    grads_el.append(g)
-                    hess_el.append(H)
-            grad = assembler.reduce(np.sum(grads_el + grads_c, axis=0))
-            Hm = assembler.assemble(hess_el + hess_c)
-            stats.time["assembly"] += time.perf_counter() - ta
-            # Newton direction
-            tl = time.perf_counter()
-            # Penalty iterations solve their (larger) system by CG too (to 1e-10, see
-            # linear_solver_all): a direct solve of it (full hinge pattern) cost ~4 sparsified
-            # factorisations per iteration on the demo dress.
-            linear_solver = self.linear_solver_all if penalty else self.linear_solver
-            # inexact Newton: a loose direction while far from the solution (the stopping
-            # step is refined to 1e-10 below, so the solution is unchanged)
-            forcing = None if penalty else s.newton_forcing
-            dx = -linear_solver.solve(Hm, grad, assembler, forcing)
-            factor = Hm
-            stats.time["linear_solve"] += time.perf_counter() - tl
-            step = assembler.expand(dx).reshape(-1, 3)
-            residual, res_stop = self._residuals(step, h)
-            if not penalty and res_stop < s.newton_tol:  # about to stop: make dx exact first
-                tl = time.perf_counter()
-                dx = -self.linear_solver.refine(Hm, grad, -dx, assembler)
-                stats.time["linear_solve"] += time.perf_counter() - tl
-                step = assembler.expand(dx).reshape(-1, 3)
-                residual, res_stop = self._residuals(step, h)
+            step, residual, res_stop = self._newton_direction(sv, stats)
             stats.residual = res_stop
-            below = not penalty and res_stop < s.newton_tol
+            below = not sv.penalty and res_stop < s.newton_tol
             if s.newton_norm == "max" and below:  # the step is not taken: it is below tolerance
-                if lag_left > 0:
-                    self.friction.lag(X, self.barrier, X_base)
-                    lag_left -= 1
+                if self._relag_friction(sv):
                     continue
                 stats.converged = True
                 break
             # "rms" (Codim-IPC): the step is taken, and the solve ends once the last
             # newton_window directions were all below the tolerance
-            below_count = below_count + 1 if below else 0
-            stop_after_step = s.newton_norm == "rms" and below_count >= s.newton_window
-            # line search from the collision-free step size
-            tcd = time.perf_counter()
-            X_try = X + step
-            alpha = self.scene.collision_free_stepsize(X, X_try)
-            self.scene.covers_last_point = True  # X + α step, α ≤ 1, lies on this segment
-            stats.time["ccd"] += time.perf_counter() - tcd
-            tls = time.perf_counter()
-            E0 = self._energy(X, penalty)
-            while True:
-                X_new = X + alpha * step
-                E1 = self._energy(X_new, penalty)
-                if E1 <= E0 or alpha < 1e-12:
+            sv.below_count = sv.below_count + 1 if below else 0
+            stop_after_step = s.newton_norm == "rms" and sv.below_count >= s.newton_window
+            self._line_search(sv, step, residual, stats)
+            self._adapt_barrier_stiffness(sv, stats)
+            if sv.penalty:
+                action = self._penalty_phase(sv, stats)
+                if action == "break":
                     break
-                alpha *= 0.5
-                stats.line_search_iterations += 1
-            if (s.step_expansion and not penalty and alpha == 1.0
-                    and residual > 0.7 * prev_residual):
-                X_new = self._expand_step(X, step, X_new, E1, stats)
-            prev_residual = residual
-            X = X_new
-            stats.time["line_search"] += time.perf_counter() - tls
-            # adaptive barrier stiffness (ipctk): grow κ when contacts keep closing in
-            tc = time.perf_counter()
-            min_dist = self.scene.min_distance(X)
-            if self.max_barrier_stiffness > 0 and np.isfinite(min_dist) and np.isfinite(prev_min_dist):
-                k = ipctk.update_barrier_stiffness(prev_min_dist, min_dist, self.max_barrier_stiffness,
-                                                   self.barrier_stiffness, diag, dmin=s.dmin)
-                if k != self.barrier_stiffness:
-                    self.barrier_stiffness = k
-                    self.barrier.set_stiffness(k)
-            prev_min_dist = min_dist
-            stats.time["contact"] += time.perf_counter() - tc
-            if penalty:
-                penalty_iters += 1
-                gap = np.max(np.abs(X[self.penalty.kinematic] - self.penalty.target))
-                if gap < 1e-2 * s.dhat:
-                    X_snap = X.copy()
-                    X_snap[self.penalty.kinematic] = self.penalty.target
-                    tcd = time.perf_counter()
-                    ok = self.scene.collision_free_stepsize(X, X_snap) >= 1.0
-                    stats.time["ccd"] += time.perf_counter() - tcd
-                    if ok:
-                        X = X_snap
-                        penalty = False
-                        self.scene.prepare_static(X)
-                        self.friction.lag(X, self.barrier, X_base)
-                    else:
-                        # The cloth sits closer to the body than the body's remaining gap:
-                        # the barrier holds the body short of its target at this penalty
-                        # weight, and more iterations at the same weight do not move it (a
-                        # pinched coarse proxy looped here to the iteration limit, thousands
-                        # of line-search halvings). A stiffer penalty pushes the cloth on.
-                        self.penalty.weight *= 10.0
-                        if penalty_iters >= s.max_penalty_iterations:
-                            break
-                        continue
-                elif s.follow_body > 0 and s.follow_retry > 0 and penalty_iters % s.follow_retry == 0:
-                    # try again to carry the cloth the rest of the way (the pairs that cut the
-                    # first try may have separated)
-                    X_f, reached = self._follow_body(X, X_goal, None, stats)
-                    self.scene.prepare_static(X_f if reached else X)
-                    if reached:
-                        X = X_f
-                        penalty = False
-                        stats.body_follows += 1
-                        self.friction.lag(X, self.barrier, X_base)
-                if penalty and penalty_iters >= s.max_penalty_iterations:
-                    break  # no room for the cloth at the body's pose: keep what was reached
-                if penalty and penalty_iters % 10 == 0:
-                    self.penalty.weight *= 10.0  # AL-style escalation when targets stall
+                if action == "continue":
                     continue
             # The candidates of the last CCD segment (X → X + t·step, inflated by d̂) hold every
             # pair within d̂ of any point on it, X_new included: no rebuild needed for the next
             # iteration's barrier set (one LBVH build per iteration instead of two).
             if not self.scene.covers_last_point:
-                self.scene.prepare_static(X)
+                self.scene.prepare_static(sv.X)
             if stop_after_step:
-                if lag_left > 0:
-                    self.friction.lag(X, self.barrier, X_base)
-                    lag_left -= 1
-                    below_count = 0
+                if self._relag_friction(sv):
+                    sv.below_count = 0
                     continue
                 stats.converged = True
                 break
-        stats.penalty_iterations = penalty_iters
+        stats.penalty_iterations = sv.penalty_iters
         stats.factorizations = sum(ls.factorizations for ls in solvers) - n_fact0
         stats.cg_iterations = sum(ls.cg_iterations for ls in solvers) - n_cg0
-        if penalty:  # never reached the targets: report, keep the best state, let the body lag
+
+    def _relag_friction(self, sv: _Solve) -> bool:
+        """Re-lag friction at the iterate if SimSettings.friction_iterations allows another."""
+        if sv.lag_left <= 0:
+            return False
+        self.friction.lag(sv.X, self.barrier)
+        sv.lag_left -= 1
+        return True
+
+    def _newton_direction(self, sv: _Solve, stats):
+        """The projected Newton step at the iterate: (step [N + Nb, 3], ‖Δx‖∞ / h, the stopping
+        norm). Gradient and PSD-projected Hessian of every active term, assembled over the
+        unknown DOFs and solved by preconditioned CG (NewtonLinearSolver); a direction that
+        would end the solve is refined to 1e-10 first."""
+        s = self.settings
+        h = s.dt
+        penalty = sv.penalty
+        assembler = self.assembler_all if penalty else self.assembler_free
+        self._update_stiffness_init(sv.X)
+        ta = time.perf_counter()
+        grads_el, hess_el, grads_c, hess_c = [], [], [], []
+        for t in self.active_terms(penalty):
+            contact = t is self.barrier or t is self.friction
+            tt = time.perf_counter()
+            g = t.gradient(sv.X)
+            H = t.hessian(sv.X, project=True)
+            if contact:
+                grads_c.append(g)
+                hess_c.append(H)
+                stats.time["contact"] += time.perf_counter() - tt
+            else:
+                grads_el.append(g)
+                hess_el.append(H)
+        grad = assembler.reduce(np.sum(grads_el + grads_c, axis=0))
+        Hm = assembler.assemble(hess_el + hess_c)
+        stats.time["assembly"] += time.perf_counter() - ta
+        tl = time.perf_counter()
+        # Penalty iterations solve their (larger) system by CG too, to 1e-10 (linear_solver_all)
+        sv.linear_solver = self.linear_solver_all if penalty else self.linear_solver
+        # inexact Newton: a loose direction while far from the solution (the stopping
+        # step is refined to 1e-10 below, so the solution is unchanged)
+        forcing = None if penalty else s.newton_forcing
+        dx = -sv.linear_solver.solve(Hm, grad, assembler, forcing)
+        sv.matrix = Hm
+        stats.time["linear_solve"] += time.perf_counter() - tl
+        step = assembler.expand(dx).reshape(-1, 3)
+        residual, res_stop = self._residuals(step, h)
+        if not penalty and res_stop < s.newton_tol:  # about to stop: make dx exact first
+            tl = time.perf_counter()
+            dx = -self.linear_solver.refine(Hm, grad, -dx, assembler)
+            stats.time["linear_solve"] += time.perf_counter() - tl
+            step = assembler.expand(dx).reshape(-1, 3)
+            residual, res_stop = self._residuals(step, h)
+        return step, residual, res_stop
+
+    def _line_search(self, sv: _Solve, step, residual, stats):
+        """Backtracking from the collision-free step size (CCD) until E does not increase; a
+        full step on a linearly converging tail is also tried longer (_expand_step)."""
+        s = self.settings
+        X = sv.X
+        tcd = time.perf_counter()
+        X_try = X + step
+        alpha = self.scene.collision_free_stepsize(X, X_try)
+        self.scene.covers_last_point = True  # X + α step, α ≤ 1, lies on this segment
+        stats.time["ccd"] += time.perf_counter() - tcd
+        tls = time.perf_counter()
+        E0 = self._energy(X, sv.penalty)
+        while True:
+            X_new = X + alpha * step
+            E1 = self._energy(X_new, sv.penalty)
+            if E1 <= E0 or alpha < 1e-12:
+                break
+            alpha *= 0.5
+            stats.line_search_iterations += 1
+        if (s.step_expansion and not sv.penalty and alpha == 1.0
+                and residual > 0.7 * sv.prev_residual):
+            X_new = self._expand_step(X, step, X_new, E1, stats)
+        sv.prev_residual = residual
+        sv.X = X_new
+        stats.time["line_search"] += time.perf_counter() - tls
+
+    def _adapt_barrier_stiffness(self, sv: _Solve, stats):
+        """ipctk's adaptive κ: grow it when contacts keep closing in."""
+        tc = time.perf_counter()
+        min_dist = self.scene.min_distance(sv.X)
+        if self.max_barrier_stiffness > 0 and np.isfinite(min_dist) and np.isfinite(sv.prev_min_dist):
+            k = ipctk.update_barrier_stiffness(sv.prev_min_dist, min_dist, self.max_barrier_stiffness,
+                                               self.barrier_stiffness, sv.diag, dmin=self.settings.dmin)
+            if k != self.barrier_stiffness:
+                self.barrier_stiffness = k
+                self.barrier.set_stiffness(k)
+        sv.prev_min_dist = min_dist
+        stats.time["contact"] += time.perf_counter() - tc
+
+    def _penalty_phase(self, sv: _Solve, stats):
+        """After a penalty-mode iteration: snap the prescribed vertices to their targets once
+        they are close and the rest of the move is collision-free (back to the free system),
+        retry carrying the cloth with the body, or stiffen the penalty when the targets stall.
+        Returns "break" (give up: the body lags), "continue" (next iteration at once) or None."""
+        s = self.settings
+        X = sv.X
+        sv.penalty_iters += 1
+        gap = np.max(np.abs(X[self.penalty.kinematic] - self.penalty.target))
+        if gap < 1e-2 * s.dhat:
+            X_snap = X.copy()
+            X_snap[self.penalty.kinematic] = self.penalty.target
+            tcd = time.perf_counter()
+            ok = self.scene.collision_free_stepsize(X, X_snap) >= 1.0
+            stats.time["ccd"] += time.perf_counter() - tcd
+            if ok:
+                sv.X = X_snap
+                sv.penalty = False
+                self.scene.prepare_static(sv.X)
+                self.friction.lag(sv.X, self.barrier)
+            else:
+                # The cloth sits closer to the body than the body's remaining gap: the barrier
+                # holds the body short of its target at this penalty weight, and more
+                # iterations at the same weight do not move it. A stiffer penalty pushes the
+                # cloth on.
+                self.penalty.weight *= 10.0
+                if sv.penalty_iters >= s.max_penalty_iterations:
+                    return "break"
+                return "continue"
+        elif s.follow_body > 0 and s.follow_retry > 0 and sv.penalty_iters % s.follow_retry == 0:
+            # try again to carry the cloth the rest of the way (the pairs that cut the
+            # first try may have separated)
+            free = self.inertia.unit_mass[: self.n] > 0
+            X_f, reached = follow_body(self.scene, self._body_faces, free, s, X, sv.X_goal, None, stats)
+            self.scene.prepare_static(X_f if reached else X)
+            if reached:
+                sv.X = X_f
+                sv.penalty = False
+                stats.body_follows += 1
+                self.friction.lag(sv.X, self.barrier)
+        if sv.penalty and sv.penalty_iters >= s.max_penalty_iterations:
+            return "break"  # no room for the cloth at the body's pose: keep what was reached
+        if sv.penalty and sv.penalty_iters % 10 == 0:
+            self.penalty.weight *= 10.0  # AL-style escalation when targets stall
+            return "continue"
+        return None
+
+    def _finish_step(self, sv: _Solve, state: StepState, stats):
+        """Report the step, keep its linearization (sensitivities), and return (x_new, v_new)."""
+        s = self.settings
+        X = sv.X
+        if sv.penalty:  # never reached the targets: report, keep the best state, let the body lag
             stats.converged = False
             stats.body_gap = float(np.max(np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)))
-            self._body_lag = (bt1.copy(), X[self.n:].copy())
-        X_final = X
+            self._body_lag = (state.x_goal[self.n:].copy(), X[self.n:].copy())
         stats.barrier_stiffness = self.barrier_stiffness
-        self.scene.prepare_static(X_final)
-        c = self.scene.collisions_at(X_final)
+        self.scene.prepare_static(X)
+        c = self.scene.collisions_at(X)
         stats.n_contacts = len(c)
-        stats.min_distance = float(np.sqrt(self.scene.min_distance(X_final)))  # ipctk: squared
+        stats.min_distance = float(np.sqrt(self.scene.min_distance(X)))  # ipctk: squared
+        ls = sv.linear_solver
         self.linearization = Linearization(
-            (self.assembler_all if penalty else self.assembler_free).dof_map, factor,
-            factorization=(linear_solver.factor if linear_solver.factor_matrix is factor else None),
+            (self.assembler_all if sv.penalty else self.assembler_free).dof_map, sv.matrix,
+            factorization=(ls.factor if ls.factor_matrix is sv.matrix else None),
+            positions=X, preconditioner=self.linear_solver.factor,
         )
-        if s.keep_linearization and not penalty:
-            hess = [t.hessian(X_final, project=False) for t in self._active_terms(False)]
+        if s.keep_linearization and not sv.penalty:
+            hess = [t.hessian(X, project=False) for t in self.active_terms()]
             self.linearization.hessian = self.assembler_free.assemble(hess)
-        x_new = X_final[: self.n].copy()
-        v_new = (x_new - base) / hh
-        self._last_step = (x_new, v_new, x.copy(), v.copy())
-        stats.time["total"] = time.perf_counter() - t_start
-        return x_new, v_new, stats
+        x_new = X[: self.n].copy()
+        v_new = (x_new - state.x_base[: self.n]) / state.h
+        return x_new, v_new
+
+    # -- integrator and helpers ----------------------------------------------------------------
 
     def step_base(self, x, v, history=None):
         """(x̂, v̂, ĥ) of a step from (x, v): the inertial prediction is x̂ + ĥ v̂ and the step's
@@ -633,17 +526,6 @@ class ClothSim:
         g = self.material.bdf2_blend / 3.0  # γ/3: 1/3 is BDF2, 0 implicit Euler (Material.bdf2_blend)
         return (1.0 + g) * x - g * xp, (1.0 + g) * v - g * vp, (1.0 - g) * h
 
-    def _set_implicit_step(self, hh):
-        """Make every h-dependent term use the implicit step ĥ (h, or BDF2's 2h/3)."""
-        self.h_implicit = hh  # also resets the penalty weight the last step may have stiffened
-        self.inertia.dt = hh  # mass damping reads it from here
-        self.friction.dt = hh
-        if self.settings.damping_stiffness > 0:
-            self.stiffness_damping.dt = hh
-        mean_mass = self.material.density * float(np.mean(self.topo.vertex_area))
-        self.penalty.weight = self.settings.kinematic_penalty * mean_mass / hh**2
-        self._average_mass = mean_mass / hh**2
-
     def _residuals(self, step, h):
         """(‖Δx‖∞ / h, the stopping norm of SimSettings.newton_norm) over the cloth vertices.
 
@@ -658,79 +540,6 @@ class ClothSim:
             return res_max, res_max
         return res_max, float(np.sqrt(np.sum(cloth * cloth) / self._n_free)) / h
 
-    def _warm_start(self, X, x_pred, stats):
-        """Start Newton from the inertial prediction x̃ = xₜ + h vₜ (free vertices), clipped by
-        CCD so it stays intersection-free, when its energy is below that of xₜ (IPC's
-        initial guess; the minimiser is the same, only the path to it changes)."""
-        X_pred = X.copy()
-        free = self.inertia.unit_mass[: self.n] > 0
-        X_pred[: self.n][free] = x_pred[free]
-        tc = time.perf_counter()
-        alpha = self.scene.collision_free_stepsize(X, X_pred)
-        stats.time["ccd"] += time.perf_counter() - tc
-        if alpha <= 0.0:
-            return X
-        X_pred = X + alpha * (X_pred - X)
-        terms = self.terms + [self.barrier]  # friction is not lagged yet at this point
-        self.scene.prepare_static(X)
-        e0 = sum(t.energy(X) for t in terms)
-        self.scene.prepare_static(X_pred)
-        e1 = sum(t.energy(X_pred) for t in terms)
-        return X_pred if e1 < e0 else X
-
-    def _follow_body(self, X_from, X_goal, x_pred, stats):
-        """Carry the cloth along with the body from X_from to the body pose of X_goal
-        (SimSettings.follow_body). Returns (X, reached): X_goal's body with the carried cloth
-        when every leg of the move is collision-free (reached = True), else X_from moved by
-        the collision-free part of the move (reached = False).
-
-        Free cloth vertices within ``follow_body`` of the body move rigidly with their closest
-        body triangle (SurfaceCarry), fading to x_pred (the inertial prediction; None = stay)
-        at twice that distance. The body's vertices move on straight lines, a carried point on
-        a rotating triangle does not, and a straight cloth path dips towards the triangle by
-        ~θ²L/8 (tens of µm, more than the µm gaps of resting contacts): the cloth follows its
-        triangles through ``follow_segments`` intermediate body poses, each leg CCD-checked.
-        Cloth in an active contact (within d̂, from the barrier's collision set) is also lifted
-        off along the triangle normal, up to ``follow_lift`` × d̂ by the end: those gaps would
-        not survive the small non-rigid distortions of the carry; the free phase settles it
-        back in a few iterations.
-        """
-        s = self.settings
-        n = self.n
-        free = np.flatnonzero(self.inertia.unit_mass[:n] > 0)
-        b0, b1 = X_from[n:], X_goal[n:]
-        x = X_from[:n][free]
-        x_end = x if x_pred is None else x_pred[free]
-        tq = time.perf_counter()
-        carry = SurfaceCarry(b0, self._body_faces, x)
-        weight = np.clip(2.0 - carry.distance / s.follow_body, 0.0, 1.0)[:, None]
-        gap = np.full(n, np.inf)  # per cloth vertex: the closest active contact it is part of
-        self.scene.prepare_static(X_from)
-        coll = self.scene.collisions_at(X_from)
-        E, Fa = self.scene.mesh.edges, self.scene.mesh.faces
-        for group in (coll.vv_collisions, coll.ev_collisions, coll.ee_collisions, coll.fv_collisions):
-            for c in group:
-                ids = [i for i in c.vertex_ids(E, Fa) if i >= 0]
-                cloth = [i for i in ids if i < n]
-                gap[cloth] = np.minimum(gap[cloth], np.sqrt(max(c.compute_distance(X_from[ids].ravel()), 0.0)))
-        gap = np.minimum(gap[free], carry.distance)
-        lift = np.clip(s.follow_lift * s.dhat - gap, 0.0, None) * carry.side
-        stats.time["contact"] += time.perf_counter() - tq
-        X_seg = X_from
-        K = max(1, int(s.follow_segments))
-        for k in range(1, K + 1):
-            t = k / K
-            X_next = X_goal.copy() if k == K else X_from + t * (X_goal - X_from)
-            carried = carry.at(X_next[n:], lift=t * lift)
-            X_next[:n][free] = weight * carried + (1.0 - weight) * (x + t * (x_end - x))
-            tc = time.perf_counter()
-            alpha = self.scene.collision_free_stepsize(X_seg, X_next)
-            stats.time["ccd"] += time.perf_counter() - tc
-            if alpha < 1.0:
-                return X_seg + alpha * (X_next - X_seg), False
-            X_seg = X_next
-        return X_seg, True
-
     def _expand_step(self, X, step, X_new, E_new, stats, max_scale=64.0):
         """Try X + 2·step, 4·step, ... while the energy keeps decreasing; a move that CCD cuts is
         tried at its collision-free fraction and ends the search. Returns the best point.
@@ -738,9 +547,9 @@ class ClothSim:
         Projected Newton converges only linearly along a mode whose curvature the PSD
         projection overstates: e.g. a vertex sliding over a body vertex, where the barrier's
         negative tangential curvature is clamped away. The full step is then accepted every
-        iteration while the residual shrinks by a constant ratio (0.96 measured on the demo
-        dress: 30 iterations for one vertex). Doubling the step along that direction reaches the
-        same minimiser in a few energy evaluations; the stopping rule is unchanged.
+        iteration while the residual shrinks by a constant ratio close to 1 (docs/simulation.md
+        "The step"). Doubling the step along that direction reaches the same minimiser in a few
+        energy evaluations; the stopping rule is unchanged.
         """
         scale = 1.0
         while scale < max_scale:
@@ -788,81 +597,3 @@ class ClothSim:
         self.barrier_stiffness = max(k, self.barrier_stiffness)
         self.max_barrier_stiffness = max(kmax, self.max_barrier_stiffness)
         self.barrier.set_stiffness(self.barrier_stiffness)
-
-
-def simulate(garment_rest, faces, material: Material, collider_sequence, collider_faces,
-             boundary_indices=(), boundary_targets=None, fps: float = 25.0, substeps: int = 1,
-             settings: SimSettings | None = None, x0=None, v0=None, callback=None,
-             progress: bool = False):
-    """Simulate a garment on a moving body for a whole sequence.
-
-    Args:
-        garment_rest: [N, 3] rest shape (also the initial state unless ``x0`` is given).
-        faces: [F, 3] garment triangles.
-        material: :class:`Material`.
-        collider_sequence: [T, Nb, 3] body vertices per frame (frame 0 = initial pose).
-        collider_faces: [Fb, 3] body triangles.
-        boundary_indices: [K] Dirichlet vertices.
-        boundary_targets: [T, K, 3] their positions per frame, or a callable
-            ``rule(frame, body_vertices [Nb, 3]) -> [K, 3]`` (an attachment rule), or None
-            (they stay at their initial positions).
-        fps: frames per second of the sequence; substeps: implicit steps per frame
-            (dt = 1 / (fps · substeps); body and targets are interpolated linearly in between).
-        settings: :class:`SimSettings` (its dt is replaced by the one above); default: the
-            defaults with the material's integrator (the one it was fitted with).
-        x0, v0: [N, 3] initial positions / velocities (default rest, zero).
-        callback: called as ``callback(frame, x [N, 3], stats list)`` after each frame.
-        progress: show a rich progress bar.
-
-    Returns:
-        [T, N, 3] garment positions per frame (frame 0 = initial state).
-    """
-    settings = settings or SimSettings(integrator=material.integrator)  # the model it was fitted in
-    dt = 1.0 / (fps * substeps)
-    settings = dataclasses.replace(settings, dt=dt)
-    bodies = np.asarray(collider_sequence, dtype=np.float64)
-    T = len(bodies)
-    sim = ClothSim(garment_rest, faces, material, settings, boundary_indices)
-    order = np.argsort(np.asarray(boundary_indices, dtype=np.int64), kind="stable")
-    x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
-    v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)
-
-    def targets(frame):
-        if len(sim.boundary) == 0:
-            return None
-        if boundary_targets is None:
-            return x0_boundary
-        if callable(boundary_targets):
-            return np.asarray(boundary_targets(frame, bodies[frame]))[order]
-        return np.asarray(boundary_targets[frame])[order]
-
-    x0_boundary = x[sim.boundary].copy()
-    out = np.empty((T,) + x.shape)
-    out[0] = x
-    bar = None
-    if progress:
-        from rich.progress import Progress
-
-        bar = Progress()
-        bar.start()
-        task = bar.add_task("simulating", total=T - 1)
-    try:
-        for f in range(1, T):
-            stats_frame = []
-            tb0, tb1 = targets(f - 1), targets(f)
-            for k in range(substeps):
-                w0, w1 = k / substeps, (k + 1) / substeps
-                b0 = (1 - w0) * bodies[f - 1] + w0 * bodies[f]
-                b1 = (1 - w1) * bodies[f - 1] + w1 * bodies[f]
-                tgt = None if tb1 is None else (1 - w1) * tb0 + w1 * tb1
-                x, v, st = sim.step(x, v, b0, b1, collider_faces, tgt)
-                stats_frame.append(st)
-            out[f] = x
-            if callback is not None:
-                callback(f, x, stats_frame)
-            if bar is not None:
-                bar.update(task, advance=1)
-    finally:
-        if bar is not None:
-            bar.stop()
-    return out

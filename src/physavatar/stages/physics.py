@@ -38,18 +38,18 @@ from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 
 from ..errors import PhysavatarError
 from ..geometry import submesh
 from ..optim import Adam, lm_step
-from ..sim import ClothSim, Material, SimSettings, preset
+from ..sim import Material, SimSettings, preset
 from ..sim.material import CODIM_BASE_POISSON, CODIM_BASE_THICKNESS, CODIM_BASE_YOUNG
+from ..sim.sensitivity import BLEND, Rollout
+from ..sim.sensitivity import rollout as sim_rollout
 
 PARAMETERS = ("density", "stretch_stiffness", "bend_stiffness")
-# The BDF2 blend γ (Material.bdf2_blend) is a parameter of the simulation model, fitted with the
-# stiffnesses in BDF2 (fit_exact(fit_blend=True)); unlike them it is optimised as is, in [0, 1].
-BLEND = "bdf2_blend"
+# The BDF2 blend γ (BLEND, Material.bdf2_blend) is a parameter of the simulation model, fitted with
+# the stiffnesses in BDF2 (fit_exact(fit_blend=True)); unlike them it is optimised as is, in [0, 1].
 SYMBOLS = {"density": "rho", "stretch_stiffness": "ks", "bend_stiffness": "kb", BLEND: "gamma"}
 
 # -- the paper's hyper-parameters (App. A.3.3 and the official Codim-IPC driver), in our units --
@@ -306,22 +306,7 @@ def on_proxy(data: PhysicsData, proxy) -> PhysicsData:
     )
 
 
-# -- simulation with forward sensitivities -------------------------------------------------------
-
-
-@dataclasses.dataclass
-class Rollout:
-    """One simulated window.
-
-    positions: [T, N, 3]; jacobian: [T, N, 3, P] ∂x_t/∂log θ_p (None unless requested);
-    newton_iterations: total over the steps; converged: every step met the Newton tolerance.
-    """
-
-    positions: np.ndarray
-    jacobian: np.ndarray | None
-    newton_iterations: int
-    converged: bool
-    wall_time: float
+# -- simulation with forward sensitivities (physavatar.sim.sensitivity) ---------------------------
 
 
 def _with_log_params(material: Material, names, log_values) -> Material:
@@ -334,211 +319,19 @@ def _theta(material: Material, names) -> np.ndarray:
     return np.array([getattr(material, n) if n == BLEND else math.log(getattr(material, n)) for n in names])
 
 
-def _solve_exact(H: sp.csr_matrix, rhs: np.ndarray, preconditioners=(), rtol: float = 1e-10) -> np.ndarray:
-    """Solve H S = rhs [n, P] with the exact (unprojected) Hessian H at the step's solution.
-
-    H need not be positive definite: near a buckling minimiser (folds, the barrier's curvature
-    left unresolved by the Newton tolerance) it has small negative eigenvalues, and a
-    Cholesky of H fails (CHOLMOD "not positive definite") while a pivoting LU of a 10⁴-DOF
-    shell Hessian takes seconds per step. So H is not factorised: GMRES (indefinite-safe) runs
-    on H, preconditioned with a Cholesky factor of the PSD-projected Newton matrix the step
-    already has (it differs from H only in the clamped negative curvature of membrane, bending
-    and contact, so tens of iterations suffice). ``preconditioners``: callables, each returning
-    a solve ([n] -> [n]) or None, tried in order until GMRES reaches ``rtol``; LU is the
-    always-right last resort.
-    """
-    rhs = np.asarray(rhs, dtype=np.float64)
-    for make in preconditioners:
-        solve = make()
-        if solve is None:
-            continue
-        M = sla.LinearOperator(H.shape, matvec=solve, dtype=np.float64)
-        X = np.zeros_like(rhs)
-        ok = True
-        for j in range(rhs.shape[1]):
-            b = rhs[:, j]
-            bn = np.linalg.norm(b)
-            if bn == 0.0:
-                continue
-            x, info = sla.gmres(H, b, x0=solve(b), M=M, rtol=rtol, atol=0.0, restart=50, maxiter=4)
-            res = np.linalg.norm(H @ x - b) / bn
-            if not (np.isfinite(res) and res <= 10 * rtol):
-                ok = False
-                break
-            X[:, j] = x
-        if ok:
-            return X
-    return sla.splu(H.tocsc()).solve(rhs)
-
-
 def rollout(data: PhysicsData, material: Material, settings: SimSettings | None = None,
             parameters=None, substeps: int = 1) -> Rollout:
     """Simulate ``data``'s window with ``material`` from ``data.initial`` (default the reference
-    frame 0) at rest. Returns a :class:`Rollout`.
+    frame 0) at rest (:func:`physavatar.sim.sensitivity.rollout`). Returns a :class:`Rollout`.
 
     Args:
-        parameters: names (from :data:`PARAMETERS`) to differentiate with respect to (in log
-            space), or None for a plain simulation.
+        parameters: names (from :data:`PARAMETERS` and :data:`BLEND`) to differentiate with
+            respect to (in log space; γ as is), or None for a plain simulation.
         substeps: implicit steps per frame (body and boundary interpolated linearly).
-
-    The sensitivity of one step (docs/physics.md): the solution x⁺ of ∇E(x⁺; xₜ, vₜ, θ) = 0
-    moves with θ as H ∂x⁺ = −(∂∇E/∂θ + ∂∇E/∂xₜ ∂xₜ + ∂∇E/∂vₜ ∂vₜ). Every term of E is linear in
-    its parameter, so ∂∇E/∂log κ is the term's own gradient; inertia, gravity, barrier (ipctk's
-    adaptive κ is ∝ mass) and friction (∝ κ) scale with ρ. xₜ, vₜ enter through x̃ = xₜ + h vₜ
-    (inertia), xₜ through friction's velocity (x − xₜ)/h and mass damping. Dirichlet vertices
-    and the body are prescribed: zero sensitivity. Friction's lagged normal forces and tangent
-    bases are held fixed (as the solver does within a step). With BDF2 (settings.integrator)
-    the same holds with (xₜ, vₜ, h) replaced by the step's base (x̂, v̂, ĥ = 2h/3),
-    x̂ = 4/3 xₜ − 1/3 xₜ₋₁ and v̂ likewise: the sensitivities of the base are those of the
-    last two states (ClothSim.step_base).
     """
-    t0 = time.perf_counter()
-    settings = settings or SimSettings()
-    h = 1.0 / (data.fps * substeps)
-    names = tuple(parameters or ())
-    unknown = set(names) - set(PARAMETERS) - {BLEND}
-    if unknown:
-        raise ValueError(f"unknown parameters {sorted(unknown)}; choose from {PARAMETERS + (BLEND,)}")
-    want = bool(names)
-    if want and settings.damping_stiffness > 0:
-        raise ValueError("exact sensitivities do not cover stiffness-proportional damping (lagged K(x_t))")
-    settings = dataclasses.replace(settings, dt=h, keep_linearization=want or settings.keep_linearization)
-    sim = ClothSim(data.rest, data.faces, material, settings, data.boundary)
-    T, N = data.frames, len(data.rest)
-    x = np.array(data.reference[0] if data.initial is None else data.initial, dtype=np.float64)
-    v = np.zeros_like(x)
-    out = np.empty((T, N, 3))
-    out[0] = x
-    P = len(names)
-    S = np.zeros((3 * N, P))  # ∂x_t/∂log θ (flat, vertex-major)
-    V = np.zeros((3 * N, P))
-    bdf2 = settings.integrator == "bdf2"
-    g3 = material.bdf2_blend / 3.0  # the base's weight on xₜ₋₁ (ClothSim.step_base)
-    jb = names.index(BLEND) if BLEND in names else None
-    history = None  # (x, v, S, V) at t−1 (BDF2)
-    jac = np.zeros((T, N, 3, P)) if want else None
-    bodies = data.collider
-    faces_b = data.collider_faces
-    tg = data.boundary_targets
-    iters, converged = 0, True
-    for f in range(1, T):
-        for k in range(substeps):
-            w0, w1 = k / substeps, (k + 1) / substeps
-            b0 = b1 = None
-            if bodies is not None:
-                b0 = (1 - w0) * bodies[f - 1] + w0 * bodies[f]
-                b1 = (1 - w1) * bodies[f - 1] + w1 * bodies[f]
-            target = (1 - w1) * tg[f - 1] + w1 * tg[f] if len(data.boundary) else None
-            blend = None  # (∂ĥ/∂γ, x̂, v̂) of a BDF2 step, when γ is a parameter
-            if bdf2 and history is not None:  # the base of the step and its sensitivities
-                xp, vp, Sp, Vp = history
-                SB, VB = (1.0 + g3) * S - g3 * Sp, (1.0 + g3) * V - g3 * Vp
-                if jb is not None:  # x̂ = (1 + γ/3) xₜ − γ/3 xₜ₋₁ moves with γ itself
-                    SB[:, jb] += (x - xp).ravel() / 3.0
-                    VB[:, jb] += (v - vp).ravel() / 3.0
-                    xb, vb, _ = sim.step_base(x, v, history=(xp, vp))
-                    blend = (-h / 3.0, xb, vb)
-                history = (x, v, S, V)
-                x, v, st = sim.step(x, v, b0, b1, faces_b, target, history=(xp, vp))
-            else:  # implicit Euler (BDF2's first step too)
-                history = (x, v, S, V)
-                SB, VB = S, V
-                x, v, st = sim.step(x, v, b0, b1, faces_b, target)
-            iters += st.newton_iterations
-            converged &= st.converged
-            if not np.all(np.isfinite(x)):
-                raise FloatingPointError("simulation produced non-finite positions")
-            if want:
-                S, V = _step_sensitivity(sim, x, b1, SB, VB, names, sim.h_implicit, blend)
-        out[f] = x
-        if want:
-            jac[f] = S.reshape(N, 3, P)
-    return Rollout(out, jac, iters, converged, time.perf_counter() - t0)
-
-
-def _step_sensitivity(sim: ClothSim, x_new, body_new, S, V, names, h, blend=None):
-    """Propagate (S, V) = ∂(x̂, v̂)/∂log θ of the step's base (xₜ, vₜ for implicit Euler) through
-    the step ``sim`` just took, ``h`` its implicit step ĥ (see :func:`rollout`).
-
-    blend: (∂ĥ/∂γ, x̂ [N, 3], v̂ [N, 3]) when the BDF2 blend γ is a parameter (column ``BLEND``;
-    None on steps γ does not enter, e.g. the first). γ moves the base (already in S, V) and ĥ:
-    ∂∇E/∂ĥ of inertia M(x − x̂ − ĥv̂)/ĥ² is −M v̂/ĥ² − 2M(x − x̃)/ĥ³, of mass damping
-    αM(x − x̂)/ĥ it is −αM(x − x̂)/ĥ², of friction ∇_v D((X − X̂)/ĥ) it is −H_f (X − X̂)/ĥ over
-    the cloth (the body's base moves with ĥ so that its velocity does not change), and the new
-    velocity (x⁺ − x̂)/ĥ gains −(x⁺ − x̂) ∂ĥ/ĥ²."""
-    N = sim.n
-    X = x_new if body_new is None else np.vstack([x_new, body_new])
-    lin = sim.linearization
-    dof_map = lin.dof_map
-    fidx = np.flatnonzero(dof_map[: 3 * N] >= 0)
-    order = dof_map[fidx]  # reduced row of each free cloth DOF
-    H = lin.hessian
-    if H is None or H.shape[0] != len(fidx):  # step ended in penalty mode: assemble it here
-        sim.scene.prepare_static(X)
-        H = sim.assembler_free.assemble([t.hessian(X, project=False) for t in sim._active_terms(False)])
-        dof_map = sim.assembler_free.dof_map
-        fidx = np.flatnonzero(dof_map[: 3 * N] >= 0)
-        order = dof_map[fidx]
-    m = np.repeat(sim.inertia.mass[:N], 3)  # lumped mass per DOF (0 on Dirichlet vertices)
-    # ∂∇E/∂xₜ S + ∂∇E/∂vₜ V, restricted to the free DOFs (prescribed ones have S = 0).
-    coupling = -(m / h**2)[:, None] * (S + h * V)
-    if sim.settings.damping_mass > 0:
-        coupling -= (sim.settings.damping_mass * m / h)[:, None] * S
-    if len(sim.friction.tangential):
-        Hf = sim.friction.hessian(X, project=False).tocsr()[: 3 * N, : 3 * N]
-        coupling -= Hf @ S
-    rhs = np.zeros((len(fidx), len(names)))
-    mass_terms = [sim.inertia, sim.gravity, sim.barrier, sim.friction]
-    if sim.settings.damping_mass > 0:
-        mass_terms.append(sim.mass_damping)
-    for j, name in enumerate(names):
-        if name == "stretch_stiffness":
-            g = sim.membrane.gradient(X)
-        elif name == BLEND:
-            g = np.zeros(3 * N)
-            if blend is not None:
-                dh, xb, vb = blend
-                d_in = -(m / h**2) * vb.ravel() - 2.0 * (m / h**3) * (x_new - sim.inertia.target[:N]).ravel()
-                if sim.settings.damping_mass > 0:
-                    d_in -= (sim.settings.damping_mass * m / h**2) * (x_new - xb).ravel()
-                if len(sim.friction.tangential):
-                    d_in -= Hf @ ((X[:N] - sim.friction.previous[:N]).ravel() / h)
-                g = dh * d_in
-        elif name == "bend_stiffness":
-            g = sim.bending.gradient(X)
-        else:
-            g = np.sum([t.gradient(X) for t in mass_terms], axis=0)
-        rhs[order, j] = -(g[: 3 * N][fidx] + coupling[fidx, j])
-    sol = _solve_exact(H, rhs, _projected_preconditioners(sim, H.shape[0]))
-    S_new = np.zeros_like(S)
-    S_new[fidx] = sol[order]
-    V_new = (S_new - S) / h
-    if blend is not None:  # only passed with γ among the parameters
-        dh, xb, _ = blend
-        V_new[:, names.index(BLEND)] -= (x_new - xb).ravel() * (dh / h**2)
-    return S_new, V_new
-
-
-def _projected_preconditioners(sim: ClothSim, n: int):
-    """Solves with Cholesky factors of the step's PSD-projected Newton matrix over the free DOFs,
-    cheapest first: the (sparsified) factor the Newton solver holds, then a factor of the last
-    projected matrix itself (computed only if the first is not good enough). Each is None when
-    it does not have ``n`` rows (a step that ended in penalty mode)."""
-
-    def held():
-        factor = getattr(getattr(sim, "linear_solver", None), "factor", None)
-        return factor.solve if factor is not None and getattr(factor, "n", -1) == n else None
-
-    def fresh():
-        lin = sim.linearization
-        if lin is None or lin.matrix is None or lin.matrix.shape[0] != n:
-            return None
-        try:
-            return lin.factorization.solve
-        except (RuntimeError, ValueError):
-            return None
-
-    return (held, fresh)
+    x0 = data.reference[0] if data.initial is None else data.initial
+    return sim_rollout(data.rest, data.faces, material, data.collider, data.collider_faces, data.boundary,
+                       data.boundary_targets, data.fps, substeps, settings, x0, parameters)
 
 
 # -- loss ----------------------------------------------------------------------------------------

@@ -1,0 +1,138 @@
+"""Settings of the cloth simulator and what one step reports (SimSettings, StepStats)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class SimSettings:
+    """Solver settings (SI units). Defaults: the official PhysAvatar Codim-IPC setup.
+
+    Attributes:
+        dt: time step [s] (0.04 = one step per frame at 25 fps).
+        integrator: "euler" (implicit Euler, the paper's and Codim-IPC's) or "bdf2" (the
+            two-step backward differentiation formula, IPC's other integrator: second order, so
+            far less numerical damping at the same step; docs/simulation.md "Time integration").
+            BDF2 is implicit Euler with step 2h/3 from x̂ = 4/3 xₜ − 1/3 xₜ₋₁ with velocity
+            4/3 vₜ − 1/3 vₜ₋₁; the previous state comes from ``step(history=...)`` or, when the
+            step continues the last one, from the sim itself; without one (the first step) the
+            step is implicit Euler (a second-order start: the velocity error is O(h²)).
+        dhat: barrier activation distance d̂ [m].
+        dmin: minimum separation kept between surfaces [m] (a thickness offset; 0 = none).
+        friction: Coulomb coefficient μ (0 turns friction off).
+        friction_eps_v: velocity below which friction is static [m/s] (ipctk ε_v).
+        friction_iterations: lagged-friction updates per step (1 = λ, T from the step start).
+        self_contact: resolve garment–garment contact too.
+        membrane_model: "stvk" (the paper) or "neohookean" (Codim-IPC default).
+        damping_mass: Rayleigh α [1/s], damping force −α M v.
+        damping_stiffness: Rayleigh β [s], damping force −β K(xₜ) v.
+        newton_tol: stop when the Newton step Δx, as a velocity Δx / h, is below newton_tol
+            [m/s] in the norm ``newton_norm``.
+        newton_norm: "rms" (default; Codim-IPC's, the official PhysAvatar setup): the root
+            mean square over the free cloth vertices of ‖Δx_i‖ / h, the step is taken, and the
+            solve ends once ``newton_window`` consecutive steps were below newton_tol (Codim-IPC
+            uses 3; 1 here: docs/simulation.md "Speed" compares them). "max": ‖Δx‖∞ / h
+            (no vertex's implicit velocity changes by more than newton_tol), the step is not
+            taken (stricter).
+        newton_window: see newton_norm ("rms" only).
+        bending_hessian: PSD approximation of the hinge Hessians in the Newton matrix:
+            "gauss_newton" (c ∇θ∇θᵀ, PSD by construction, no eigendecomposition; the cloth-
+            solver standard) or "eigen" (exact Hessian with eigenvalues clamped at 0). Only the
+            search direction depends on it, not the solution.
+        warm_start: start Newton from the CCD-clipped inertial prediction xₜ + h vₜ when its
+            energy is lower than at xₜ (else from xₜ).
+        follow_body: when the body's move to its pose at t+1 is cut by CCD (which would start
+            the kinematic-penalty phase), first try a start where every free cloth vertex within
+            this distance [m] of the body is carried rigidly with its closest body triangle
+            (fading to the inertial prediction at twice the distance). If that move is
+            collision-free, Newton starts there with the body at its pose and no penalty phase;
+            otherwise the penalty phase starts from its collision-free part. 0 = off. Changes
+            the path to the minimiser, not the minimiser.
+        step_expansion: when a full Newton step was accepted but the residual fell by less
+            than 30%, also try 2, 4, ... 64 times the step (CCD- and energy-checked;
+            ClothSim._expand_step). Changes the path to the minimiser, not the minimiser.
+        linear_rtol, max_cg_iterations: the Newton system is solved by CG, preconditioned
+            with the Cholesky factor of a sparsified (1-ring) Newton matrix, to relative
+            residual linear_rtol; max_cg_iterations bounds CG before a fresh factor is taken
+            (0 = factorise the Newton matrix itself every iteration, a direct solve).
+        newton_forcing: relative CG residual of the Newton directions that do not end the
+            solve (inexact Newton; most are cut by CCD anyway). The direction that passes the
+            stopping test is always refined to 1e-10, so only the path changes. Penalty-mode
+            systems keep 1e-10 (their path decides where friction is re-lagged).
+        max_newton_iterations: give up (and report converged=False) after this many.
+        max_penalty_iterations: give up the kinematic-penalty phase after this many iterations
+            (the body could not reach its pose: cloth pinched between body parts that leave it
+            no room). The step keeps the intersection-free state it reached, and the body
+            *lags*: the next step starts from where the body got to, not from the pose it was
+            given (``StepStats.body_gap`` says how far short it stopped), so the state stays
+            intersection-free and the body catches up once the pinch opens.
+        barrier_stiffness_scale: ipctk min_barrier_stiffness_scale of the adaptive κ.
+        kinematic_penalty: penalty weight of the prescribed vertices, × mean mass / h².
+        keep_linearization: also assemble the exact (unprojected) Hessian at the solution and
+            keep it with the last factorization in ``ClothSim.linearization`` (for adjoints).
+        deterministic: run ipctk single-threaded so results are bit-identical run to run.
+        ccd_threads: threads of the CCD narrow phase (ipctk; with ``deterministic``). Its
+            result is a minimum over the candidates, the same bits on any number of threads;
+            1 by default: two were slower on a loaded 2-core machine, and process pools run
+            one simulation per core (docs/simulation.md "Speed").
+        gravity: [3] m/s².
+    """
+
+    dt: float = 0.04
+    integrator: str = "euler"
+    dhat: float = 1e-3
+    dmin: float = 0.0
+    friction: float = 0.2
+    friction_eps_v: float = 1e-3
+    friction_iterations: int = 1
+    self_contact: bool = False
+    membrane_model: str = "stvk"
+    damping_mass: float = 0.0
+    damping_stiffness: float = 0.0
+    newton_tol: float = 1e-3
+    newton_norm: str = "rms"
+    newton_window: int = 1
+    bending_hessian: str = "gauss_newton"
+    warm_start: bool = True
+    follow_body: float = 0.04
+    follow_segments: int = 4
+    follow_lift: float = 1.0
+    follow_retry: int = 3
+    step_expansion: bool = True
+    linear_rtol: float = 1e-6
+    newton_forcing: float = 1e-3
+    max_cg_iterations: int = 100
+    max_newton_iterations: int = 100
+    max_penalty_iterations: int = 40
+    barrier_stiffness_scale: float = 1e11
+    kinematic_penalty: float = 1e6
+    keep_linearization: bool = False
+    deterministic: bool = True
+    ccd_threads: int = 1
+    gravity: tuple = (0.0, 0.0, -9.81)
+
+
+@dataclasses.dataclass
+class StepStats:
+    """What one step did. Times in seconds."""
+
+    newton_iterations: int = 0
+    converged: bool = False
+    line_search_iterations: int = 0
+    step_expansions: int = 0  # line-search doublings beyond α = 1 (ClothSim._expand_step)
+    penalty_iterations: int = 0
+    body_follows: int = 0  # times the cloth was carried with the body (SimSettings.follow_body)
+    body_gap: float = 0.0  # [m] how far the body (or a Dirichlet vertex) stopped short of its pose
+    body_lagged: bool = False  # the step started from where the last step's body got to
+    barrier_stiffness: float = 0.0
+    min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]
+    n_contacts: int = 0
+    residual: float = float("inf")  # last ‖Δx‖∞ / h [m/s]
+    factorizations: int = 0  # sparse Cholesky factorisations (the rest were CG solves)
+    cg_iterations: int = 0
+    time: dict = dataclasses.field(
+        default_factory=lambda: dict(
+            assembly=0.0, contact=0.0, linear_solve=0.0, ccd=0.0, line_search=0.0, total=0.0
+        )
+    )

@@ -1,0 +1,144 @@
+"""Where a step's Newton solve starts: the inertial prediction, or the cloth carried with the body.
+
+Both only change the path to the step's minimiser, not the minimiser (docs/simulation.md "The
+step", "Moving collider"). ``warm_start`` starts from the CCD-clipped inertial prediction when
+its energy is lower; ``follow_body`` carries the cloth near the body rigidly with its closest
+body triangles (:class:`SurfaceCarry`) when the body's own move is cut by CCD, which spares the
+kinematic-penalty phase.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+class SurfaceCarry:
+    """Points carried rigidly by their closest triangles of a deforming surface.
+
+    Each point p is written as q + δ, q = Σ w_k v_k the closest point on a triangle (barycentric
+    w) and δ in that triangle's orthonormal frame (first edge, in-plane normal, face normal);
+    ``at(V)`` rebuilds the points on the surface posed as V. Exact for a rigid motion of each
+    triangle. The closest triangle is searched among the k with the nearest centroids: not
+    always the global one (a long triangle's centroid can be far), which only matters where
+    the carry is a heuristic (the solver's start, checked by CCD).
+
+    Attributes: distance [m] (|δ|), face, bary, side (+1 where p lies on the normal's side).
+    """
+
+    def __init__(self, V, F, P, k=8):
+        from scipy.spatial import cKDTree
+
+        from ..geometry import closest_point_triangle
+
+        V, P = np.asarray(V, dtype=np.float64), np.asarray(P, dtype=np.float64)
+        self.F = np.asarray(F, dtype=np.int64)
+        k = min(k, len(self.F))
+        _, cand = cKDTree(V[self.F].mean(1)).query(P, k=k)
+        cand = cand.reshape(len(P), k)
+        t = self.F[cand.ravel()]
+        Pr = np.repeat(P, k, axis=0)
+        w = closest_point_triangle(Pr, V[t[:, 0]], V[t[:, 1]], V[t[:, 2]])
+        q = np.einsum("nk,nkd->nd", w, V[t])
+        dist = np.linalg.norm(Pr - q, axis=1).reshape(len(P), k)
+        j = np.argmin(dist, axis=1)
+        r = np.arange(len(P))
+        self.distance = dist[r, j]
+        self.face = cand[r, j]
+        self.bary = w.reshape(len(P), k, 3)[r, j]
+        q = q.reshape(len(P), k, 3)[r, j]
+        R, _ = self._frames(V)
+        self.local = np.einsum("mij,mj->mi", R, P - q)
+        self.side = np.where(self.local[:, 2] < 0, -1.0, 1.0)
+
+    def _frames(self, V):
+        tri = V[self.F[self.face]]  # [m, 3 (vertex), 3]
+        e1 = tri[:, 1] - tri[:, 0]
+        nrm = np.cross(e1, tri[:, 2] - tri[:, 0])
+        e1 = e1 / np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-300)
+        nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        return np.stack([e1, np.cross(nrm, e1), nrm], axis=1), tri  # rows: the frame's axes
+
+    def at(self, V, lift=None):
+        """The carried points on the surface posed as V [Nv, 3]; ``lift`` [m] (per point) is
+        added along the face normal."""
+        R, tri = self._frames(np.asarray(V, dtype=np.float64))
+        P = np.einsum("mk,mkd->md", self.bary, tri) + np.einsum("mij,mi->mj", R, self.local)
+        if lift is not None:
+            P = P + np.asarray(lift)[:, None] * R[:, 2]
+        return P
+
+
+def warm_start(scene, terms, free, X, x_pred, stats):
+    """Start Newton from the inertial prediction x̃ (free cloth vertices, mask ``free`` [n]),
+    clipped by CCD so it stays intersection-free, when its energy under ``terms`` is below that
+    of X (IPC's initial guess). Returns the start."""
+    n = len(free)
+    X_pred = X.copy()
+    X_pred[:n][free] = x_pred[free]
+    tc = time.perf_counter()
+    alpha = scene.collision_free_stepsize(X, X_pred)
+    stats.time["ccd"] += time.perf_counter() - tc
+    if alpha <= 0.0:
+        return X
+    X_pred = X + alpha * (X_pred - X)
+    scene.prepare_static(X)
+    e0 = sum(t.energy(X) for t in terms)
+    scene.prepare_static(X_pred)
+    e1 = sum(t.energy(X_pred) for t in terms)
+    return X_pred if e1 < e0 else X
+
+
+def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats):
+    """Carry the cloth along with the body from X_from to the body pose of X_goal
+    (SimSettings.follow_body). Returns (X, reached): X_goal's body with the carried cloth
+    when every leg of the move is collision-free (reached = True), else X_from moved by
+    the collision-free part of the move (reached = False).
+
+    Free cloth vertices (mask ``free`` [n]) within ``follow_body`` of the body move rigidly with
+    their closest body triangle (SurfaceCarry), fading to x_pred (the inertial prediction;
+    None = stay) at twice that distance. The body's vertices move on straight lines, a carried
+    point on a rotating triangle does not, and a straight cloth path dips towards the triangle
+    by ~θ²L/8 (tens of µm, more than the µm gaps of resting contacts): the cloth follows its
+    triangles through ``follow_segments`` intermediate body poses, each leg CCD-checked.
+    Cloth in an active contact (within d̂, from the barrier's collision set) is also lifted
+    off along the triangle normal, up to ``follow_lift`` × d̂ by the end: those gaps would
+    not survive the small non-rigid distortions of the carry; the free phase settles it
+    back in a few iterations.
+    """
+    s = settings
+    n = len(free)
+    free = np.flatnonzero(free)
+    b0 = X_from[n:]
+    x = X_from[:n][free]
+    x_end = x if x_pred is None else x_pred[free]
+    tq = time.perf_counter()
+    carry = SurfaceCarry(b0, body_faces, x)
+    weight = np.clip(2.0 - carry.distance / s.follow_body, 0.0, 1.0)[:, None]
+    gap = np.full(n, np.inf)  # per cloth vertex: the closest active contact it is part of
+    scene.prepare_static(X_from)
+    coll = scene.collisions_at(X_from)
+    E, Fa = scene.mesh.edges, scene.mesh.faces
+    for group in (coll.vv_collisions, coll.ev_collisions, coll.ee_collisions, coll.fv_collisions):
+        for c in group:
+            ids = [i for i in c.vertex_ids(E, Fa) if i >= 0]
+            cloth = [i for i in ids if i < n]
+            gap[cloth] = np.minimum(gap[cloth], np.sqrt(max(c.compute_distance(X_from[ids].ravel()), 0.0)))
+    gap = np.minimum(gap[free], carry.distance)
+    lift = np.clip(s.follow_lift * s.dhat - gap, 0.0, None) * carry.side
+    stats.time["contact"] += time.perf_counter() - tq
+    X_seg = X_from
+    K = max(1, int(s.follow_segments))
+    for k in range(1, K + 1):
+        t = k / K
+        X_next = X_goal.copy() if k == K else X_from + t * (X_goal - X_from)
+        carried = carry.at(X_next[n:], lift=t * lift)
+        X_next[:n][free] = weight * carried + (1.0 - weight) * (x + t * (x_end - x))
+        tc = time.perf_counter()
+        alpha = scene.collision_free_stepsize(X_seg, X_next)
+        stats.time["ccd"] += time.perf_counter() - tc
+        if alpha < 1.0:
+            return X_seg + alpha * (X_next - X_seg), False
+        X_seg = X_next
+    return X_seg, True
