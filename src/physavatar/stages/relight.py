@@ -54,6 +54,9 @@ def relight(mesh_vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndarray, 
 
 @dataclass(frozen=True)
 class RelightConfig:
+    """The ``relight`` command's settings: the light (a name of the light table or an environment
+    map file), the frame, samples per pixel, the environment map's strength, the image scale."""
+
     light: str = option("sky", "fitted, studio, ambient, sky, sun, point, or an .hdr/.exr environment map "
                                "(docs/rendering.md)")
     frame: int | None = option(None, "frame id (default: the first)")
@@ -64,6 +67,8 @@ class RelightConfig:
 
 @dataclass
 class RelightResult:
+    """What ``run`` wrote: the contact sheet ``out`` of ``views`` renders of ``frame``."""
+
     out: Path
     frame: int
     views: int
