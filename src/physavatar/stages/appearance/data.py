@@ -4,9 +4,9 @@ per-face colours of tracking, and the training targets (linear images, eroded ma
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -117,4 +117,3 @@ def load_target(capture: Capture, cam: Camera, frame: int, scale: float, erode_p
     small = cam.scaled(scale)
     w, h = small.width, small.height
     return _resize(img, w, h), _resize(m.astype(np.float32), w, h) > 0.999
-

@@ -72,7 +72,7 @@ class FittedAppearance:
     lights: list
 
     @staticmethod
-    def load(folder: str | Path) -> "FittedAppearance":
+    def load(folder: str | Path) -> FittedAppearance:
         folder = Path(folder)
         p = folder / "texture_linear.npy"
         if not p.is_file():
