@@ -8,6 +8,8 @@ from typing import Optional
 
 import typer
 
+from ..stages import appearance
+from ..stages import relight as relight_stage
 from ..stages.appearance import AppearanceConfig
 from ..stages.relight import RelightConfig
 from ._common import app, console, handle_errors
@@ -26,8 +28,6 @@ def fit_appearance_cmd(
 ):
     """Fit a relightable diffuse texture and the light by inverse rendering (docs/appearance.md)."""
     import numpy as np
-
-    from ..stages import appearance
 
     if quick:
         config = appearance.quick_preset(config)
@@ -56,7 +56,5 @@ def relight(
     config: RelightConfig,
 ):
     """Render the avatar with its fitted texture under a new light, from every capture camera."""
-    from ..stages import relight as stage
-
-    res = stage.run(source, out=out, config=config, texture=texture, capture=capture, progress=True)
+    res = relight_stage.run(source, out=out, config=config, texture=texture, capture=capture, progress=True)
     console.print(f"wrote {res.out} ({res.views} views of frame {res.frame}, {res.size[0]}x{res.size[1]})")
