@@ -34,16 +34,16 @@ import numpy as np
 
 from physavatar.capture import load_capture
 from physavatar.render import Ambient, light_to_json
-from physavatar.stages.appearance import (
-    AppearanceConfig,
+from physavatar.stages.appearance import AppearanceConfig
+from physavatar.stages.appearance.data import load_appearance_data
+from physavatar.stages.appearance.evaluation import (
     baked_shading,
     best_ambient,
     covered_texels,
-    fit_appearance,
     heldout_metrics,
-    load_appearance_data,
     texture_psnr,
 )
+from physavatar.stages.appearance.fit import fit_appearance
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

@@ -12,21 +12,13 @@ import pytest
 from physavatar.capture import load_capture
 from physavatar.render import Ambient, AreaLight
 from physavatar.render.avatar import AvatarMeshes
-from physavatar.stages.appearance import (
-    AppearanceConfig,
-    InverseRenderer,
-    baked_shading,
-    covered_texels,
-    fit_appearance,
-    initial_lights,
-    load_appearance_data,
-    load_target,
-    relight,
-    splat_face_colors,
-    texel_face_map,
-    texture_psnr,
-    uv_atlas,
-)
+from physavatar.stages.appearance import AppearanceConfig
+from physavatar.stages.appearance.data import load_appearance_data
+from physavatar.stages.appearance.evaluation import baked_shading, covered_texels, texture_psnr
+from physavatar.stages.appearance.fit import fit_appearance
+from physavatar.stages.appearance.scene import InverseRenderer, initial_lights
+from physavatar.stages.appearance.texture import splat_face_colors, uv_atlas
+from physavatar.stages.relight import relight
 from physavatar.synth import PRESETS, synthesize
 
 

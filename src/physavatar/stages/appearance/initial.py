@@ -1,0 +1,106 @@
+"""The initial texture T_0 (the paper's initialization, Sec. 3.3): per-face colours averaged over
+frames, splatted into the atlas. The colours are the tracking stage's Gaussian colours, or, without
+them, each face's mean colour over the image pixels that see it (a face-id buffer traced per camera
+and frame)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ...camera import Camera
+from ...files import load_npz, save_npz_atomic
+from ...progress import resolve
+from ...render import MeshSpec, SceneSpec, load_scene, mitsuba, srgb_to_linear
+from .config import AppearanceConfig
+from .data import AppearanceData
+from .texture import splat_face_colors
+
+VISIBILITY_FRAMES = 8  # frames over which face visibility is counted when tracked colours exist
+
+
+def face_id_buffer(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray:
+    """[H, W] int64 index of the face seen through each pixel centre (-1: background), by
+    tracing the camera's pixel rays against the mesh with Mitsuba."""
+    mi = mitsuba()
+    scene = load_scene(SceneSpec(meshes=[MeshSpec("m", vertices, faces, smooth=False)]))
+    o, d = camera.pixel_rays()
+    d = d.reshape(-1, 3).astype(np.float32)
+    ray = mi.Ray3f(mi.Point3f(*[np.full(len(d), float(x), np.float32) for x in o]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+    si = scene.ray_intersect(ray)
+    ids = np.array(si.prim_index, dtype=np.int64)
+    ids[~np.array(si.is_valid())] = -1
+    return ids.reshape(camera.height, camera.width)
+
+
+def image_face_colors(data: AppearanceData, frame_stride: int = 1, erode_px: int = 2,
+                      advance=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-face colour from the images: the mean linear colour of the (eroded-mask) pixels whose
+    centre sees the face, over every used camera and every ``frame_stride``-th frame.
+
+    Returns:
+        colors [F, 3] linear (0 where unseen), pixels [F] count of pixels that saw each face.
+    """
+    from scipy.ndimage import binary_erosion
+
+    F = len(data.template.faces)
+    acc = np.zeros((F, 3))
+    cnt = np.zeros(F)
+    for ti in range(0, len(data.frames), frame_stride):
+        f = data.frames[ti]
+        for cam in data.cameras:
+            ids = face_id_buffer(data.vertices[ti], data.template.faces, cam)
+            m = data.capture.mask(cam.name, f) > 0.5
+            if erode_px > 0:
+                m = binary_erosion(m, structure=np.ones((3, 3), bool), iterations=erode_px)
+            sel = m & (ids >= 0)
+            img = srgb_to_linear(data.capture.image(cam.name, f))
+            np.add.at(acc, ids[sel], img[sel])
+            cnt += np.bincount(ids[sel], minlength=F)
+            if advance is not None:
+                advance()
+    colors = np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], 0.0)
+    return colors, cnt
+
+
+def initial_texture(data: AppearanceData, cfg: AppearanceConfig, out: Path, progress=None):
+    """Steps 1-2 of the fit: the atlas and T_0, read back from ``out`` (``atlas.npz``,
+    ``texture_init_linear.npy``) when they were made with the same settings, else computed and
+    written there.
+
+    Returns:
+        face_uvs [F, 3, 2], face_pixels [F] (training pixels that saw each face), T_0 [size,
+        size, 3] float32 linear. ``atlas.npz`` also keeps face_colors [F, 3], T_0's source.
+    """
+    t = data.template
+    atlas_path = out / "atlas.npz"
+    init_key = json.dumps({"texture_size": cfg.texture_size, "init_frame_stride": cfg.init_frame_stride,
+                           "erode_px": cfg.erode_px, "meshes": data.source, "frames": data.frames,
+                           "cameras": [c.name for c in data.cameras],
+                           "tracked_colors": data.face_colors is not None})
+    a = load_npz(atlas_path) if atlas_path.is_file() else {}
+    if str(a.get("init_key", "")) == init_key and (out / "texture_init_linear.npy").is_file():
+        return a["face_uvs"], a["face_pixels"], np.load(out / "texture_init_linear.npy")
+    face_uvs = t.face_uvs
+    used = range(0, len(data.frames), cfg.init_frame_stride)
+    # With tracked colours the image pass only counts which faces the training pixels see
+    # (``face_pixels``): a few frames spread over the sequence suffice for that.
+    stride = cfg.init_frame_stride if data.face_colors is None else \
+        max(cfg.init_frame_stride, len(data.frames) // VISIBILITY_FRAMES)
+    name = "appearance: per-face colours" if data.face_colors is None else "appearance: face visibility"
+    with resolve(progress).task(name, total=len(range(0, len(data.frames), stride)) * len(data.cameras)) as task:
+        img_colors, face_pixels = image_face_colors(data, stride, cfg.erode_px, advance=task.advance)
+    if data.face_colors is not None:
+        # the paper: mean over t of the tracked Gaussian colours (Sec. 3.3)
+        face_colors = data.face_colors[list(used)].mean(0)
+        seen = np.ones(len(t.faces), bool)
+    else:
+        face_colors, seen = img_colors, face_pixels > 0
+    tex0 = splat_face_colors(face_uvs, face_colors, cfg.texture_size, seen)
+    np.save(out / ".texture_init_linear.tmp.npy", tex0)
+    (out / ".texture_init_linear.tmp.npy").replace(out / "texture_init_linear.npy")
+    save_npz_atomic(atlas_path, face_uvs=face_uvs, face_colors=face_colors, face_pixels=face_pixels,
+                    init_key=np.array(init_key))
+    return face_uvs, face_pixels, tex0
