@@ -108,3 +108,10 @@ def test_progress_reports_to_callbacks_and_logs(caplog):
     assert t.done == 2
     with pytest.raises(TypeError):
         resolve(3)
+
+
+def test_settings_without_a_flag_are_named_when_changed():
+    from physavatar.stages.base import unflagged_changes
+
+    assert unflagged_changes(_Cfg()) == {}
+    assert unflagged_changes(_Cfg(secret=2.0, window=3, flow=_Flow(levels=2))) == {"secret": 2.0}

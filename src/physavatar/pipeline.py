@@ -125,7 +125,7 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
 
 def _command(st: Step, out: Path) -> list[str]:
     """The ``physavatar`` command line equivalent to a step (shown in the report)."""
-    from .stages.base import to_argv
+    from .stages.base import to_argv, unflagged_changes
 
     names = {"track": "track", "appearance": "fit-appearance", "physics": "fit-physics", "avatar": "build-avatar",
              "animate": "animate", "render": "render", "relight": "render", "export": "export",
@@ -137,7 +137,11 @@ def _command(st: Step, out: Path) -> list[str]:
     args += ["--out", str(st.out(out))]
     for k, v in rest:
         args += [f"--{k}", str(_resolve(v, out))]
-    return args + to_argv(st.config)
+    args += to_argv(st.config)
+    extra = unflagged_changes(st.config)
+    if extra:  # settings a preset changes that have no flag of their own
+        args += ["#"] + [f"{k}={v}" for k, v in extra.items()]
+    return args
 
 
 def _hash(st: Step, out: Path, record: dict) -> str:

@@ -35,8 +35,8 @@ def run(capture: Path, *, out: Path, config: AvatarConfig = AvatarConfig(), mate
     tv = None
     if tracked is not None:
         tv = TrackedSequence.load(tracked, require=("vertices",)).vertices[0]
-    if isinstance(material, Path) and material.is_dir():
-        material = material / "material.json"
+    if not isinstance(material, Material) and Path(material).is_dir():
+        material = Path(material) / "material.json"
     return build_avatar(capture, out, material=material, texture_dir=appearance, template_vertices=tv)
 
 

@@ -205,3 +205,23 @@ def get_path(config, path: str):
     for part in path.split("."):
         config = getattr(config, part)
     return config
+
+
+def unflagged_changes(config) -> dict:
+    """Settings without a command-line option whose value differs from the class default (dotted
+    names), e.g. what a preset such as fit-appearance's ``--quick`` sets beyond its flags."""
+    base = type(config)()
+    flagged = {s.path for s in options(type(config))}
+    out = {}
+
+    def walk(c, b, prefix):
+        for f in fields(c):
+            v, d = getattr(c, f.name), getattr(b, f.name)
+            path = prefix + f.name
+            if is_dataclass(v) and not isinstance(v, type):
+                walk(v, d, path + ".")
+            elif path not in flagged and v != d:
+                out[path] = _jsonable(v)
+
+    walk(config, base, "")
+    return out
