@@ -69,8 +69,8 @@ def fit_residuals(positions: np.ndarray, data: PhysicsData, shape_weight: float 
     r = x_t − x̂_t over frames ≥ 1 (Eq. 6), and with ``shape_weight`` w > 0 also w·L(x_t − x̂_t)
     (:func:`shape_operator`): the difference of local shape, blind to a smooth drift of the
     whole garment. Model error (another simulator's time stepping and damping, docs/physics.md)
-    mostly shows as such a drift, in which κb is nearly invisible (its effect on Eq. 6 is ~1 %
-    of a 1-vs-2-steps-per-frame mismatch on the dress); bending shows in the local shape.
+    mostly shows as such a drift, in which κb is nearly invisible ("Local shape" there);
+    bending shows in the local shape.
     positions: [T, N, 3]; jacobian: [T, N, 3, P] or None. Returns (r [M], J [M, P] or None).
     """
     d = (np.asarray(positions) - data.reference)[1:]

@@ -1,8 +1,7 @@
 """A coarse simulation proxy of a garment, for material estimation on big garments.
 
-Fitting the material needs ~10 simulations of the fitted window with sensitivities; at the
-demo capture's 3,353-vertex dress one plain 24-frame simulation takes minutes on two cores.
-The material is a property of the fabric, not of the mesh, so ``fit-physics`` fits it on a
+Fitting the material needs ~10 simulations of the fitted window with sensitivities, and one
+plain simulation of a garment of a few thousand vertices takes minutes on a CPU. The material is a property of the fabric, not of the mesh, so ``fit-physics`` fits it on a
 proxy of a few hundred vertices (docs/physics.md "Coarse proxy"):
 
 1. the template garment is decimated by shortest-edge-first edge collapses (our own, a few
