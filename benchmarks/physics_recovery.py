@@ -17,7 +17,7 @@ true" meaningless. Real data (or another simulator) carries model error, so the 
 here is simulated differently from the fits: ``--truth-substeps`` implicit steps per frame
 (default 2; the fits take 1, and implicit Euler's numerical damping depends on the step) and a
 10× tighter Newton tolerance (1e-6 m/s vs 1e-5); optionally on a finer mesh than the fitted
-one (``--proxy-vertices N``: the fits run on a decimated proxy, stages/proxy.py, the fine
+one (``--proxy-vertices N``: the fits run on a decimated proxy, stages/physics/proxy.py, the fine
 motion mapped onto it — the fit-physics path for big garments; its bias is large, see
 docs/physics.md "Coarse proxy"). The "true" row simulates the true material in the fitting
 model. The fit starts from the clean rest state and knows ν. Friction is off (docs/physics.md:
@@ -44,7 +44,7 @@ other_simulator the estimate predicts the held-out motion better than the true m
 that error measures the model gap rather than the estimator. The paper's estimator's κb/ρ is
 reported the same way. The exact estimator fits as ``fit-physics`` does by default
 (``--fit-integrator auto``): in implicit Euler, in BDF2 and in their blend with γ fitted,
-keeping the lowest objective (physics.fit_selecting_integrator); each material's held-out row is
+keeping the lowest objective (stages.physics.select.fit_selecting_integrator); each material's held-out row is
 simulated in the model it was fitted in (with its γ), and "true_bdf2" (the true material in BDF2,
 γ = 1) is added where an estimate kept BDF2 or the blend.
 The exact estimator runs with the local-shape residuals
@@ -85,9 +85,13 @@ from physavatar.body import BodyModel, builtin_motion, linear_blend_skinning
 from physavatar.garment import attachment_positions, garment_skinning_weights, make_garment
 from physavatar.metrics import chamfer_distance, sample_surface
 from physavatar.sim import PRESETS, SimSettings
-from physavatar.stages.physics import (SHAPE_WEIGHT, PhysicsData, far_material, fit_exact, fit_fd, fit_material,
-                                       fit_residuals, on_proxy, rollout, trajectory_loss)
-from physavatar.stages.proxy import GarmentProxy, make_proxy
+from physavatar.stages.physics.data import PhysicsData
+from physavatar.stages.physics.fit_exact import fit_exact
+from physavatar.stages.physics.fit_fd import fit_fd
+from physavatar.stages.physics.objective import fit_residuals, rollout, trajectory_loss
+from physavatar.stages.physics.parameters import SHAPE_WEIGHT, far_material
+from physavatar.stages.physics.proxy import GarmentProxy, make_proxy, on_proxy
+from physavatar.stages.physics.select import fit_material
 
 sys.path.insert(0, str(Path(__file__).parent))
 from _common import cpu_name  # noqa: E402
@@ -174,7 +178,7 @@ def fit_row(res, true, noise_floor):
 class Case:
     """One resolution pair: the ground truth is simulated on the dress at ``truth_edge``, the fits
     (and the held-out rows) on a decimated proxy of it with at most ``proxy_vertices`` vertices
-    (stages/proxy.py, as fit-physics does on a big garment), mapped by barycentric coordinates.
+    (stages/physics/proxy.py, as fit-physics does on a big garment), mapped by barycentric coordinates.
     With ``proxy_vertices`` 0 (or >= the dress's vertex count) the fit uses the dress itself."""
 
     def __init__(self, truth_edge, proxy_vertices, window, heldout_frames, heldout_motions=HELDOUT_MOTIONS):
@@ -316,7 +320,7 @@ def main():
     foreign_settings = ForeignSettings(alpha=args.foreign_alpha, beta=args.foreign_beta, friction=args.foreign_friction)
     fd_materials = [m for m in (args.fd_materials if args.fd_materials is not None
                                 else args.materials).split(",") if m]
-    # the ∞-norm stopping rule these tolerances were chosen with (stages/physics.fit_settings)
+    # the ∞-norm stopping rule these tolerances were chosen with (stages.physics.parameters.fit_settings)
     fit_settings = SimSettings(friction=0.0, newton_tol=1e-5, newton_norm="max")
     truth_base = SimSettings(friction=0.0, newton_tol=1e-6, newton_norm="max")
     truth_settings = {"noise": truth_base, "model_error": truth_base,
@@ -548,7 +552,7 @@ def main():
                             "and a 10x tighter Newton tolerance (1e-6 m/s); the fits and the held-out rows (the "
                             "'true' row too) take 1 step per frame at 1e-5 m/s"
                             + (f", on a proxy of at most {proxy_vertices} vertices of the ground-truth dress "
-                               "(stages/proxy.py) that the fine motion is mapped onto" if proxy_vertices else
+                               "(stages/physics/proxy.py) that the fine motion is mapped onto" if proxy_vertices else
                                ", on the same mesh") + "; plus the noise on the reference"),
             "poisson": "the true preset's (a setting, not estimated)", "fit_start_state": "clean rest (template)",
             "chamfer": "mean over held-out frames of CD between 20000-point surface samples (same seed for both), x1e3 m^2",

@@ -1,4 +1,4 @@
-"""Garment material estimation (stages/physics.py): exact gradients against central finite
+"""Garment material estimation (stages/physics/): exact gradients against central finite
 differences, scale invariance, recovery of κb/ρ, the fd estimator's pool, outputs and the CLI."""
 
 import dataclasses
@@ -15,8 +15,13 @@ from physavatar.files import PlyMesh, save_npz_atomic, write_ply
 from physavatar.sim import Material, SimSettings, preset
 from physavatar.errors import PhysavatarError
 from physavatar.geometry import count_intersections
-from physavatar.stages.physics import (START_CLEARANCE, PhysicsData, clear_start, far_material, fit_exact, fit_fd,
-                                       fit_material, load_physics_data, rollout, trajectory_loss, write_outputs)
+from physavatar.stages.physics.data import START_CLEARANCE, PhysicsData, clear_start, load_physics_data
+from physavatar.stages.physics.fit_exact import fit_exact
+from physavatar.stages.physics.fit_fd import fit_fd
+from physavatar.stages.physics.objective import rollout, trajectory_loss
+from physavatar.stages.physics.outputs import write_outputs
+from physavatar.stages.physics.parameters import far_material
+from physavatar.stages.physics.select import fit_material
 
 NAMES = ("density", "stretch_stiffness", "bend_stiffness")
 # tight Newton tolerance: the FD references differentiate the solver's output, so it must be
@@ -251,7 +256,7 @@ def test_write_outputs_roundtrip(tmp_path):
     assert Material.from_dict(mj["material"]) == res.material and res.material.name == "fitted (exact)"
     assert mj["simulations"] == res.simulations == 2
     assert mj["at_bound"] == [] and mj["initial_rms_mm"] == res.history[0]["rms_mm"]
-    from physavatar.stages.physics import BOUNDS
+    from physavatar.stages.physics.parameters import BOUNDS
 
     pinned = dataclasses.replace(res, material=dataclasses.replace(res.material, bend_stiffness=BOUNDS["bend_stiffness"][0]))
     assert pinned.at_bound() == ["bend_stiffness"]
@@ -423,7 +428,7 @@ def test_a_tracked_sequence_without_template_or_boundary_is_fitted(tmp_path):
 
 
 def test_proxy_without_boundary_vertices_is_uniform():
-    from physavatar.stages.proxy import make_proxy
+    from physavatar.stages.physics.proxy import make_proxy
     V, F = grid(30, 0.6)
     p = make_proxy(V, F, np.zeros(0, np.int64), 300)
     assert len(p.vertices) <= 300 and len(p.boundary) == 0
@@ -432,7 +437,7 @@ def test_proxy_without_boundary_vertices_is_uniform():
     assert np.percentile(length, 95) < 2.5 * np.percentile(length, 5)  # no graded region
 
 
-# -- the coarse proxy (stages/proxy.py) --------------------------------------------------------
+# -- the coarse proxy (stages/physics/proxy.py) ------------------------------------------------
 
 
 def angles_deg(V, F):
@@ -445,7 +450,7 @@ def angles_deg(V, F):
 
 
 def test_delaunay_flips_make_a_flat_mesh_delaunay():
-    from physavatar.stages.proxy import delaunay_flips
+    from physavatar.stages.physics.proxy import delaunay_flips
 
     V, F = grid(8, 0.3)
     rng = np.random.default_rng(0)
@@ -479,7 +484,7 @@ def fine_hanging_cloth(n=13, frames=8):
 
 def test_proxy_is_coarse_well_shaped_on_the_surface_and_attached():
     from physavatar.geometry import MeshQuery
-    from physavatar.stages.proxy import make_proxy
+    from physavatar.stages.physics.proxy import make_proxy
 
     d = fine_hanging_cloth(n=25)
     p = make_proxy(d.rest, d.faces, d.boundary, max_vertices=80)
@@ -498,8 +503,7 @@ def test_proxy_is_coarse_well_shaped_on_the_surface_and_attached():
 
 
 def test_fit_on_proxy_recovers_material_of_the_fine_simulation():
-    from physavatar.stages.physics import on_proxy
-    from physavatar.stages.proxy import make_proxy
+    from physavatar.stages.physics.proxy import make_proxy, on_proxy
 
     truth = Material(density=0.2, stretch_stiffness=40.0, bend_stiffness=3e-5, poisson=0.2)
     d = fine_hanging_cloth(n=13, frames=8)
@@ -524,8 +528,8 @@ def test_pinched_proxy_steps_still_reach_the_body_pose(tiny_capture):
     pose (measured: the last 3 of 7 steps, for silk, cotton and denim). Now it stiffens the
     penalty and the body arrives (measured 23-44 iterations)."""
     from physavatar.sim import ClothSim, preset
-    from physavatar.stages.physics import fit_settings, load_physics_data, on_proxy
-    from physavatar.stages.proxy import make_proxy
+    from physavatar.stages.physics.parameters import fit_settings
+    from physavatar.stages.physics.proxy import make_proxy, on_proxy
 
     d = load_physics_data(tiny_capture)
     d = dataclasses.replace(d, initial=d.reference[0])
@@ -579,7 +583,7 @@ def test_sensitivity_solve_is_gmres_on_an_indefinite_hessian_not_lu(monkeypatch)
 def test_shape_residuals_and_their_jacobian_match_central_fd():
     """The local-shape residuals w·L(x − x̂): L annihilates a rigid translation, and the
     objective's exact gradient 2 Jᵀr matches central differences of the objective."""
-    from physavatar.stages.physics import fit_residuals, shape_operator
+    from physavatar.stages.physics.objective import fit_residuals, shape_operator
 
     data = hanging_cloth(frames=6, seed=2)
     L = shape_operator(data.faces, data.reference.shape[1])

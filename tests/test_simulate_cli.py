@@ -111,7 +111,7 @@ def test_fit_physics_reads_a_simulated_sequence_back(skirt_run, tmp_path):
     """simulate's folder (garment_sequence.npz: garment, boundary, body, fps, rest shape) is an
     input of fit-physics as it is: started from the material that made it, the fit's simulation
     reproduces the sequence (which needs the rest shape, boundary, body and fps read right)."""
-    from physavatar.stages.physics import load_physics_data
+    from physavatar.stages.physics.data import load_physics_data
 
     z = np.load(skirt_run / "garment_sequence.npz")
     data = load_physics_data(skirt_run)

@@ -1,8 +1,7 @@
 """A coarse simulation proxy of a garment, for material estimation on big garments.
 
-Fitting the material needs ~10 simulations of the fitted window with sensitivities; at the
-demo capture's 3,353-vertex dress one plain 24-frame simulation takes minutes on two cores.
-The material is a property of the fabric, not of the mesh, so ``fit-physics`` fits it on a
+Fitting the material needs ~10 simulations of the fitted window with sensitivities, and one
+plain simulation of a garment of a few thousand vertices takes minutes on a CPU. The material is a property of the fabric, not of the mesh, so ``fit-physics`` fits it on a
 proxy of a few hundred vertices (docs/physics.md "Coarse proxy"):
 
 1. the template garment is decimated by shortest-edge-first edge collapses (our own, a few
@@ -18,7 +17,8 @@ proxy of a few hundred vertices (docs/physics.md "Coarse proxy"):
    closest point there, so any fine sequence [T, N, 3] maps to the proxy as [T, n, 3]
    (:meth:`GarmentProxy.map`): the tracked reference, the proxy's rest shape and its boundary
    targets all come from the fine data the same way;
-4. the proxy's boundary (Dirichlet) vertices are the surviving fine ones (exact weights).
+4. the proxy's boundary (Dirichlet) vertices are the surviving fine ones (exact weights);
+5. :func:`on_proxy` moves the fit's data (:class:`~.data.PhysicsData`) onto the proxy.
 """
 
 from __future__ import annotations
@@ -28,10 +28,11 @@ import math
 
 import numpy as np
 
-from ..errors import PhysavatarError
-from ..geometry import MeshQuery, vertex_normals
+from ...errors import PhysavatarError
+from ...geometry import MeshQuery, vertex_normals
+from .data import PhysicsData
 
-
+PROXY_CLEARANCE = 0.003  # [m] the proxy's smallest distance to the body at rest (> d̂ = 1 mm)
 GRADING_NEAR = 0.4  # relative edge length at the attachment
 GRADING_REACH = 4.0  # distance [target edges] over which it grows to 1
 
@@ -285,3 +286,37 @@ def _smooth_tangential(v, f, query: MeshQuery, movable, step: float = 0.5):
     _, _, _, point = query.closest(out[~border])
     out[~border] = point
     return out
+
+
+def on_proxy(data: PhysicsData, proxy) -> PhysicsData:
+    """``data`` moved onto a :class:`GarmentProxy` of its garment.
+
+    Every fine per-vertex sequence maps by the proxy's barycentric coordinates at rest: the
+    reference (tracked positions), the rest shape, the initial state, and the proxy's boundary
+    targets — the map of the fine positions with the fine boundary vertices at their targets
+    (the tracked boundary, or a prescribed attachment). The body collider is unchanged. Rest
+    shape and initial state are then pushed off the body frame 0 to ``PROXY_CLEARANCE`` where
+    the proxy's chords dip into it (a few mm; the reference is not moved).
+    """
+    ref = proxy.map(data.reference)
+    b = np.asarray(proxy.boundary, dtype=np.int64)
+    driven = data.reference.copy()
+    driven[:, data.boundary] = data.boundary_targets
+    targets = proxy.map(driven)[:, b]
+    rest = proxy.map(data.rest)
+    initial = ref[0] if data.initial is None else proxy.map(data.initial)
+    offset = 0.0
+    if data.collider is not None and data.collider_faces is not None:
+        # the proxy's flat triangles cut chords through the fine surface; over a convex body
+        # part they can dip into it at rest (IPC needs an intersection-free start, and a
+        # trapped proxy cannot sag like the garment): push them out to PROXY_CLEARANCE
+        from ...garment.garment import push_out
+
+        moved, _ = push_out(initial, proxy.faces, [(data.collider[0], data.collider_faces)], PROXY_CLEARANCE)
+        moved[b] = initial[b]  # the attachment stays where the fine one is
+        offset = moved - initial
+    return PhysicsData(
+        reference=ref, faces=proxy.faces, boundary=b, collider=data.collider, collider_faces=data.collider_faces,
+        fps=data.fps, rest=rest + offset, boundary_targets=targets, targets_tracked=data.targets_tracked,
+        initial=initial + offset,
+    )

@@ -1,0 +1,101 @@
+"""The material stage: :func:`run` (``physavatar fit-physics``, and ``physavatar run``'s physics step)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+from ...data.material import resolve_material
+from ...errors import PhysavatarError
+from ...files import write_json_atomic
+from ...progress import resolve
+from ..base import to_dict
+from .config import PhysicsConfig
+from .data import clear_start, load_physics_data
+from .outputs import FitResult, write_outputs
+from .parameters import EXACT_ITERATIONS, PAPER_ITERATIONS, far_material, fit_settings
+from .proxy import make_proxy, on_proxy
+from .select import MODELS, fit_material
+
+log = logging.getLogger(__name__)
+
+
+def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
+        say: Callable[[str], None] | None = None) -> FitResult:
+    """Fit the cloth material of the garment in ``source`` and write it to ``out``.
+
+    ``source``: a tracked folder, a capture with ground-truth meshes, or a garment sequence
+    (:func:`~.data.load_physics_data`). The window ``config.start`` … ``+ config.window`` is
+    simulated from its first frame, made a valid start (:func:`~.data.clear_start`), on a coarse
+    proxy when the garment has more than ``config.max_vertices`` vertices, against the reference
+    with ``config.noise_mm`` of noise. ``out`` gets material.json, fit_log.csv, fit.png
+    (:func:`~.outputs.write_outputs`) and config.json (the config and the source).
+
+    ``progress``: anything :func:`physavatar.progress.resolve` accepts (one task, "fit", advanced
+    per iteration with its loss and RMS distance). ``say(line)``: what the command prints
+    besides (notes on the input, the proxy, one line per iteration; default: this module's
+    logger). Returns the :class:`~.outputs.FitResult` (its ``start_state`` and ``proxy`` say what
+    was done to the input).
+    """
+    say = say or log.info
+    source, out = Path(source), Path(out)
+    cfg = config
+    initial = far_material() if cfg.init == "far" else resolve_material(cfg.init)
+    if cfg.density is not None:
+        initial = dataclasses.replace(initial, density=cfg.density)
+    sequence = load_physics_data(source)
+    if cfg.start < 0 or cfg.start + 2 > sequence.frames:
+        raise PhysavatarError(None, f"option --start: must leave at least 2 of the {sequence.frames} frames")
+    if not len(sequence.boundary):
+        say("note: the garment has no boundary (attached) vertices: it is simulated as held by contact and "
+            "friction alone" + (" (and --friction is 0)" if cfg.friction == 0 else ""))
+    # the simulation starts from the tracked frame `start` at rest; IPC needs it outside the body
+    data, start_info = clear_start(sequence.window(cfg.start, cfg.window), source, cfg.start, sequence)
+    if start_info["pushed_vertices"]:
+        say(f"note: frame {cfg.start} has the garment {start_info['crossing_pairs']} triangle pairs through the "
+            f"body / {start_info['min_gap_mm']:.2f} mm from it: {start_info['pushed_vertices']} vertices pushed "
+            f"out (at most {start_info['max_push_mm']:.1f} mm) to start the simulations")
+    proxy = None
+    n_fine = data.reference.shape[1]
+    if cfg.max_vertices and n_fine > cfg.max_vertices:
+        proxy = make_proxy(data.rest, data.faces, data.boundary, cfg.max_vertices)
+        data = on_proxy(data, proxy)
+        say(f"simulating a {len(proxy.vertices)}-vertex proxy of the {n_fine}-vertex garment "
+            f"(mean edge {100 * proxy.mean_edge:.1f} cm, {len(proxy.boundary)} boundary vertices)")
+    # benchmark noise perturbs what is fitted to, not the (template-clean) start state
+    data = data.with_noise(cfg.noise_mm * 1e-3, cfg.seed)
+    n_iter = cfg.iterations or (PAPER_ITERATIONS if cfg.gradient == "fd" else EXACT_ITERATIONS)
+    say(f"fitting {('rho, ' if cfg.fit_density else '') + 'ks, kb'} of a {data.reference.shape[1]}-vertex "
+        f"garment over {data.frames} frames ({cfg.gradient} gradients, up to {n_iter} iterations)")
+    rows = (n_iter + (1 if cfg.gradient == "exact" else 0)) * (len(MODELS) if cfg.selects_integrator else 1)
+    with resolve(progress).task("fit", total=rows) as task:
+
+        def report(row):
+            task.advance(loss=row["loss"], rms_mm=row["rms_mm"])
+            # one line per iteration: a bar alone shows nothing when output is not a terminal
+            say(f"{iteration_line(row)}  {row['wall_time_s']:.0f} s")
+
+        result = fit_material(data, initial, cfg.gradient, cfg.iterations, cfg.fit_density,
+                              fit_settings(friction=cfg.friction, newton_tol=cfg.newton_tol,
+                                           integrator=cfg.fitting_integrator),
+                              workers=cfg.workers, substeps=cfg.substeps, callback=report,
+                              shape_weight=cfg.shape_weight, select_integrator=cfg.selects_integrator)
+    result.start_state = start_info
+    if proxy is not None:
+        result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),
+                        "mean_edge_m": proxy.mean_edge, "garment_vertices": n_fine, "max_vertices": cfg.max_vertices}
+    write_outputs(out, result)
+    write_json_atomic(out / "config.json", {**to_dict(cfg), "source": str(source.resolve())})
+    return result
+
+
+def iteration_line(row: dict) -> str:
+    """One iteration of a fit's history as the command prints it."""
+    params = "  ".join(f"{k}={row[k]:.4g}" for k in ("density", "stretch_stiffness", "bend_stiffness", "bdf2_blend")
+                       if k in row)
+    line = f"it {row['iteration']:3d}  loss {row['loss']:.4g} m² ({row['rms_mm']:.2f} mm)  {params}"
+    if "integrator" in row:
+        line += f"  [{row['integrator']}]"
+    return line

@@ -1,0 +1,243 @@
+"""Simulate a garment on a moving body (``physavatar simulate``; paper Sec. 3.2, Eq. 5).
+
+Three ways to say what to simulate (the inputs of :func:`run`):
+
+- ``capture``: the garment of a capture's template on its body poses (at the capture's fps);
+- ``garment`` (a built-in design: dress, skirt, tshirt) and ``motion`` (a built-in motion, .bvh
+  or .npz) on the Anny collider body; a motion that does not start in the rest pose the garment
+  is made for is reached by a warm-up transition (simulated, not written);
+- ``collider`` (any animated body: .npz or a folder of OBJ/PLY frames) and ``garment`` (a garment
+  file: .ply with boundary flags, .npz with vertices/faces/boundary, or a garment sequence).
+
+``garment`` and ``motion`` are inputs although they may be a built-in name rather than a file:
+they say *what* is simulated, as ``capture`` and ``collider`` do; :class:`SimulateConfig` holds
+*how* (material, time stepping, warm-up, the garment's edge length).
+
+The boundary vertices follow the body surface they start on (:mod:`physavatar.garment_sim`).
+The garment must start outside the body; every written frame is checked for garment–body
+intersections and non-finite values. Outputs (``out/``): garment_sequence.npz
+(:class:`~physavatar.data.garment_sequence.GarmentSequence`), meshes/NNNNNN.ply, material.json,
+config.json (the record of the run, with the config), preview.mp4.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..body import BodyModel, Motion
+from ..body.load import load_motion, with_arm_clearance
+from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
+from ..data.garment_sequence import GarmentSequence, boundary_ids
+from ..data.material import resolve_material
+from ..data.mesh_sequence import load_mesh_sequence
+from ..errors import PhysavatarError
+from ..files import PlyMesh, load_npz, read_ply, write_json_atomic, write_ply
+from ..garment import GARMENTS, make_garment
+from ..garment_sim import GarmentPart, simulate_on_body, split_template
+from ..geometry import count_intersections
+from ..sim import SimSettings
+from ..sim.contact import ContactScene
+from .animate import transition
+from .base import option, to_dict
+
+INTEGRATORS = ("euler", "bdf2")
+
+
+@dataclass(frozen=True)
+class SimulateConfig:
+    """How the garment is simulated (the ``simulate`` options besides what to simulate).
+
+    Attributes:
+        material: a preset (silk, cotton, denim) or a material .json (fit-physics' too).
+        fps: frames per second (a capture's own fps wins); substeps: implicit steps per frame.
+        integrator: euler or bdf2 (None: the one the material was fitted with).
+        duration: seconds of a built-in motion.
+        warmup: seconds of transition from the rest pose to the motion's first pose.
+        arm_clearance: with a .bvh motion, raise the arms where a hand comes closer than this [m]
+            to the hips/trunk (0: off).
+        edge_length: the built-in garment's edge length [m].
+        preview: write preview.mp4.
+    """
+
+    material: str = option("cotton", "silk, cotton, denim, or a material .json")
+    fps: float = option(25.0, "frames per second (one implicit step per frame by default)")
+    substeps: int = option(1, "implicit steps per frame")
+    integrator: str | None = option(None, "euler (implicit Euler, the paper's) or bdf2 (second order; "
+                                          "docs/simulation.md); default: the one the material was fitted with "
+                                          "(euler for presets)", choices=INTEGRATORS)
+    duration: float = option(2.0, "seconds (built-in motions)")
+    warmup: float = option(1.0, "with --motion: seconds of transition from the garment's rest pose to the motion's "
+                                "first pose (simulated, not written)")
+    arm_clearance: float = option(0.03, "with a .bvh motion: raise the arms where a hand comes closer than this [m] "
+                                        "to the hips/trunk, so the garment is not pinched (0 = off)",
+                                  flag="--arm-clearance")
+    edge_length: float = option(0.02, "garment edge length [m] (with --garment KIND)")
+    preview: bool = option(True, "write preview.mp4")
+
+
+@dataclass
+class SimulateResult:
+    """What :func:`run` simulated and wrote.
+
+    Attributes:
+        out: the output folder. frames: frames written (the warm-up excluded).
+        garment_vertices: vertices of the simulated garment. seconds: simulation wall time.
+        bad_frames: written frames that intersect the body or are not finite.
+        warmup_frames: leading frames simulated but not written.
+        clearance: what arm clearance changed (body.load.with_arm_clearance), or None.
+        preview: whether preview.mp4 was written.
+    """
+
+    out: Path
+    frames: int
+    garment_vertices: int
+    seconds: float
+    bad_frames: list
+    warmup_frames: int
+    clearance: dict | None
+    preview: bool
+
+
+def _bad_option(name: str, problem: str):
+    raise PhysavatarError(None, f"option {name}: {problem}")
+
+
+def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garment: str | Path | None = None,
+        motion: str | Path | None = None, collider: Path | None = None, progress=None) -> SimulateResult:
+    """Simulate the garment given by ``capture``, ``garment`` + ``motion`` or ``collider`` +
+    ``garment`` (module docstring) with ``config``; write ``out``. ``progress``: anything
+    :func:`physavatar.progress.resolve` accepts (the simulator's per-frame task)."""
+    cfg = config
+    out = Path(out)
+    mat = resolve_material(cfg.material, option="--material")
+    fps = cfg.fps
+    if fps <= 0 or cfg.substeps < 1:
+        _bad_option("--fps/--substeps", "must be positive")
+    integrator = cfg.integrator
+    if integrator is None:
+        integrator = mat.integrator  # a fitted material is simulated in the model it was fitted in
+    if integrator not in INTEGRATORS:
+        _bad_option("--integrator", f"{integrator!r} is not euler or bdf2")
+    sim_settings = SimSettings(integrator=integrator)
+    n_warm = 0  # leading frames simulated but not written (--motion's transition)
+    clearance_info = None
+    if capture is not None:
+        part, bodies, body_faces, fps = _from_capture(Path(capture))
+    elif collider is not None:
+        if garment is None or not Path(garment).exists():
+            _bad_option("--garment", "with --collider, give a garment mesh file (.ply with label/boundary, or .npz)")
+        bodies, body_faces = load_mesh_sequence(collider)
+        part = garment_file(Path(garment))
+    elif garment is not None and motion is not None:
+        part, bodies, body_faces, n_warm, clearance_info = _on_motion(str(garment), motion, fps, cfg)
+    else:
+        _bad_option("--capture/--garment/--collider",
+                    "say what to simulate: --capture C, or --garment KIND --motion M, or --collider SEQ --garment FILE")
+    if len(part.boundary) == 0:
+        _bad_option("--garment", "the garment has no boundary vertices to attach to the body")
+    n_cross = count_intersections(part.vertices, part.faces, bodies[0], body_faces)
+    if n_cross:
+        raise PhysavatarError(collider or garment or capture,
+                              f"the garment crosses the body's first frame ({n_cross} intersecting triangle pairs): "
+                              "it must start outside the body, in the pose it was made for")
+    t0 = time.time()
+    X = simulate_on_body(part, bodies, body_faces, mat, fps, settings=sim_settings, substeps=cfg.substeps,
+                         progress=progress)
+    secs = time.time() - t0
+    X, bodies = X[n_warm:], bodies[n_warm:]
+    # every frame checked: finite and free of garment-body intersections (ipctk's exact test)
+    scene = ContactScene(part.vertices, part.faces, bodies[0], body_faces, sim_settings.dhat)
+    bad = [f for f in range(len(X))
+           if not np.all(np.isfinite(X[f])) or scene.has_intersections(np.vstack([X[f], bodies[f]]))]
+    out.mkdir(parents=True, exist_ok=True)
+    GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.vertices).save(out / GARMENT_SEQUENCE)
+    for f in range(len(X)):
+        write_ply(out / "meshes" / f"{f:06d}.ply", PlyMesh(X[f], part.faces))
+    mat.save(out / "material.json")
+    write_json_atomic(out / "config.json", {
+        "command": "simulate", "capture": _text(capture), "garment": _text(garment), "motion": _text(motion),
+        "collider": _text(collider), "material": mat.to_dict(), "fps": fps, "substeps": cfg.substeps,
+        "integrator": integrator, "frames_with_intersection_or_nan": bad,
+        "warmup_frames": n_warm, "arm_clearance": clearance_info, "frames": int(len(X)), "seconds": round(secs, 1),
+        "config": to_dict(cfg)})
+    if cfg.preview:
+        from ..body.preview import render_frames, write_video
+
+        Vall = np.concatenate([bodies, X], axis=1)
+        Fall = np.concatenate([body_faces, part.faces + bodies.shape[1]])
+        write_video(out / "preview.mp4", render_frames(Vall, Fall, None, None, title="simulate"), fps)
+    return SimulateResult(out, int(len(X)), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview)
+
+
+def _text(value) -> str | None:
+    return None if value is None else str(value)
+
+
+def _from_capture(capture: Path):
+    """(garment part, body vertices [T, Nb, 3], body faces, fps) of a capture's template posed by
+    its body motion."""
+    from ..capture import load_capture
+
+    cap = load_capture(capture)
+    t = cap.template
+    body_ids, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
+    body = BodyModel(cap.body.shape, topology=cap.body.topology)
+    if len(body.rest_vertices) != len(body_ids):
+        raise PhysavatarError(capture / "template" / "mesh.ply",
+                              f"its body has {len(body_ids)} vertices but Anny's {cap.body.topology!r} topology "
+                              f"has {len(body.rest_vertices)}")
+    m = Motion("capture", cap.fps, cap.body.bone_names, cap.body.rotations, cap.body.root_translation)
+    return part, m.pose(body).vertices, body_faces, cap.fps
+
+
+def _on_motion(kind: str, motion, fps: float, cfg: SimulateConfig):
+    """(garment part, body vertices, body faces, warm-up frames, arm clearance summary) of a
+    built-in garment on the Anny collider driven by ``motion``."""
+    if kind not in GARMENTS:
+        _bad_option("--garment", f"{kind!r} is not one of {', '.join(GARMENTS)}")
+    body = BodyModel(topology="collider")
+    g = make_garment(kind, body, edge_length=cfg.edge_length)
+    part = GarmentPart(np.arange(len(g.vertices)), g.vertices, g.faces, np.flatnonzero(g.boundary))
+    mot = load_motion(motion, fps, cfg.duration)
+    mot, clearance_info = with_arm_clearance(mot, motion, body, cfg.arm_clearance)
+    rots, trs = mot.rotations, mot.root_translation
+    # the garment is made for the rest pose: a motion that starts elsewhere (a BVH clip) is
+    # reached by a transition first, as `animate` does, so the garment never starts inside the body
+    if cfg.warmup < 0:
+        _bad_option("--warmup", "must be >= 0")
+    n_warm = 0
+    if np.abs(rots[0]).max() > 1e-6 or np.abs(trs[0]).max() > 1e-6:
+        n_warm = max(2, int(round(cfg.warmup * fps)))
+        wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
+        rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
+    return part, body.pose(rots, trs).vertices, body.faces, n_warm, clearance_info
+
+
+def garment_file(path: Path) -> GarmentPart:
+    """A garment from a file: a garment sequence (its rest shape and boundary), an .npz with
+    ``vertices``, ``faces`` and ``boundary`` (flags or ids), or a .ply with a per-vertex
+    ``boundary`` property."""
+    if path.suffix == ".npz":
+        z = load_npz(path)
+        if "vertices" in z and np.ndim(z["vertices"]) == 3:
+            # a garment sequence (simulate's garment_sequence.npz, another simulator's): its rest shape
+            d = GarmentSequence.from_arrays(z, path)
+            if not len(d.boundary):
+                raise PhysavatarError(path, "the garment sequence has no boundary (attached) vertices")
+            return GarmentPart(np.arange(len(d.rest_vertices)), d.rest_vertices, d.faces, d.boundary)
+        if not {"vertices", "faces", "boundary"} <= set(z):
+            raise PhysavatarError(path, "garment .npz needs 'vertices', 'faces' and 'boundary'")
+        V, F = z["vertices"], z["faces"]
+        try:
+            bidx = boundary_ids(z["boundary"], len(V))  # per-vertex flags, or indices
+        except ValueError as e:
+            raise PhysavatarError(path, str(e)) from None
+        return GarmentPart(np.arange(len(V)), np.asarray(V, float), np.asarray(F, np.int64), bidx)
+    m = read_ply(path)
+    if "boundary" not in m.vertex_data:
+        raise PhysavatarError(path, "needs a per-vertex 'boundary' property (1 = attached to the body)")
+    return GarmentPart(np.arange(len(m.vertices)), m.vertices, m.faces, np.flatnonzero(m.vertex_data["boundary"]))
