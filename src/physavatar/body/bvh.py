@@ -24,7 +24,6 @@ conventions and can be overridden with a JSON file ``{"BVHJointName": "anny_bone
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path

@@ -117,9 +117,11 @@ def run(
     """Run the whole pipeline: track, fit-physics, fit-appearance, build-avatar, animate (held-out
     motion), render, relight, export (USD, glTF), evaluate (synthetic captures); skips finished
     stages; writes OUT/report.md."""
-    from ..stages.run import run_pipeline, write_report
+    from ..pipeline import RunConfig
+    from ..pipeline import run as run_pipeline
+    from ..report import write_report
 
-    rec = run_pipeline(capture, out, quick=quick, track_frames=track_frames, eval_frames=eval_frames,
-                       heldout_motion=motion)
+    cfg = RunConfig(quick=quick, track_frames=track_frames, eval_frames=eval_frames, motion=motion)
+    rec = run_pipeline(capture, out, cfg, say=lambda text: console.print(text, highlight=False))
     path = write_report(out)
     console.print(f"done in {rec['_total_seconds_this_run']:.0f} s; report: {path}")
