@@ -33,7 +33,7 @@ from typing import Any
 from .errors import PhysavatarError
 from .files import read_json, write_json_atomic
 from .parallel import default_workers
-from .stages.base import stage_hash, to_dict
+from .stages.base import option, stage_hash, to_dict
 
 
 @dataclass
@@ -58,14 +58,19 @@ class Step:
         return root / self.name / self.out_file if self.out_file else root / self.name
 
 
+def _positive(v):
+    return None if v >= 1 else "must be at least 1"
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """``physavatar run``'s settings (saved in ``OUT/run.json``)."""
 
-    quick: bool = False
-    track_frames: int | None = None
-    eval_frames: int | None = None
-    motion: str | None = None  # None: the capture's held-out motion (then also evaluated), else "dance"
+    quick: bool = option(False, "smaller budgets for every stage (tests, previews)")
+    track_frames: int | None = option(None, "track only the first N frames", check=_positive)
+    eval_frames: int | None = option(None, "animate / evaluate only the first N held-out frames", check=_positive)
+    motion: str | None = option(None, "motion to animate (built-in name, .bvh, .npz); default: the synthetic "
+                                "capture's held-out motion (then also evaluated), else 'dance'")
 
 
 def _resolve(value, out: Path):

@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from ..pipeline import RunConfig
 from ..stages.animate import AnimateConfig
 from ..stages.evaluate import EvaluateConfig, ReferencesConfig
 from ..stages.export import ExportConfig
@@ -103,25 +104,15 @@ def reference_sims(capture: Path = typer.Argument(..., help="synthetic capture (
     console.print(f"wrote {out}/true, {out}/random")
 
 
-@app.command()
-@handle_errors
-def run(
-    capture: Path = typer.Argument(..., help="capture folder"),
-    out: Path = typer.Argument(..., help="output folder (resumes when it exists)"),
-    quick: bool = typer.Option(False, help="smaller budgets for every stage (tests, previews)"),
-    track_frames: Optional[int] = typer.Option(None, help="track only the first N frames"),
-    eval_frames: Optional[int] = typer.Option(None, help="animate / evaluate only the first N held-out frames"),
-    motion: Optional[str] = typer.Option(None, help="motion to animate (built-in name, .bvh, .npz); default: the "
-                                         "synthetic capture's held-out motion (then also evaluated), else 'dance'"),
-):
+@config_command(app, "run", RunConfig, wrap=handle_errors)
+def run(capture: Path = typer.Argument(..., help="capture folder"),
+        out: Path = typer.Argument(..., help="output folder (resumes when it exists)"), *, config: RunConfig):
     """Run the whole pipeline: track, fit-physics, fit-appearance, build-avatar, animate (held-out
     motion), render, relight, export (USD, glTF), evaluate (synthetic captures); skips finished
     stages; writes OUT/report.md."""
-    from ..pipeline import RunConfig
     from ..pipeline import run as run_pipeline
     from ..report import write_report
 
-    cfg = RunConfig(quick=quick, track_frames=track_frames, eval_frames=eval_frames, motion=motion)
-    rec = run_pipeline(capture, out, cfg, say=lambda text: console.print(text, highlight=False))
+    rec = run_pipeline(capture, out, config, say=lambda text: console.print(text, highlight=False))
     path = write_report(out)
     console.print(f"done in {rec['_total_seconds_this_run']:.0f} s; report: {path}")

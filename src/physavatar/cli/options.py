@@ -36,8 +36,9 @@ def _cli_type(spec) -> Any:
 def _shown_default(spec) -> str | bool:
     """What ``--help`` shows as the default (False: nothing)."""
     d = spec.default
-    if isinstance(d, bool) and "/" in spec.flag:
-        shown = spec.flag.partition("/")[0 if d else 2]
+    if isinstance(d, bool):
+        on, _, off = spec.flag.partition("/")
+        shown = on if d else (off or "--no-" + on[2:])
     elif isinstance(d, (tuple, list)):
         shown = ",".join(map(str, d)) or "none"
     else:
