@@ -18,9 +18,9 @@ What ``progress`` may be:
 - a :class:`Progress` instance, passed on as it is (a stage hands its own to the simulator, so
   nested loops draw into the same display).
 
-Every kind also logs to the ``physavatar.progress`` logger: a task's start and end at INFO and
-about every tenth of its way at DEBUG, so output going to a log file still shows how far a long
-run is.
+Every kind also logs to the ``physavatar.progress`` logger at INFO: a task's start, about every
+tenth of its way and its end, so output going to a log file still shows how far a long run is
+(the command line turns these on when its output is not a terminal).
 """
 
 from __future__ import annotations
@@ -61,7 +61,8 @@ class Task:
         self.done += n
         self.owner._emit(self, "advance", info)
         if self.total and self.done >= self._next_log * self.total:
-            log.debug("%s: %d/%d after %.1f s", self.name, self.done, self.total, time.time() - self.t0)
+            log.info("%s: %d/%d after %.1f s%s", self.name, self.done, self.total, time.time() - self.t0,
+                     "".join(f", {k} {_fmt(v)}" for k, v in info.items()))
             self._next_log = (int(10 * self.done / self.total) + 1) / 10
 
     def set_total(self, total: int | None) -> None:

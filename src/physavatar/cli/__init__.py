@@ -14,6 +14,14 @@ from . import data, track, physics, appearance, avatar  # noqa: F401,E402,I001  
 
 
 def main():  # console-script entry point
+    import logging
+    import sys
+
+    if not sys.stderr.isatty():  # output to a log: the progress of long loops as log lines
+        logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(message)s",
+                            datefmt="%H:%M:%S")
+        for noisy in ("matplotlib", "PIL", "numba", "urllib3"):
+            logging.getLogger(noisy).setLevel(logging.WARNING)
     app()
 
 
