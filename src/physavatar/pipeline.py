@@ -21,6 +21,7 @@ fit-appearance (Mitsuba) beside fit-physics. On a one-core machine everything ru
 from __future__ import annotations
 
 import importlib
+import inspect
 import logging
 import multiprocessing
 import os
@@ -161,10 +162,12 @@ def _hash(st: Step, out: Path, record: dict) -> str:
     return stage_hash(st.config, inputs)
 
 
-def _call(st: Step, out: Path, progress) -> Any:
+def _call(st: Step, out: Path, progress, say=None) -> Any:
     mod, fn = st.fn.split(":")
     func = getattr(importlib.import_module(mod), fn)
     kwargs = {k: _resolve(v, out) for k, v in st.inputs.items()}
+    if say is not None and "say" in inspect.signature(func).parameters:
+        kwargs["say"] = say  # a stage's notes (fit-physics: the start state, the proxy, each iteration)
     return func(**kwargs, out=st.out(out), config=st.config, progress=progress)
 
 
@@ -270,7 +273,7 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
             say(f"[{i}/{len(steps)}] {st.name}: physavatar {' '.join(st.command)}")
             t0 = time.time()
             try:
-                _call(st, out, progress=True)
+                _call(st, out, progress=True, say=say)
             except PhysavatarError as e:
                 save(st, h, "failed", time.time() - t0)
                 raise PhysavatarError(None, f"stage {st.name!r} failed: {e}; fix the cause and run again to "
