@@ -197,7 +197,7 @@ def _nan_note(scene: Scene, name: str, V) -> None:
                            + ", ".join(map(str, bad[:10])) + (" ..." if len(bad) > 10 else ""))
 
 
-def _capture(scene: Scene, root: Path, *, layers: bool = True) -> object:
+def _capture(scene: Scene, root: Path, *, layers: bool = True, overlay: bool = False) -> object:
     from ..capture import load_capture
 
     cap = load_capture(root)
@@ -219,7 +219,7 @@ def _capture(scene: Scene, root: Path, *, layers: bool = True) -> object:
         _nan_note(scene, "ground truth", truth.vertices)
         if layers:
             _split(scene, "/capture/ground_truth", truth.vertices, tpl.faces if truth.faces is None else truth.faces,
-                   tpl.labels, color=TRUTH, opacity=None)
+                   tpl.labels, color=TRUTH if overlay else None)
         if (gt / "material.json").is_file():
             scene.panels["true material"] = read_json(gt / "material.json")
         return cap, truth
@@ -363,7 +363,7 @@ def _run(scene: Scene, root: Path) -> None:
     cap = truth = None
     src = record.get("_capture")
     if src and (Path(src) / "capture.json").is_file():
-        cap, truth = _capture(scene, Path(src))
+        cap, truth = _capture(scene, Path(src), overlay=True)
         for ly in scene.layers:  # the capture's own meshes start hidden in a run
             ly.visible = False
     else:

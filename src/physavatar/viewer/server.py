@@ -117,17 +117,19 @@ class Viewer:
         return ly.static or ly.frame(t) is not None
 
     def _init_camera(self) -> None:
+        """Look at the first frame's centre from inside the camera ring (from the first capture
+        camera's side, nearer and a little above), or from the front."""
         sc, cam = self.scene, self.server.initial_camera
-        if sc.cameras:
-            c = sc.cameras[0]
-            cam.position = tuple(c.c2w[:3, 3])
-            cam.look_at = tuple(c.c2w[:3, 3] + c.c2w[:3, 2] * 3.0)
-        else:
-            V = next((v for v in (self._first_frame(ly) for ly in sc.layers) if v is not None), None)
-            centre = V.mean(0) if V is not None else np.zeros(3)
-            cam.position = tuple(centre + np.array([0.0, -3.0, 0.3]))
-            cam.look_at = tuple(centre)
-        cam.up = {"+z": (0.0, 0.0, 1.0), "+y": (0.0, 1.0, 0.0), "+x": (1.0, 0.0, 0.0)}[sc.up]
+        up = np.array({"+z": (0.0, 0.0, 1.0), "+y": (0.0, 1.0, 0.0), "+x": (1.0, 0.0, 0.0)}[sc.up])
+        Vs = [v for v in (self._first_frame(ly) for ly in sc.layers if ly.visible) if v is not None]
+        V = np.concatenate(Vs) if Vs else np.zeros((1, 3))
+        centre, size = (V.min(0) + V.max(0)) / 2, float(np.ptp(V, axis=0).max()) or 1.0
+        side = sc.cameras[0].c2w[:3, 3] - centre if sc.cameras else -np.cross(up, np.roll(up, 1))
+        side = side - up * (side @ up)
+        side /= np.linalg.norm(side) or 1.0
+        cam.position = tuple(centre + side * 1.25 * size + up * 0.2 * size)
+        cam.look_at = tuple(centre)
+        cam.up = tuple(up)
 
     def _build_gui(self) -> None:
         sc, gui = self.scene, self.server.gui
