@@ -35,6 +35,17 @@ if ! have_llvm; then
   fi
 fi
 
+# The viewer's browser test (tests/test_viewer.py) drives a headless Chromium; it skips without one.
+if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null; then
+  if command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+    say "installing Debian's chromium (the viewer's headless browser test)"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null \
+      || say "WARNING: could not install chromium; the viewer's browser test will skip"
+  else
+    say "NOTE: no chromium and cannot apt-get install it; the viewer's browser test will skip"
+  fi
+fi
+
 say "installing physavatar and its test extras"
 "$VENV/bin/python" -m pip install -q -e ".[test]"
 

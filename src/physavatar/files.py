@@ -77,15 +77,50 @@ def read_json(path: str | Path) -> dict:
         raise PhysavatarError(path, f"not valid JSON ({e})") from None
 
 
-def load_npz(path: str | Path) -> dict[str, np.ndarray]:
+def load_npz(path: str | Path, mapped: bool = False) -> dict[str, np.ndarray]:
+    """The arrays of an .npz file. ``mapped``: arrays over 1 MiB are decompressed in chunks into
+    unlinked temporary files and returned as read-only memory maps, so a long sequence costs disk
+    and page cache, not resident memory (the viewer reads one frame at a time)."""
     path = Path(path)
     if not path.is_file():
         raise PhysavatarError(path, "file not found")
     try:
+        if mapped:
+            return _map_npz(path)
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
     except Exception as e:  # zipfile / pickle / format errors all mean "not a usable npz"
         raise PhysavatarError(path, f"not a readable .npz file ({type(e).__name__}: {e})") from None
+
+
+def _map_npz(path: Path, small: int = 1 << 20) -> dict[str, np.ndarray]:
+    import shutil
+    import zipfile
+
+    fmt = np.lib.format
+    out = {}
+    with zipfile.ZipFile(path) as zf:
+        for name in zf.namelist():
+            with zf.open(name) as f:
+                version = fmt.read_magic(f)
+                read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+                shape, fortran, dtype = read_header(f)
+                if dtype.hasobject:
+                    raise ValueError(f"{name} holds Python objects")
+                order = "F" if fortran else "C"
+                nbytes = int(np.prod(shape)) * dtype.itemsize
+                if nbytes <= small:
+                    arr = np.frombuffer(f.read(nbytes), dtype).reshape(shape, order=order).copy()
+                else:
+                    tmp = tempfile.TemporaryFile(prefix="physavatar-npz-")
+                    shutil.copyfileobj(f, tmp, 1 << 22)
+                    tmp.flush()
+                    if tmp.tell() != nbytes:
+                        raise ValueError(f"{name} is truncated")
+                    arr = np.memmap(tmp, dtype, "r", shape=shape, order=order)
+                    tmp.close()  # the map keeps the data; the file was never linked
+            out[name[:-4] if name.endswith(".npy") else name] = arr
+    return out
 
 
 # -- PLY -----------------------------------------------------------------------------------------

@@ -52,18 +52,20 @@ class AnimatedSequence:
                                        "frames": int(len(self.vertices)), "fps": self.fps})
 
     @classmethod
-    def load(cls, path: str | Path) -> "AnimatedSequence":
-        """The ``animate`` folder ``path``: vertices float64, labels int64."""
+    def load(cls, path: str | Path, *, finite: bool = True, mapped: bool = False) -> "AnimatedSequence":
+        """The ``animate`` folder ``path``: vertices float64, labels int64. ``finite=False`` accepts
+        NaN frames (a viewer shows them as missing); ``mapped``: vertices stay float32, memory-mapped
+        (:func:`physavatar.files.load_npz`)."""
         path = Path(path)
-        z = load_npz(path / NPZ)
+        z = load_npz(path / NPZ, mapped=mapped)
         meta = read_json(path / META)
         for key in ("vertices", "faces", "labels", "fps"):
             if key not in z:
                 raise PhysavatarError(path / NPZ, f"missing array {key!r}")
-        seq = cls(z["vertices"].astype(np.float64), z["faces"], z["labels"].astype(np.int64),
+        seq = cls(z["vertices"] if mapped else z["vertices"].astype(np.float64), z["faces"], z["labels"].astype(np.int64),
                   z["face_uvs"] if "face_uvs" in z else None, float(z["fps"]),
                   Path(meta["avatar"]) if meta.get("avatar") else None)
-        seq.validate(path / NPZ)
+        seq.validate(path / NPZ, finite=finite)
         return seq
 
     def validate(self, path: str | Path | None = None, finite: bool = True) -> None:

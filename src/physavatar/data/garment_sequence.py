@@ -63,35 +63,40 @@ class GarmentSequence:
             self.rest_vertices = np.asarray(self.vertices[0])
 
     @classmethod
-    def load(cls, path: str | Path) -> "GarmentSequence":
-        """``path``: an .npz file, or a folder holding ``garment_sequence.npz``."""
+    def load(cls, path: str | Path, *, finite: bool = True, mapped: bool = False) -> "GarmentSequence":
+        """``path``: an .npz file, or a folder holding ``garment_sequence.npz``. ``finite=False``
+        accepts NaN frames (a viewer shows them as missing); ``mapped``: the large arrays stay as
+        stored (float32), memory-mapped (:func:`physavatar.files.load_npz`)."""
         path = Path(path)
         if path.is_dir() or path.suffix != ".npz":  # a folder (named in errors with its file)
             path = path / FILE
-        return cls.from_arrays(load_npz(path), path)
+        return cls.from_arrays(load_npz(path, mapped=mapped), path, finite=finite, as_stored=mapped)
 
     @classmethod
-    def from_arrays(cls, z: dict, path: str | Path | None = None) -> "GarmentSequence":
-        """The sequence of the arrays ``z`` already read from ``path``."""
+    def from_arrays(cls, z: dict, path: str | Path | None = None, *, finite: bool = True,
+                    as_stored: bool = False) -> "GarmentSequence":
+        """The sequence of the arrays ``z`` already read from ``path``; ``as_stored`` keeps the
+        positions' dtype (no float64 copy)."""
+        pos = np.asarray if as_stored else (lambda a: np.asarray(a, np.float64))
         path = None if path is None else Path(path)
         for key in ("vertices", "faces"):
             if key not in z:
                 raise PhysavatarError(path, f"missing array {key!r} (a garment sequence needs vertices [T, N, 3] and faces)")
-        V = np.asarray(z["vertices"], np.float64)
+        V = pos(z["vertices"])
         F = np.asarray(z["faces"], np.int64)
-        _check_garment(path, V, F, finite=True)
+        _check_garment(path, V, F, finite=finite)
         n = V.shape[1]
         try:
             b = boundary_ids(z["boundary"], n) if "boundary" in z else np.zeros(0, np.int64)
         except ValueError as e:
             raise PhysavatarError(path, str(e)) from None
-        rest = np.asarray(z["rest_vertices"], np.float64) if "rest_vertices" in z else V[0]
+        rest = pos(z["rest_vertices"]) if "rest_vertices" in z else V[0]
         body = body_faces = None
         if "body_vertices" in z:
-            body = np.asarray(z["body_vertices"], np.float64)
+            body = pos(z["body_vertices"])
             body_faces = np.asarray(z["body_faces"], np.int64) if "body_faces" in z else None
         seq = cls(V, F, b, body, body_faces, float(z["fps"]) if "fps" in z else 25.0, rest, path=path)
-        seq.validate()
+        seq.validate(finite=finite)
         return seq
 
     @property

@@ -52,17 +52,21 @@ class TrackedSequence:
     path: Path | None = None
 
     @classmethod
-    def load(cls, path: str | Path, *, require=("vertices",), min_frames: int = 1) -> "TrackedSequence":
+    def load(cls, path: str | Path, *, require=("vertices",), min_frames: int = 1, finite: bool = True,
+             mapped: bool = False) -> "TrackedSequence":
         """``path``: a tracking folder (its ``tracked.npz``) or an .npz file. ``require``: arrays
-        that must be present; ``min_frames``: the fewest frames the caller can use."""
+        that must be present; ``min_frames``: the fewest frames the caller can use. ``finite=False``
+        accepts NaN frames (a viewer shows them as missing); ``mapped``: large arrays are memory
+        maps (:func:`physavatar.files.load_npz`)."""
         path = Path(path)
         if path.is_dir() or path.suffix != ".npz":  # a folder (named in errors with its file)
             path = path / FILE
-        return cls.from_arrays(load_npz(path), path, require=require, min_frames=min_frames)
+        return cls.from_arrays(load_npz(path, mapped=mapped), path, require=require, min_frames=min_frames,
+                               finite=finite)
 
     @classmethod
     def from_arrays(cls, z: dict, path: str | Path | None = None, *, require=("vertices",),
-                    min_frames: int = 1) -> "TrackedSequence":
+                    min_frames: int = 1, finite: bool = True) -> "TrackedSequence":
         """The sequence of the arrays ``z`` already read from ``path`` (:meth:`load`)."""
         path = None if path is None else Path(path)
         for key in ("vertices", *require):
@@ -78,7 +82,7 @@ class TrackedSequence:
                   boundary=get("boundary", bool), face_colors=get("face_colors"), frames=get("frames", np.int64),
                   log_scales=get("log_scales"), opacity_logits=get("opacity_logits"), edge_index=get("edge_index"),
                   fps=float(z["fps"]) if "fps" in z else None, path=path)
-        seq.validate(min_frames)
+        seq.validate(min_frames, finite=finite)
         return seq
 
     @property

@@ -1,0 +1,392 @@
+"""What the viewer shows: a folder recognized and turned into layers, cameras and panels.
+
+Everything is read through the objects that own the files (``capture.load_capture``,
+``data.TrackedSequence``, ``GarmentSequence``, ``AnimatedSequence``, ``Avatar``,
+``FittedMaterial``); sequences are opened memory-mapped (``mapped=True``) and with NaN frames
+accepted (``finite=False``), so a layer reads one frame when the time slider asks for it and a
+frame that is not finite is reported missing instead of failing the whole folder.
+
+Kinds of folder (:func:`detect`): a run (``run.json``), an avatar (``avatar.json``), an animate
+output (``sequence.npz``), a simulate output (``garment_sequence.npz``), a tracking output
+(``tracked.npz``) and a capture (``capture.json``). An ``.npz`` file is read as the sequence it
+holds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..errors import PhysavatarError
+from ..files import read_json
+
+KINDS = {  # marker file -> kind, in the order tried
+    "run.json": "run",
+    "avatar.json": "avatar",
+    "sequence.npz": "animation",
+    "garment_sequence.npz": "simulation",
+    "tracked.npz": "tracking",
+    "capture.json": "capture",
+}
+BODY = (200, 186, 170)
+GARMENTS = [(70, 130, 220), (230, 140, 50), (90, 180, 90), (200, 80, 160), (150, 110, 220)]
+TRUTH = (60, 200, 120)
+ERROR_MM = 20.0  # the error colour map saturates here (red)
+
+
+def garment_color(label: int) -> tuple[int, int, int]:
+    return BODY if label == 0 else GARMENTS[(label - 1) % len(GARMENTS)]
+
+
+@dataclasses.dataclass(eq=False)
+class Layer:
+    """One mesh over time: ``vertices`` [T, N, 3] (or [N, 3], static) array-like, read one frame at a
+    time; ``index`` picks this layer's vertices out of a larger mesh (a label's part), ``faces``
+    index the picked ones. ``truth`` (same shape as ``vertices``, same ``index``) colours the
+    layer by per-vertex distance to it."""
+
+    name: str
+    vertices: object
+    faces: np.ndarray
+    color: tuple[int, int, int] = BODY
+    index: np.ndarray | None = None
+    truth: object | None = None
+    visible: bool = True
+    opacity: float | None = None
+    offset: int = 0  # the layer's frame 0 is the timeline's frame ``offset``
+
+    @property
+    def static(self) -> bool:
+        return np.ndim(self.vertices) == 2
+
+    @property
+    def n_frames(self) -> int:
+        return 1 if self.static else len(self.vertices)
+
+    def frame(self, t: int) -> np.ndarray | None:
+        """[N, 3] float32 at timeline frame ``t``; None when missing (outside the sequence or not
+        finite)."""
+        V = self._read(self.vertices, t)
+        return None if V is None or not np.all(np.isfinite(V)) else V
+
+    def error(self, t: int) -> np.ndarray | None:
+        """Per-vertex distance (metres) to :attr:`truth` at frame ``t``; None without truth there."""
+        if self.truth is None:
+            return None
+        V, G = self.frame(t), self._read(self.truth, t)
+        if V is None or G is None or not np.all(np.isfinite(G)):
+            return None
+        return np.linalg.norm(V - G, axis=1)
+
+    def _read(self, arr, t: int) -> np.ndarray | None:
+        if np.ndim(arr) == 2:
+            V = arr
+        else:
+            t = t - self.offset
+            if t < 0 or t >= len(arr):
+                return None
+            V = arr[t]
+        V = np.asarray(V if self.index is None else V[self.index], np.float32)
+        return V
+
+
+@dataclasses.dataclass(eq=False)
+class ViewCamera:
+    """A capture camera: its pose and a function giving its (downscaled, uint8) image at a
+    timeline frame (None where there is none)."""
+
+    name: str
+    c2w: np.ndarray
+    fov_y: float  # radians
+    aspect: float
+    image: Callable[[int], np.ndarray | None]
+
+
+@dataclasses.dataclass(eq=False)
+class Scene:
+    """What one folder shows; ``notes`` are lines shown in the panel (what is missing and why)."""
+
+    path: Path
+    kind: str
+    fps: float = 25.0
+    layers: list[Layer] = dataclasses.field(default_factory=list)
+    cameras: list[ViewCamera] = dataclasses.field(default_factory=list)
+    panels: dict[str, dict] = dataclasses.field(default_factory=dict)
+    notes: list[str] = dataclasses.field(default_factory=list)
+    up: str = "+z"
+
+    @property
+    def n_frames(self) -> int:
+        return max([ly.offset + ly.n_frames for ly in self.layers] + [1])
+
+    def missing(self, t: int) -> list[str]:
+        """Names of the (non-static) layers without a finite frame at ``t`` though ``t`` is in
+        their range: NaN frames."""
+        return [ly.name for ly in self.layers if not ly.static and ly.offset <= t < ly.offset + ly.n_frames
+                and ly.frame(t) is None]
+
+
+def detect(path: str | Path) -> tuple[str, Path]:
+    """The kind of ``path`` and the folder (or .npz file) to read; raises a clear
+    :class:`PhysavatarError` for anything else."""
+    path = Path(path)
+    if not path.exists():
+        raise PhysavatarError(path, "not found")
+    if path.is_file():
+        if path.suffix == ".npz" and path.name in KINDS:
+            return KINDS[path.name], path.parent
+        if path.suffix == ".npz":
+            return "npz", path
+        if path.name in KINDS:
+            return KINDS[path.name], path.parent
+        raise PhysavatarError(path, "the viewer shows folders (a capture, a run, a track, simulate, animate or avatar "
+                                    "output) or a sequence .npz")
+    for marker, kind in KINDS.items():
+        if (path / marker).is_file():
+            return kind, path
+    raise PhysavatarError(path, "not a folder the viewer knows: expected one of " + ", ".join(KINDS)
+                          + " (a run, an avatar, an animate, simulate or tracking output, a capture)")
+
+
+def load_scene(path: str | Path) -> Scene:
+    kind, root = detect(path)
+    scene = Scene(root, kind)
+    {"run": _run, "avatar": _avatar, "animation": _animation, "simulation": _simulation, "tracking": _tracking,
+     "capture": _capture, "npz": _npz}[kind](scene, root)
+    if not scene.layers:
+        raise PhysavatarError(root, "nothing to show (no mesh found)")
+    return scene
+
+
+# -- builders ------------------------------------------------------------------------------------
+
+def _split(scene: Scene, prefix: str, vertices, faces, labels, *, truth=None, color=None, visible=True,
+           opacity=None, offset=0) -> list[Layer]:
+    """One layer per label (body, garment 1, ...) of a labelled mesh, or one when unlabelled."""
+    faces = np.asarray(faces, np.int64)
+    out = []
+    if labels is None:
+        out.append(Layer(prefix, vertices, faces, color or GARMENTS[0], truth=truth, visible=visible,
+                         opacity=opacity, offset=offset))
+    else:
+        labels = np.asarray(labels)
+        face_label = labels[faces].min(axis=1)  # a face touching the body belongs to the body
+        for lab in np.unique(labels):
+            fsel = faces[face_label == lab]
+            if not len(fsel):
+                continue
+            idx = np.unique(fsel)
+            remap = np.full(len(labels), -1, np.int64)
+            remap[idx] = np.arange(len(idx))
+            name = f"{prefix}/{'body' if lab == 0 else f'garment{int(lab)}'}"
+            out.append(Layer(name, vertices, remap[fsel], color or garment_color(int(lab)), index=idx, truth=truth,
+                             visible=visible, opacity=opacity, offset=offset))
+    scene.layers.extend(out)
+    return out
+
+
+def _nan_note(scene: Scene, name: str, V) -> None:
+    if np.ndim(V) != 3:
+        return
+    bad = [t for t in range(len(V)) if not np.all(np.isfinite(V[t]))]
+    if bad:
+        scene.notes.append(f"{name}: {len(bad)} of {len(V)} frames are not finite (shown as missing): "
+                           + ", ".join(map(str, bad[:10])) + (" ..." if len(bad) > 10 else ""))
+
+
+def _capture(scene: Scene, root: Path, *, layers: bool = True, overlay: bool = False) -> object:
+    from ..capture import load_capture
+
+    cap = load_capture(root)
+    scene.fps = cap.fps
+    scene.up = {"z": "+z", "y": "+y", "x": "+x"}.get(str(cap.meta.get("up", "z")), "+z")
+    scene.panels["capture"] = {k: v for k, v in cap.meta.items() if k != "frames"} | {
+        "frames": len(cap.frames), "cameras": [c.name for c in cap.cameras]}
+    for cam in cap.cameras:
+        scene.cameras.append(ViewCamera(cam.name, cam.c2w, np.radians(cam.fov_y_deg), cam.width / cam.height,
+                                        _image_reader(cap, cam.name)))
+    tpl = cap.template
+    if layers:
+        _split(scene, "/capture/template", tpl.vertices, tpl.faces, tpl.labels, visible=False)
+    gt = cap.ground_truth
+    if gt is not None and (gt / "meshes.npz").is_file():
+        from ..data.tracked import TrackedSequence
+
+        truth = TrackedSequence.load(gt / "meshes.npz", finite=False, mapped=True)
+        _nan_note(scene, "ground truth", truth.vertices)
+        if layers:
+            _split(scene, "/capture/ground_truth", truth.vertices, tpl.faces if truth.faces is None else truth.faces,
+                   tpl.labels, color=TRUTH if overlay else None)
+        if (gt / "material.json").is_file():
+            scene.panels["true material"] = read_json(gt / "material.json")
+        return cap, truth
+    return cap, None
+
+
+def _image_reader(cap, name: str, max_px: int = 256) -> Callable[[int], np.ndarray | None]:
+    def image(t: int) -> np.ndarray | None:
+        if not 0 <= t < len(cap.frames):
+            return None
+        try:
+            img = cap.image(name, cap.frames[t])
+        except PhysavatarError:
+            return None
+        step = max(1, int(np.ceil(max(img.shape[:2]) / max_px)))
+        return (np.clip(img[::step, ::step, :3], 0, 1) * 255).astype(np.uint8)
+
+    return image
+
+
+def _tracking(scene: Scene, root: Path, *, cap=None, truth=None) -> None:
+    from ..data.tracked import TrackedSequence
+
+    seq = TrackedSequence.load(root, finite=False, mapped=True)
+    if seq.fps:
+        scene.fps = seq.fps
+    own_capture = cap is not None  # a run shows its capture's ground truth already
+    if cap is None:
+        cap, truth = _capture_of(scene, root / "config.json")
+    tv = None
+    if truth is not None and truth.vertices.shape[1:] == seq.vertices.shape[1:]:
+        if seq.frames is not None and cap is not None:
+            pos = {f: i for i, f in enumerate(cap.frames)}
+            if all(int(f) in pos for f in seq.frames):
+                tv = _Rows(truth.vertices, [pos[int(f)] for f in seq.frames])
+        elif len(truth.vertices) >= len(seq.vertices):
+            tv = truth.vertices
+    faces = seq.faces if seq.faces is not None else (cap.template.faces if cap is not None else None)
+    if faces is None:
+        raise PhysavatarError(seq.path, "no faces (and no capture to take them from)")
+    _nan_note(scene, "tracked", seq.vertices)
+    _split(scene, "/track/tracked", seq.vertices, faces, seq.labels, truth=tv)
+    if tv is not None and not own_capture:
+        _split(scene, "/track/ground_truth", tv, faces, seq.labels, color=TRUTH, visible=False, opacity=0.5)
+    if tv is None:
+        scene.notes.append("tracked: no ground truth to colour the error by (a synthetic capture has one)")
+
+
+class _Rows:
+    """``arr[rows[t]]`` for ``t`` (a sequence re-indexed without copying)."""
+
+    def __init__(self, arr, rows):
+        self.arr, self.rows = arr, list(rows)
+
+    def __len__(self):
+        return len(self.rows)
+
+    def __getitem__(self, t):
+        return self.arr[self.rows[t]]
+
+    @property
+    def ndim(self):
+        return 3
+
+    @property
+    def shape(self):
+        return (len(self.rows), *self.arr.shape[1:])
+
+
+def _capture_of(scene: Scene, config: Path):
+    """The capture a stage output names in its config.json (``capture``), when it is still there."""
+    if not config.is_file():
+        return None, None
+    src = read_json(config).get("capture")
+    if not src or not (Path(src) / "capture.json").is_file():
+        return None, None
+    try:
+        return _capture(scene, Path(src), layers=False)
+    except PhysavatarError as e:
+        scene.notes.append(f"capture {src}: {e}")
+        return None, None
+
+
+def _simulation(scene: Scene, root: Path) -> None:
+    from ..data.garment_sequence import GarmentSequence
+
+    seq = GarmentSequence.load(root, finite=False, mapped=True)
+    scene.fps = seq.fps
+    _nan_note(scene, "garment", seq.vertices)
+    _split(scene, "/simulate/garment", seq.vertices, seq.faces, None, color=GARMENTS[0])
+    if seq.body_vertices is not None:
+        _split(scene, "/simulate/body", seq.body_vertices, seq.body_faces, None, color=BODY)
+    if (root / "config.json").is_file():
+        scene.panels["simulate"] = read_json(root / "config.json")
+
+
+def _animation(scene: Scene, root: Path, *, prefix: str = "/animate", truth=None) -> None:
+    from ..data.animated import AnimatedSequence
+
+    seq = AnimatedSequence.load(root, finite=False, mapped=True)
+    scene.fps = seq.fps
+    tv = truth.vertices if truth is not None and truth.vertices.shape == seq.vertices.shape else None
+    _nan_note(scene, "animated", seq.vertices)
+    _split(scene, prefix, seq.vertices, seq.faces, seq.labels, truth=tv)
+    if truth is not None:
+        _split(scene, prefix + "_truth", truth.vertices, seq.faces, seq.labels, color=TRUTH, visible=False,
+               opacity=0.5)
+    if (root / "sequence.json").is_file():
+        scene.panels["animation"] = read_json(root / "sequence.json")
+
+
+def _avatar(scene: Scene, root: Path) -> None:
+    from ..data.avatar import Avatar
+
+    av = Avatar.load(root)
+    scene.fps = av.fps
+    tpl = av.template
+    _split(scene, "/avatar", tpl.vertices, tpl.faces, tpl.labels)
+    scene.panels["avatar"] = av.meta
+    scene.panels["material"] = read_json(root / "material.json")
+    if av.light_path is not None:
+        scene.panels["light"] = read_json(av.light_path)
+
+
+def _npz(scene: Scene, path: Path) -> None:
+    from ..data.tracked import TrackedSequence
+
+    seq = TrackedSequence.load(path, finite=False, mapped=True)
+    if seq.faces is None:
+        raise PhysavatarError(path, "a sequence without faces: nothing to draw")
+    if seq.fps:
+        scene.fps = seq.fps
+    _nan_note(scene, path.stem, seq.vertices)
+    _split(scene, "/" + path.stem, seq.vertices, seq.faces, seq.labels)
+
+
+def _run(scene: Scene, root: Path) -> None:
+    record = read_json(root / "run.json")
+    scene.panels["run"] = {k: (v.get("status"), v.get("seconds")) if isinstance(v, dict) and "status" in v else v
+                           for k, v in record.items() if k != "_config"}
+    cap = truth = None
+    src = record.get("_capture")
+    if src and (Path(src) / "capture.json").is_file():
+        cap, truth = _capture(scene, Path(src), overlay=True)
+        for ly in scene.layers:  # the capture's own meshes start hidden in a run
+            ly.visible = False
+    else:
+        scene.notes.append(f"run: its capture {src!r} is not there (no cameras, no ground truth)")
+    if (root / "track" / "tracked.npz").is_file():
+        _tracking(scene, root / "track", cap=cap, truth=truth)
+    if (root / "animate" / "sequence.npz").is_file():
+        held = None
+        if cap is not None and cap.ground_truth is not None and (cap.ground_truth / "heldout" / "meshes.npz").is_file():
+            from ..data.tracked import TrackedSequence
+
+            held = TrackedSequence.load(cap.ground_truth / "heldout" / "meshes.npz", finite=False, mapped=True)
+        _animation(scene, root / "animate", truth=held)
+        for ly in scene.layers:
+            if ly.name.startswith("/animate"):
+                ly.visible = False  # a different motion than the capture's: shown on request
+    if (root / "physics" / "material.json").is_file():
+        from ..data.material import FittedMaterial
+
+        scene.panels["fitted material"] = FittedMaterial.load(root / "physics" / "material.json").to_json()
+    for metrics in ("evaluate/metrics.json", "metrics.json"):
+        if (root / metrics).is_file():
+            scene.panels["metrics"] = read_json(root / metrics)
+            break
+    if not scene.layers:
+        raise PhysavatarError(root, "a run without a capture, track or animate output yet: nothing to show")
