@@ -1,0 +1,78 @@
+"""`physavatar batch`: captures from folders, globs and lists; a batch with a failing capture; resume;
+Ray missing; on Ray the same outputs as `physavatar run` of each capture alone."""
+
+import json
+import shutil
+import sys
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from physavatar.batch import collect, import_ray
+from physavatar.cli import app
+from physavatar.errors import PhysavatarError
+
+
+def test_collect_folders_globs_lists(tmp_path):
+    for p in ("a/cap1", "a/cap2", "b/cap1", "c"):
+        (tmp_path / p).mkdir(parents=True)
+    (tmp_path / "a" / "notes.txt").write_text("x")
+    lst = tmp_path / "list.txt"
+    lst.write_text("# my captures\nb/cap1\na/cap1   # again: kept once\nmissing\n")
+    caps = collect([str(tmp_path / "a" / "*"), str(lst), str(tmp_path / "c")])
+    assert [c.name for c in caps] == ["cap1", "cap2", "cap1-2", "missing", "c"]
+    assert caps[2].path == tmp_path / "b" / "cap1" and caps[3].path == tmp_path / "missing"
+    with pytest.raises(PhysavatarError, match="matches no folder"):
+        collect([str(tmp_path / "z*")])
+
+
+def test_ray_missing_says_how_to_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails as when it is not installed
+    with pytest.raises(PhysavatarError, match=r"pip install 'physavatar\[ray\]'"):
+        import_ray()
+    (tmp_path / "cap").mkdir()
+    r = CliRunner().invoke(app, ["batch", str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--ray"])
+    assert r.exit_code == 2 and "physavatar[ray]" in r.output, r.output
+    assert not (tmp_path / "out" / "cap").exists()  # nothing ran
+
+
+@pytest.mark.slow
+def test_batch_local_failure_summary_and_resume(tiny_capture, tmp_path):
+    bad = tmp_path / "not_a_capture"
+    bad.mkdir()
+    out = tmp_path / "out"
+    args = ["batch", str(tiny_capture), str(bad), "--out", str(out), "--quick"]
+    r = CliRunner().invoke(app, args + ["--jobs", "1"])
+    assert r.exit_code == 1, r.output  # one capture failed
+    assert "not_a_capture" in r.output and "capture.json" in r.output
+    b = json.loads((out / "batch.json").read_text())
+    ok, failed = b["captures"]
+    assert (b["ok"], b["failed"]) == (1, 1)
+    # the capture that failed is reported with its error; the other one finished
+    assert failed["status"] == "failed" and "capture.json" in failed["error"]
+    assert ok["status"] == "ok" and ok["name"] == tiny_capture.name and not ok["skipped"]
+    # the summary's numbers are the run's own
+    run = json.loads((out / ok["name"] / "run.json").read_text())
+    assert ok["stage_seconds"] == {k: v["seconds"] for k, v in run.items() if isinstance(v, dict) and "seconds" in v}
+    assert all(v["status"] == "ok" for k, v in run.items() if isinstance(v, dict) and "status" in v)
+    assert len(ok["stage_seconds"]) == 11
+    m = json.loads((out / ok["name"] / "evaluate" / "metrics.json").read_text())
+    assert ok["metrics"]["garment_chamfer_x1e3"] == m["rows"]["estimated material"]["garment"]["chamfer_x1e3"]
+    assert ok["metrics"]["tracking_garment_mm"] == m["tracking"]["garment"]["mean_mm"]
+    assert ok["metrics"]["psnr"] == m["appearance"]["psnr"]
+    mat = json.loads((out / ok["name"] / "physics" / "material.json").read_text())["material"]
+    assert ok["metrics"]["stretch_stiffness"] == mat["stretch_stiffness"]
+    md = (out / "batch.md").read_text()
+    assert f"[report.md]({ok['name']}/report.md)" in md and (out / ok["name"] / "report.md").exists()
+    assert f"| {ok['name']} | ok | {sum(ok['stage_seconds'].values()):.1f} |" in md
+    # a second batch (two captures side by side, in processes) resumes: the finished capture's
+    # stages are all skipped by run's hashes, the failing one fails again
+    r = CliRunner().invoke(app, args + ["--jobs", "2"])
+    assert r.exit_code == 1, r.output
+    b2 = json.loads((out / "batch.json").read_text())
+    ok2, failed2 = b2["captures"]
+    assert sorted(ok2["skipped"]) == sorted(ok["stage_seconds"]) and ok2["stage_seconds"] == ok["stage_seconds"]
+    assert failed2["status"] == "failed" and (out / failed2["name"] / "batch.log").exists()
+    assert "done earlier" in (out / ok2["name"] / "batch.log").read_text()
+
