@@ -34,7 +34,7 @@ def test_ray_missing_says_how_to_install(tmp_path, monkeypatch):
     (tmp_path / "cap").mkdir()
     r = CliRunner().invoke(app, ["batch", str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--ray"])
     assert r.exit_code == 2 and "physavatar[ray]" in r.output, r.output
-    assert not (tmp_path / "out" / "cap").exists()  # nothing ran
+    assert not (tmp_path / "out").exists()  # nothing ran
 
 
 @pytest.mark.slow
@@ -76,3 +76,55 @@ def test_batch_local_failure_summary_and_resume(tiny_capture, tmp_path):
     assert failed2["status"] == "failed" and (out / failed2["name"] / "batch.log").exists()
     assert "done earlier" in (out / ok2["name"] / "batch.log").read_text()
 
+
+def _numbers(x, prefix=""):
+    """Every number in a JSON tree, by its path (timings and paths left out)."""
+    if isinstance(x, dict):
+        return {k: v for key, val in x.items() if key != "seconds" for k, v in _numbers(val, f"{prefix}/{key}").items()}
+    if isinstance(x, list):
+        return {k: v for i, val in enumerate(x) for k, v in _numbers(val, f"{prefix}/{i}").items()}
+    return {prefix: x} if isinstance(x, (int, float)) and not isinstance(x, bool) else {}
+
+
+@pytest.mark.slow
+def test_ray_batch_gives_the_outputs_of_run_alone(tiny_capture, tmp_path):
+    pytest.importorskip("ray")
+    # each capture alone, with `physavatar run`
+    alone = tmp_path / "alone"
+    r = CliRunner().invoke(app, ["run", str(tiny_capture), str(alone), "--quick"])
+    assert r.exit_code == 0, r.output
+    # two captures (copies of it) on a local Ray of 2 CPUs: every stage a task
+    caps = tmp_path / "caps"
+    for name in ("a", "b"):
+        shutil.copytree(tiny_capture, caps / name)
+    out = tmp_path / "batch"
+    r = CliRunner().invoke(app, ["batch", str(caps / "*"), "--out", str(out), "--quick", "--ray", "--ray-cpus", "2"])
+    assert r.exit_code == 0, r.output
+    b = json.loads((out / "batch.json").read_text())
+    assert [c["name"] for c in b["captures"]] == ["a", "b"] and b["mode"] == "Ray local"
+    ref_run = json.loads((alone / "run.json").read_text())
+    ref_mat = json.loads((alone / "physics" / "material.json").read_text())["material"]
+    ref_trk = np.load(alone / "track" / "tracked.npz")
+    ref_m = _numbers(json.loads((alone / "evaluate" / "metrics.json").read_text()))
+    for name in ("a", "b"):
+        o = out / name
+        run = json.loads((o / "run.json").read_text())
+        # the driver merged every task's entry, in whatever order they finished: the stages of the run
+        # alone, all ok (their hashes differ: the held-out motion's path is in animate's config)
+        assert sorted(k for k, v in run.items() if isinstance(v, dict) and v.get("status") == "ok") == \
+               sorted(k for k, v in ref_run.items() if isinstance(v, dict) and "hash" in v)
+        assert json.loads((o / "physics" / "material.json").read_text())["material"] == ref_mat
+        trk = np.load(o / "track" / "tracked.npz")
+        for k in ref_trk.files:
+            if np.issubdtype(ref_trk[k].dtype, np.number):
+                np.testing.assert_array_equal(trk[k], ref_trk[k], err_msg=k)
+        m = _numbers(json.loads((o / "evaluate" / "metrics.json").read_text()))
+        assert m.keys() == ref_m.keys()
+        for k in ref_m:
+            assert m[k] == pytest.approx(ref_m[k], rel=1e-6, abs=1e-9), k
+        assert (o / "report.md").exists() and (o / "appearance" / "stage.log").exists()
+    # a second batch skips every stage of both (run's hashes, in the tasks)
+    r = CliRunner().invoke(app, ["batch", str(caps / "*"), "--out", str(out), "--quick", "--ray", "--ray-cpus", "2"])
+    assert r.exit_code == 0, r.output
+    b = json.loads((out / "batch.json").read_text())
+    assert all(len(c["skipped"]) == 11 for c in b["captures"])

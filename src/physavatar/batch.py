@@ -409,12 +409,13 @@ def run_batch(args: list[str], out: str | Path, cfg: RunConfig = RunConfig(), *,
               ray: str | None = None, ray_cpus: int | None = None, say=print) -> dict:
     """Collect the captures, run them (locally, or on Ray when ``ray`` is an address or
     ``"local"``), write ``OUT/batch.json`` and ``OUT/batch.md``; returns the batch record."""
+    if ray is not None:
+        import_ray()  # before anything runs: a clear message when it is missing
     caps = collect(args)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     if ray is not None:
-        import_ray()  # before anything runs: a clear message when it is missing
         results = run_ray(caps, out, cfg, address=ray, cpus=ray_cpus, say=say)
         mode = "Ray " + ("local" if ray in ("", "local") else ray)
     else:
