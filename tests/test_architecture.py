@@ -30,7 +30,7 @@ FLOORS: list[tuple[str, set[str]]] = [
     ("optim", {"optim"}),
     ("data", {"data", "avatar"}),
     ("stages", {"stages", "synth"}),
-    ("top", {"pipeline", "report", "cli", "viewer", "__main__", "__init__"}),
+    ("top", {"pipeline", "batch", "report", "cli", "viewer", "__main__", "__init__"}),
 ]
 # Units that must not import these, whatever their floors (garment sits below sim and render, but
 # the simulator and the renderer work on plain meshes from geometry/).

@@ -150,7 +150,9 @@ def _command(st: Step, out: Path) -> list[str]:
     return args
 
 
-def _hash(st: Step, out: Path, record: dict) -> str:
+def step_hash(st: Step, out: Path, record: dict) -> str:
+    """The step's hash: its config and inputs, an earlier step's input by that step's hash in
+    ``record`` (``run.json``'s entries; only those of the steps it reads from are needed)."""
     inputs = {}
     for k, v in st.inputs.items():
         if isinstance(v, tuple) and v[:1] == ("step",):
@@ -169,6 +171,62 @@ def _call(st: Step, out: Path, progress, say=None) -> Any:
     if say is not None and "say" in inspect.signature(func).parameters:
         kwargs["say"] = say  # a stage's notes (fit-physics: the start state, the proxy, each iteration)
     return func(**kwargs, out=st.out(out), config=st.config, progress=progress)
+
+
+def needs(st: Step) -> list[str]:
+    """The steps ``st`` reads from or waits for (its ``("step", NAME)`` inputs and ``after``)."""
+    names = [v[1] for v in st.inputs.values() if isinstance(v, tuple) and v[:1] == ("step",)]
+    return list(dict.fromkeys(names + list(st.after)))
+
+
+def is_done(st: Step, out: Path, prev: dict, h: str) -> bool:
+    """Finished earlier with the same hash (its final output still there): skipped."""
+    return (out / st.name / st.done_file).exists() and prev.get("hash") == h and prev.get("status") == "ok"
+
+
+def entry(st: Step, h: str, status: str, secs: float, *, background: bool = False, error: str | None = None) -> dict:
+    """The step's entry in ``run.json``."""
+    return ({"hash": h, "seconds": round(secs, 1), "status": status, "command": st.command,
+             "config": to_dict(st.config)} | ({"background": True} if background else {})
+            | ({"error": error} if error else {}))
+
+
+def execute(st: Step, out: Path, h: str, *, progress=False, say=None) -> dict:
+    """Call the step's stage function; returns its ``run.json`` entry. A stage's
+    :class:`PhysavatarError` (bad input) gives status ``failed`` with its ``error``; anything else
+    (a bug, Ctrl-C) propagates."""
+    (out / st.name).mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    try:
+        _call(st, out, progress, say)
+    except PhysavatarError as e:
+        return entry(st, h, "failed", time.time() - t0, error=str(e))
+    return entry(st, h, "ok", time.time() - t0)
+
+
+@dataclass
+class StepResult:
+    """What :func:`run_step` gives back: the step's ``run.json`` entry (the previous one when skipped)."""
+
+    name: str
+    entry: dict
+    skipped: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return self.entry.get("status") == "ok"
+
+
+def run_step(st: Step, out: Path, record: dict, *, progress=False) -> StepResult:
+    """Run one step of a run into ``out``, or skip it when it finished earlier with the same hash.
+    ``record``: ``run.json``'s entries, at least those of the steps it reads from and its own
+    previous one. Whoever calls it merges the returned entry into ``run.json`` (:func:`run` in
+    order; a batch's Ray driver as tasks finish, in any order)."""
+    h = step_hash(st, out, record)
+    prev = record.get(st.name, {})
+    if is_done(st, out, prev, h):
+        return StepResult(st.name, prev, skipped=True)
+    return StepResult(st.name, execute(st, out, h, progress=progress))
 
 
 def _child(st: Step, out: Path, log_path: Path, conn) -> None:
@@ -219,11 +277,11 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
     cores = default_workers(64)
     t_all = time.time()
     running: dict[str, _Running] = {}
+    skipped: list[str] = []
     ctx = multiprocessing.get_context("spawn")
 
-    def save(st: Step, h: str, status: str, secs: float, background: bool = False) -> None:
-        record[st.name] = {"hash": h, "seconds": round(secs, 1), "status": status,
-                           "command": st.command, "config": to_dict(st.config)} | ({"background": True} if background else {})
+    def save(st: Step, e: dict) -> None:
+        record[st.name] = e
         write_json_atomic(rec_path, record)
 
     def finish(name: str) -> None:
@@ -240,7 +298,8 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
         if status == "interrupted":
             raise KeyboardInterrupt
         ok = status == "ok"
-        save(r.step, r.hash, "ok" if ok else "failed", t_end - r.t0, background=True)
+        save(r.step, entry(r.step, r.hash, "ok" if ok else "failed", t_end - r.t0, background=True,
+                           error=None if ok else msg))
         say(f"{name} (beside the other stages): {'done' if ok else 'failed'} after {record[name]['seconds']} s")
         if not ok:
             raise PhysavatarError(out / name / "stage.log", f"stage {name!r} failed: {msg}; fix the cause and run "
@@ -255,13 +314,14 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
             for name in st.after:
                 if name in running:
                     finish(name)
-            h = _hash(st, out, record)
+            h = step_hash(st, out, record)
             prev = record.get(st.name, {})
-            if (out / st.name / st.done_file).exists() and prev.get("hash") == h and prev.get("status") == "ok":
+            if is_done(st, out, prev, h):
                 say(f"[{i}/{len(steps)}] {st.name}: done earlier ({prev.get('seconds', '?')} s), skipped")
+                skipped.append(st.name)
                 continue
-            (out / st.name).mkdir(parents=True, exist_ok=True)
             if st.background and len(running) < cores - 1:
+                (out / st.name).mkdir(parents=True, exist_ok=True)
                 parent, child = ctx.Pipe(duplex=False)
                 proc = ctx.Process(target=_child, args=(st, out, out / st.name / "stage.log", child), daemon=False)
                 proc.start()
@@ -271,14 +331,11 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
                     f"another core; log: {out / st.name / 'stage.log'})")
                 continue
             say(f"[{i}/{len(steps)}] {st.name}: physavatar {' '.join(st.command)}")
-            t0 = time.time()
-            try:
-                _call(st, out, progress=True, say=say)
-            except PhysavatarError as e:
-                save(st, h, "failed", time.time() - t0)
-                raise PhysavatarError(None, f"stage {st.name!r} failed: {e}; fix the cause and run again to "
-                                      "resume") from None
-            save(st, h, "ok", time.time() - t0)
+            e = execute(st, out, h, progress=True, say=say)
+            save(st, e)
+            if e["status"] != "ok":
+                raise PhysavatarError(None, f"stage {st.name!r} failed: {e['error']}; fix the cause and run again "
+                                      "to resume")
         for name in list(running):
             finish(name)
     finally:
@@ -286,6 +343,7 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
             r.proc.terminate()
             r.proc.join()
     record["_total_seconds_this_run"] = round(time.time() - t_all, 1)
+    record["_skipped_this_run"] = skipped
     write_json_atomic(rec_path, record)
     return record
 

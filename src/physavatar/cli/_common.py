@@ -6,6 +6,7 @@ import functools
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from ..errors import PhysavatarError
 
@@ -30,7 +31,7 @@ def handle_errors(fn):
         try:
             return fn(*args, **kwargs)
         except PhysavatarError as e:
-            err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+            err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
             raise typer.Exit(2)
         except KeyboardInterrupt:
             err_console.print("[yellow]interrupted[/]: finished outputs are kept; run again to resume")
