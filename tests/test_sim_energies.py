@@ -9,7 +9,7 @@ from physavatar.sim.energies import (
     Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping, dihedral_angle, dihedral_angle_gradient,
 )
 from physavatar.sim.mesh import ClothTopology
-from physavatar.sim.terms import Blocks, Diagonal, StepState
+from physavatar.sim.terms import Diagonal, StepState
 
 
 def grid(n=4, size=1.0):
