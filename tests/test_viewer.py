@@ -100,6 +100,20 @@ def test_save_html(tiny_run, tmp_path):
     assert "__VISER_EMBED_DATA__" in html and len(html) > 100_000
 
 
+def test_report_links_view_html(tiny_run, tmp_path):
+    """``physavatar run``'s report (write_report) writes OUT/view.html and links it; a run folder the
+    viewer cannot show gets a line saying why, not a failed report."""
+    from physavatar.report import write_report
+
+    report = write_report(tiny_run).read_text()
+    assert "[view.html](view.html)" in report
+    html = (tiny_run / "view.html").read_text()
+    assert "__VISER_EMBED_DATA__" in html
+    write_json_atomic(tmp_path / "run.json", {"_capture": str(tmp_path / "gone")})
+    report = write_report(tmp_path).read_text()
+    assert "view.html was not written" in report and not (tmp_path / "view.html").exists()
+
+
 def test_unknown_folder_and_port_in_use(tmp_path):
     with pytest.raises(PhysavatarError, match="not a folder the viewer knows"):
         load_scene(tmp_path)

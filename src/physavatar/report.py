@@ -58,6 +58,7 @@ def write_report(out: str | Path) -> Path:
     outputs = [(p, d) for p, d in outputs if (out / p).exists()]
     if outputs:
         L += ["## Outputs", "", "| path | what |", "| --- | --- |"] + [f"| `{p}` | {d} |" for p, d in outputs] + [""]
+    L += _view_html(out)
     times = [(k, v) for k, v in rec.items() if isinstance(v, dict) and "seconds" in v]
     if times:
         import platform
@@ -74,6 +75,31 @@ def write_report(out: str | Path) -> Path:
     path = out / "report.md"
     write_text_atomic(path, "\n".join(L) + "\n")
     return path
+
+
+def _view_html(out: Path) -> list[str]:
+    """OUT/view.html: the run folder's viewer scene (``physavatar view OUT --save``, the first
+    :data:`~physavatar.viewer.server.REPORT_FRAMES` frames) and the report's lines linking it. It
+    never fails the report: a failure is a line saying why."""
+    if not (out / "run.json").exists():
+        return []
+    L = ["## Viewer", ""]
+    try:
+        import time
+
+        from .viewer.server import REPORT_FRAMES, save_view
+
+        t0 = time.perf_counter()
+        path = save_view(out, out / "view.html", max_frames=REPORT_FRAMES)
+        L += [f"[view.html](view.html) plays the run's meshes (the first {REPORT_FRAMES} frames at most) with the "
+              f"capture's cameras in a browser, no server needed ({path.stat().st_size / 1e6:.1f} MB, written in "
+              f"{time.perf_counter() - t0:.1f} s). `physavatar view {out}` serves every layer with the time "
+              "slider, toggles, error colouring and panels (docs/viewer.md).", ""]
+    except Exception as e:  # noqa: BLE001 -- a viewer file is a convenience, never a failed run
+        (out / "view.html").unlink(missing_ok=True)
+        L += [f"view.html was not written ({type(e).__name__}: {e}); `physavatar view {out}` may still serve "
+              "the run (docs/viewer.md).", ""]
+    return L
 
 
 def _tracking_plot(out: Path) -> None:

@@ -10,4 +10,4 @@ self-contained HTML file (:meth:`Viewer.save_html`). docs/viewer.md has the deta
 from __future__ import annotations
 
 from .scene import Layer, Scene, ViewCamera, detect, load_scene  # noqa: F401
-from .server import Viewer, check_port  # noqa: F401
+from .server import Viewer, check_port, save_view  # noqa: F401

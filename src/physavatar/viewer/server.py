@@ -24,6 +24,7 @@ from ..errors import PhysavatarError
 from .scene import ERROR_MM, Scene
 
 HOST = "127.0.0.1"
+REPORT_FRAMES = 60  # the frames of a run's OUT/view.html (``physavatar run``'s report links it)
 
 
 def check_port(port: int, host: str = HOST) -> None:
@@ -140,7 +141,8 @@ class Viewer:
             self.play = gui.add_button("play / pause", disabled=n <= 1)
             self.fps = gui.add_number("fps", initial_value=float(sc.fps), min=0.1, max=240.0, step=0.1)
             self.status = gui.add_markdown(self._status_text(0))
-        self.slider.on_update(lambda _: self.set_frame(int(self.slider.value)))
+        # setting the slider from set_frame fires this too: only a change from the browser re-draws
+        self.slider.on_update(lambda _: int(self.slider.value) != self.t and self.set_frame(int(self.slider.value)))
         self.play.on_click(lambda _: self.toggle_play())
         with gui.add_folder("layers"):
             self.toggles = {}
@@ -293,3 +295,12 @@ class Viewer:
 
     def __exit__(self, *exc):
         self.stop()
+
+
+def save_view(path: str | Path, dest: str | Path, max_frames: int = 300) -> Path:
+    """``physavatar view PATH --save DEST`` as a function: the folder's scene served on a free port
+    just long enough to serialize it into a self-contained HTML file."""
+    from .scene import load_scene
+
+    with Viewer(load_scene(path)) as v:
+        return v.save_html(dest, max_frames=max_frames)
