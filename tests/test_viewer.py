@@ -69,6 +69,27 @@ def test_capture_served(tiny_capture):
         v.set_frame(3)
         assert np.allclose(v.nodes[body.name].vertices, body.frame(3))
         v.snap_to(cap.cameras[1].name)  # no browser connected: a no-op, not an error
+        # the template's labels (a layer and a colour each, in a panel) and boundary (points)
+        assert set(v.scene.panels["template labels"]) >= {"body", "garment1", "boundary vertices (points)"}
+        bnd = v.nodes["/capture/template/boundary"]
+        assert len(bnd.points) == int(cap.template.boundary.sum()) > 0 and bnd.visible is False
+        v.toggles["/capture/template/boundary"].value = True
+        assert bnd.visible is True
+        # masks: the frustums show the mask (grey) instead of the image
+        frustum = v.nodes[f"/cameras/{cap.cameras[0].name}"]
+        v.masks.value = True
+        m = frustum.image
+        assert np.array_equal(m[..., 0], m[..., 2]) and m.max() == 255 and m.min() == 0
+        v.masks.value = False
+        assert not np.array_equal(frustum.image, m)
+        # the Anny body of body.npz: no node (no model built) until shown, then posed per frame
+        assert "/capture/body" not in v.nodes
+        v.toggles["/capture/body"].value = True
+        posed = v.nodes["/capture/body"]
+        assert posed.visible and np.all(np.isfinite(posed.vertices)) and len(posed.faces) > 1000
+        v0 = np.array(posed.vertices)
+        v.set_frame(len(cap.frames) - 1)
+        assert not np.allclose(posed.vertices, v0)
 
 
 def test_run_layers_error_and_nan_frame(tiny_run):

@@ -34,6 +34,7 @@ KINDS = {  # marker file -> kind, in the order tried
 BODY = (200, 186, 170)
 GARMENTS = [(70, 130, 220), (230, 140, 50), (90, 180, 90), (200, 80, 160), (150, 110, 220)]
 TRUTH = (60, 200, 120)
+BOUNDARY = (230, 40, 40)
 ERROR_MM = 20.0  # the error colour map saturates here (red)
 
 
@@ -57,6 +58,15 @@ class Layer:
     visible: bool = True
     opacity: float | None = None
     offset: int = 0  # the layer's frame 0 is the timeline's frame ``offset``
+    points: bool = False  # drawn as a point cloud of its vertices (``faces`` empty)
+    # computed, not read: nothing is built until the layer is first shown (``faces`` None until
+    # then, filled by :meth:`materialize`), and it is never scanned for missing frames
+    deferred: bool = False
+
+    def materialize(self) -> None:
+        """Build what a deferred layer needs to be drawn (its faces; frames come one at a time)."""
+        if self.faces is None:
+            self.faces = np.asarray(self.vertices.faces, np.int64)
 
     @property
     def static(self) -> bool:
@@ -103,6 +113,7 @@ class ViewCamera:
     fov_y: float  # radians
     aspect: float
     image: Callable[[int], np.ndarray | None]
+    mask: Callable[[int], np.ndarray | None] | None = None  # the foreground mask, as an RGB image
 
 
 @dataclasses.dataclass(eq=False)
@@ -125,8 +136,8 @@ class Scene:
     def missing(self, t: int) -> list[str]:
         """Names of the (non-static) layers without a finite frame at ``t`` though ``t`` is in
         their range: NaN frames."""
-        return [ly.name for ly in self.layers if not ly.static and ly.offset <= t < ly.offset + ly.n_frames
-                and ly.frame(t) is None]
+        return [ly.name for ly in self.layers if not ly.static and not ly.deferred
+                and ly.offset <= t < ly.offset + ly.n_frames and ly.frame(t) is None]
 
 
 def detect(path: str | Path) -> tuple[str, Path]:
@@ -207,10 +218,21 @@ def _capture(scene: Scene, root: Path, *, layers: bool = True, overlay: bool = F
         "frames": len(cap.frames), "cameras": [c.name for c in cap.cameras]}
     for cam in cap.cameras:
         scene.cameras.append(ViewCamera(cam.name, cam.c2w, np.radians(cam.fov_y_deg), cam.width / cam.height,
-                                        _image_reader(cap, cam.name)))
+                                        _image_reader(cap, cam.name),
+                                        _image_reader(cap, cam.name, mask=True) if cap.has_masks else None))
     tpl = cap.template
     if layers:
         _split(scene, "/capture/template", tpl.vertices, tpl.faces, tpl.labels, visible=False)
+        labels = np.asarray(tpl.labels)
+        scene.panels["template labels"] = {
+            ("body" if lab == 0 else f"garment{int(lab)}"): {"vertices": int((labels == lab).sum()),
+                                                             "colour": list(garment_color(int(lab)))}
+            for lab in np.unique(labels)} | {"boundary vertices (points)": int(np.sum(tpl.boundary))}
+        if np.any(tpl.boundary):
+            scene.layers.append(Layer("/capture/template/boundary", np.asarray(tpl.vertices)[np.asarray(tpl.boundary, bool)],
+                                      np.zeros((0, 3), np.int64), BOUNDARY, visible=False, points=True))
+        if len(cap.body.rotations):
+            scene.layers.append(Layer("/capture/body", _PosedBody(cap.body), None, BODY, visible=False, deferred=True))
     gt = cap.ground_truth
     if gt is not None and (gt / "meshes.npz").is_file():
         from ..data.tracked import TrackedSequence
@@ -226,18 +248,54 @@ def _capture(scene: Scene, root: Path, *, layers: bool = True, overlay: bool = F
     return cap, None
 
 
-def _image_reader(cap, name: str, max_px: int = 256) -> Callable[[int], np.ndarray | None]:
+def _image_reader(cap, name: str, max_px: int = 256, mask: bool = False) -> Callable[[int], np.ndarray | None]:
+    """Camera ``name``'s image (or foreground mask, grey) at timeline frame t, downscaled to
+    ``max_px`` on its long side, uint8 RGB."""
     def image(t: int) -> np.ndarray | None:
         if not 0 <= t < len(cap.frames):
             return None
         try:
-            img = cap.image(name, cap.frames[t])
+            img = cap.mask(name, cap.frames[t]) if mask else cap.image(name, cap.frames[t])
         except PhysavatarError:
             return None
         step = max(1, int(np.ceil(max(img.shape[:2]) / max_px)))
-        return (np.clip(img[::step, ::step, :3], 0, 1) * 255).astype(np.uint8)
+        img = img[::step, ::step]
+        img = np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img[..., :3]
+        return (np.clip(img, 0, 1) * 255).astype(np.uint8)
 
     return image
+
+
+class _PosedBody:
+    """The capture's Anny body (body.npz) posed one frame at a time, as a [T, N, 3] array-like: the
+    model (``BodyModel(shape, topology=body.npz's)``, about 2 s, a minute on a machine without
+    Anny's disk cache) is built on the first frame or faces asked for."""
+
+    def __init__(self, poses):
+        self.poses = poses
+        self._model = None
+
+    def _body(self):
+        if self._model is None:
+            from ..body import BodyModel
+
+            self._model = BodyModel(self.poses.shape, topology=self.poses.topology)
+        return self._model
+
+    @property
+    def faces(self) -> np.ndarray:
+        return self._body().faces
+
+    def __len__(self):
+        return len(self.poses.rotations)
+
+    @property
+    def ndim(self):
+        return 3
+
+    def __getitem__(self, t):
+        p = self.poses
+        return self._body().pose(p.rotations[t:t + 1], p.root_translation[t:t + 1]).vertices[0]
 
 
 def _tracking(scene: Scene, root: Path, *, cap=None, truth=None) -> None:

@@ -91,12 +91,8 @@ class Viewer:
                            cell_size=0.25)
         self._init_camera()
         for ly in sc.layers:
-            V = ly.frame(0) if ly.static else self._first_frame(ly)
-            if V is None:
-                V = np.zeros((int(ly.faces.max()) + 1 if ly.faces.size else 0, 3), np.float32)
-            h = srv.scene.add_mesh_simple(ly.name, V, ly.faces, color=ly.color, opacity=ly.opacity,
-                                          side="double", visible=ly.visible and self._present(ly, 0))
-            self.nodes[ly.name] = h
+            if not ly.deferred:  # a deferred layer's node is made when it is first shown
+                self._add_node(ly, ly.visible and self._present(ly, 0))
         for cam in sc.cameras:
             from viser import transforms as tf
 
@@ -106,6 +102,20 @@ class Viewer:
                                              position=cam.c2w[:3, 3], color=(60, 60, 60))
             self.nodes[f"/cameras/{cam.name}"] = h
         self._build_gui()
+
+    def _add_node(self, ly, visible: bool, t: int | None = None):
+        ly.materialize()
+        V = ly.frame(t) if t is not None else ly.frame(0) if ly.static else self._first_frame(ly)
+        if V is None:
+            V = np.zeros((int(ly.faces.max()) + 1 if ly.faces.size else 0, 3), np.float32)
+        if ly.points:
+            h = self.server.scene.add_point_cloud(ly.name, V, colors=ly.color, point_size=0.008, point_shape="circle",
+                                                  visible=visible)
+        else:
+            h = self.server.scene.add_mesh_simple(ly.name, V, ly.faces, color=ly.color, opacity=ly.opacity,
+                                                  side="double", visible=visible)
+        self.nodes[ly.name] = h
+        return h
 
     def _first_frame(self, ly):
         for t in range(ly.offset, ly.offset + ly.n_frames):
@@ -162,6 +172,11 @@ class Viewer:
                 cb = gui.add_checkbox("cameras", initial_value=True)
                 cb.on_update(lambda ev: [setattr(self.nodes[f"/cameras/{c.name}"], "visible", ev.target.value)
                                          for c in sc.cameras])
+            self.masks = None
+            if any(c.mask is not None for c in sc.cameras):
+                self.masks = gui.add_checkbox("cameras: masks", initial_value=False,
+                                              hint="show each camera's foreground mask instead of its image")
+                self.masks.on_update(lambda _: self._update_images())
         if sc.cameras:
             with gui.add_folder("views", expand_by_default=False):
                 for cam in sc.cameras:
@@ -190,27 +205,40 @@ class Viewer:
             self.t = t
             for ly in self.scene.layers:
                 self._update_layer(ly)
-            for cam in self.scene.cameras:
-                img = cam.image(t)
-                if img is not None:
-                    self.nodes[f"/cameras/{cam.name}"].image = img
+            self._update_images()
             self.status.content = self._status_text(t)
             if int(self.slider.value) != t:
                 self.slider.value = t
 
     def _update_layer(self, ly) -> None:
-        h = self.nodes[ly.name]
         want = self.toggles[ly.name].value if hasattr(self, "toggles") else ly.visible
+        h = self.nodes.get(ly.name)
+        if h is None:  # deferred, not built yet
+            if not want:
+                return
+            h = self._add_node(ly, False, self.t)
         err_on = ly.name in getattr(self, "error_toggles", {}) and self.error_toggles[ly.name].value
-        V = None if ly.static else ly.frame(self.t)
+        V = None if ly.static or not want else ly.frame(self.t)  # a hidden layer's frame is not read
         if not ly.static:
             if V is not None and want and not err_on:
-                h.vertices = V
+                if ly.points:
+                    h.points = V
+                else:
+                    h.vertices = V
             h.visible = bool(want and not err_on and V is not None)
         else:
             h.visible = bool(want and not err_on)
         if err_on:
             self._show_error(ly)
+
+    def _update_images(self) -> None:
+        """Each camera frustum's image (or mask, when ``cameras: masks`` is on) at the current frame."""
+        with self._lock:
+            masks = getattr(self, "masks", None) is not None and self.masks.value
+            for cam in self.scene.cameras:
+                img = (cam.mask if masks and cam.mask is not None else cam.image)(self.t)
+                if img is not None:
+                    self.nodes[f"/cameras/{cam.name}"].image = img
 
     def _show_error(self, ly) -> None:
         import trimesh
