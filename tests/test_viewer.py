@@ -49,6 +49,32 @@ def tiny_run(tiny_capture, tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def tiny_avatar(tiny_capture, tmp_path_factory):
+    """An avatar folder of the tiny capture with a texture (a colour ramp over UV) and a fitted
+    light (ambient + sun), as fit-appearance writes them."""
+    from physavatar.capture import load_capture
+    from physavatar.files import save_npz_atomic
+    from physavatar.render import Ambient, SunLight, linear_to_srgb8, save_lights, write_png
+    from physavatar.stages.avatar import build_avatar
+
+    root = tmp_path_factory.mktemp("viewer_avatar")
+    cap = load_capture(tiny_capture)
+    tex = np.zeros((64, 64, 3), np.float32)
+    tex[..., 0] = np.linspace(0, 1, 64)[None, :]
+    tex[..., 1] = np.linspace(0, 1, 64)[:, None]
+    (root / "fit").mkdir()
+    np.save(root / "fit" / "texture_linear.npy", tex)
+    write_png(root / "fit" / "texture.png", linear_to_srgb8(tex))
+    if cap.template.face_uvs is None:  # the texture's own atlas, as fit-appearance writes when there are no UVs
+        F = len(cap.template.faces)
+        save_npz_atomic(root / "fit" / "atlas.npz", face_uvs=np.random.default_rng(0).random((F, 3, 2)))
+    save_lights(root / "fit" / "light.json", [Ambient((0.3, 0.3, 0.3)), SunLight((0.3, -0.5, 0.8), (2.0, 1.8, 1.5))])
+    build_avatar(cap, root / "avatar", material=tiny_capture / "ground_truth" / "material.json",
+                 texture_dir=root / "fit")
+    return root / "avatar"
+
+
 def _get(url: str) -> tuple[int, str]:
     with urllib.request.urlopen(url, timeout=10) as r:
         return r.status, r.read().decode("utf-8", "replace")
@@ -112,6 +138,24 @@ def test_run_layers_error_and_nan_frame(tiny_run):
         assert "missing" in v.status.content and "track/tracked/body" in v.status.content
         v.set_frame(NAN_FRAME + 1)
         assert v.nodes["/track/tracked/garment1"].visible is True
+
+
+def test_avatar_textured_under_its_light(tiny_avatar):
+    scene = load_scene(tiny_avatar)
+    assert scene.kind == "avatar"
+    tex = next(ly for ly in scene.layers if ly.name == "/avatar/textured")
+    assert tex.visible and tex.texture.dtype == np.uint8 and tex.uvs.shape == (len(tex.faces), 3, 2)
+    assert {L["kind"] for L in scene.lights} == {"ambient", "directional"}
+    with Viewer(scene) as v:
+        assert type(v.nodes["/avatar/textured"]).__name__ == "GlbHandle"
+        assert not v.nodes["/avatar/body"].visible
+        assert {"/lights/ambient", "/lights/sun"} <= set(v.nodes)
+        v.light_toggle.value = False
+        assert v.nodes["/lights/sun"].visible is False
+    from physavatar.viewer.server import textured_mesh
+
+    m = textured_mesh(tex.vertices, tex.faces, tex.uvs, tex.texture)
+    assert len(m.vertices) == 3 * len(tex.faces) and m.visual.uv.shape == (len(m.vertices), 2)
 
 
 def test_save_html(tiny_run, tmp_path):

@@ -59,6 +59,8 @@ class Layer:
     opacity: float | None = None
     offset: int = 0  # the layer's frame 0 is the timeline's frame ``offset``
     points: bool = False  # drawn as a point cloud of its vertices (``faces`` empty)
+    texture: np.ndarray | None = None  # [H, W, 3] uint8 sRGB, with ``uvs`` [F, 3, 2] (static layers)
+    uvs: np.ndarray | None = None
     # computed, not read: nothing is built until the layer is first shown (``faces`` None until
     # then, filled by :meth:`materialize`), and it is never scanned for missing frames
     deferred: bool = False
@@ -128,6 +130,9 @@ class Scene:
     panels: dict[str, dict] = dataclasses.field(default_factory=dict)
     notes: list[str] = dataclasses.field(default_factory=list)
     up: str = "+z"
+    # lights drawn as viser light nodes: {"kind": ambient|directional|point, "name", "color" (sRGB
+    # 0-255), "intensity", "position"}; the fitted light of an avatar
+    lights: list[dict] = dataclasses.field(default_factory=list)
 
     @property
     def n_frames(self) -> int:
@@ -395,11 +400,58 @@ def _avatar(scene: Scene, root: Path) -> None:
     av = Avatar.load(root)
     scene.fps = av.fps
     tpl = av.template
-    _split(scene, "/avatar", tpl.vertices, tpl.faces, tpl.labels)
+    textured = av.texture is not None and tpl.face_uvs is not None
+    if textured:
+        if (root / "texture.png").is_file():
+            from ..render.image import read_png
+
+            tex = np.asarray(read_png(root / "texture.png"))[..., :3].astype(np.uint8)
+        else:
+            from ..render.image import linear_to_srgb8
+
+            tex = linear_to_srgb8(av.texture)
+        scene.layers.append(Layer("/avatar/textured", np.asarray(tpl.vertices), np.asarray(tpl.faces, np.int64),
+                                  texture=tex, uvs=np.asarray(tpl.face_uvs, np.float32)))
+    else:
+        scene.notes.append("avatar: no texture" + (" UVs" if av.texture is not None else "")
+                           + ": drawn in label colours")
+    _split(scene, "/avatar", tpl.vertices, tpl.faces, tpl.labels, visible=not textured)
     scene.panels["avatar"] = av.meta
     scene.panels["material"] = read_json(root / "material.json")
     if av.light_path is not None:
         scene.panels["light"] = read_json(av.light_path)
+        scene.lights = _viser_lights(scene.panels["light"], tpl.vertices, scene.notes)
+
+
+def _viser_lights(data: dict, vertices, notes: list[str]) -> list[dict]:
+    """light.json's lights (``render.lights``' JSON) as viser light nodes: Ambient -> ambient,
+    SunLight -> directional from ``to_sun``, PointLight -> point, AreaLight -> a point light at its
+    centre; an EnvMap is left out (a note). Colour: the linear RGB radiance over its largest
+    channel, to sRGB; intensity: that largest channel (three.js's units, not the renderer's: a
+    preview of the fit, not a re-rendering)."""
+    V = np.asarray(vertices, np.float64)
+    centre, size = (V.min(0) + V.max(0)) / 2, float(np.ptp(V, axis=0).max()) or 1.0
+    out = []
+    for i, L in enumerate(data.get("lights", [])):
+        kind = L.get("type")
+        value = L.get("radiance", L.get("irradiance", L.get("intensity", 1.0)))
+        rgb = np.broadcast_to(np.asarray(value, np.float64), (3,))
+        peak = float(rgb.max()) if rgb.max() > 0 else 1.0
+        srgb = np.where(rgb / peak <= 0.0031308, 12.92 * rgb / peak, 1.055 * (rgb / peak) ** (1 / 2.4) - 0.055)
+        spec = {"name": str(L.get("name", f"light{i}")), "color": tuple(int(c) for c in np.clip(srgb * 255, 0, 255)),
+                "intensity": peak}
+        if kind == "Ambient":
+            spec["kind"] = "ambient"
+        elif kind == "SunLight":
+            d = np.asarray(L.get("to_sun", (0.3, -0.5, 0.8)), np.float64)
+            spec |= {"kind": "directional", "position": tuple(centre + 3 * size * d / (np.linalg.norm(d) or 1.0))}
+        elif kind in ("PointLight", "AreaLight"):
+            spec |= {"kind": "point", "position": tuple(map(float, L.get("position", L.get("center", centre))))}
+        else:
+            notes.append(f"light {spec['name']} ({kind}): not drawn (its values are in the light panel)")
+            continue
+        out.append(spec)
+    return out
 
 
 def _npz(scene: Scene, path: Path) -> None:

@@ -56,6 +56,20 @@ def error_colors(err_m: np.ndarray) -> np.ndarray:
     return c.astype(np.uint8)
 
 
+def textured_mesh(vertices, faces, uvs, texture):
+    """A trimesh with ``texture`` ([H, W, 3] uint8 sRGB) on per-corner ``uvs`` ([F, 3, 2], v up):
+    one vertex per face corner (UV seams), a double-sided, rough, non-metallic glTF material."""
+    import trimesh
+    from PIL import Image
+
+    faces = np.asarray(faces, np.int64)
+    V = np.asarray(vertices, np.float32)[faces].reshape(-1, 3)
+    mat = trimesh.visual.material.PBRMaterial(baseColorTexture=Image.fromarray(np.ascontiguousarray(texture)),
+                                              metallicFactor=0.0, roughnessFactor=1.0, doubleSided=True)
+    visual = trimesh.visual.TextureVisuals(uv=np.asarray(uvs, np.float32).reshape(-1, 2), material=mat)
+    return trimesh.Trimesh(V, np.arange(len(V)).reshape(-1, 3), visual=visual, process=False)
+
+
 class Viewer:
     """A running viewer of ``scene``. ``port=None``: a free port. ``nodes``: scene-node name ->
     viser handle; ``slider``: the time slider; :meth:`set_frame` is what the slider calls."""
@@ -101,6 +115,14 @@ class Viewer:
                                              image=img, wxyz=tf.SO3.from_matrix(cam.c2w[:3, :3]).wxyz,
                                              position=cam.c2w[:3, 3], color=(60, 60, 60))
             self.nodes[f"/cameras/{cam.name}"] = h
+        for L in sc.lights:
+            add = {"ambient": srv.scene.add_light_ambient, "directional": srv.scene.add_light_directional,
+                   "point": srv.scene.add_light_point}[L["kind"]]
+            kw = {"position": L["position"]} if "position" in L else {}
+            self.nodes[f"/lights/{L['name']}"] = add(f"/lights/{L['name']}", color=L["color"],
+                                                     intensity=L["intensity"], **kw)
+        if sc.lights:  # under its fitted light only (viser's default lights off)
+            srv.scene.configure_default_lights(enabled=False)
         self._build_gui()
 
     def _add_node(self, ly, visible: bool, t: int | None = None):
@@ -108,7 +130,10 @@ class Viewer:
         V = ly.frame(t) if t is not None else ly.frame(0) if ly.static else self._first_frame(ly)
         if V is None:
             V = np.zeros((int(ly.faces.max()) + 1 if ly.faces.size else 0, 3), np.float32)
-        if ly.points:
+        if ly.texture is not None:
+            h = self.server.scene.add_mesh_trimesh(ly.name, textured_mesh(V, ly.faces, ly.uvs, ly.texture),
+                                                   visible=visible)
+        elif ly.points:
             h = self.server.scene.add_point_cloud(ly.name, V, colors=ly.color, point_size=0.008, point_shape="circle",
                                                   visible=visible)
         else:
@@ -172,6 +197,11 @@ class Viewer:
                 cb = gui.add_checkbox("cameras", initial_value=True)
                 cb.on_update(lambda ev: [setattr(self.nodes[f"/cameras/{c.name}"], "visible", ev.target.value)
                                          for c in sc.cameras])
+            if sc.lights:
+                cb = gui.add_checkbox("fitted light", initial_value=True,
+                                      hint="the avatar's fitted light (light.json) instead of the viewer's default lights")
+                cb.on_update(lambda ev: self._set_lights(ev.target.value))
+                self.light_toggle = cb
             self.masks = None
             if any(c.mask is not None for c in sc.cameras):
                 self.masks = gui.add_checkbox("cameras: masks", initial_value=False,
@@ -230,6 +260,11 @@ class Viewer:
             h.visible = bool(want and not err_on)
         if err_on:
             self._show_error(ly)
+
+    def _set_lights(self, on: bool) -> None:
+        for L in self.scene.lights:
+            self.nodes[f"/lights/{L['name']}"].visible = on
+        self.server.scene.configure_default_lights(enabled=not on)
 
     def _update_images(self) -> None:
         """Each camera frustum's image (or mask, when ``cameras: masks`` is on) at the current frame."""
