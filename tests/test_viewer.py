@@ -40,7 +40,9 @@ def tiny_run(tiny_capture, tmp_path_factory):
     V = np.array(gt.vertices, np.float32)
     V[:, :, 0] += 0.01  # 1 cm off the truth everywhere
     V[NAN_FRAME] = np.nan
-    TrackedSequence(V, gt.faces, gt.labels, frames=np.arange(len(V)), fps=gt.fps).save(out / "track" / "tracked.npz")
+    colors = np.random.default_rng(0).random((len(V), len(gt.faces), 3)).astype(np.float32)
+    TrackedSequence(V, gt.faces, gt.labels, face_colors=colors, frames=np.arange(len(V)),
+                    fps=gt.fps).save(out / "track" / "tracked.npz")
     held = TrackedSequence.load(tiny_capture / "ground_truth" / "heldout" / "meshes.npz")
     AnimatedSequence(held.vertices, held.faces, held.labels, None, 25.0).save(out / "animate", {"command": "test"},
                                                                                ply=False)
@@ -138,6 +140,15 @@ def test_run_layers_error_and_nan_frame(tiny_run):
         assert "missing" in v.status.content and "track/tracked/body" in v.status.content
         v.set_frame(NAN_FRAME + 1)
         assert v.nodes["/track/tracked/garment1"].visible is True
+        # the tracked Gaussians: one per face, built when first shown, sent again per frame
+        assert "/track/gaussians" not in v.nodes
+        v.toggles["/track/gaussians"].value = True
+        g = v.nodes["/track/gaussians"]
+        assert type(g).__name__ == "GaussianSplatHandle" and g.visible and len(g.buffer) == len(tracked_faces(v))
+        v.set_frame(0)
+        assert v.nodes["/track/gaussians"] is not g and not np.array_equal(v.nodes["/track/gaussians"].buffer, g.buffer)
+        v.set_frame(NAN_FRAME)
+        assert v.nodes["/track/gaussians"].visible is False
 
 
 def test_avatar_textured_under_its_light(tiny_avatar):
@@ -163,6 +174,10 @@ def test_save_html(tiny_run, tmp_path):
     assert res.exit_code == 0, res.output
     html = (tmp_path / "scene.html").read_text()
     assert "__VISER_EMBED_DATA__" in html and len(html) > 100_000
+
+
+def tracked_faces(v):
+    return next(ly for ly in v.scene.layers if ly.name == "/track/gaussians").faces
 
 
 def test_report_links_view_html(tiny_run, tmp_path):

@@ -60,6 +60,8 @@ class Layer:
     offset: int = 0  # the layer's frame 0 is the timeline's frame ``offset``
     points: bool = False  # drawn as a point cloud of its vertices (``faces`` empty)
     texture: np.ndarray | None = None  # [H, W, 3] uint8 sRGB, with ``uvs`` [F, 3, 2] (static layers)
+    # drawn as Gaussian splats: timeline frame -> {centers, covariances, rgbs, opacities} or None
+    splats: Callable[[int], dict | None] | None = None
     uvs: np.ndarray | None = None
     # computed, not read: nothing is built until the layer is first shown (``faces`` None until
     # then, filled by :meth:`materialize`), and it is never scanned for missing frames
@@ -329,6 +331,56 @@ def _tracking(scene: Scene, root: Path, *, cap=None, truth=None) -> None:
         _split(scene, "/track/ground_truth", tv, faces, seq.labels, color=TRUTH, visible=False, opacity=0.5)
     if tv is None:
         scene.notes.append("tracked: no ground truth to colour the error by (a synthetic capture has one)")
+    if seq.face_colors is not None:
+        scene.layers.append(Layer("/track/gaussians", seq.vertices, np.asarray(faces, np.int64), visible=False,
+                                  deferred=True, splats=_Splats(seq, faces)))
+        if seq.log_scales is None:
+            scene.notes.append("tracked Gaussians: no log_scales in tracked.npz: each face's Gaussian drawn with "
+                               "in-plane scales of a third of its edge lengths")
+
+
+class _Splats:
+    """The tracked mesh-aligned Gaussians at a frame (``splat.mesh_gaussians``: one flat Gaussian per
+    face at its barycentre in the face's frame, the first frame's in-plane scales, the face's
+    tracked colour at that frame, the first frame's opacity)."""
+
+    def __init__(self, seq, faces):
+        self.seq, self.faces = seq, np.asarray(faces, np.int64)
+
+    def __call__(self, t: int) -> dict | None:
+        import torch
+
+        from ..splat.mesh_gaussians import NORMAL_SCALE, mesh_to_gaussians
+
+        seq = self.seq
+        if not 0 <= t < len(seq.vertices):
+            return None
+        V = np.array(seq.vertices[t], np.float32)  # a writable copy (torch.from_numpy)
+        if not np.all(np.isfinite(V)):
+            return None
+        F = torch.from_numpy(self.faces)
+        Vt = torch.from_numpy(V)
+        if seq.log_scales is not None:
+            log_s = torch.from_numpy(np.asarray(seq.log_scales, np.float32))
+        else:
+            tri = V[self.faces]
+            edge = np.linalg.norm(tri - np.roll(tri, -1, axis=1), axis=2).mean(1, keepdims=True)
+            log_s = torch.from_numpy(np.log(np.maximum(edge, 1e-6) / 3).repeat(2, 1).astype(np.float32))
+        edge_index = None if seq.edge_index is None else torch.from_numpy(np.asarray(seq.edge_index, np.int64))
+        with torch.no_grad():
+            means, quats, scales = mesh_to_gaussians(Vt, F, log_s, edge_index, NORMAL_SCALE)
+        w, x, y, z = quats.double().numpy().T
+        R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                      np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                      np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+        S = scales.double().numpy()
+        cov = np.einsum("fij,fj,fkj->fik", R, S * S, R)
+        rgb = np.clip(np.asarray(seq.face_colors[t], np.float64), 0, 1)
+        rgb = np.where(rgb <= 0.0031308, 12.92 * rgb, 1.055 * rgb ** (1 / 2.4) - 0.055)  # linear -> sRGB
+        op = (np.ones(len(self.faces)) if seq.opacity_logits is None
+              else 1 / (1 + np.exp(-np.asarray(seq.opacity_logits, np.float64))))
+        return {"centers": means.numpy().astype(np.float32), "covariances": cov.astype(np.float32),
+                "rgbs": rgb.astype(np.float32), "opacities": op[:, None].astype(np.float32)}
 
 
 class _Rows:

@@ -130,7 +130,13 @@ class Viewer:
         V = ly.frame(t) if t is not None else ly.frame(0) if ly.static else self._first_frame(ly)
         if V is None:
             V = np.zeros((int(ly.faces.max()) + 1 if ly.faces.size else 0, 3), np.float32)
-        if ly.texture is not None:
+        if ly.splats is not None:
+            d = ly.splats(t if t is not None else next((u for u in range(ly.n_frames) if ly.frame(u) is not None), 0))
+            if d is None:
+                d = {k: np.zeros((0, *sh), np.float32) for k, sh in
+                     (("centers", (3,)), ("covariances", (3, 3)), ("rgbs", (3,)), ("opacities", (1,)))}
+            h = self.server.scene.add_gaussian_splats(ly.name, **d, visible=visible)
+        elif ly.texture is not None:
             h = self.server.scene.add_mesh_trimesh(ly.name, textured_mesh(V, ly.faces, ly.uvs, ly.texture),
                                                    visible=visible)
         elif ly.points:
@@ -251,7 +257,9 @@ class Viewer:
         V = None if ly.static or not want else ly.frame(self.t)  # a hidden layer's frame is not read
         if not ly.static:
             if V is not None and want and not err_on:
-                if ly.points:
+                if ly.splats is not None:  # a frame's Gaussians: the node is sent again
+                    h = self._add_node(ly, True, self.t)
+                elif ly.points:
                     h.points = V
                 else:
                     h.vertices = V
