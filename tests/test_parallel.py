@@ -72,3 +72,17 @@ def test_errors_survive_pickling_and_worker_count_is_capped(monkeypatch):
     assert default_workers(5) == 1
     monkeypatch.setenv("PHYSAVATAR_WORKERS", "8")
     assert default_workers(3) == 3
+
+
+def test_ray_is_never_imported_without_a_caller_that_started_it():
+    """Ray is optional: the local path neither imports it nor needs it."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "from physavatar.parallel import Job, ray_active, run_jobs\n"
+            "import physavatar.stages.physics.fit_fd\n"
+            "def f(a, b, report=None):\n    return a + b\n"
+            "assert ray_active() is None and run_jobs([Job('a', f, (1, 2))], workers=1, progress=False) == [3]\n"
+            "assert 'ray' not in sys.modules\n")
+    subprocess.run([sys.executable, "-c", code], check=True)

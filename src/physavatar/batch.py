@@ -197,7 +197,12 @@ def import_ray():
 
 def _stage_task(st: Step, out: Path, prev: dict, workers: int, *deps: StepResult) -> StepResult:
     """One stage in a Ray worker: run (or skip) it once the stages it reads from are done; output
-    to ``OUT/<stage>/stage.log``. Never raises: a failure is the returned entry's ``error``."""
+    to ``OUT/<stage>/stage.log``. Never raises: a failure is the returned entry's ``error``.
+
+    Ray is active in the task, so the stage's independent simulations (``parallel.run_jobs``: synth's
+    motions, the reference / evaluation materials; fit_fd's finite differences) are sub-tasks of one
+    CPU each; while the stage waits for them its own CPU is released to them (Ray lends a blocked
+    worker's CPUs), so a full cluster of one-CPU stage tasks does not deadlock."""
     import sys
 
     bad = [d.name for d in deps if not d.ok]

@@ -1,7 +1,9 @@
 """The paper's estimator (Algorithm 1): forward finite differences of the objective and Adam.
 
 The 1 + P simulations of an iteration run in a spawn-context process pool (``workers``), each
-worker holding the problem once (:func:`_worker_init`).
+worker holding the problem once (:func:`_worker_init`). When a Ray runtime is active (a
+``physavatar batch --ray`` stage task) they are Ray tasks instead, through
+:func:`physavatar.parallel.run_jobs` (the problem in the object store once per iteration).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import numpy as np
 
 from ...errors import PhysavatarError
 from ...optim import Adam
+from ...parallel import SINGLE_THREAD_ENV, Job, ray_active, run_jobs
 from ...sim import Material, SimSettings
 from .data import PhysicsData
 from .objective import (
@@ -52,7 +55,15 @@ def _worker_init(data, material, settings, names, substeps, shape_weight=0.0):
 
 def _worker_simulate(log_values):
     """One FD simulation in a pool worker: (loss, positions) or (inf, None) if it fails."""
-    w = _WORKER
+    return _simulate(_WORKER, log_values)
+
+
+def _simulate_job(problem: dict, log_values, report=None):
+    """One FD simulation as a :func:`physavatar.parallel.run_jobs` job (on Ray)."""
+    return _simulate(problem, log_values)
+
+
+def _simulate(w: dict, log_values):
     m = with_log_params(w["material"], w["names"], log_values)
     try:
         r = rollout(w["data"], m, w["settings"], substeps=w["substeps"])
@@ -66,9 +77,8 @@ def _worker_simulate(log_values):
 def _single_threaded_children():
     """Spawned workers inherit the environment: one BLAS / numba / OpenMP thread each, so two
     workers on two cores do not oversubscribe them (set before the children import numpy)."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
-    old = {k: os.environ.get(k) for k in keys}
-    os.environ.update({k: "1" for k in keys})
+    old = {k: os.environ.get(k) for k in SINGLE_THREAD_ENV}
+    os.environ.update(SINGLE_THREAD_ENV)
     try:
         yield
     finally:
@@ -80,12 +90,17 @@ def _single_threaded_children():
 
 
 class _Evaluator:
-    """Runs batches of simulations: a spawn-context process pool, or inline with workers=0/1."""
+    """Runs batches of simulations: Ray tasks when Ray is active, else a spawn-context process
+    pool, or inline with workers=0/1."""
 
     def __init__(self, data, material, settings, names, substeps, workers, shape_weight=0.0):
         self.workers = workers
         self.pool = None
-        if workers > 1:
+        self.problem = None
+        if ray_active() is not None:  # the cluster schedules: ``workers`` does not apply
+            self.problem = {"data": data, "material": material, "settings": settings, "names": names,
+                            "substeps": substeps, "shape_weight": shape_weight}
+        elif workers > 1:
             with _single_threaded_children():
                 self.pool = concurrent.futures.ProcessPoolExecutor(
                     max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
@@ -96,6 +111,9 @@ class _Evaluator:
             _worker_init(data, material, settings, names, substeps, shape_weight)
 
     def map(self, points):
+        if self.problem is not None:
+            return run_jobs([Job(f"θ+δ{i}" if i else "θ", _simulate_job, (self.problem, p)) for i, p in enumerate(points)],
+                            progress=False, title="fd", ray=True)
         if self.pool is None:
             return [_worker_simulate(p) for p in points]
         return list(self.pool.map(_worker_simulate, points))
@@ -115,7 +133,7 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
     """Algorithm 1: forward finite differences (Eq. 7) and Adam, in log space.
 
     Each iteration simulates θ and θ + δ_p e_p for every fitted p (in parallel over ``workers``
-    processes), takes ΔL/δ as the gradient, and makes one Adam step (lr cosine-annealed from
+    processes, or as Ray tasks when Ray is active), takes ΔL/δ as the gradient, and makes one Adam step (lr cosine-annealed from
     0.1 to 0.04 on log κ, the paper's values mapped at its start point; module constants).
     The result is the best iterate seen (as the official driver keeps). The residual Jacobian
     of the last iteration's differences gives the confidence intervals. ``shape_weight``: as in
