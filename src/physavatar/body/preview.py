@@ -26,12 +26,15 @@ def _shade(verts2d, depth, faces, normals, ax, color):
 
 
 def render_frames(vertices: np.ndarray, faces: np.ndarray, joints: np.ndarray | None, parents: np.ndarray | None,
-                  size: int = 320, title: str = "") -> list[np.ndarray]:
+                  size: int = 320, title: str = "", progress=None) -> list[np.ndarray]:
     """Images [H, W, 3] uint8 of each frame: front view (from -y) and side view (from +x).
 
     Args:
         vertices: [T, V, 3]; faces: [F, 3]; joints: [T, B, 3] or None; parents: [B].
+        progress: see :mod:`physavatar.progress`.
     """
+    from ..progress import resolve
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -45,6 +48,7 @@ def render_frames(vertices: np.ndarray, faces: np.ndarray, joints: np.ndarray | 
     views = [("front", 0, 2, 1, -1.0), ("side", 1, 2, 0, 1.0)]  # (name, u axis, v axis, depth axis, sign)
     frames = []
     fig, axes = plt.subplots(1, 2, figsize=(2 * size / 100, size / 100), dpi=100)
+    task = resolve(progress).task("preview", total=T)
     for t in range(T):
         v = vertices[t]
         tri = v[faces]
@@ -71,6 +75,8 @@ def render_frames(vertices: np.ndarray, faces: np.ndarray, joints: np.ndarray | 
         fig.canvas.draw()
         img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
         frames.append(img)
+        task.advance()
+    task.end()
     plt.close(fig)
     return frames
 

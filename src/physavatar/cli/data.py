@@ -76,9 +76,8 @@ def motion_preview(
     if m.frames > max_frames:
         m = m.slice(0, max_frames)
     posed = m.pose(body)
-    with console.status(f"rendering {m.frames} frames"):
-        frames = render_frames(posed.vertices, body.faces, posed.joints, body.parents, title=m.name)
-        write_video(out, frames, fps)
+    frames = render_frames(posed.vertices, body.faces, posed.joints, body.parents, title=m.name, progress=True)
+    write_video(out, frames, fps)
     console.print(f"wrote {out} ({m.frames} frames at {fps:g} fps)")
 
 
