@@ -43,7 +43,7 @@ class Step:
     ``inputs``: keyword arguments that are inputs (paths, or names of earlier steps given as
     ``("step", NAME)`` whose folder ``OUT/NAME`` is passed and whose hash enters this one's);
     ``done_file``: relative to ``OUT/<name>`` (``out_file`` when the stage writes one file);
-    ``after``: background steps this one must wait for."""
+    a step waits for the background steps it reads from (:func:`needs`)."""
 
     name: str
     fn: str
@@ -51,7 +51,6 @@ class Step:
     inputs: dict = field(default_factory=dict)
     done_file: str = ""
     out_file: str | None = None  # the stage's ``out`` is OUT/<name>/<out_file> instead of the folder
-    after: tuple[str, ...] = ()
     background: bool = False
     command: list[str] = field(default_factory=list)  # the equivalent command line, for the report
 
@@ -97,8 +96,7 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         Step("physics", "physavatar.stages.physics:run", physics.pipeline_config(cfg.quick),
              {"source": ("step", "track")}, "material.json"),
         Step("avatar", "physavatar.stages.avatar:run", avatar.AvatarConfig(),
-             cap | {"material": ("step", "physics"), "appearance": ("step", "appearance")}, "avatar.json",
-             after=("appearance",)),
+             cap | {"material": ("step", "physics"), "appearance": ("step", "appearance")}, "avatar.json"),
         Step("animate", "physavatar.stages.animate:run", animate.pipeline_config(motion, cfg.eval_frames),
              {"avatar": ("step", "avatar")}, "sequence.json"),
         Step("render", "physavatar.stages.render:run", render.pipeline_config("fitted", cfg.quick),
@@ -122,8 +120,7 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         if cfg.motion is None:  # the animate stage ran the held-out motion: reuse it
             inputs["sequence"] = ("step", "animate")
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run",
-                          evaluate.EvaluateConfig(frames=cfg.eval_frames), inputs, "metrics.json",
-                          after=("references",)))
+                          evaluate.EvaluateConfig(frames=cfg.eval_frames), inputs, "metrics.json"))
     for st in steps:
         st.command = _command(st, out)
     return steps
@@ -174,9 +171,9 @@ def _call(st: Step, out: Path, progress, say=None) -> Any:
 
 
 def needs(st: Step) -> list[str]:
-    """The steps ``st`` reads from or waits for (its ``("step", NAME)`` inputs and ``after``)."""
-    names = [v[1] for v in st.inputs.values() if isinstance(v, tuple) and v[:1] == ("step",)]
-    return list(dict.fromkeys(names + list(st.after)))
+    """The steps ``st`` reads from (its ``("step", NAME)`` inputs): it waits for them, and their
+    hashes enter its own."""
+    return list(dict.fromkeys(v[1] for v in st.inputs.values() if isinstance(v, tuple) and v[:1] == ("step",)))
 
 
 def is_done(st: Step, out: Path, prev: dict, h: str) -> bool:
@@ -229,24 +226,25 @@ def run_step(st: Step, out: Path, record: dict, *, progress=False) -> StepResult
     return StepResult(st.name, execute(st, out, h, progress=progress))
 
 
-def _child(st: Step, out: Path, log_path: Path, conn) -> None:
-    """A background stage in its own process: output to its log, the result through ``conn``."""
+def _child(st: Step, out: Path, h: str, log_path: Path, conn) -> None:
+    """A background stage in its own process (:func:`execute`): output to its log, its ``run.json``
+    entry through ``conn``."""
     os.environ["PHYSAVATAR_WORKERS"] = "1"  # one core: the other runs the next stages
     fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", force=True)
     try:
-        _call(st, out, progress=False)
-        conn.send(("ok", None, time.time()))
-    except PhysavatarError as e:
-        print(f"error: {e}", flush=True)
-        conn.send(("error", str(e), time.time()))
+        e = execute(st, out, h)
+        if e.get("error"):
+            print(f"error: {e['error']}", flush=True)
+        conn.send(("done", e, time.time()))
     except KeyboardInterrupt:
         conn.send(("interrupted", None, time.time()))
     except BaseException:  # noqa: BLE001 - reported to the parent, which names the log
         traceback.print_exc()
-        conn.send(("error", "an unexpected error (traceback in the log)", time.time()))
+        conn.send(("done", entry(st, h, "failed", 0.0, error="an unexpected error (traceback in the log)"),
+                   time.time()))
     finally:
         conn.close()
 
@@ -291,19 +289,20 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
             say(f"waiting for {name} (running beside since {time.time() - r.t0:.0f} s; "
                 f"log: {out / name / 'stage.log'})")
         try:
-            status, msg, t_end = r.conn.recv()
+            kind, e, t_end = r.conn.recv()
         except EOFError:  # died without a word (killed)
-            status, msg, t_end = "error", "the process ended unexpectedly", time.time()
+            kind, e, t_end = "done", None, time.time()
         r.proc.join()
-        if status == "interrupted":
+        if kind == "interrupted":
             raise KeyboardInterrupt
-        ok = status == "ok"
-        save(r.step, entry(r.step, r.hash, "ok" if ok else "failed", t_end - r.t0, background=True,
-                           error=None if ok else msg))
+        e = e or entry(r.step, r.hash, "failed", 0.0, error="the process ended unexpectedly")
+        # its wall time beside the others, process start included
+        save(r.step, e | {"seconds": round(t_end - r.t0, 1), "background": True})
+        ok = e["status"] == "ok"
         say(f"{name} (beside the other stages): {'done' if ok else 'failed'} after {record[name]['seconds']} s")
         if not ok:
-            raise PhysavatarError(out / name / "stage.log", f"stage {name!r} failed: {msg}; fix the cause and run "
-                                  "again to resume")
+            raise PhysavatarError(out / name / "stage.log", f"stage {name!r} failed: {e['error']}; fix the cause "
+                                  "and run again to resume")
 
     try:
         for i, st in enumerate(steps, 1):
@@ -311,7 +310,7 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
                 continue
             for name in [n for n, r in running.items() if not r.proc.is_alive() or r.conn.poll()]:
                 finish(name)  # ended meanwhile: its core is free again
-            for name in st.after:
+            for name in needs(st):  # before its hash: theirs enter it
                 if name in running:
                     finish(name)
             h = step_hash(st, out, record)
@@ -323,7 +322,7 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
             if st.background and len(running) < cores - 1:
                 (out / st.name).mkdir(parents=True, exist_ok=True)
                 parent, child = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child, args=(st, out, out / st.name / "stage.log", child), daemon=False)
+                proc = ctx.Process(target=_child, args=(st, out, h, out / st.name / "stage.log", child), daemon=False)
                 proc.start()
                 child.close()
                 running[st.name] = _Running(st, proc, parent, time.time(), h)
