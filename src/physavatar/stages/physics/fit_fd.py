@@ -41,6 +41,7 @@ from .parameters import (
     PAPER_ITERATIONS,
     PARAMETERS,
     fit_settings,
+    log_theta,
     theta_bounds,
     with_log_params,
 )
@@ -141,7 +142,7 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
     """
     settings = settings or fit_settings()
     names = PARAMETERS if fit_density else PARAMETERS[1:]
-    theta = np.array([math.log(getattr(initial, n)) for n in names])
+    theta = log_theta(initial, names)
     delta = np.array([FD_STEP[n] for n in names])
     lr0 = np.array([ADAM_LR[n] for n in names])
     lo, hi = theta_bounds(names)
@@ -154,7 +155,7 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
     ref = data.reference
     try:
         for it in range(iterations):
-            points = [theta.copy()] + [theta + delta[p] * np.eye(len(names))[p] for p in range(len(names))]
+            points = [theta.copy()] + [theta + d for d in np.diag(delta)]
             results = ev.map(points)
             sims += len(points)
             losses = np.array([r[0] for r in results])
@@ -162,14 +163,14 @@ def fit_fd(data: PhysicsData, initial: Material, settings: SimSettings | None = 
             if not np.isfinite(loss):
                 raise PhysavatarError(None, f"simulation failed at {dict(zip(names, np.exp(theta)))}")
             grad = np.where(np.isfinite(losses[1:]), (losses[1:] - loss) / delta, 0.0)
-            lsim = loss if shape_weight <= 0 else trajectory_loss(results[0][1].astype(np.float64), ref)
+            base = results[0][1].astype(np.float64)
+            lsim = loss if shape_weight <= 0 else trajectory_loss(base, ref)
             if loss < best[0]:
                 fd_jac = None
                 if all(r[1] is not None for r in results):
-                    base = results[0][1].astype(np.float64)
                     fd_jac = np.stack([(r[1].astype(np.float64) - base)[1:].ravel() / d
                                        for r, d in zip(results[1:], delta)], axis=1)
-                best = (loss, theta.copy(), fd_jac, (results[0][1].astype(np.float64) - ref)[1:].ravel(), lsim)
+                best = (loss, theta.copy(), fd_jac, (base - ref)[1:].ravel(), lsim)
             row = history_row(it, lsim, data, names, theta, t_start, sims, loss)
             history.append(row)
             if callback is not None:

@@ -62,8 +62,7 @@ class GarmentProxy:
 
     @property
     def mean_edge(self) -> float:
-        e = self.vertices[self.faces] - self.vertices[self.faces[:, [1, 2, 0]]]
-        return float(np.linalg.norm(e, axis=2).mean())
+        return _mean_edge(self.vertices, self.faces)
 
 
 def make_proxy(vertices: np.ndarray, faces: np.ndarray, boundary: np.ndarray, max_vertices: int = 400,
