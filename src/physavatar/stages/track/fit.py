@@ -82,18 +82,11 @@ def _loss_terms(model: MeshGaussians, vertices, colors, log_scales, opacity_logi
         render = render + cfg.mask_weight * m
     terms["render"] = render
     loss = render
-    if iso is not None:
-        terms["iso"] = iso(vertices)
-        loss = loss + cfg.iso_weight * terms["iso"]
-    if normal is not None:
-        terms["normal"] = normal(vertices)
-        loss = loss + cfg.normal_weight * terms["normal"]
-    if collision is not None:
-        terms["collision"] = collision(vertices)
-        loss = loss + cfg.collision_weight * terms["collision"]
-    if anchor is not None:
-        terms["anchor"] = anchor(vertices)
-        loss = loss + cfg.anchor_weight * terms["anchor"]
+    for name, term, weight in (("iso", iso, cfg.iso_weight), ("normal", normal, cfg.normal_weight),
+                               ("collision", collision, cfg.collision_weight), ("anchor", anchor, cfg.anchor_weight)):
+        if term is not None:
+            terms[name] = term(vertices)
+            loss = loss + weight * terms[name]
     terms["loss"] = loss
     return terms
 
