@@ -127,11 +127,13 @@ class Viewer:
 
     def _add_node(self, ly, visible: bool, t: int | None = None):
         ly.materialize()
-        V = ly.frame(t) if t is not None else ly.frame(0) if ly.static else self._first_frame(ly)
+        if t is None:
+            t = 0 if ly.static else self._first_index(ly)
+        V = ly.frame(t) if t is not None else None
         if V is None:
             V = np.zeros((int(ly.faces.max()) + 1 if ly.faces.size else 0, 3), np.float32)
         if ly.splats is not None:
-            d = ly.splats(t if t is not None else next((u for u in range(ly.n_frames) if ly.frame(u) is not None), 0))
+            d = ly.splats(t if t is not None else 0)
             if d is None:
                 d = {k: np.zeros((0, *sh), np.float32) for k, sh in
                      (("centers", (3,)), ("covariances", (3, 3)), ("rgbs", (3,)), ("opacities", (1,)))}
@@ -148,12 +150,14 @@ class Viewer:
         self.nodes[ly.name] = h
         return h
 
+    @staticmethod
+    def _first_index(ly) -> int | None:
+        """The timeline index of the layer's first frame without NaN (None: every frame has)."""
+        return next((t for t in range(ly.offset, ly.offset + ly.n_frames) if ly.frame(t) is not None), None)
+
     def _first_frame(self, ly):
-        for t in range(ly.offset, ly.offset + ly.n_frames):
-            V = ly.frame(t)
-            if V is not None:
-                return V
-        return None
+        t = self._first_index(ly)
+        return None if t is None else ly.frame(t)
 
     def _present(self, ly, t: int) -> bool:
         return ly.static or ly.frame(t) is not None
