@@ -97,3 +97,38 @@ def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
     with pytest.raises(PhysavatarError, match="random material was simulated with"):
         evaluate(tiny_capture, root / "avatar", root / "out3", n_points=1000, views_spp=4,
                  references=root / "refs", progress=False)
+
+
+def test_heldout_cameras_of_a_capture_without_ground_truth(tmp_path, tiny_capture):
+    """`evaluate --holdout CAM` on a capture with no ground_truth/: the tracked meshes rendered from
+    the capture's own camera. With the true meshes, texture and light it reproduces the capture's
+    images; meshes moved by 3 cm score clearly worse; bad camera names and missing inputs are refused."""
+    import json
+
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.evaluate import EvaluateConfig, run
+
+    cap = tmp_path / "cap"
+    shutil.copytree(tiny_capture, cap, ignore=shutil.ignore_patterns("ground_truth"))
+    gt_dir = tiny_capture / "ground_truth"
+    av = build_avatar(cap, tmp_path / "avatar", material=gt_dir / "material.json")
+    shutil.copyfile(gt_dir / "texture_linear.npy", tmp_path / "avatar" / "texture_linear.npy")
+    shutil.copyfile(gt_dir / "lighting.json", tmp_path / "avatar" / "light.json")
+    gt = np.load(gt_dir / "meshes.npz")
+    cam = json.loads((cap / "cameras.json").read_text())[1]["name"]
+    scores = {}
+    for name, shift in (("true", 0.0), ("moved", 0.03)):
+        save_npz_atomic(tmp_path / name / "tracked.npz", vertices=gt["vertices"] + shift, faces=gt["faces"])
+        m = run(cap, out=tmp_path / f"eval_{name}", config=EvaluateConfig(holdout=(cam,)), avatar=tmp_path / "avatar",
+                tracked=tmp_path / name)
+        assert "rows" in m and not m["rows"] and "tracking" not in m  # nothing else without ground truth
+        scores[name] = m["heldout_cameras"]
+    assert scores["true"]["cameras"] == [cam] and len(scores["true"]["views"]) == 3
+    assert scores["true"]["psnr"] > 24, scores["true"]  # 26.6 dB: the capture used more samples
+    assert scores["moved"]["psnr"] < scores["true"]["psnr"] - 5, (scores["moved"]["psnr"], scores["true"]["psnr"])
+    assert "Held-out cameras of the capture" in (tmp_path / "eval_true" / "report.md").read_text()
+    with pytest.raises(PhysavatarError, match="not in the capture"):
+        run(cap, out=tmp_path / "e2", config=EvaluateConfig(holdout=("nope",)), avatar=tmp_path / "avatar",
+            tracked=tmp_path / "true")
+    with pytest.raises(PhysavatarError, match="nothing to evaluate"):
+        run(cap, out=tmp_path / "e3", config=EvaluateConfig(), avatar=tmp_path / "avatar")

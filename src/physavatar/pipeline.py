@@ -34,7 +34,7 @@ from typing import Any
 from .errors import PhysavatarError
 from .files import read_json, write_json_atomic
 from .parallel import default_workers
-from .stages.base import option, stage_hash, to_dict
+from .stages.base import camera_list, option, stage_hash, to_dict
 
 
 @dataclass
@@ -71,6 +71,9 @@ class RunConfig:
     eval_frames: int | None = option(None, "animate / evaluate only the first N held-out frames", check=_positive)
     motion: str | None = option(None, "motion to animate (built-in name, .bvh, .npz); default: the synthetic "
                                 "capture's held-out motion (then also evaluated), else 'dance'")
+    holdout: tuple[str, ...] | None = option(None, "cameras held out of tracking and scored by evaluate, CAM,CAM "
+                                             "('' for none; default: two when the capture has six or more)",
+                                             parse=camera_list)
 
 
 def _resolve(value, out: Path):
@@ -88,7 +91,7 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
     motion = cfg.motion or (str(held_file) if held_file.exists() else "dance")
     cap = {"capture": capture}
     steps = [
-        Step("track", "physavatar.stages.track:run", track.pipeline_config(cfg.track_frames), cap, "tracked.npz"),
+        Step("track", "physavatar.stages.track:run", track.pipeline_config(cfg.track_frames, cfg.holdout), cap, "tracked.npz"),
         # fit-appearance (Mitsuba, multi-threaded) runs beside fit-physics (single-threaded
         # simulations): both need only the tracking.
         Step("appearance", "physavatar.stages.appearance:run", appearance.pipeline_config(cfg.quick),
@@ -121,9 +124,26 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
             inputs["sequence"] = ("step", "animate")
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run",
                           evaluate.EvaluateConfig(frames=cfg.eval_frames), inputs, "metrics.json"))
+    elif _holds_out(capture, cfg.holdout):
+        # Any capture: the cameras tracking held out are scored (the tracked meshes, textured and lit).
+        steps.append(Step("evaluate", "physavatar.stages.evaluate:run", evaluate.EvaluateConfig(),
+                          cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track")}, "metrics.json"))
     for st in steps:
         st.command = _command(st, out)
     return steps
+
+
+def _holds_out(capture: Path, holdout: tuple[str, ...] | None) -> bool:
+    """Whether tracking holds cameras out of ``capture`` (the given ones, else the default rule)."""
+    from .stages.track.stage import default_holdout
+
+    if holdout is not None:
+        return bool(holdout)
+    try:
+        names = [c["name"] for c in read_json(capture / "cameras.json")]
+    except (PhysavatarError, KeyError, TypeError):
+        return False  # an unreadable capture fails in its first stage, with its own message
+    return bool(default_holdout(names))
 
 
 def _command(st: Step, out: Path) -> list[str]:

@@ -43,11 +43,13 @@ def write_report(out: str | Path) -> Path:
         if frames:
             pick = [frames[0], frames[len(frames) // 2], frames[-1]]
             L += [f"**{title}** ({folder}/orbit.mp4)", ""] + [f"![frame]({p.relative_to(out)})" for p in pick] + [""]
-    views = sorted((out / "evaluate" / "views").glob("*_ours.png"))
-    if views:
-        v = views[len(views) // 2]
-        L += ["**Held-out view: ours | ground truth**", "", f"![ours]({v.relative_to(out)}) "
-              f"![gt]({(v.parent / v.name.replace('_ours', '_gt')).relative_to(out)})", ""]
+    for folder, title in (("views", "Held-out motion, held-out view: ours | ground truth"),
+                          ("holdout_views", "Held-out camera of the capture: ours | the capture's image")):
+        views = sorted((out / "evaluate" / folder).glob("*_ours.png"))
+        if views:
+            v = views[len(views) // 2]
+            L += [f"**{title}**", "", f"![ours]({v.relative_to(out)}) "
+                  f"![gt]({(v.parent / v.name.replace('_ours', '_gt')).relative_to(out)})", ""]
     outputs = [("avatar/", "the avatar: template, skinning weights, material, texture, light"),
                ("animate/", "the held-out animation: sequence.npz and one PLY per frame"),
                ("render/orbit.mp4", "novel views under the fitted light"),

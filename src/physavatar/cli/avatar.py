@@ -75,16 +75,17 @@ def export(seq: Path = typer.Argument(..., help="sequence folder (animate)"),
 
 @config_command(app, "evaluate", EvaluateConfig, wrap=handle_errors)
 def evaluate(
-    capture: Path = typer.Argument(..., help="synthetic capture (with ground_truth/)"),
+    capture: Path = typer.Argument(..., help="capture (a synthetic one's ground_truth/ adds the geometry rows)"),
     avatar: Path = typer.Option(..., help="avatar folder (build-avatar)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder: metrics.json, report.md, views/"),
-    tracked: Optional[Path] = typer.Option(None, help="tracking output: also report tracking error"),
+    tracked: Optional[Path] = typer.Option(None, help="tracking output: score its held-out cameras; with ground truth, also tracking error"),
     sequence: Optional[Path] = typer.Option(None, help="animate output on the held-out motion: reuse it as the estimated-material row"),
     references: Optional[Path] = typer.Option(None, help="reference-sims output of this capture: reuse its true- and random-material rows"),
     *, config: EvaluateConfig,
 ):
-    """Metrics against ground truth: garment/full Chamfer and F-scores on the held-out motion for LBS,
-    random, estimated and true material; PSNR/SSIM/LPIPS on held-out views; tracking error."""
+    """Metrics: PSNR/SSIM/LPIPS on the capture's held-out cameras (any capture, with --tracked); with
+    ground truth, garment/full Chamfer and F-scores on the held-out motion for LBS, random,
+    estimated and true material, its held-out views, and tracking error."""
     from ..stages.evaluate import run
 
     run(capture, out=out, config=config, avatar=avatar, tracked=tracked, sequence=sequence, references=references,
@@ -100,8 +101,12 @@ def reference_sims(capture: Path = typer.Argument(..., help="synthetic capture (
     true and with the random material (they need nothing fitted; `run` makes them while tracking)."""
     from ..stages.evaluate import run_references
 
+    from ..files import read_json
+    from ..stages.evaluate import REFERENCE_FOLDERS
+
     run_references(capture, out=out, config=config, progress=True)
-    console.print(f"wrote {out}/true, {out}/random")
+    rows = read_json(out / "references.json")["rows"]
+    console.print(f"wrote {', '.join(f'{out}/{REFERENCE_FOLDERS[r]} ({r})' for r in rows)}")
 
 
 @config_command(app, "run", RunConfig, wrap=handle_errors)

@@ -42,6 +42,11 @@ def option(default: Any = MISSING, help: str = "", flag: str | None = None, *, p
     return dataclasses.field(default=default, metadata=meta)
 
 
+def camera_list(text: str) -> tuple[str, ...]:
+    """An option's camera list: 'cam01, cam06' -> ('cam01', 'cam06'); '' -> () (none)."""
+    return tuple(h.strip() for h in text.split(",") if h.strip())
+
+
 def setting(default: Any = MISSING, *, default_factory: Any = MISSING, hash: bool = True) -> Any:
     """A config field without a command-line option (``hash=False``: left out of the stage hash)."""
     meta = {"cli": False, "hash": hash}

@@ -34,7 +34,7 @@ from ..errors import PhysavatarError
 from ..files import load_npz, read_json, write_json_atomic, write_text_atomic
 from ..geometry import submesh
 from ..sim import Material
-from .base import option, setting
+from .base import camera_list, option, setting
 
 ROWS = ("LBS", "random material", "estimated material", "true material")
 
@@ -62,7 +62,7 @@ def _surface_rows(pred: np.ndarray, gt: np.ndarray, faces: np.ndarray, n_points:
 def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tracked: str | Path | None = None,
              frames: int | None = None, n_points: int = 10000, views_spp: int = 64, seed: int = 0,
              sequence: str | Path | None = None, references: str | Path | None = None,
-             progress=True) -> dict:
+             holdout: tuple[str, ...] | None = None, progress=True) -> dict:
     """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics.
 
     ``references``: a :func:`reference_sequences` folder of this capture; its true- and
@@ -71,18 +71,44 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     ``sequence``: an ``animate`` output of this avatar on the held-out motion, used as the
     estimated-material row instead of simulating it again (it must cover the evaluated frames
     and have the avatar's topology).
+
+    ``holdout``: capture cameras scored as held-out views (the tracked meshes rendered with the
+    avatar's texture and light against their images); default: the cameras the tracking held
+    out. This part needs no ground truth, so a real capture is evaluated too.
     """
+    cap = load_capture(capture)
+    gt_root = cap.ground_truth
+    out = Path(out)
+    av = Avatar.load(avatar_dir)
+    hold = _holdout_cameras(cap, tracked, holdout)
+    has_heldout_motion = gt_root is not None and (gt_root / "heldout" / "meshes.npz").exists()
+    if not has_heldout_motion and not hold:
+        raise PhysavatarError(cap.root, "nothing to evaluate: no ground_truth/heldout (a synthetic capture's held-out "
+                              "motion) and no held-out cameras (pass --tracked of a tracking that held cameras out, "
+                              "or --holdout CAMS)")
+    metrics: dict = {"capture": str(cap.root), "avatar": str(av.root), "n_points": n_points, "rows": {}, "seconds": {}}
+    if hold:
+        metrics["heldout_cameras"] = _capture_views(cap, av, Path(tracked), hold, out, views_spp)
+    if has_heldout_motion:
+        _heldout_motion(metrics, cap, av, out, frames=frames, n_points=n_points, views_spp=views_spp, seed=seed,
+                        sequence=sequence, references=references, progress=progress)
+    # Tracking accuracy.
+    if tracked is not None and gt_root is not None and (gt_root / "meshes.npz").is_file():
+        metrics["tracking"] = _tracking(cap, Path(tracked))
+    write_json_atomic(out / "metrics.json", metrics)
+    write_text_atomic(out / "report.md", report_markdown(metrics))
+    return metrics
+
+
+def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, views_spp, seed, sequence, references,
+                    progress) -> None:
+    """The geometry rows (and the views of ``ground_truth/heldout``'s cameras) on the held-out motion."""
     from ..garment import garment_skinning_weights
     from ..body import BodyModel
     from ..parallel import Job, run_jobs
     from .animate import animate, animate_job, simulated_frames
 
-    cap = load_capture(capture)
     gt_root = cap.ground_truth
-    if gt_root is None or not (gt_root / "heldout" / "meshes.npz").exists():
-        raise PhysavatarError(cap.root, "has no ground_truth/heldout (evaluation needs a synthetic capture)")
-    out = Path(out)
-    av = Avatar.load(avatar_dir)
     held = Motion.load(gt_root / "heldout" / "motion.npz")
     gtz = load_npz(gt_root / "heldout" / "meshes.npz")
     gt = gtz["vertices"].astype(np.float64)
@@ -91,8 +117,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     t = av.template
     gmask = t.labels > 0
     _, gfaces_local = submesh(t.faces, gmask)
-    metrics: dict = {"capture": str(cap.root), "avatar": str(av.root), "heldout_frames": int(len(gt)),
-                     "n_points": n_points, "rows": {}, "seconds": {}}
+    metrics["heldout_frames"] = int(len(gt))
 
     # The four garment rows.
     seqs = {}
@@ -146,13 +171,6 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     cams_file = gt_root / "heldout" / "cameras.json"
     if cams_file.exists() and av.texture is not None:
         metrics["appearance"] = _appearance(cap, av, est, gt_root / "heldout", out, views_spp)
-
-    # Tracking accuracy.
-    if tracked is not None:
-        metrics["tracking"] = _tracking(cap, Path(tracked))
-    write_json_atomic(out / "metrics.json", metrics)
-    write_text_atomic(out / "report.md", report_markdown(metrics))
-    return metrics
 
 
 def _reference_materials(gt_root: Path, seed: int) -> list[tuple[str, Material]]:
@@ -246,35 +264,89 @@ def _reuse_sequence(path, av, n_frames: int):
 
 
 def _appearance(cap, av, seq, held_dir: Path, out: Path, spp: int) -> dict:
+    """Views of ``ground_truth/heldout``'s cameras: the held-out motion's sequence against its images."""
+    from ..camera import Camera
+
+    cams = [Camera.from_dict(c) for c in read_json(held_dir / "cameras.json")]
+    textured = av.texture is not None and seq.face_uvs is not None
+    n = len(seq.vertices)
+    return _score_views(av, seq.vertices, seq.faces, seq.face_uvs if textured else None, seq.labels,
+                        {f: f for f in sorted({0, n // 2, n - 1})}, cams,
+                        lambda cam, f: (held_dir / "images" / cam.name / f"{f:06d}.png",
+                                        held_dir / "masks" / cam.name / f"{f:06d}.png"),
+                        out / "views", spp)
+
+
+def _holdout_cameras(cap, tracked, holdout) -> tuple[str, ...]:
+    """The capture cameras to score: ``holdout`` as given, else those the tracking held out
+    (its config.json), else none."""
+    names = [c.name for c in cap.cameras]
+    if holdout is None:
+        cfg = Path(tracked) / "config.json" if tracked is not None else None
+        holdout = tuple(read_json(cfg).get("holdout") or ()) if cfg is not None and cfg.is_file() else ()
+    elif tracked is None and holdout:
+        raise PhysavatarError(None, "option --holdout: scoring held-out cameras needs --tracked (the meshes to render)")
+    unknown = [h for h in holdout if h not in names]
+    if unknown:
+        raise PhysavatarError(cap.root / "cameras.json", f"held-out camera(s) {', '.join(unknown)} not in the capture "
+                              f"(cameras: {', '.join(names)})")
+    return tuple(holdout)
+
+
+def _capture_views(cap, av, tracked: Path, hold: tuple[str, ...], out: Path, spp: int) -> dict:
+    """The capture's own held-out cameras: the tracked meshes at three frames (first, middle,
+    last tracked), rendered with the avatar's texture and light, against the capture's images
+    inside its masks (or inside the rendered silhouette when the capture has no masks)."""
+    from ..capture import frame_name
+
+    V = TrackedSequence.load(tracked).vertices
+    t = av.template
+    if V.shape[1] != len(t.vertices):
+        raise PhysavatarError(tracked, f"tracked meshes have {V.shape[1]} vertices, the avatar {len(t.vertices)}: "
+                              "not a tracking of this avatar's capture")
+    n = len(V)
+    frames = {i: cap.frames[i] for i in sorted({0, n // 2, n - 1})}
+    cams = [c for c in cap.cameras if c.name in hold]
+    textured = av.texture is not None and t.face_uvs is not None
+    paths = lambda cam, f: (cap.root / "images" / cam.name / f"{frame_name(f)}.png",
+                            cap.root / "masks" / cam.name / f"{frame_name(f)}.png")
+    res = _score_views(av, V, t.faces, t.face_uvs if textured else None, t.labels, frames, cams, paths,
+                       out / "holdout_views", spp)
+    return {"cameras": list(hold), **res}
+
+
+def _score_views(av, vertices, faces, face_uvs, labels, frames: dict, cams, paths, folder: Path, spp: int) -> dict:
+    """PSNR, SSIM and LPIPS of renders of ``vertices[i]`` (i -> frame id in ``frames``) from
+    ``cams`` against the images ``paths(cam, frame)`` gives (image, mask; the mask may be
+    missing: then the rendered silhouette is the mask). Saves each pair under ``folder``."""
     from PIL import Image
 
-    from ..camera import Camera
     from ..capture import save_png
     from ..metrics import lpips, psnr, ssim
     from ..render import SceneSpec, linear_to_srgb8, load_scene, render
     from ..render.avatar import AvatarMeshes
     from ..render.lights import named_lights
 
-    cams = [Camera.from_dict(c) for c in read_json(held_dir / "cameras.json")]
-    lights = named_lights("fitted" if av.light_path else "studio", seq.vertices[0].mean(0), fitted=av.light_path)
-    textured = av.texture is not None and seq.face_uvs is not None
-    meshes = AvatarMeshes.build(seq.vertices[0], seq.faces, seq.face_uvs if textured else None, seq.labels)
+    lights = named_lights("fitted" if av.light_path else "studio", vertices[0].mean(0), fitted=av.light_path)
+    meshes = AvatarMeshes.build(vertices[0], faces, face_uvs, labels)
     rows = []
-    n = len(seq.vertices)
-    frames = sorted({0, n // 2, n - 1})
-    for f in frames:
-        scene = load_scene(SceneSpec(meshes=meshes.specs(seq.vertices[f], av.texture if textured else None),
+    for i, f in frames.items():
+        scene = load_scene(SceneSpec(meshes=meshes.specs(vertices[i], av.texture if face_uvs is not None else None),
                                      lights=lights))
         for cam in cams:
-            gt_img = np.asarray(Image.open(held_dir / "images" / cam.name / f"{f:06d}.png").convert("RGB"), np.float32) / 255
-            mask = np.asarray(Image.open(held_dir / "masks" / cam.name / f"{f:06d}.png").convert("L"), np.float32) / 255
-            img = linear_to_srgb8(render(scene, cam, spp=spp, seed=f).rgb).astype(np.float32) / 255
-            m = mask > 0.5
-            rows.append({"frame": f, "camera": cam.name, "psnr": float(psnr(img, gt_img, mask=m)),
+            image_path, mask_path = paths(cam, f)
+            gt_img = np.asarray(Image.open(image_path).convert("RGB"), np.float32) / 255
+            out = render(scene, cam, spp=spp, seed=int(f))
+            img = linear_to_srgb8(out.rgb).astype(np.float32) / 255
+            if mask_path.is_file():
+                m = np.asarray(Image.open(mask_path).convert("L"), np.float32) / 255 > 0.5
+            else:
+                m = np.asarray(out.alpha) > 0.5
+            rows.append({"frame": int(f), "camera": cam.name, "psnr": float(psnr(img, gt_img, mask=m)),
                          "ssim": float(ssim(img * m[..., None], gt_img * m[..., None])),
                          "lpips": float(lpips(img * m[..., None], gt_img * m[..., None]))})
-            save_png(out / "views" / f"{cam.name}_{f:06d}_ours.png", img)
-            save_png(out / "views" / f"{cam.name}_{f:06d}_gt.png", gt_img)
+            save_png(folder / f"{cam.name}_{int(f):06d}_ours.png", img)
+            save_png(folder / f"{cam.name}_{int(f):06d}_gt.png", gt_img)
     return {"views": rows, "psnr": float(np.mean([r["psnr"] for r in rows])),
             "ssim": float(np.mean([r["ssim"] for r in rows])), "lpips": float(np.mean([r["lpips"] for r in rows]))}
 
@@ -295,11 +367,19 @@ def _tracking(cap, tracked: Path) -> dict:
 
 
 def report_markdown(m: dict) -> str:
-    lines = ["# Evaluation", "", f"Capture `{m['capture']}`, avatar `{m['avatar']}`; held-out motion, "
-             f"{m['heldout_frames']} frames; surfaces sampled with {m['n_points']} points.", "",
-             "## Geometry (paper Table 2 layout)", "",
-             "| garment animated with | garment CD ×10³ (m²) ↓ | F@1cm ↑ | F@2cm ↑ | F@sq0.001 ↑ | full-mesh CD ×10³ ↓ | full F@1cm ↑ |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["# Evaluation", "", f"Capture `{m['capture']}`, avatar `{m['avatar']}`."
+             + (f" Held-out motion, {m['heldout_frames']} frames; surfaces sampled with {m['n_points']} points."
+                if "heldout_frames" in m else ""), ""]
+    if "heldout_cameras" in m:
+        h = m["heldout_cameras"]
+        lines += [f"## Held-out cameras of the capture ({', '.join(h['cameras'])})", "",
+                  "The tracked meshes rendered with the avatar's texture and light, against the capture's images.", "",
+                  "| PSNR ↑ | SSIM ↑ | LPIPS ↓ |", "| --- | --- | --- |",
+                  f"| {h['psnr']:.2f} | {h['ssim']:.4f} | {h['lpips']:.4f} |", ""]
+    if m["rows"]:
+        lines += ["## Geometry (paper Table 2 layout)", "",
+                  "| garment animated with | garment CD ×10³ (m²) ↓ | F@1cm ↑ | F@2cm ↑ | F@sq0.001 ↑ | full-mesh CD ×10³ ↓ | full F@1cm ↑ |",
+                  "| --- | --- | --- | --- | --- | --- | --- |"]
     for row in ROWS:
         r = m["rows"].get(row)
         if r is None:
@@ -307,8 +387,9 @@ def report_markdown(m: dict) -> str:
         g, f = r["garment"], r["full"]
         lines.append(f"| {row} | {g['chamfer_x1e3']:.4f} | {g['fscore@1cm']:.3f} | {g['fscore@2cm']:.3f} | "
                      f"{g['fscore@sq0.001']:.3f} | {f['chamfer_x1e3']:.4f} | {f['fscore@1cm']:.3f} |")
-    lines += ["", "F@1cm and F@2cm use plain distances; F@sq0.001 compares squared distances with 0.001 m² "
-              "(≈3.2 cm), the convention of widely copied code.", ""]
+    if m["rows"]:
+        lines += ["", "F@1cm and F@2cm use plain distances; F@sq0.001 compares squared distances with 0.001 m² "
+                  "(≈3.2 cm), the convention of widely copied code.", ""]
     if "appearance" in m:
         a = m["appearance"]
         lines += ["## Appearance on held-out views (paper Table 1 layout)", "",
@@ -343,6 +424,8 @@ class EvaluateConfig:
     frames: int | None = option(None, "evaluate the first N held-out frames", check=_frames_ok)
     points: int = option(10000, "points sampled per surface for Chamfer / F-score",
                          check=lambda v: None if v >= 100 else "use at least 100 points")
+    holdout: tuple[str, ...] | None = option(None, "capture cameras scored as held-out views, CAM,CAM "
+                                             "(default: those the tracking held out)", parse=camera_list)
 
 
 @dataclass(frozen=True)
@@ -356,7 +439,7 @@ def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), 
         progress=None) -> dict:
     """:func:`evaluate` as a stage: metrics.json and report.md in ``out``."""
     return evaluate(capture, avatar, out, tracked=tracked, frames=config.frames, n_points=config.points,
-                    sequence=sequence, references=references, progress=progress)
+                    sequence=sequence, references=references, holdout=config.holdout, progress=progress)
 
 
 def run_references(capture: Path, *, out: Path, config: ReferencesConfig = ReferencesConfig(), progress=None) -> Path:

@@ -85,6 +85,9 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
                               fit_blend=key == "bdf2_blend")
     chosen = min(fits, key=lambda k: fits[k].objective)
     best = fits[chosen]
+    if best.material.integrator == "bdf2" and best.material.bdf2_blend == 0.0:
+        # γ = 0 is implicit Euler exactly (ClothSim.step_base): say so instead of "bdf2".
+        best.material = dataclasses.replace(best.material, integrator="euler", bdf2_blend=1.0)
     best.model_selection = {
         "chosen": chosen,
         "criterion": "lower objective on the fitted window (docs/physics.md, 'Which simulation model')",

@@ -9,12 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..base import option, setting
-
-
-def _camera_list(text: str) -> tuple[str, ...]:
-    """'cam01, cam06' -> ('cam01', 'cam06'); '' -> () (no camera held out)."""
-    return tuple(h.strip() for h in text.split(",") if h.strip())
+from ..base import camera_list, option, setting
 
 
 @dataclass(frozen=True)
@@ -211,7 +206,7 @@ class TrackConfig:
 
     n_frames: int | None = option(None, "track only the first N frames", flag="--frames", hash=False)
     holdout: tuple[str, ...] | None = option(None, "cameras excluded from fitting, CAM,CAM ('' for none; default: two)",
-                                             parse=_camera_list)
+                                             parse=camera_list)
     fit: FitConfig = field(default_factory=FitConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
@@ -223,6 +218,7 @@ class TrackConfig:
     seed: int = setting(0)
 
 
-def pipeline_config(track_frames: int | None) -> TrackConfig:
-    """The config ``physavatar run`` tracks with: the defaults, ``track_frames`` frames (None: all)."""
-    return TrackConfig(n_frames=track_frames)
+def pipeline_config(track_frames: int | None, holdout: tuple[str, ...] | None = None) -> TrackConfig:
+    """The config ``physavatar run`` tracks with: the defaults, ``track_frames`` frames (None: all),
+    ``holdout`` cameras held out (None: the default rule)."""
+    return TrackConfig(n_frames=track_frames, holdout=holdout)
