@@ -13,6 +13,7 @@ import trimesh
 
 from physavatar.body.model import BodyShape
 from physavatar.camera import ring_rig
+from physavatar.capture_checks import silhouette
 from physavatar.capture import BodyPoses, Template, frame_name, save_cameras, save_capture_meta, save_png
 
 BONES = ["root", "spine05", "upperleg01.L"]
@@ -53,11 +54,14 @@ def make_capture(root: Path, n_cams: int = 2, n_frames: int = 3, size=(32, 24), 
     frames = list(range(n_frames))
     save_capture_meta(root, fps=25.0, frames=frames, extra={"garment_source": "test"})
     save_cameras(root, cams)
+    template = make_template()
     for c in cams:
+        # the masks are the template's silhouette (inspect compares them with its projection)
+        sil = silhouette(c, template.vertices, template.faces)
         for f in frames:
             save_png(root / "images" / c.name / f"{frame_name(f)}.png", rng.random((size[1], size[0], 3)))
             if masks:
-                save_png(root / "masks" / c.name / f"{frame_name(f)}.png", rng.random((size[1], size[0])) > 0.5)
+                save_png(root / "masks" / c.name / f"{frame_name(f)}.png", sil)
     BodyPoses(BodyShape(), BONES, np.zeros((n_frames, len(BONES), 3)), np.zeros((n_frames, 3))).save(root / "body.npz")
-    make_template().save(root / "template" / "mesh.ply")
+    template.save(root / "template" / "mesh.ply")
     return root

@@ -23,9 +23,14 @@ def inspect(
     as_json: bool = typer.Option(False, "--json", help="print the summary as JSON"),
 ):
     """Summarize a capture folder, or list every validation problem (exit code 2)."""
-    from ..capture import load_capture, summarize, validate_capture
+    from ..capture import CaptureError, load_capture, summarize, validate_capture
+    from ..capture_checks import alignment_problems
+    from ..data.ground_truth import ground_truth_problems
 
     problems = validate_capture(capture, deep=not quick)
+    if not problems:  # the pieces together: cameras against masks, and the ground truth
+        cap = load_capture(capture)
+        problems = [CaptureError(p, m) for p, m in alignment_problems(cap) + ground_truth_problems(cap)]
     if problems:
         for p in problems:
             err_console.print(f"[bold red]error:[/] {p}", highlight=False, soft_wrap=True)
