@@ -83,12 +83,22 @@ def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
 
     m, root = result
     reference_sequences(tiny_capture, root / "refs", progress=False)
+    # an oracle (fit-physics on the true meshes) that found the true material: its row is the true row
+    from physavatar.sim import Material
+
+    true = Material.load(tiny_capture / "ground_truth" / "material.json")
+    (root / "oracle").mkdir()
+    (root / "oracle" / "material.json").write_text(json.dumps({"material": true.to_dict()}))
     m2 = evaluate(tiny_capture, root / "avatar", root / "out2", n_points=4000, views_spp=4,
-                  references=root / "refs", progress=False)
+                  references=root / "refs", oracle=root / "oracle", progress=False)
     assert m2["references"] == str(root / "refs")
     for row in ("true material", "random material", "LBS"):
         assert m2["rows"][row]["garment"]["chamfer_x1e3"] == pytest.approx(
             m["rows"][row]["garment"]["chamfer_x1e3"], rel=1e-4, abs=1e-9), row
+    assert m2["rows"]["oracle material"]["garment"]["chamfer_x1e3"] == pytest.approx(
+        m["rows"]["true material"]["garment"]["chamfer_x1e3"], rel=1e-4, abs=1e-9)
+    assert m2["materials"]["oracle"] == true.to_dict()
+    assert "| oracle material |" in (root / "out2" / "report.md").read_text()
     # references made for another random material (another --seed) are refused, by name
     meta_file = root / "refs" / "random" / "sequence.json"
     meta = json.loads(meta_file.read_text())

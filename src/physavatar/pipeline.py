@@ -120,6 +120,13 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
                              background=True))
         inputs = cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track"),
                         "references": ("step", "references")}
+        if not (capture / "ground_truth" / "material.json").exists() and \
+                (capture / "ground_truth" / "meshes.npz").exists():
+            # Another simulator's garment: no true material in this one's terms. The oracle row is
+            # the material fitted on the true meshes (the model gap without tracking error).
+            steps.insert(1, Step("oracle", "physavatar.stages.physics:run", physics.pipeline_config(cfg.quick),
+                                 {"source": capture}, "material.json", background=True))
+            inputs["oracle"] = ("step", "oracle")
         if cfg.motion is None:  # the animate stage ran the held-out motion: reuse it
             inputs["sequence"] = ("step", "animate")
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run",
@@ -152,7 +159,7 @@ def _command(st: Step, out: Path) -> list[str]:
 
     names = {"track": "track", "appearance": "fit-appearance", "physics": "fit-physics", "avatar": "build-avatar",
              "animate": "animate", "render": "render", "relight": "render", "export": "export",
-             "export-glb": "export", "references": "reference-sims", "evaluate": "evaluate"}
+             "export-glb": "export", "references": "reference-sims", "evaluate": "evaluate", "oracle": "fit-physics"}
     args = [names.get(st.name, st.name)]
     first, *rest = list(st.inputs.items()) or [(None, None)]
     if first[0] is not None:

@@ -81,6 +81,7 @@ def evaluate(
     tracked: Optional[Path] = typer.Option(None, help="tracking output: score its held-out cameras; with ground truth, also tracking error"),
     sequence: Optional[Path] = typer.Option(None, help="animate output on the held-out motion: reuse it as the estimated-material row"),
     references: Optional[Path] = typer.Option(None, help="reference-sims output of this capture: reuse its true- and random-material rows"),
+    oracle: Optional[Path] = typer.Option(None, help="fit-physics output fitted on the capture's true meshes: one more row"),
     *, config: EvaluateConfig,
 ):
     """Metrics: PSNR/SSIM/LPIPS on the capture's held-out cameras (any capture, with --tracked); with
@@ -89,7 +90,7 @@ def evaluate(
     from ..stages.evaluate import run
 
     run(capture, out=out, config=config, avatar=avatar, tracked=tracked, sequence=sequence, references=references,
-        progress=True)
+        oracle=oracle, progress=True)
     console.print((out / "report.md").read_text())
 
 

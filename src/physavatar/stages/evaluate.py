@@ -5,6 +5,9 @@ Geometry on the held-out motion (``ground_truth/heldout``): the garment is anima
   - random material: a seeded draw in the paper's parameter ranges,
   - estimated material: the avatar's (fit-physics),
   - true material: ``ground_truth/material.json`` (the oracle),
+  - oracle material: for a capture whose material is not in this simulator's terms (no
+    ``material.json``; another simulator made it), the material fitted on the true meshes
+    (``fit-physics CAPTURE``), so the fit's residual splits into tracking error and model gap,
 and compared with the ground-truth garment and full mesh per frame: Chamfer distance (×10³ m²)
 and F-score at 1 cm, 2 cm (plain distances) and the squared-distance τ = 0.001 variant, on
 points sampled uniformly on the surfaces.
@@ -36,7 +39,7 @@ from ..geometry import submesh
 from ..sim import Material
 from .base import camera_list, option, setting
 
-ROWS = ("LBS", "random material", "estimated material", "true material")
+ROWS = ("LBS", "random material", "estimated material", "true material", "oracle material")
 
 
 def random_material(seed: int = 0) -> Material:
@@ -62,7 +65,7 @@ def _surface_rows(pred: np.ndarray, gt: np.ndarray, faces: np.ndarray, n_points:
 def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tracked: str | Path | None = None,
              frames: int | None = None, n_points: int = 10000, views_spp: int = 64, seed: int = 0,
              sequence: str | Path | None = None, references: str | Path | None = None,
-             holdout: tuple[str, ...] | None = None, progress=True) -> dict:
+             holdout: tuple[str, ...] | None = None, oracle: str | Path | None = None, progress=True) -> dict:
     """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics.
 
     ``references``: a :func:`reference_sequences` folder of this capture; its true- and
@@ -71,6 +74,9 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     ``sequence``: an ``animate`` output of this avatar on the held-out motion, used as the
     estimated-material row instead of simulating it again (it must cover the evaluated frames
     and have the avatar's topology).
+
+    ``oracle``: a ``fit-physics`` folder fitted on the true meshes (``fit-physics CAPTURE``): its
+    material is one more row, the best this simulator's model can do on the capture.
 
     ``holdout``: capture cameras scored as held-out views (the tracked meshes rendered with the
     avatar's texture and light against their images); default: the cameras the tracking held
@@ -91,7 +97,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
         metrics["heldout_cameras"] = _capture_views(cap, av, Path(tracked), hold, out, views_spp)
     if has_heldout_motion:
         _heldout_motion(metrics, cap, av, out, frames=frames, n_points=n_points, views_spp=views_spp, seed=seed,
-                        sequence=sequence, references=references, progress=progress)
+                        sequence=sequence, references=references, oracle=oracle, progress=progress)
     # Tracking accuracy.
     if tracked is not None and gt_root is not None and (gt_root / "meshes.npz").is_file():
         metrics["tracking"] = _tracking(cap, Path(tracked))
@@ -101,7 +107,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
 
 
 def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, views_spp, seed, sequence, references,
-                    progress) -> None:
+                    oracle, progress) -> None:
     """The geometry rows (and the views of ``ground_truth/heldout``'s cameras) on the held-out motion."""
     from ..garment import garment_skinning_weights
     from ..body import BodyModel
@@ -133,6 +139,10 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # or taken from a `reference_sequences` folder made earlier (`physavatar run` makes it while
     # tracking runs).
     refs = dict(_reference_materials(gt_root, seed))
+    if oracle is not None:
+        from ..data.material import FittedMaterial
+
+        refs["oracle material"] = FittedMaterial.load(Path(oracle) / "material.json").material
     if references is not None:
         for row, V in _reuse_references(Path(references), av, refs, len(gt)).items():
             seqs[row] = V
@@ -165,7 +175,8 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
             "full": _surface_rows(V, gt, t.faces, n_points, seed),
         }
     metrics["materials"] = {"estimated": av.material.to_dict(), "random": refs["random material"].to_dict(),
-                            "true": refs["true material"].to_dict() if "true material" in refs else None}
+                            "true": refs["true material"].to_dict() if "true material" in refs else None,
+                            "oracle": refs["oracle material"].to_dict() if "oracle material" in refs else None}
 
     # Appearance on the held-out views.
     cams_file = gt_root / "heldout" / "cameras.json"
@@ -234,6 +245,8 @@ def _reuse_references(path: Path, av, refs: dict, n_frames: int) -> dict:
                               "than the evaluated avatar (made for another capture or avatar)")
     rows = {}
     for row, mat in refs.items():
+        if row not in REFERENCE_FOLDERS:  # the oracle is fitted in the run, not a reference-sims row
+            continue
         folder = path / REFERENCE_FOLDERS[row]
         used = read_json(folder / SEQUENCE_META).get("material") if (folder / SEQUENCE_META).is_file() else None
         if used is None:
@@ -436,10 +449,11 @@ class ReferencesConfig:
 
 def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), avatar: Path,
         tracked: Path | None = None, sequence: Path | None = None, references: Path | None = None,
-        progress=None) -> dict:
+        oracle: Path | None = None, progress=None) -> dict:
     """:func:`evaluate` as a stage: metrics.json and report.md in ``out``."""
     return evaluate(capture, avatar, out, tracked=tracked, frames=config.frames, n_points=config.points,
-                    sequence=sequence, references=references, holdout=config.holdout, progress=progress)
+                    sequence=sequence, references=references, holdout=config.holdout, oracle=oracle,
+                    progress=progress)
 
 
 def run_references(capture: Path, *, out: Path, config: ReferencesConfig = ReferencesConfig(), progress=None) -> Path:
