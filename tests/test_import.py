@@ -19,7 +19,13 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from physavatar.camera import Camera, ring_rig
-from physavatar.capture import _load_cameras, _Problems, frame_name, read_json, validate_capture
+from physavatar.capture import (
+    _load_cameras,
+    _Problems,
+    frame_name,
+    read_json,
+    validate_capture,
+)
 from physavatar.cli import app
 from physavatar.errors import PhysavatarError
 from physavatar.importers import ImportOptions, detect_format, import_capture
@@ -400,8 +406,17 @@ def test_real_pose2sim(tmp_path):
     assert sorted(cams) == ["cam_01", "cam_02", "cam_03", "cam_04"]
     # cam01 and cam02 are 1080 wide, calibrated at 1088: cropped (warned), K unchanged then scaled by 1/4
     assert "cropped" in r.output and (cams["cam_01"].width, cams["cam_03"].width) == (270, 272)
-    centres = np.array([c.center for c in cams.values()])
-    assert np.all(np.linalg.norm(centres[:, :2], axis=1) > 1.0) and np.all(np.abs(centres[:, 2]) < 3)
+    # the cameras look at one place: the point nearest every optical axis is the person, in the
+    # middle of every picture (fails for inverted extrinsics or flipped axes)
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cams.values():
+        P = np.eye(3) - np.outer(c.c2w[:3, 2], c.c2w[:3, 2])
+        A, b = A + P, b + P @ c.center
+    focus = np.linalg.solve(A, b)
+    for c in cams.values():
+        (u, v), z = c.project(focus[None])[0][0], c.project(focus[None])[1][0]
+        assert z > 1 and abs(u / c.width - 0.5) < 0.15 and abs(v / c.height - 0.5) < 0.15, (c.name, u, v)
+        assert -c.w2c[1, 2] > 0.8  # image up is world up (z): upright phones
     only_unprepared_problems(out)
 
 

@@ -15,8 +15,17 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PhysavatarError
-from .common import VIDEO_SUFFIXES, ImportOptions, Source, SourceCamera, View, check_K, numbered_files, rigid_w2c, \
-    rodrigues
+from .common import (
+    VIDEO_SUFFIXES,
+    ImportOptions,
+    Source,
+    SourceCamera,
+    View,
+    check_K,
+    numbered_files,
+    rigid_w2c,
+    rodrigues,
+)
 from .media import image_size, video_info
 
 

@@ -10,9 +10,9 @@ resizes (``cv2.resize``: area averaging when shrinking), both with the pixel-cen
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -79,32 +79,41 @@ def video_info(path: Path) -> VideoInfo:
         cap.release()
 
 
-def read_video(path: Path) -> Iterator[np.ndarray]:
-    """Every frame of a video, [H, W, 3] RGB uint8, in order (frame id = index from 0).
+class VideoFrames:
+    """The frames of a video that ``keep(index)`` accepts, [H, W, 3] RGB uint8, as (index, frame) in order.
 
-    Raises PhysavatarError when the file does not open, or when fewer frames decode than the
-    container declares (a truncated or damaged file; one frame of slack for containers whose
-    count is estimated from the duration).
+    Every frame is decoded (``grab``) to count them, but only kept ones are converted to RGB
+    (``retrieve``). ``count`` is the number of decoded frames once iterated. Raises
+    PhysavatarError when the file does not open, or when fewer frames decode than the container
+    declares (a truncated or damaged file; 1 % slack for containers whose count is estimated
+    from the duration).
     """
-    import cv2
 
-    cap = _open(path)
-    declared = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-    n = 0
-    try:
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            n += 1
-            yield np.ascontiguousarray(frame[..., ::-1])
-    finally:
-        cap.release()
-    if n == 0:
-        raise PhysavatarError(path, "video has no decodable frame (corrupt or truncated)")
-    if declared > 0 and n < declared - max(1, int(0.01 * declared)):
-        raise PhysavatarError(path, f"only {n} of the {declared} frames the file declares could be decoded "
-                                    "(truncated or corrupt video)")
+    def __init__(self, path: Path, keep=None):
+        self.path, self.keep, self.count = path, keep, 0
+
+    def __iter__(self) -> Iterator[tuple[int, np.ndarray]]:
+        import cv2
+
+        cap = _open(self.path)
+        declared = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        n = 0
+        try:
+            while cap.grab():
+                n += 1
+                self.count = n
+                if self.keep is None or self.keep(n - 1):
+                    ok, frame = cap.retrieve()
+                    if not ok:
+                        raise PhysavatarError(self.path, f"frame {n - 1} cannot be decoded (corrupt video)")
+                    yield n - 1, np.ascontiguousarray(frame[..., ::-1])
+        finally:
+            cap.release()
+        if n == 0:
+            raise PhysavatarError(self.path, "video has no decodable frame (corrupt or truncated)")
+        if declared > 0 and n < declared - max(1, int(0.01 * declared)):
+            raise PhysavatarError(self.path, f"only {n} of the {declared} frames the file declares could be decoded "
+                                             "(truncated or corrupt video)")
 
 
 def fit_to_image(cam: SourceCamera, width: int, height: int, where: Path) -> SourceCamera:

@@ -23,10 +23,30 @@ from ..capture import frame_name, save_cameras, save_capture_meta, save_png
 from ..errors import PhysavatarError
 from ..files import PlyMesh, write_ply
 from ..progress import resolve
-from .common import AXES, ImportOptions, Placement, Source, SourceCamera, estimate_up, log, parse_resolution, \
-    rotation_to_z, select_frames, FrameFilter
-from .media import Undistorter, fit_to_image, image_size, read_image, read_video, resize, resized_K, target_size, \
-    video_info
+from .common import (
+    AXES,
+    FrameFilter,
+    ImportOptions,
+    Placement,
+    Source,
+    SourceCamera,
+    estimate_up,
+    log,
+    parse_resolution,
+    rotation_to_z,
+    select_frames,
+)
+from .media import (
+    Undistorter,
+    VideoFrames,
+    fit_to_image,
+    image_size,
+    read_image,
+    resize,
+    resized_K,
+    target_size,
+    video_info,
+)
 
 
 @dataclass
@@ -141,7 +161,8 @@ def _write(source: Source, out: Path, options: ImportOptions, progress, warnings
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.importing-", dir=parent))
     try:
-        cams, kept, decoded, masks = _write_pictures(source, tmp, options, fps, selected, placement, resolution, progress)
+        cams, kept, decoded, masks = _write_pictures(source, tmp, options, fps, selected, placement, resolution, infos,
+                                                     progress)
         frames = sorted(set.intersection(*(set(k) for k in kept.values())))
         n_meshes = _write_meshes(source, tmp, frames, placement)
         n_body = _copy_body_files(source, tmp, frames)
@@ -188,14 +209,17 @@ def _output_camera(cam: SourceCamera, placement: Placement, resolution) -> tuple
 
 
 def _write_pictures(source: Source, tmp: Path, options: ImportOptions, fps: float, selected: list[int],
-                    placement: Placement, resolution, progress):
+                    placement: Placement, resolution, infos: dict, progress):
     prog = resolve(progress)
     with_masks = all(v.masks for v in source.views.values())
     if not with_masks and any(v.masks for v in source.views.values()):
         log.warning("%s: only some cameras have masks: masks are left out", source.root)
     cams, kept, decoded = [], {}, {}
-    total = len(selected) * len(source.cameras) if selected else None
-    with prog.task(f"import {source.format}", total=total) as task:
+    total = 0
+    for cam in source.cameras:  # videos: as many as their declared lengths allow
+        info = infos.get(cam.name)
+        total += len(selected) if info is None else len(select_frames(range(info.frames), options, fps))
+    with prog.task(f"import {source.format}", total=total or None) as task:
         for cam in source.cameras:
             view = source.views[cam.name]
             if view.video is None:
@@ -203,18 +227,10 @@ def _write_pictures(source: Source, tmp: Path, options: ImportOptions, fps: floa
                 cam = fit_to_image(cam, *image_size(first), first)
                 frames_iter = ((f, read_image(view.images[f]), view.images[f]) for f in selected)
             else:
-                info = video_info(view.video)
+                info = infos[cam.name]
                 cam = fit_to_image(cam, info.width, info.height, view.video)
-                keep = FrameFilter(options, fps, 0)
-                decoded[cam.name] = 0
-
-                def frames_iter_video(video=view.video, name=cam.name, keep=keep):
-                    for i, img in enumerate(read_video(video)):
-                        decoded[name] = i + 1
-                        if keep(i):
-                            yield i, img, video
-
-                frames_iter = frames_iter_video()
+                video = VideoFrames(view.video, FrameFilter(options, fps, 0))
+                frames_iter = ((i, img, view.video) for i, img in video)
             out_cam, size = _output_camera(cam, placement, resolution)
             undistort = Undistorter(cam)
             kept[cam.name] = []
@@ -234,6 +250,8 @@ def _write_pictures(source: Source, tmp: Path, options: ImportOptions, fps: floa
                     save_png(tmp / "masks" / cam.name / f"{frame_name(f)}.png", resize(undistort(m), size))
                 kept[cam.name].append(f)
                 task.advance(1, camera=cam.name, frame=f)
+            if view.video is not None:
+                decoded[cam.name] = video.count
             if not kept[cam.name]:
                 raise PhysavatarError(view.video or source.root, f"the frame options keep no frame of camera {cam.name!r}")
             cams.append(out_cam)
