@@ -522,3 +522,38 @@ def test_options_are_checked(tmp_path):
     (tmp_path / "full" / "x").write_text("x")
     r = runner.invoke(app, ["import", str(src), str(tmp_path / "full")])
     assert r.exit_code == 2 and "not an empty folder" in r.output
+
+
+# -- Anny's own pose parameters -----------------------------------------------------------------------
+
+def test_anny_pose_parameters_become_body_npz(tmp_path):
+    import torch
+
+    from physavatar.body.model import BodyModel, BodyShape, _anny
+    from physavatar.files import load_npz
+
+    src, _ = small_em(tmp_path)
+    shape = BodyShape(0.3, 0.6, 0.5, 0.4, 0.7, 0.5)
+    model = _anny("tiny")
+    B, T = len(model.bone_labels), 3
+    rng = np.random.default_rng(7)
+    D = np.tile(np.eye(4), (T, B, 1, 1))
+    D[:, :, :3, :3] = np.array([[cv2.Rodrigues(rng.normal(0, 0.15, 3))[0] for _ in range(B)] for _ in range(T)])
+    D[:, 0, :3, 3] = rng.normal(0, 0.3, (T, 3))
+    phen = torch.as_tensor(shape.as_array()[None]).expand(T, -1)
+    with torch.no_grad():  # Anny's own forward, in its default local-ref parameterization
+        V_src = model(torch.as_tensor(D), phenotype_kwargs=phen, pose_parameterization="local-ref")["vertices"].numpy()
+    np.savez(tmp_path / "anny.npz", pose_parameters=D, phenotype=shape.as_array(), topology="tiny",
+             bone_labels=np.array(model.bone_labels))
+    r = runner.invoke(app, ["import", str(src), str(tmp_path / "cap"), "--frames", "1-2", "--up", "y",
+                            "--floor", "0.3", "--anny", str(tmp_path / "anny.npz")])
+    assert r.exit_code == 0, r.output
+    z = load_npz(tmp_path / "cap" / "body.npz")
+    assert z["rotations"].shape == (2, B, 3) and str(z["topology"]) == "tiny"
+    posed = BodyModel(BodyShape.from_array(z["shape"]), "tiny").pose(z["rotations"], z["root_translation"])
+    expected = V_src[1:3] @ rotation_to_z([0, 1, 0]).T - [0, 0, 0.3]  # the import's placement of the source world
+    np.testing.assert_allclose(posed.vertices, expected, atol=1e-6)
+    # stretched bones cannot be expressed in the capture's convention
+    D[:, 5, :3, 3] = 0.02
+    np.savez(tmp_path / "bad.npz", pose_parameters=D, phenotype=shape.as_array(), topology="tiny")
+    run_bad([src, "--anny", tmp_path / "bad.npz"], tmp_path / "o", "bad.npz", "bone heads move")

@@ -30,16 +30,20 @@ def import_(
     floor: str = typer.Option("auto", help="auto (first mesh's lowest point to z=0 when the source has meshes), "
                                             "keep, or the floor height to move to z=0"),
     videos: Optional[Path] = typer.Option(None, help="folder of videos to use (pose2sim, easymocap; default videos/)"),
+    anny: Optional[Path] = typer.Option(None, help="Anny's own pose parameters (.npz) in the source's world: "
+                                                    "converted to body.npz"),
 ):
     """Import a calibrated multi-view capture (ActorsHQ, 4D-DRESS, EasyMocap, Pose2Sim TOML, nerfstudio)."""
     from ..importers import ImportOptions, import_capture
 
     opts = ImportOptions(frames=frames, every=every, start=start, end=end, resolution=resolution, fps=fps,
-                         truncate=truncate, up=up, scale=scale, floor=floor, videos=videos)
+                         truncate=truncate, up=up, scale=scale, floor=floor, videos=videos,
+                         anny=anny)
     r = import_capture(src, out, format=format, options=opts, progress=True)
     for w in r.warnings:
         err_console.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
     extra = "".join([", masks" if r.masks else "", f", {r.meshes} meshes" if r.meshes else "",
+                     ", body poses (body.npz)" if r.body else "",
                      f", {r.body_files} body-parameter files" if r.body_files else ""])
     console.print(f"wrote capture {r.out} from {r.format}: {len(r.cameras)} cameras, {len(r.frames)} of "
                   f"{r.source_frames} frames at {r.fps:g} fps, up axis {r.up}{extra}", highlight=False)

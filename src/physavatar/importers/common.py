@@ -100,7 +100,8 @@ class ImportOptions:
         scale: metres per source unit. floor: ``auto`` (the lowest vertex of the first kept
         frame's mesh goes to z = 0 when the source has meshes; otherwise the origin is kept),
         ``keep``, or a height (after rotation and scaling) moved to z = 0. videos: a folder of
-        videos to use instead of the format's default one.
+        videos to use instead of the format's default one. anny: an ``.npz`` of Anny's own pose
+        parameters in the source's world, converted to ``body.npz`` (importers/anny.py).
     """
 
     frames: str | None = None
@@ -114,6 +115,7 @@ class ImportOptions:
     scale: float = 1.0
     floor: str = "auto"
     videos: Path | None = None
+    anny: Path | None = None
 
     def check(self) -> None:
         if self.every < 1:
@@ -133,6 +135,8 @@ class ImportOptions:
                 raise PhysavatarError(None, f"option --floor: {self.floor!r} is not auto, keep or a number") from None
         parse_frames(self.frames)
         parse_resolution(self.resolution)
+        if self.anny is not None and not Path(self.anny).is_file():
+            raise PhysavatarError(self.anny, "Anny pose file not found (option --anny)")
 
 
 # -- option parsing ------------------------------------------------------------------------------

@@ -60,6 +60,7 @@ class ImportResult:
     source_frames: int
     masks: bool
     meshes: int
+    body: bool
     body_files: int
     warnings: list[str] = field(default_factory=list)
 
@@ -166,7 +167,12 @@ def _write(source: Source, out: Path, options: ImportOptions, progress, warnings
         frames = sorted(set.intersection(*(set(k) for k in kept.values())))
         n_meshes = _write_meshes(source, tmp, frames, placement)
         n_body = _copy_body_files(source, tmp, frames)
-        source_frames = len(image_frames) if image_frames else min(decoded.values())
+        source_ids = image_frames or list(range(min(decoded.values())))
+        source_frames = len(source_ids)
+        if options.anny is not None:
+            from .anny import read_anny_poses  # Anny (torch) is loaded only for this
+
+            read_anny_poses(options.anny, source_ids, frames, placement).save(tmp / "body.npz")
         meta = {
             "import": {
                 "format": source.format,
@@ -178,6 +184,7 @@ def _write(source: Source, out: Path, options: ImportOptions, progress, warnings
                 "source_frames": source_frames,
                 "meshes": "meshes/" if n_meshes else None,
                 "source_body": sorted(source.body_files) if n_body else [],
+                "body": str(Path(options.anny).resolve()) if options.anny is not None else None,
                 **source.notes,
             }
         }
@@ -190,7 +197,7 @@ def _write(source: Source, out: Path, options: ImportOptions, progress, warnings
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return ImportResult(out, source.format, [c.name for c in cams], frames, fps, placement.up, source_frames,
-                        masks, n_meshes, n_body, warnings.items)
+                        masks, n_meshes, options.anny is not None, n_body, warnings.items)
 
 
 def _raise_counts(source: Source, counts: dict[str, int]):
