@@ -152,6 +152,11 @@ def test_actorshq_roundtrip(tmp_path):
     assert r.frames == [1, 3]
     assert_cameras(tmp_path / "half", [c.scaled(0.5) for c in cams])
     assert read_json(tmp_path / "half" / "capture.json")["frames"] == [1, 3]
+    # one calibration.csv beside the resolution folders serves them all
+    (src / "calibration.csv").rename(src.parent / "calibration.csv")
+    import_capture(src, tmp_path / "parent", options=ImportOptions(up="z"))
+    assert_cameras(tmp_path / "parent", cams)
+    run_bad([src.parent], tmp_path / "o", "rgbs", "(4x)")
 
 
 # -- 4D-DRESS --------------------------------------------------------------------------------------

@@ -27,11 +27,13 @@ COLUMNS = ["name", "w", "h", "rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "px
 
 
 def detect(src: Path) -> bool:
-    return (src / "calibration.csv").is_file()
+    return (src / "calibration.csv").is_file() or ((src / "rgbs").is_dir() and (src.parent / "calibration.csv").is_file())
 
 
 def read(src: Path) -> Source:
     path = src / "calibration.csv"
+    if not path.is_file() and (src.parent / "calibration.csv").is_file():
+        path = src.parent / "calibration.csv"  # one calibration for every resolution folder (normalised intrinsics)
     if not path.is_file():
         raise PhysavatarError(path, "file not found (an ActorsHQ folder holds calibration.csv, rgbs/ and masks/)")
     try:
@@ -45,6 +47,10 @@ def read(src: Path) -> Source:
     missing = [c for c in COLUMNS if c not in header]
     if missing:
         raise PhysavatarError(path, f"missing columns {missing} (expected {','.join(COLUMNS)})")
+    if not (src / "rgbs").is_dir():
+        scales = sorted(p.name for p in src.iterdir() if (p / "rgbs").is_dir())
+        hint = f"; pass one of the resolution folders as SRC ({', '.join(scales)})" if scales else ""
+        raise PhysavatarError(src / "rgbs", f"folder not found (ActorsHQ pictures: rgbs/CamNNN/CamNNN_rgbFFFFFF.jpg){hint}")
     cams, views = [], {}
     for i, row in enumerate(rows):
         try:

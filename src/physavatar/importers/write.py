@@ -142,6 +142,12 @@ def _placement(source: Source, options: ImportOptions, first_frame: int | None) 
 def _write(source: Source, out: Path, options: ImportOptions, progress, warnings: _Warnings) -> ImportResult:
     if not source.cameras:
         raise PhysavatarError(source.calibration, "no cameras in the calibration")
+    names = [c.name for c in source.cameras]
+    for name in names:
+        if not name or name in (".", "..") or "/" in name or "\\" in name or name.startswith("."):
+            raise PhysavatarError(source.calibration, f"camera name {name!r} cannot be a folder name")
+        if names.count(name) > 1:
+            raise PhysavatarError(source.calibration, f"two cameras are named {name!r}")
     for cam in source.cameras:
         v = source.views.get(cam.name)
         if v is None or (v.video is None and not v.images):
