@@ -253,8 +253,10 @@ def test_easymocap_images_and_videos(tmp_path):
         for f, im in enumerate(images[c.name]):
             save(src / "images" / c.name / f"{f:06d}.png", im)
     assert detect_format(src) == "easymocap"
-    r = import_capture(src, tmp_path / "cap", options=ImportOptions(start=0.04, end=0.12, fps=25))
+    events = []
+    r = import_capture(src, tmp_path / "cap", options=ImportOptions(start=0.04, end=0.12, fps=25), progress=events.append)
     assert r.frames == [1, 2, 3]
+    assert [e.kind for e in events].count("advance") == 9 and events[0].total == 9 and events[-1].kind == "end"
     assert_cameras(tmp_path / "cap", cams)
     assert_images(tmp_path / "cap", {k: v[1:4] for k, v in images.items()}, [1, 2, 3])
     only_unprepared_problems(tmp_path / "cap")
@@ -562,3 +564,27 @@ def test_anny_pose_parameters_become_body_npz(tmp_path):
     D[:, 5, :3, 3] = 0.02
     np.savez(tmp_path / "bad.npz", pose_parameters=D, phenotype=shape.as_array(), topology="tiny")
     run_bad([src, "--anny", tmp_path / "bad.npz"], tmp_path / "o", "bad.npz", "bone heads move")
+
+
+def test_nerfstudio_named_cameras_frame_keys_masks(tmp_path):
+    cams = rig(2)
+    images = pictures(cams, 3)
+    masks = {k: [((im[..., 2] > 90) * 255).astype(np.uint8) for im in v] for k, v in images.items()}
+    src = tmp_path / "ns"
+    frames = []
+    for f in (4, 5, 6):
+        for c in cams:
+            fr = {"file_path": f"rgb/{c.name}/{f}.png", "mask_path": f"mask/{c.name}/{f}.png", "camera": c.name,
+                  "frame": f, "camera_model": "PINHOLE", "fl_x": c.K[0, 0], "fl_y": c.K[1, 1], "cx": c.K[0, 2] + 0.5,
+                  "cy": c.K[1, 2] + 0.5, "w": c.width, "h": c.height,
+                  "transform_matrix": (c.c2w @ np.diag([1.0, -1, -1, 1]))[:3].tolist()}
+            save(src / fr["file_path"], images[c.name][f - 4])
+            save(src / fr["mask_path"], masks[c.name][f - 4])
+            frames.append(fr)
+    (src / "transforms.json").write_text(json.dumps({"frames": frames}))
+    r = import_capture(src / "transforms.json", tmp_path / "cap", options=ImportOptions(fps=30))
+    assert r.frames == [4, 5, 6] and r.masks and r.up == "z"
+    assert_cameras(tmp_path / "cap", cams)
+    assert_images(tmp_path / "cap", images, [4, 5, 6])
+    assert_images(tmp_path / "cap", masks, [4, 5, 6], "masks", "L")
+    only_unprepared_problems(tmp_path / "cap")
