@@ -167,6 +167,9 @@ def _write(source: Source, out: Path, options: ImportOptions, progress, warnings
     parent = out.parent
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.importing-", dir=parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; the capture gets the usual permissions
     try:
         cams, kept, decoded, masks = _write_pictures(source, tmp, options, fps, selected, placement, resolution, infos,
                                                      progress)
