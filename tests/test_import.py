@@ -265,7 +265,11 @@ def test_easymocap_images_and_videos(tmp_path):
     write_easymocap(vid, cams, rot_too=False)
     for c in cams:
         write_video(vid / "videos" / f"{c.name}.mp4", images[c.name], fps=50)
+    (vid / "output" / "smpl").mkdir(parents=True)
+    for f in range(5):
+        (vid / "output" / "smpl" / f"{f:06d}.json").write_text(json.dumps([{"id": 0, "poses": [[0.0] * 72]}]))
     r = import_capture(vid, tmp_path / "capv")
+    assert r.body_files == 5 and (tmp_path / "capv" / "source_body" / "smpl" / "000004.json").is_file()
     assert r.fps == 50 and r.frames == [0, 1, 2, 3, 4] and r.source_frames == 5
     assert_cameras(tmp_path / "capv", cams)
     assert_images(tmp_path / "capv", images, r.frames)

@@ -5,7 +5,8 @@
 world → camera, OpenCV axes, pixel centres at integers. When both ``R_`` and ``Rot_`` are given
 they must agree. Pictures: ``images/<cam>/NNNNNN.jpg`` (frame id from the name) or
 ``videos/<cam>.mp4`` (frame id = index); masks from ``mask/<cam>/`` or ``masks/<cam>/`` when
-present. Read with ``cv2.FileStorage``, the library that writes these files.
+present; EasyMocap's body fits (``output/smpl/NNNNNN.json``, ``smplx`` ...) are copied to
+``source_body/``. Read with ``cv2.FileStorage``, the library that writes these files.
 """
 
 from __future__ import annotations
@@ -108,4 +109,9 @@ def read(src: Path, options: ImportOptions) -> Source:
         view, (w, h) = _pictures(src, name, options)
         cams.append(SourceCamera(name, w, h, K, w2c, dist))
         views[name] = view
-    return Source("easymocap", src, extri.path, cams, views, fps=None, default_fps=30.0)
+    body = {}
+    for kind in ("smpl", "smplx", "smplh", "manol"):  # EasyMocap's fits, output/<model>/NNNNNN.json
+        files = numbered_files(src / "output" / kind, (".json",)) or numbered_files(src / kind, (".json",))
+        if files:
+            body[kind] = files
+    return Source("easymocap", src, extri.path, cams, views, fps=None, default_fps=30.0, body_files=body)
