@@ -27,7 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..body.model import PHENOTYPES, TOPOLOGIES, BodyModel, BodyShape, matrix_to_axis_angle
+from ..body.model import (
+    PHENOTYPES,
+    TOPOLOGIES,
+    BodyModel,
+    BodyShape,
+    matrix_to_axis_angle,
+)
 from ..capture import BodyPoses
 from ..errors import PhysavatarError
 from ..files import load_npz
