@@ -23,7 +23,7 @@ FLOORS: list[tuple[str, set[str]]] = [
     ("ground", {"errors", "labels", "camera", "parallel", "progress", "files"}),
     ("geometry", {"geometry"}),
     ("body", {"body"}),
-    ("capture", {"capture", "capture_checks"}),
+    ("capture", {"capture", "capture_checks", "importers"}),
     ("garment", {"garment"}),
     ("sim", {"sim", "garment_sim"}),
     ("render", {"splat", "render", "export", "metrics", "lpips"}),
