@@ -57,7 +57,13 @@ def read_bvh(path: str | Path) -> BvhFile:
         raise PhysavatarError(path, f"not a readable BVH file ({type(e).__name__}: {e})") from None
 
 
+_SPACE = "\ue000"  # stands for a space inside a joint name while the file is split into words
+
+
 def _parse_bvh(text: str) -> BvhFile:
+    # joint names may hold spaces ("Bip01 L Thigh"): the rest of a ROOT/JOINT line is the name
+    text = re.sub(r"(?m)^(\s*(?:ROOT|JOINT))[ \t]+([^\n{]*?)[ \t]*(\{?)[ \t]*$",
+                  lambda m: " ".join([m.group(1), re.sub(r"[ \t]", _SPACE, m.group(2)), m.group(3)]), text)
     tokens = text.split()
     if not tokens or tokens[0] != "HIERARCHY":
         raise ValueError("missing HIERARCHY")
@@ -68,7 +74,7 @@ def _parse_bvh(text: str) -> BvhFile:
     while i < len(tokens) and tokens[i] != "MOTION":
         tok = tokens[i]
         if tok in ("ROOT", "JOINT"):
-            names.append(tokens[i + 1])
+            names.append(tokens[i + 1].replace(_SPACE, " "))
             parents.append(stack[-1] if stack else -1)
             offsets.append(np.zeros(3))
             channels.append([])
@@ -233,14 +239,19 @@ def import_bvh(path: str | Path, body: BodyModel | None = None, mapping: dict[st
 
 def write_bvh(path: str | Path, names, parents, offsets, channels_per_joint, data, frame_time,
               end_sites: dict[int, np.ndarray] | None = None) -> None:
-    """Write a BVH file (used by tests and for exporting simple skeletons). A leaf's end site is
-    ``end_sites[j]`` or, by default, a third of its own offset further along it."""
+    """Write a BVH file (used by tests and for exporting simple skeletons). ``data`` [T, channels]
+    has each joint's channels in the order of ``names`` (written in the hierarchy's order, as BVH
+    requires). A leaf's end site is ``end_sites[j]`` or, by default, a third of its own offset
+    further along it."""
     from ..files import write_text_atomic
 
     children = {j: [k for k in range(len(names)) if parents[k] == j] for j in range(len(names))}
     lines = ["HIERARCHY"]
+    start = np.cumsum([0] + [len(c) for c in channels_per_joint])
+    order: list[int] = []
 
     def emit(j, depth):
+        order.append(j)
         ind = "  " * depth
         lines.append(f"{ind}{'ROOT' if parents[j] < 0 else 'JOINT'} {names[j]}")
         lines.append(f"{ind}{{")
@@ -256,7 +267,9 @@ def write_bvh(path: str | Path, names, parents, offsets, channels_per_joint, dat
             emit(k, depth + 1)
         lines.append(f"{ind}}}")
 
-    emit(0, 0)
+    for r in [j for j in range(len(names)) if parents[j] < 0]:
+        emit(r, 0)
+    cols = [c for j in order for c in range(start[j], start[j + 1])]
     lines += ["MOTION", f"Frames: {len(data)}", f"Frame Time: {frame_time:.7f}"]
-    lines += [" ".join(f"{x:.6f}" for x in row) for row in np.asarray(data)]
+    lines += [" ".join(f"{x:.6f}" for x in row) for row in np.asarray(data)[:, cols]]
     write_text_atomic(path, "\n".join(lines) + "\n")
