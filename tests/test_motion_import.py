@@ -258,3 +258,163 @@ def test_bvh_conventions_retarget_onto_anny(bodies, tmp_path, name, record_prope
     src_low = src_body.pose(known.rotations, known.root_translation).vertices[..., 2].min(1) * s
     assert abs(low.min() - src_low.min()) < 0.015
     assert np.abs(low - src_low).max() < 0.03
+
+
+# -- AMASS / SMPL ------------------------------------------------------------------------------
+
+_QZ = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # SMPL's y-up body upright in AMASS's z-up world
+
+
+def _write_amass(path, body, motion, width=156, fps_key="mocap_framerate"):
+    """The known Anny motion as SMPL axis-angles: each SMPL joint turns with its Anny bone, from
+    SMPL's T-pose rest (the module's neutral offsets) instead of Anny's A-pose."""
+    from physavatar.body.amass import SMPL_NAMES, SMPL_OFFSETS, SMPL_PARENTS, SMPL_PELVIS, SMPL_TO_ANNY
+
+    X, pts = _pose_points(body, motion.rotations, motion.root_translation)
+    R0 = body.rest_joints
+    bi = body.bone_names.index
+    rest = np.zeros((24, 3))
+    for j, p in enumerate(SMPL_PARENTS):
+        if p >= 0:
+            rest[j] = rest[p] + _QZ @ SMPL_OFFSETS[j]
+    anchor = dict(SMPL_TO_ANNY)
+    anchor.update({"L_Foot": "toes.L", "R_Foot": "toes.R", "L_Hand": "knuckle.L", "R_Hand": "knuckle.R"})
+    _, ref = _pose_points(body, np.zeros((1, len(body.bone_names), 3)), np.zeros((1, 3)))
+    T = motion.frames
+    G = np.empty((T, 24, 3, 3))
+    for j, nm in enumerate(SMPL_NAMES):
+        kids = [k for k in range(24) if SMPL_PARENTS[k] == j]
+        if nm not in SMPL_TO_ANNY:
+            G[:, j] = G[:, SMPL_PARENTS[j]]
+            continue
+        a = [ref[anchor[SMPL_NAMES[k]]][0] - ref[anchor[nm]][0] for k in kids]
+        s = [rest[k] - rest[j] for k in kids]
+        if not kids:  # the head: SMPL's up against Anny's head axis
+            a, s = [body.rest_bone_axes[bi("head")][:, 1]], [np.array([0, 0, 1.0])]
+        K = _turn(s[0], a[0]) if len(a) == 1 else Rotation.align_vectors(np.array(a), np.array(s))[0].as_matrix()
+        G[:, j] = X[:, bi(SMPL_TO_ANNY[nm])] @ K
+    poses = np.zeros((T, width))
+    for j in range(22):
+        p = SMPL_PARENTS[j]
+        L = G[:, j] @ _QZ if p < 0 else _QZ.T @ np.swapaxes(G[:, p], -1, -2) @ G[:, j] @ _QZ
+        poses[:, 3 * j:3 * j + 3] = Rotation.from_matrix(L).as_rotvec()
+    smpl_leg = np.linalg.norm(SMPL_OFFSETS[4]) + np.linalg.norm(SMPL_OFFSETS[7])
+    pelvis = pts["root"] * smpl_leg / _leg(body)
+    np.savez(path, poses=poses, trans=pelvis - SMPL_PELVIS, betas=np.zeros(16), gender=np.array("neutral"),
+             **{fps_key: np.array(motion.fps)})
+
+
+@pytest.mark.parametrize("width,fps_key", [(156, "mocap_framerate"), (165, "mocap_frame_rate"), (72, "mocap_framerate")])
+def test_amass_roundtrip(bodies, tmp_path, width, fps_key, record_property):
+    from physavatar.body.load import load_motion
+
+    body = bodies[0]
+    known = known_motion(body.bone_names)
+    f = tmp_path / "amass.npz"
+    _write_amass(f, body, known, width, fps_key)
+    m = load_motion(str(f), fps=FPS, body=body)
+    assert m.meta["model"].startswith({156: "SMPL-H", 165: "SMPL-X", 72: "SMPL "}[width])
+    from physavatar.body.amass import SMPL_TO_ANNY
+
+    bones = list(SMPL_TO_ANNY.values())
+    _, want = _pose_points(body, known.rotations, known.root_translation)
+    _, got = _pose_points(body, m.rotations, m.root_translation)
+    d = np.stack([got[b] - want[b] for b in bones], 1).reshape(-1, 3)
+    d -= d.mean(0)
+    err = np.linalg.norm(d, axis=1)
+    record_property("mean_joint_error_m", float(err.mean()))
+    print(f"AMASS {width}: mean joint error {100 * err.mean():.2f} cm, max {100 * err.max():.2f} cm")
+    assert err.mean() < 0.03
+    low = body.pose(m.rotations, m.root_translation).vertices[..., 2].min(1)
+    low0 = body.pose(known.rotations, known.root_translation).vertices[..., 2].min(1)
+    assert np.abs(low - low0).max() < 0.03 and abs(low.min() - low0.min()) < 0.015
+    # AMASS keeps its heading: the known motion walks towards -y
+    assert m.root_translation[-1, 1] - m.root_translation[0, 1] < -0.5
+
+
+def test_amass_zero_pose_is_an_upright_t_pose_facing_minus_y(bodies, tmp_path):
+    """Zero body rotations with the root turned upright (AMASS z-up) put Anny in SMPL's rest pose:
+    a T-pose, legs straight down, toes towards -y: the rest offsets and axes are SMPL's."""
+    from physavatar.body.amass import import_amass
+
+    body = bodies[0]
+    poses = np.zeros((3, 156))
+    poses[:, 0] = np.pi / 2
+    np.savez(tmp_path / "t.npz", poses=poses, trans=np.zeros((3, 3)), mocap_framerate=np.array(30.0))
+    m = import_amass(tmp_path / "t.npz", body)
+    _, p = _pose_points(body, m.rotations, m.root_translation)
+    for s, sign in (("L", 1), ("R", -1)):
+        arm = p[f"wrist.{s}"][0] - p[f"upperarm01.{s}"][0]
+        assert sign * arm[0] / np.linalg.norm(arm) > 0.97  # out sideways, level
+        leg = p[f"foot.{s}"][0] - p[f"upperleg01.{s}"][0]
+        assert leg[2] / np.linalg.norm(leg) < -0.97
+        toe = p[f"toes.{s}"][0] - p[f"foot.{s}"][0]
+        assert toe[1] < -0.5 * np.linalg.norm(toe)
+    assert abs(body.pose(m.rotations, m.root_translation).vertices[0, :, 2].min()) < 0.02
+
+
+# -- bad input and the CLI ---------------------------------------------------------------------
+
+def test_bad_input_one_clear_line(bodies, tmp_path):
+    body = bodies[0]
+    names = ["Root", "Spine", "Neck", "Head", "LeftArm", "LeftForeArm", "RightArm", "RightForeArm"]
+    parents = [-1, 0, 1, 2, 1, 4, 1, 6]
+    offs = [[0, 0, 0], [0, 10, 0], [0, 10, 0], [0, 5, 0], [5, 0, 0], [10, 0, 0], [-5, 0, 0], [-10, 0, 0]]
+    ch = [["Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation"]] + [["Zrotation", "Xrotation", "Yrotation"]] * 7
+    write_bvh(tmp_path / "nolegs.bvh", names, parents, offs, ch, np.zeros((2, 6 + 21)), 1 / 30)
+    with pytest.raises(PhysavatarError, match=r"nolegs\.bvh: cannot find the (hips|left leg)"):
+        import_bvh(tmp_path / "nolegs.bvh", body)
+    np.savez(tmp_path / "short.npz", poses=np.zeros((4, 30)), trans=np.zeros((4, 3)), mocap_framerate=np.array(60.0))
+    np.savez(tmp_path / "nofps.npz", poses=np.zeros((4, 72)), trans=np.zeros((4, 3)))
+    from physavatar.body.load import load_motion
+
+    with pytest.raises(PhysavatarError, match=r"short\.npz: 'poses' must be"):
+        load_motion(str(tmp_path / "short.npz"), body=body)
+    with pytest.raises(PhysavatarError, match=r"nofps\.npz: no frame rate"):
+        load_motion(str(tmp_path / "nofps.npz"), body=body)
+    # a mapping naming a joint the file lacks, and the same through the CLI: one line, exit 2
+    from typer.testing import CliRunner
+
+    from physavatar.cli import app
+
+    (tmp_path / "map.json").write_text('{"NoSuchJoint": "root"}')
+    r = CliRunner().invoke(app, ["motion", "import", str(tmp_path / "nolegs.bvh"), "--out", str(tmp_path / "o.npz")])
+    assert r.exit_code == 2 and "nolegs.bvh" in r.output and "Traceback" not in r.output
+    assert len([ln for ln in r.output.splitlines() if ln.strip()]) == 1
+
+
+def test_mapping_used_in_every_step_and_inspect_cli(bodies, tmp_path):
+    """Joints with names the mapper cannot read import with a complete --mapping (orientation,
+    alignment, scale and floor all go through it), and 'motion inspect' shows the map and why."""
+    body, src_body = bodies
+    joints, *rest = _conventions()["ground_root_local_x"]
+    odd = [(f"j{k:02d}", None if p is None else f"j{[n for n, _, _ in joints].index(p):02d}", a)
+           for k, (n, p, a) in enumerate(joints)]
+    known = known_motion(src_body.bone_names, duration=1.5)
+    P, _ = write_convention(tmp_path / "odd.bvh", (odd, *rest), src_body, known)
+    with pytest.raises(PhysavatarError, match="odd.bvh: cannot find the hips"):
+        import_bvh(tmp_path / "odd.bvh", body)
+    mapping = {f"j{k:02d}": a for k, (_, _, a) in enumerate(joints) if a in body.bone_names}
+    import json
+
+    (tmp_path / "map.json").write_text(json.dumps(mapping))
+    m = import_bvh(tmp_path / "odd.bvh", body, mapping=tmp_path / "map.json")
+    s = _leg(body) / _leg(src_body)
+    _, got = _pose_points(body, m.rotations, m.root_translation)
+    sel = [j for j, (_, _, a) in enumerate(odd) if a in body.bone_names]
+    d = (np.stack([got[odd[j][2]] for j in sel], 1) - P[:, sel] * s).reshape(-1, 3)
+    assert np.linalg.norm(d - d.mean(0), axis=1).mean() < 0.03
+    assert m.meta["mapping_why"]["j01"] == "mapping file: root"
+
+    from typer.testing import CliRunner
+
+    from physavatar.cli import app
+
+    write_convention(tmp_path / "mixamo.bvh", _conventions()["mixamo"], src_body, known)
+    r = CliRunner().invoke(app, ["motion", "inspect", str(tmp_path / "mixamo.bvh"), "--out", str(tmp_path / "p.png"),
+                                 "--frames", "2"], env={"COLUMNS": "240"})
+    assert r.exit_code == 0, r.output
+    for text in ("mixamorig:LeftUpLeg", "upperleg01.L", "an upper arm", "clavicle.L", "the file's up is +y",
+                 "its forward +z", "m per file unit"):
+        assert text in r.output, text
+    assert (tmp_path / "p.png").stat().st_size > 1000

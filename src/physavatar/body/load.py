@@ -81,3 +81,27 @@ def describe_clearance(summary: dict | None, clearance: float) -> str | None:
         f"{side} arm raised in {v['frames_raised']} frames (up to {v['max_angle_deg']} deg), hand-to-trunk "
         f"{1000 * v['min_distance_before_m']:.0f} -> {1000 * v['min_distance_after_m']:.0f} mm"
         for side, v in raised.items()) + f" (--arm-clearance {clearance:g} m; 0 keeps the motion as it is)"
+
+
+def inspect_capture(spec: str | Path, body: BodyModel, mapping: str | Path | None = None) -> dict:
+    """What ``motion inspect`` shows of a ``.bvh`` or AMASS ``.npz``: the skeleton (names,
+    parents, channels per joint), frames, fps, what it is, and the motion retargeted onto ``body``
+    at the file's fps (its ``meta`` holds the joint map, the reasons, axes and scale)."""
+    from .amass import SMPL_NAMES, SMPL_PARENTS, read_amass
+    from .bvh import read_bvh
+
+    path = Path(spec)
+    if path.suffix.lower() == ".bvh":
+        b = read_bvh(path)
+        sk = b.skeleton
+        return {"kind": "BVH", "names": list(sk.names), "parents": np.asarray(sk.parents),
+                "channels": [len(c) for c in sk.channels], "frames": len(b.data), "fps": b.fps,
+                "motion": import_bvh(path, body, mapping=mapping)}
+    if is_amass_file(path):
+        d = read_amass(path)
+        return {"kind": f"AMASS / {d['model']}", "names": list(SMPL_NAMES), "parents": SMPL_PARENTS,
+                "channels": None, "frames": len(d["poses"]), "fps": d["fps"],
+                "motion": import_amass(path, body, mapping=mapping)}
+    if not path.exists():
+        raise PhysavatarError(path, "no such file")
+    raise PhysavatarError(path, "not motion capture: expected a .bvh file or an AMASS/SMPL .npz (poses, trans, mocap_framerate)")
