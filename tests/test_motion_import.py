@@ -298,7 +298,7 @@ def _write_amass(path, body, motion, width=156, fps_key="mocap_framerate"):
         p = SMPL_PARENTS[j]
         L = G[:, j] @ _QZ if p < 0 else _QZ.T @ np.swapaxes(G[:, p], -1, -2) @ G[:, j] @ _QZ
         poses[:, 3 * j:3 * j + 3] = Rotation.from_matrix(L).as_rotvec()
-    smpl_leg = np.linalg.norm(SMPL_OFFSETS[4]) + np.linalg.norm(SMPL_OFFSETS[7])
+    smpl_leg = np.mean([np.linalg.norm(SMPL_OFFSETS[k]) + np.linalg.norm(SMPL_OFFSETS[k + 3]) for k in (4, 5)])
     pelvis = pts["root"] * smpl_leg / _leg(body)
     np.savez(path, poses=poses, trans=pelvis - SMPL_PELVIS, betas=np.zeros(16), gender=np.array("neutral"),
              **{fps_key: np.array(motion.fps)})

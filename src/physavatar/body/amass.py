@@ -147,7 +147,8 @@ def amass_source(data: dict):
     for j, p in enumerate(SMPL_PARENTS):
         if p >= 0:
             rest[j] = rest[p] + Q @ SMPL_OFFSETS[j]
-    return SourceMotion(list(SMPL_NAMES), SMPL_PARENTS.copy(), rest, G @ Q.T, P, data["fps"], {}, up)
+    axes = rotation_between(up, np.array([0.0, 0.0, 1.0]))  # the world's up onto Anny's; heading kept
+    return SourceMotion(list(SMPL_NAMES), SMPL_PARENTS.copy(), rest, G @ Q.T, P, data["fps"], {}, up, axes)
 
 
 def amass_map(mapping: dict[str, str] | None = None):

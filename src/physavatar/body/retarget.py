@@ -46,7 +46,9 @@ class SourceMotion:
         P: [T, J, 3] joint positions.
         fps: frames per second.
         tips: joint -> a tip vector in the joint's zero-pose frame (BVH end sites).
-        up: the world's up axis when known (AMASS: +z), else None (found from the skeleton).
+        up: the world's up axis when known, else None (found from the skeleton).
+        axes: the rotation from the file's axes to Anny's when known (AMASS: the world's own
+            heading is kept), else None (found from the calibration pose).
     """
 
     names: list[str]
@@ -57,6 +59,7 @@ class SourceMotion:
     fps: float
     tips: dict = field(default_factory=dict)
     up: np.ndarray | None = None
+    axes: np.ndarray | None = None
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -171,6 +174,7 @@ def retarget(src: SourceMotion, body: BodyModel, sm: SkeletonMap, *, path=None, 
                           ("the first frame", src.G[0], src.P[0])):
         C, ok = _frame_axes(P0, by, src.up)
         if ok:
+            C = C if src.axes is None else np.asarray(src.axes, float)
             calib = (label, np.asarray(G0), np.asarray(P0), C)
             break
     if calib is None:
