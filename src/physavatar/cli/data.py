@@ -135,11 +135,15 @@ def motion_inspect(
     m = info["motion"]
     names, parents, ch = info["names"], info["parents"], info["channels"]
     console.print(f"[bold]{file}[/]: {info['kind']}, {len(names)} joints, {info['frames']} frames at {info['fps']:g} fps")
-    depth = {}
     lines = []
-    for j, p in enumerate(parents):
-        depth[j] = 0 if p < 0 else depth[p] + 1
-        lines.append("  " * depth[j] + names[j] + (f"  ({ch[j]} channels)" if ch else ""))
+
+    def tree(j, depth):
+        lines.append("  " * depth + names[j] + (f"  ({ch[j]} channels)" if ch else ""))
+        for k in [k for k in range(len(names)) if parents[k] == j]:
+            tree(k, depth + 1)
+
+    for r in [j for j in range(len(names)) if parents[j] < 0]:
+        tree(r, 0)
     console.print("skeleton:\n" + "\n".join(lines), highlight=False)
     t = Table("joint", "Anny bone", "why", title="joint map")
     mapped, why = m.meta["mapped_joints"], m.meta["mapping_why"]
