@@ -384,27 +384,41 @@ def test_bad_input_one_clear_line(bodies, tmp_path):
 
 
 def test_mapping_used_in_every_step_and_inspect_cli(bodies, tmp_path):
-    """Joints with names the mapper cannot read import with a complete --mapping (orientation,
-    alignment, scale and floor all go through it), and 'motion inspect' shows the map and why."""
+    """Joints with names that say nothing are mapped from the skeleton's shape; a complete
+    --mapping is used in every step (orientation, alignment, scale, floor); 'motion inspect' shows
+    the map and why."""
     body, src_body = bodies
     joints, *rest = _conventions()["ground_root_local_x"]
     odd = [(f"j{k:02d}", None if p is None else f"j{[n for n, _, _ in joints].index(p):02d}", a)
            for k, (n, p, a) in enumerate(joints)]
     known = known_motion(src_body.bone_names, duration=1.5)
     P, _ = write_convention(tmp_path / "odd.bvh", (odd, *rest), src_body, known)
-    with pytest.raises(PhysavatarError, match="odd.bvh: cannot find the hips"):
-        import_bvh(tmp_path / "odd.bvh", body)
+    s = _leg(body) / _leg(src_body)
+    sel = [j for j, (_, _, a) in enumerate(odd) if a in body.bone_names]
+
+    def error(m):
+        _, got = _pose_points(body, m.rotations, m.root_translation)
+        d = (np.stack([got[odd[j][2]] for j in sel], 1) - P[:, sel] * s).reshape(-1, 3)
+        return np.linalg.norm(d - d.mean(0), axis=1).mean()
+
+    # names that say nothing: the map comes from the skeleton's shape (mirror legs and arms, lengths)
+    m = import_bvh(tmp_path / "odd.bvh", body)
+    assert m.meta["mapped_joints"]["j01"] == "root" and "structure" in m.meta["mapping_why"]["j01"]
+    assert m.meta["mapped_joints"]["j02"] == "upperleg01.L" and m.meta["mapped_joints"]["j06"] == "upperleg01.R"
+    assert error(m) < 0.03
     mapping = {f"j{k:02d}": a for k, (_, _, a) in enumerate(joints) if a in body.bone_names}
     import json
 
     (tmp_path / "map.json").write_text(json.dumps(mapping))
     m = import_bvh(tmp_path / "odd.bvh", body, mapping=tmp_path / "map.json")
-    s = _leg(body) / _leg(src_body)
-    _, got = _pose_points(body, m.rotations, m.root_translation)
-    sel = [j for j, (_, _, a) in enumerate(odd) if a in body.bone_names]
-    d = (np.stack([got[odd[j][2]] for j in sel], 1) - P[:, sel] * s).reshape(-1, 3)
-    assert np.linalg.norm(d - d.mean(0), axis=1).mean() < 0.03
+    assert error(m) < 0.03
     assert m.meta["mapping_why"]["j01"] == "mapping file: root"
+    # the mapping is used in every step: mapping the legs crosswise turns the body round
+    swap = {k: (v[:-1] + {"L": "R", "R": "L"}[v[-1]] if v.endswith((".L", ".R")) else v) for k, v in mapping.items()}
+    (tmp_path / "swap.json").write_text(json.dumps(swap))
+    m2 = import_bvh(tmp_path / "odd.bvh", body, mapping=tmp_path / "swap.json")
+    assert np.allclose(np.asarray(m2.meta["axes"])[2], np.asarray(m.meta["axes"])[2])  # still upright
+    assert np.allclose(np.asarray(m2.meta["axes"])[0], -np.asarray(m.meta["axes"])[0])  # left and right swapped
 
     from typer.testing import CliRunner
 

@@ -112,6 +112,8 @@ def _parse_bvh(text: str) -> BvhFile:
     if not m:
         raise ValueError("missing 'Frames:' / 'Frame Time:'")
     n_frames, frame_time = int(m.group(1)), float(m.group(2))
+    if n_frames < 1:
+        raise ValueError("no frames")
     if frame_time <= 0:
         raise ValueError(f"frame time must be positive, got {frame_time}")
     values = tokens[i + 6:]
@@ -201,8 +203,8 @@ def map_bvh(b: BvhFile, body: BodyModel, mapping=None, path=None):
     sk = b.skeleton
     anny = dict(zip(body.bone_names, body.rest_joints))
     try:
-        sm = map_skeleton(sk.names, sk.parents, zero_pose(b) if len(b.data) else b.skeleton.offsets, anny,
-                          load_mapping(mapping))
+        sm = map_skeleton(sk.names, sk.parents, zero_pose(b), anny, load_mapping(mapping),
+                          first_frame=bvh_global(b)[1][0])
     except KeyError as e:
         raise PhysavatarError(path, str(e.args[0])) from None
     check_map(sm, body, path)

@@ -152,7 +152,7 @@ def _path(a, b, parents):
 
 
 def map_skeleton(names: list[str], parents, positions: np.ndarray, anny_rest: dict[str, np.ndarray],
-                 explicit: dict[str, str] | None = None) -> SkeletonMap:
+                 explicit: dict[str, str] | None = None, first_frame: np.ndarray | None = None) -> SkeletonMap:
     """Map a skeleton's joints to Anny bones (see module doc).
 
     Args:
@@ -160,6 +160,8 @@ def map_skeleton(names: list[str], parents, positions: np.ndarray, anny_rest: di
         positions: [J, 3] joint positions in some standing pose (used for lengths and fractions).
         anny_rest: Anny bone name -> rest head position (fractions along Anny's spine and neck).
         explicit: ``{joint name: anny bone or ""}`` applied last.
+        first_frame: [J, 3] positions in the first frame (sides, when the names say nothing and
+            the zero pose does not stand).
     """
     parents = np.asarray(parents)
     J = len(names)
@@ -266,8 +268,167 @@ def map_skeleton(names: list[str], parents, positions: np.ndarray, anny_rest: di
                 chain.append(cur)
         _map_trunk(sm, chain, hips, head, info, limb, parents, positions, anny_rest)
 
+    if not _has_legs(sm):
+        st = structural_map(names, parents, positions, anny_rest, first_frame)
+        if st is not None:
+            sm = st
     if explicit:
         _apply_explicit(sm, explicit)
+    return sm
+
+
+def _has_legs(sm: SkeletonMap) -> bool:
+    b = set(sm.bones.values())
+    return "root" in b and all(f"upperleg01.{s}" in b and ({f"lowerleg01.{s}", f"foot.{s}"} & b) for s in "LR")
+
+
+def structural_map(names, parents, positions, anny_rest, first_frame=None) -> SkeletonMap | None:
+    """A joint map from the skeleton's shape alone (for names that say nothing): the hips are the
+    first joint from the root with two mirror branches (same number of joints, lengths within
+    10 %: the legs) and a third whose subtree has another mirror pair (the arms, at the chest); in
+    a leg the two longest consecutive segments are thigh and shin; in an arm, from the hand
+    inwards, the last long segment is the forearm and the one before it the upper arm; the neck
+    chain continues from the chest, its last joint the head. Left is the side the toes point
+    left of (or the file's +x when there are no toes). None when no such shape is found."""
+    parents = np.asarray(parents)
+    J = len(names)
+    kids = {j: [k for k in range(J) if parents[k] == j] for j in range(J)}
+    seg = lambda a, b: float(np.linalg.norm(positions[a] - positions[b]))  # noqa: E731
+    order = []
+    stack = [j for j in range(J) if parents[j] < 0]
+    while stack:
+        j = stack.pop(0)
+        order.append(j)
+        stack.extend(kids[j])
+    reach, size = np.zeros(J), np.ones(J, int)
+    for j in reversed(order):
+        if kids[j]:
+            reach[j] = max(seg(j, k) + reach[k] for k in kids[j])
+            size[j] = 1 + sum(size[k] for k in kids[j])
+
+    def pair(h):
+        best = None
+        ks = kids[h]
+        for i, a in enumerate(ks):
+            for b in ks[i + 1:]:
+                la, lb = seg(h, a) + reach[a], seg(h, b) + reach[b]
+                if size[a] == size[b] >= 3 and abs(la - lb) <= 0.1 * max(la, lb) and la > 0:
+                    if best is None or la > best[2]:
+                        best = (a, b, la)
+        return best[:2] if best else None
+
+    def subtree(j):
+        out, st = [], [j]
+        while st:
+            k = st.pop()
+            out.append(k)
+            st.extend(kids[k])
+        return out
+
+    def chain(j):  # j and its descendants along the longest reach
+        out = [j]
+        while kids[out[-1]]:
+            out.append(max(kids[out[-1]], key=lambda k: seg(out[-1], k) + reach[k]))
+        return out
+
+    hips = legs = chest = arms = None
+    for h in order:
+        pr = pair(h)
+        if pr and len(kids[h]) >= 3:
+            up = max([k for k in kids[h] if k not in pr], key=lambda k: size[k])
+            found = [x for x in sorted(subtree(up), key=order.index) if pair(x)]
+            if found:
+                hips, legs, chest, arms = h, pr, found[0], pair(found[0])
+                break
+    if hips is None:
+        return None
+    sm = SkeletonMap(list(names))
+    for j in range(J):
+        sm.why[j] = "structure: not a body bone"
+    sm.bones[hips] = "root"
+    sm.why[hips] = "structure (the names say nothing): the first joint with two mirror branches (the legs) and the spine"
+
+    def limb(start, is_leg):
+        c = chain(start)
+        L = [seg(c[i], c[i + 1]) for i in range(len(c) - 1)]
+        if len(L) < 2:
+            return {}
+        if is_leg:
+            i = int(np.argmax([L[k] + L[k + 1] for k in range(len(L) - 1)]))
+            parts = {"pelvis": c[i - 1] if i >= 1 else None, "upperleg": c[i], "lowerleg": c[i + 1],
+                     "foot": c[i + 2] if i + 2 < len(c) else None, "toe": c[i + 3] if i + 3 < len(c) else None}
+        else:
+            long = [k for k in range(len(L)) if L[k] > 0.6 * max(L)]
+            f = long[-1]
+            if f < 1:
+                return {}
+            parts = {"clavicle": c[f - 2] if f >= 2 else None, "upperarm": c[f - 1], "forearm": c[f], "hand": c[f + 1]}
+        return {k: v for k, v in parts.items() if v is not None}
+
+    leg_parts = [limb(x, True) for x in legs]
+    arm_parts = [limb(x, False) for x in arms]
+    if not all("upperleg" in p and "lowerleg" in p for p in leg_parts):
+        return None
+    # sides, in a pose that stands
+    pose = positions
+    for cand in (positions, first_frame):
+        if cand is None:
+            continue
+        up = cand[chest] - cand[hips]
+        down = np.mean([cand[p.get("foot", p["lowerleg"])] for p in leg_parts], axis=0) - cand[hips]
+        if np.dot(up, down) < -0.7 * np.linalg.norm(up) * np.linalg.norm(down):
+            pose = cand
+            break
+    up = pose[chest] - pose[hips]
+    up = up / (np.linalg.norm(up) or 1.0)
+    toes = [p for p in leg_parts if "toe" in p and "foot" in p]
+    if len(toes) == 2:
+        fwd = np.mean([pose[p["toe"]] - pose[p["foot"]] for p in toes], axis=0)
+        left, how = np.cross(up, fwd - np.dot(fwd, up) * up), "the toes point forward"
+    else:
+        left, how = np.array([1.0, 0, 0]) - up[0] * up, "no toes: the file's +x taken as the body's left"
+    for group, plist, anchor in (("leg", leg_parts, "upperleg"), ("arm", arm_parts, "upperarm")):
+        if len(plist) != 2 or not all(anchor in p for p in plist):
+            continue
+        base = hips if group == "leg" else chest
+        a, b = (np.dot(pose[p[anchor]] - pose[base], left) for p in plist)
+        for p, side in zip(plist, ("L", "R") if a >= b else ("R", "L")):
+            for part, j in p.items():
+                if part in _ANNY:
+                    sm.bones[j] = f"{_ANNY[part]}.{side}"
+                sm.why[j] = (f"structure: the {part} of one of the two mirror {group} branches; "
+                             f"{'left' if side == 'L' else 'right'} because {how}")
+    spine = _path(hips, chest, parents) or []
+    for j in spine:
+        sm.why[j] = "structure: spine joint"
+    sm.bones[chest] = "spine01"
+    sm.why[chest] = "structure: the arms branch from it: the upper chest"
+    _by_fraction(sm, spine, hips, chest, "root", "spine01", _SPINE, positions, anny_rest, "structure: between hips and chest")
+    rest = [k for k in kids[chest] if k not in arms]
+    if rest:
+        nk = chain(max(rest, key=lambda k: seg(chest, k) + reach[k]))
+        # the chain may end at the head or above it (a head-top joint): Anny's head sits at a
+        # third of a leg's length above the chest; a chain reaching past 0.42 legs has a top joint
+        leg = np.mean([sum(seg(a, b) for a, b in zip(c, c[1:])) for c in
+                       ([p[k] for k in ("upperleg", "lowerleg", "foot") if k in p] for p in leg_parts)])
+        anny_leg = np.mean([np.linalg.norm(anny_rest[f"upperleg01.{x}"] - anny_rest[f"lowerleg01.{x}"]) +
+                            np.linalg.norm(anny_rest[f"lowerleg01.{x}"] - anny_rest[f"foot.{x}"]) for x in "LR"])
+        ratio = float(np.linalg.norm(anny_rest["head"] - anny_rest["spine01"]) / anny_leg)
+        dist = np.cumsum([seg(chest, nk[0])] + [seg(a, b) for a, b in zip(nk, nk[1:])])
+        if dist[-1] > 0.42 * leg and len(nk) > 1:
+            h = int(np.argmin(np.abs(dist[:-1] - ratio * leg)))
+            nk, why = nk[: h + 1], f"the joint nearest {ratio:.2f} leg lengths above the chest (the chain goes on to the top of the head)"
+        else:
+            why = "the end of the chain above the chest"
+        sm.bones[nk[-1]] = "head"
+        sm.why[nk[-1]] = f"structure: {why}: the head"
+        for j in nk[1:-1]:
+            sm.why[j] = "structure: neck joint"
+        if len(nk) > 1:
+            sm.bones[nk[0]] = "neck01"
+            sm.why[nk[0]] = "structure: the first joint above the chest: the neck"
+            _by_fraction(sm, nk[1:-1], nk[0], nk[-1], "neck01", "head", _NECK[1:], positions, anny_rest,
+                         "structure: between neck and head")
     return sm
 
 
