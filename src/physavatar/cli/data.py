@@ -58,12 +58,12 @@ def motion_list():
 @motion_app.command("preview")
 @handle_errors
 def motion_preview(
-    motion: str = typer.Argument(..., help="built-in name (see 'motion list'), or a .bvh / .npz file"),
+    motion: str = typer.Argument(..., help="built-in name (see 'motion list'), a .bvh file, or a motion or AMASS .npz"),
     out: Path = typer.Option(..., "--out", "-o", help="output .mp4 or .gif"),
     fps: float = typer.Option(25.0, help="frames per second of the preview"),
     duration: float = typer.Option(4.0, help="seconds (built-in motions)"),
     max_frames: int = typer.Option(150, help="at most this many frames"),
-    mapping: Optional[Path] = typer.Option(None, help="BVH joint-name mapping overrides (JSON)"),
+    mapping: Optional[Path] = typer.Option(None, help="JSON of {joint: anny_bone} overrides of the automatic joint map (.bvh, AMASS .npz)"),
 ):
     """Render a quick preview of a motion on the (decimated) Anny body, front and side."""
     from ..body import BodyModel
