@@ -1,4 +1,4 @@
-"""Motion import from other skeletons: BVH files in five conventions and an AMASS-style npz, all
+"""Motion import from other skeletons: BVH files in six conventions and an AMASS-style npz, all
 written here from one known Anny motion, must come back onto Anny with the joints where the
 source's are (scaled to Anny) and the feet on the floor.
 
@@ -87,6 +87,15 @@ def _conventions():
                (f"{s}_Elbow", f"{s}_Shoulder", f"lowerarm01.{s}"), (f"{s}_Wrist", f"{s}_Elbow", f"wrist.{s}"),
                (f"{s}_Hand", f"{s}_Wrist", f"knuckle.{s}")]
 
+    bl = [("hips", None, "root")]  # Blender-style names with .L/.R, A-pose zero pose, z-up
+    for s in "LR":
+        bl += [(f"thigh.{s}", "hips", f"upperleg01.{s}"), (f"shin.{s}", f"thigh.{s}", f"lowerleg01.{s}"),
+               (f"foot.{s}", f"shin.{s}", f"foot.{s}"), (f"toe.{s}", f"foot.{s}", f"toes.{s}")]
+    bl += [("spine", "hips", "spine03"), ("chest", "spine", "spine01"), ("neck", "chest", "neck01"), ("head", "neck", "head")]
+    for s in "LR":
+        bl += [(f"shoulder.{s}", "chest", f"clavicle.{s}"), (f"upper_arm.{s}", f"shoulder.{s}", f"upperarm01.{s}"),
+               (f"forearm.{s}", f"upper_arm.{s}", f"lowerarm01.{s}"), (f"hand.{s}", f"forearm.{s}", f"wrist.{s}")]
+
     pos_zyx = ["Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation"]
     return {
         "cmu": (cmu, "down", Y_UP_FRONT_Z, 1 / 0.056, pos_zyx, ["Zrotation", "Yrotation", "Xrotation"], False, {"Head": "headtop"}),
@@ -97,6 +106,8 @@ def _conventions():
         "ground_root_local_x": (lx, "A", Y_UP_FRONT_NEGX, 1000.0, ["Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation"],
                                 ["Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation"], True,
                                 {"Head": "headtop", "Hand_L": "knuckle.L", "Hand_R": "knuckle.R"}),
+        "blender_a_pose": (bl, "A", np.eye(3), 1.0, ["Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation"],
+                           ["Xrotation", "Yrotation", "Zrotation"], False, {"head": "headtop", "hand.L": "knuckle.L", "hand.R": "knuckle.R"}),
         "smpl_names": (sm, "T", Y_UP_FRONT_Z, 1.0, pos_zyx, ["Zrotation", "Yrotation", "Xrotation"], False, {"Head": "headtop"}),
     }
 
@@ -296,7 +307,6 @@ def _write_amass(path, body, motion, width=156, fps_key="mocap_framerate"):
     from physavatar.body.amass import SMPL_NAMES, SMPL_OFFSETS, SMPL_PARENTS, SMPL_PELVIS, SMPL_TO_ANNY
 
     X, pts = _pose_points(body, motion.rotations, motion.root_translation)
-    R0 = body.rest_joints
     bi = body.bone_names.index
     rest = np.zeros((24, 3))
     for j, p in enumerate(SMPL_PARENTS):

@@ -21,6 +21,9 @@ to the head are split at the first neck joint: the spine joint the arms branch f
 one below the neck) drives Anny's upper chest ``spine01``, the others the Anny spine bones at the
 nearest fraction of the hips-to-chest length, and neck joints Anny's neck bones the same way.
 
+When the names give no legs at all, :func:`structural_map` maps the skeleton from its shape alone
+(mirror branches for legs and arms, segment lengths along each limb; see there).
+
 A ``--mapping`` JSON ``{joint: anny_bone}`` overrides any of this (``""`` un-maps a joint).
 """
 
@@ -168,7 +171,7 @@ def map_skeleton(names: list[str], parents, positions: np.ndarray, anny_rest: di
     sm = SkeletonMap(list(names))
     info = [classify(n) for n in names]
     kids = {j: [k for k in range(J) if parents[k] == j] for j in range(J)}
-    seg = lambda a, b: float(np.linalg.norm(positions[a] - positions[b]))  # noqa: E731
+    seg = lambda a, b: float(np.linalg.norm(positions[a] - positions[b]))
 
     for j, (side, part, _, said) in enumerate(info):
         sm.why[j] = f"name reads '{said}': not a body part" if part is None else f"name reads '{said}'"
@@ -293,7 +296,7 @@ def structural_map(names, parents, positions, anny_rest, first_frame=None) -> Sk
     parents = np.asarray(parents)
     J = len(names)
     kids = {j: [k for k in range(J) if parents[k] == j] for j in range(J)}
-    seg = lambda a, b: float(np.linalg.norm(positions[a] - positions[b]))  # noqa: E731
+    seg = lambda a, b: float(np.linalg.norm(positions[a] - positions[b]))
     order = []
     stack = [j for j in range(J) if parents[j] < 0]
     while stack:
