@@ -386,6 +386,15 @@ def test_amass_zero_pose_is_an_upright_t_pose_facing_minus_y(bodies, tmp_path):
         toe = p[f"toes.{s}"][0] - p[f"foot.{s}"][0]
         assert toe[1] < -0.5 * np.linalg.norm(toe)
     assert abs(body.pose(m.rotations, m.root_translation).vertices[0, :, 2].min()) < 0.02
+    # the same through the CLI: 'motion import' writes the project's motion file
+    from typer.testing import CliRunner
+
+    from physavatar.cli import app
+
+    r = CliRunner().invoke(app, ["motion", "import", str(tmp_path / "t.npz"), "--out", str(tmp_path / "m.npz")])
+    assert r.exit_code == 0, r.output
+    saved = Motion.load(tmp_path / "m.npz")
+    assert saved.fps == 30.0 and np.allclose(saved.rotations, m.rotations, atol=1e-9)
 
 
 # -- bad input and the CLI ---------------------------------------------------------------------
