@@ -476,3 +476,16 @@ def test_mapping_used_in_every_step_and_inspect_cli(bodies, tmp_path):
                  "its forward +z", "m per file unit"):
         assert text in r.output, text
     assert (tmp_path / "p.png").stat().st_size > 1000
+
+
+def test_bvh_reader_keeps_names_with_spaces_and_reads_crlf(tmp_path):
+    from physavatar.body.bvh import read_bvh
+
+    text = ("HIERARCHY\r\nROOT Bip01\r\n{\r\n OFFSET 0 0 0\r\n CHANNELS 6 Xposition Yposition Zposition Zrotation "
+            "Xrotation Yrotation\r\n JOINT Bip01 L Thigh {\r\n  OFFSET 1 -2 0\r\n  CHANNELS 3 Zrotation Xrotation "
+            "Yrotation\r\n  End Site\r\n  {\r\n   OFFSET 0 -4 0\r\n  }\r\n }\r\n}\r\nMOTION\r\nFrames: 2\r\n"
+            "Frame Time: 0.0333333\r\n0 1 0 0 0 0 0 0 0\r\n0 1 0 0 0 0 0 0 90\r\n")
+    (tmp_path / "s.bvh").write_bytes(text.encode())
+    b = read_bvh(tmp_path / "s.bvh")
+    assert b.skeleton.names == ["Bip01", "Bip01 L Thigh"] and b.data.shape == (2, 9)
+    assert np.allclose(b.skeleton.end_sites[1], [0, -4, 0])
