@@ -1,25 +1,14 @@
-"""BVH motion capture import, retargeted to the Anny skeleton.
+"""BVH motion capture: reading, forward kinematics, writing, and import onto Anny.
 
-BVH (Biovision hierarchy) joints rotate their subtree about the joint, with Euler channels in
-the joint's rest frame, which in CMU / Mixamo-style files is aligned with the world. Anny's
-``local-ref`` pose convention is the same (world-aligned axes), so retargeting is:
+BVH (Biovision hierarchy) joints rotate their subtree about the joint with Euler channels
+(``R = R_c0 R_c1 R_c2`` in the file's channel order) in the joint's zero-pose frame; a joint may
+also carry position channels (3 or 6 channels per joint), which replace its offset. Import:
 
-1. Forward kinematics in the BVH file: global rotation ``G_j`` (relative to the BVH rest) of
-   every joint per frame.
-2. Change of axes ``C``: BVH files are usually y-up; Anny is z-up, facing -y, left at +x. ``C``
-   is found from the BVH rest skeleton itself (up = hips -> head, left = right hip -> left hip),
-   so files facing any direction import upright and facing the camera convention.
-3. Rest-pose alignment ``S_b``: the BVH rest pose (CMU: arms hanging down; Mixamo: T-pose)
-   differs from Anny's (A-pose). For each mapped bone, ``S_b`` is the smallest rotation taking
-   Anny's rest bone direction onto the BVH rest direction of the same segment, so the world
-   rotation of bone ``b`` is ``X_b = C G_j Cᵀ S_b``.
-4. Unmapped Anny bones inherit their parent's world rotation; local rotations are
-   ``D_b = X_parent(b)ᵀ X_b``, stored as axis-angle.
-5. The root translation is the hips' trajectory, scaled by the ratio of leg lengths (Anny's hip
-   to ankle over the file's), made relative to the first frame horizontally.
-
-The joint-name mapping (``DEFAULT_MAP``) covers the CMU (cgspeed/bvh11 names) and Mixamo
-conventions and can be overridden with a JSON file ``{"BVHJointName": "anny_bone", ...}``.
+1. forward kinematics: every joint's global rotation since the zero pose and position per frame;
+2. the joint map (:mod:`physavatar.body.skeleton_map`: names and structure, ``--mapping``
+   overrides), checked to have the hips and both legs;
+3. retargeting onto Anny (:mod:`physavatar.body.retarget`: axes and scale from the skeleton,
+   any zero pose: T, A, arms down or bones along a local axis).
 """
 
 from __future__ import annotations
@@ -31,42 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PhysavatarError
-from .model import BodyModel, axis_angle_to_matrix, matrix_to_axis_angle
+from .model import BodyModel, axis_angle_to_matrix
 from .motion import Motion
-
-# BVH joint name -> Anny bone. Joints that are not listed do not drive a bone (their rotation
-# still moves their children through the BVH forward kinematics).
-DEFAULT_MAP: dict[str, str] = {
-    # CMU (cgspeed / bvh11 conversions)
-    "Hips": "root",
-    "LHipJoint": "pelvis.L", "RHipJoint": "pelvis.R",
-    "LeftHip": "upperleg01.L", "RightHip": "upperleg01.R",
-    "LeftUpLeg": "upperleg01.L", "RightUpLeg": "upperleg01.R",
-    "LeftKnee": "lowerleg01.L", "RightKnee": "lowerleg01.R",
-    "LeftLeg": "lowerleg01.L", "RightLeg": "lowerleg01.R",
-    "LeftAnkle": "foot.L", "RightAnkle": "foot.R",
-    "LeftFoot": "foot.L", "RightFoot": "foot.R",
-    "lowerback": "spine05", "LowerBack": "spine05",
-    "Chest": "spine03", "Spine": "spine03",
-    "Chest2": "spine01", "Spine1": "spine01",
-    "lowerneck": "neck01", "Neck": "neck02", "Neck1": "neck03", "Head": "head",
-    "LeftCollar": "clavicle.L", "RightCollar": "clavicle.R",
-    "LeftShoulder": "upperarm01.L", "RightShoulder": "upperarm01.R",
-    "LeftArm": "upperarm01.L", "RightArm": "upperarm01.R",
-    "LeftElbow": "lowerarm01.L", "RightElbow": "lowerarm01.R",
-    "LeftForeArm": "lowerarm01.L", "RightForeArm": "lowerarm01.R",
-    "LeftWrist": "wrist.L", "RightWrist": "wrist.R",
-    "LeftHand": "wrist.L", "RightHand": "wrist.R",
-    # Mixamo ("mixamorig:" prefixes are stripped before lookup)
-    "Spine2": "spine01",
-}
-# CMU names where "LeftShoulder" is the clavicle (Mixamo, cgspeed "LeftShoulder/LeftArm" files):
-# resolved in _resolve_map by looking at whether "LeftArm" exists.
-
-_LEFT_HIP = ("LeftHip", "LeftUpLeg", "LHipJoint")
-_RIGHT_HIP = ("RightHip", "RightUpLeg", "RHipJoint")
-_HEAD = ("Head", "Neck1", "Neck")
-_ANKLE = ("LeftAnkle", "LeftFoot")
 
 
 @dataclass
@@ -102,7 +57,13 @@ def read_bvh(path: str | Path) -> BvhFile:
         raise PhysavatarError(path, f"not a readable BVH file ({type(e).__name__}: {e})") from None
 
 
+_SPACE = "\ue000"  # stands for a space inside a joint name while the file is split into words
+
+
 def _parse_bvh(text: str) -> BvhFile:
+    # joint names may hold spaces ("Bip01 L Thigh"): the rest of a ROOT/JOINT line is the name
+    text = re.sub(r"(?m)^(\s*(?:ROOT|JOINT))[ \t]+([^\n{]*?)[ \t]*(\{?)[ \t]*$",
+                  lambda m: " ".join([m.group(1), re.sub(r"[ \t]", _SPACE, m.group(2)), m.group(3)]), text)
     tokens = text.split()
     if not tokens or tokens[0] != "HIERARCHY":
         raise ValueError("missing HIERARCHY")
@@ -113,7 +74,7 @@ def _parse_bvh(text: str) -> BvhFile:
     while i < len(tokens) and tokens[i] != "MOTION":
         tok = tokens[i]
         if tok in ("ROOT", "JOINT"):
-            names.append(tokens[i + 1])
+            names.append(tokens[i + 1].replace(_SPACE, " "))
             parents.append(stack[-1] if stack else -1)
             offsets.append(np.zeros(3))
             channels.append([])
@@ -151,6 +112,8 @@ def _parse_bvh(text: str) -> BvhFile:
     if not m:
         raise ValueError("missing 'Frames:' / 'Frame Time:'")
     n_frames, frame_time = int(m.group(1)), float(m.group(2))
+    if n_frames < 1:
+        raise ValueError("no frames")
     if frame_time <= 0:
         raise ValueError(f"frame time must be positive, got {frame_time}")
     values = tokens[i + 6:]
@@ -204,46 +167,57 @@ def bvh_global(b: BvhFile) -> tuple[np.ndarray, np.ndarray]:
     return G, P
 
 
-def _rest_positions(sk: BvhSkeleton) -> np.ndarray:
+def zero_pose(b: BvhFile) -> np.ndarray:
+    """[J, 3] joint positions with every rotation channel zero (position channels of non-root
+    joints at their first-frame values, the root at its offset)."""
+    sk = b.skeleton
     P = np.zeros((len(sk.names), 3))
+    col = 0
     for j, p in enumerate(sk.parents):
-        P[j] = sk.offsets[j] + (P[p] if p >= 0 else 0)
+        off = np.array(sk.offsets[j], dtype=float)
+        for c in sk.channels[j]:
+            if c.endswith("position") and p >= 0:
+                off["XYZ".index(c[0])] = b.data[0, col]
+            col += 1
+        P[j] = off + (P[p] if p >= 0 else 0)
     return P
 
 
-def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotation taking direction a onto direction b."""
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
-    v = np.cross(a, b)
-    s, c = np.linalg.norm(v), float(np.dot(a, b))
-    if s < 1e-9:
-        if c > 0:
-            return np.eye(3)
-        perp = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
-        return axis_angle_to_matrix(np.pi * perp / np.linalg.norm(perp))
-    return axis_angle_to_matrix(v / s * np.arctan2(s, c))
+def load_mapping(mapping) -> dict[str, str] | None:
+    """A mapping dict, or read from a JSON file ``{joint: anny_bone}``."""
+    if mapping is None or isinstance(mapping, dict):
+        return mapping
+    from ..files import read_json
+
+    m = read_json(mapping)
+    if not isinstance(m, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in m.items()):
+        raise PhysavatarError(mapping, 'a joint mapping must be a JSON object {"joint": "anny_bone", ...}')
+    return m
 
 
-def _find(names, candidates):
-    for c in candidates:
-        if c in names:
-            return names.index(c)
-    return None
+def map_bvh(b: BvhFile, body: BodyModel, mapping=None, path=None):
+    """The joint map of a BVH file (names + structure, ``mapping`` overrides), checked."""
+    from .retarget import check_map
+    from .skeleton_map import map_skeleton
+
+    sk = b.skeleton
+    anny = dict(zip(body.bone_names, body.rest_joints))
+    try:
+        sm = map_skeleton(sk.names, sk.parents, zero_pose(b), anny, load_mapping(mapping),
+                          first_frame=bvh_global(b)[1][0])
+    except KeyError as e:
+        raise PhysavatarError(path, str(e.args[0])) from None
+    check_map(sm, body, path)
+    return sm
 
 
-def _strip(name: str) -> str:
-    return name.split(":")[-1]
+def bvh_source(b: BvhFile):
+    """The file as a :class:`~physavatar.body.retarget.SourceMotion`."""
+    from .retarget import SourceMotion
 
-
-def resolve_map(sk: BvhSkeleton, mapping: dict[str, str] | None) -> dict[int, str]:
-    names = [_strip(n) for n in sk.names]
-    base = dict(DEFAULT_MAP)
-    if "LeftArm" in names:  # Mixamo-style: LeftShoulder is the clavicle, LeftArm the upper arm
-        base["LeftShoulder"], base["RightShoulder"] = "clavicle.L", "clavicle.R"
-    if mapping:
-        base.update(mapping)
-    return {j: base[n] for j, n in enumerate(names) if n in base and base[n]}
+    G, P = bvh_global(b)
+    return SourceMotion(list(b.skeleton.names), np.asarray(b.skeleton.parents), zero_pose(b), G, P, b.fps,
+                        dict(b.skeleton.end_sites))
 
 
 def import_bvh(path: str | Path, body: BodyModel | None = None, mapping: dict[str, str] | str | Path | None = None,
@@ -253,143 +227,33 @@ def import_bvh(path: str | Path, body: BodyModel | None = None, mapping: dict[st
     Args:
         path: the .bvh file.
         body: the Anny body to retarget to (default shape if None).
-        mapping: overrides of ``DEFAULT_MAP``: a dict or a JSON file of ``{bvh_joint: anny_bone}``
-            (an empty string un-maps a joint).
+        mapping: overrides of the automatic joint map: a dict or a JSON file of
+            ``{bvh_joint: anny_bone}`` (an empty string un-maps a joint).
     """
+    from .retarget import retarget
+
     path = Path(path)
     b = read_bvh(path)
-    if isinstance(mapping, (str, Path)):
-        from ..files import read_json
-
-        mapping = read_json(mapping)
     body = body or BodyModel()
-    sk = b.skeleton
-    names = [_strip(n) for n in sk.names]
-    jmap = resolve_map(sk, mapping)
-    anny_names = body.bone_names
-    bad = sorted({v for v in jmap.values() if v not in anny_names})
-    if bad:
-        raise PhysavatarError(path, f"joint mapping names unknown Anny bones {bad}")
-    if 0 not in jmap:
-        raise PhysavatarError(path, f"the root joint {sk.names[0]!r} must map to Anny's 'root'")
-
-    rest = _rest_positions(sk)
-    lh, rh, hd = _find(names, _LEFT_HIP), _find(names, _RIGHT_HIP), _find(names, _HEAD)
-    if lh is None or rh is None or hd is None:
-        raise PhysavatarError(path, "cannot find hips and head joints to orient the skeleton "
-                              "(expected e.g. LeftHip/LeftUpLeg, RightHip/RightUpLeg, Head)")
-    up = rest[hd] - rest[0]
-    up /= np.linalg.norm(up)
-    left = rest[lh] - rest[rh]
-    if np.linalg.norm(left) < 1e-9:  # hip joints at the hips (zero offsets): use their children
-        kids_l = [k for k in range(len(names)) if sk.parents[k] == lh]
-        kids_r = [k for k in range(len(names)) if sk.parents[k] == rh]
-        left = rest[kids_l[0]] - rest[kids_r[0]]
-    left -= np.dot(left, up) * up
-    left /= np.linalg.norm(left)
-    fwd = np.cross(left, up)
-    # C maps file axes to Anny's: up -> +z, left -> +x, forward -> -y.
-    C = np.stack([left, -fwd, up])  # rows: Anny axes in file coordinates
-
-    G, P = bvh_global(b)
-    T = G.shape[0]
-    anny_rest = body.rest_joints
-    aidx = {n: i for i, n in enumerate(anny_names)}
-
-    # Per mapped joint: rest alignment S_b from the segment to its nearest mapped descendant.
-    children = {j: [k for k in range(len(names)) if sk.parents[k] == j] for j in range(len(names))}
-    S: dict[int, np.ndarray] = {}
-    order = list(range(len(names)))  # BVH joints are listed parents-first
-    for j in order:
-        if j not in jmap or j == 0:
-            continue
-        bj = aidx[jmap[j]]
-        target = _nearest_mapped_descendant(j, children, jmap, rest, aidx, anny_rest, body)
-        if target is None:
-            # a leaf: inherit the nearest mapped ancestor's alignment
-            p = sk.parents[j]
-            while p >= 0 and p not in S:
-                p = sk.parents[p]
-            S[j] = S.get(p, np.eye(3))
-            continue
-        k = target
-        a = anny_rest[aidx[jmap[k]]] - anny_rest[bj]
-        r = C @ (rest[k] - rest[j])
-        S[j] = _min_rotation(a, r)
-    S[0] = np.eye(3)
-
-    # World rotations of mapped Anny bones; unmapped bones inherit their parent's.
-    X = np.zeros((T, len(anny_names), 3, 3))
-    mapped = {aidx[v]: j for j, v in jmap.items()}
-    parents = body.parents
-    for bidx in range(len(anny_names)):  # Anny bones are listed parents-first
-        if bidx in mapped:
-            j = mapped[bidx]
-            X[:, bidx] = C @ G[:, j] @ C.T @ S[j]
-        elif parents[bidx] >= 0:
-            X[:, bidx] = X[:, parents[bidx]]
-        else:
-            X[:, bidx] = np.eye(3)
-    D = X.copy()
-    for bidx in range(1, len(anny_names)):
-        D[:, bidx] = np.swapaxes(X[:, parents[bidx]], -1, -2) @ X[:, bidx]
-    rot = matrix_to_axis_angle(D.reshape(-1, 3, 3)).reshape(T, len(anny_names), 3)
-
-    # Root translation: scale by leg length, relative to the first frame horizontally.
-    ank = _find(names, _ANKLE)
-    file_leg = rest[lh if ank is None else ank] - rest[lh]
-    la = anny_rest[aidx["upperleg01.L"]] - anny_rest[aidx["foot.L"]]
-    scale = float(np.linalg.norm(la) / max(np.linalg.norm(file_leg), 1e-9)) if ank is not None else 0.056
-    hips = (P[:, 0] @ C.T) * scale
-    tr = hips - hips[0]
-    # Vertical: the hips' height above the ankles in the first frame (feet assumed on the
-    # floor there), relative to that height when standing in the file's rest pose, so standing
-    # straight puts Anny's rest body on the floor whatever the two pelvis proportions.
-    if ank is not None:
-        feet = [k for k in (ank, _find(names, ("RightAnkle", "RightFoot"))) if k is not None]
-        floor0 = min(float((P[0, k] @ C.T)[2]) for k in feet)
-        rest_h = float(C[2] @ (rest[0] - rest[ank]))
-        tr[:, 2] = ((P[:, 0] @ C.T)[:, 2] - floor0 - rest_h) * scale
-    return Motion(name or path.stem, b.fps, anny_names, rot, tr,
-                  {"source": str(path), "scale_m_per_unit": scale, "mapped_joints": {sk.names[j]: v for j, v in jmap.items()}})
+    sm = map_bvh(b, body, mapping, path)
+    return retarget(bvh_source(b), body, sm, path=path, name=name or path.stem, meta={"source": str(path)})
 
 
-def _nearest_mapped_descendant(j, children, jmap, rest, aidx, anny_rest, body):
-    """The mapped descendant of BVH joint j at the smallest depth with a non-zero rest offset
-    whose Anny bone descends from j's; ties broken by alignment with Anny's rest bone axis."""
-    bj = aidx[jmap[j]]
-    anny_parents = body.parents
-
-    def anny_descends(c):
-        p = anny_parents[c]
-        while p >= 0:
-            if p == bj:
-                return True
-            p = anny_parents[p]
-        return False
-
-    frontier = list(children[j])
-    while frontier:
-        cands = [k for k in frontier if k in jmap and np.linalg.norm(rest[k] - rest[j]) > 1e-6
-                 and anny_descends(aidx[jmap[k]])]
-        if cands:
-            axis = body.rest_bone_axes[bj][:, 1]  # Anny bones point along their local y
-            def score(k):
-                d = anny_rest[aidx[jmap[k]]] - anny_rest[bj]
-                return -np.dot(d / max(np.linalg.norm(d), 1e-12), axis)
-            return min(cands, key=score)
-        frontier = [c for k in frontier for c in children[k]]
-    return None
-
-
-def write_bvh(path: str | Path, names, parents, offsets, channels_per_joint, data, frame_time) -> None:
-    """Write a BVH file (used by tests and for exporting simple skeletons)."""
+def write_bvh(path: str | Path, names, parents, offsets, channels_per_joint, data, frame_time,
+              end_sites: dict[int, np.ndarray] | None = None) -> None:
+    """Write a BVH file (used by tests and for exporting simple skeletons). ``data`` [T, channels]
+    has each joint's channels in the order of ``names`` (written in the hierarchy's order, as BVH
+    requires). A leaf's end site is ``end_sites[j]`` or, by default, a third of its own offset
+    further along it."""
     from ..files import write_text_atomic
 
     children = {j: [k for k in range(len(names)) if parents[k] == j] for j in range(len(names))}
     lines = ["HIERARCHY"]
+    start = np.cumsum([0] + [len(c) for c in channels_per_joint])
+    order: list[int] = []
 
     def emit(j, depth):
+        order.append(j)
         ind = "  " * depth
         lines.append(f"{ind}{'ROOT' if parents[j] < 0 else 'JOINT'} {names[j]}")
         lines.append(f"{ind}{{")
@@ -397,12 +261,17 @@ def write_bvh(path: str | Path, names, parents, offsets, channels_per_joint, dat
         ch = channels_per_joint[j]
         lines.append(f"{ind}  CHANNELS {len(ch)} {' '.join(ch)}")
         if not children[j]:
-            lines.extend([f"{ind}  End Site", f"{ind}  {{", f"{ind}    OFFSET 0 0.1 0", f"{ind}  }}"])
+            e = (end_sites or {}).get(j)
+            e = np.asarray(offsets[j], float) / 3 if e is None else np.asarray(e, float)
+            lines.extend([f"{ind}  End Site", f"{ind}  {{", f"{ind}    OFFSET {' '.join(f'{x:.6f}' for x in e)}",
+                          f"{ind}  }}"])
         for k in children[j]:
             emit(k, depth + 1)
         lines.append(f"{ind}}}")
 
-    emit(0, 0)
+    for r in [j for j in range(len(names)) if parents[j] < 0]:
+        emit(r, 0)
+    cols = [c for j in order for c in range(start[j], start[j + 1])]
     lines += ["MOTION", f"Frames: {len(data)}", f"Frame Time: {frame_time:.7f}"]
-    lines += [" ".join(f"{x:.6f}" for x in row) for row in np.asarray(data)]
+    lines += [" ".join(f"{x:.6f}" for x in row) for row in np.asarray(data)[:, cols]]
     write_text_atomic(path, "\n".join(lines) + "\n")

@@ -1,6 +1,7 @@
-"""A motion from a name or a file: the built-in motions (``motion``), ``.npz`` motions and ``.bvh``
-motion capture retargeted to Anny (``bvh``). Sits above both, so neither imports the other's way
-back."""
+"""A motion from a name or a file: the built-in motions (``motion``), the project's ``.npz``
+motions, ``.bvh`` motion capture (``bvh``) and AMASS/SMPL ``.npz`` motions (``amass``), both
+retargeted onto Anny. An ``.npz`` is told apart by its arrays (``rotations`` + ``bone_names``: the
+project's; ``poses`` + ``trans``: AMASS). Sits above the readers, so none imports another's way back."""
 
 from __future__ import annotations
 
@@ -9,15 +10,35 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PhysavatarError
+from .amass import import_amass, is_amass
 from .bvh import import_bvh
 from .model import BodyModel
 from .motion import BUILTIN, Motion, arm_clearance, builtin_motion
 
 
+def is_amass_file(path: str | Path) -> bool:
+    """Whether ``path`` is an ``.npz`` holding an AMASS/SMPL motion (read by its array names)."""
+    path = Path(path)
+    if path.suffix.lower() != ".npz" or not path.is_file():
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return is_amass(z.files)
+    except Exception:
+        return False  # Motion.load reports what is wrong with it
+
+
+def is_capture(spec: str | Path) -> bool:
+    """Motion capture retargeted onto Anny (``.bvh`` or AMASS ``.npz``), as opposed to a built-in
+    motion or a motion already made for Anny."""
+    return str(spec).lower().endswith(".bvh") or is_amass_file(spec)
+
+
 def load_motion(spec: str, fps: float = 25.0, duration: float = 4.0, *, mapping: str | Path | None = None,
                 body: BodyModel | None = None) -> Motion:
-    """A motion by built-in name (``duration`` seconds), ``.npz`` file or ``.bvh`` file (retargeted
-    onto ``body``, default Anny's collider topology, with ``mapping`` overrides), at ``fps``."""
+    """A motion by built-in name (``duration`` seconds), ``.npz`` file (the project's or AMASS) or
+    ``.bvh`` file (capture retargeted onto ``body``, default Anny's collider topology, with
+    ``mapping`` overrides of the joint map), at ``fps``."""
     if fps <= 0 or duration <= 0:
         raise PhysavatarError(None, "option --fps/--duration: must be positive")
     body = body or BodyModel(topology="collider")
@@ -27,6 +48,8 @@ def load_motion(spec: str, fps: float = 25.0, duration: float = 4.0, *, mapping:
     if path.suffix.lower() == ".bvh":
         return import_bvh(path, body, mapping=mapping).resample(fps)
     if path.suffix.lower() == ".npz":
+        if is_amass_file(path):
+            return import_amass(path, body, mapping=mapping).resample(fps)
         return Motion.load(path).resample(fps).for_bones(body.bone_names)
     if not path.exists():
         raise PhysavatarError(path, f"not a built-in motion ({', '.join(BUILTIN)}) and no such file")
@@ -34,12 +57,12 @@ def load_motion(spec: str, fps: float = 25.0, duration: float = 4.0, *, mapping:
 
 
 def with_arm_clearance(motion: Motion, spec: str, body: BodyModel, clearance: float) -> tuple[Motion, dict | None]:
-    """Motion capture (``.bvh``) with the arms raised where the hands would pinch the garment
+    """Motion capture (``.bvh``, AMASS ``.npz``) with the arms raised where the hands would pinch the garment
     against the trunk (:func:`arm_clearance`); other motions unchanged. Returns the motion and a
     per-side summary of what changed (None when nothing was done)."""
     if clearance < 0:
         raise PhysavatarError(None, "option --arm-clearance: must be >= 0")
-    if clearance == 0 or not str(spec).lower().endswith(".bvh"):
+    if clearance == 0 or not is_capture(spec):
         return motion, None
     m2, info = arm_clearance(motion, body, clearance)
     summary = {side: {"frames_raised": int(np.sum(d["angle_rad"] > 1e-3)),
@@ -58,3 +81,27 @@ def describe_clearance(summary: dict | None, clearance: float) -> str | None:
         f"{side} arm raised in {v['frames_raised']} frames (up to {v['max_angle_deg']} deg), hand-to-trunk "
         f"{1000 * v['min_distance_before_m']:.0f} -> {1000 * v['min_distance_after_m']:.0f} mm"
         for side, v in raised.items()) + f" (--arm-clearance {clearance:g} m; 0 keeps the motion as it is)"
+
+
+def inspect_capture(spec: str | Path, body: BodyModel, mapping: str | Path | None = None) -> dict:
+    """What ``motion inspect`` shows of a ``.bvh`` or AMASS ``.npz``: the skeleton (names,
+    parents, channels per joint), frames, fps, what it is, and the motion retargeted onto ``body``
+    at the file's fps (its ``meta`` holds the joint map, the reasons, axes and scale)."""
+    from .amass import SMPL_NAMES, SMPL_PARENTS, read_amass
+    from .bvh import read_bvh
+
+    path = Path(spec)
+    if path.suffix.lower() == ".bvh":
+        b = read_bvh(path)
+        sk = b.skeleton
+        return {"kind": "BVH", "names": list(sk.names), "parents": np.asarray(sk.parents),
+                "channels": [len(c) for c in sk.channels], "frames": len(b.data), "fps": b.fps,
+                "motion": import_bvh(path, body, mapping=mapping)}
+    if is_amass_file(path):
+        d = read_amass(path)
+        return {"kind": f"AMASS / {d['model']}", "names": list(SMPL_NAMES), "parents": SMPL_PARENTS,
+                "channels": None, "frames": len(d["poses"]), "fps": d["fps"],
+                "motion": import_amass(path, body, mapping=mapping)}
+    if not path.exists():
+        raise PhysavatarError(path, "no such file")
+    raise PhysavatarError(path, "not motion capture: expected a .bvh file or an AMASS/SMPL .npz (poses, trans, mocap_framerate)")
