@@ -1,6 +1,6 @@
 """``physavatar run CAPTURE OUT``: the whole pipeline, in process, resumable.
 
-track -> fit-physics -> fit-appearance -> build-avatar -> animate (held-out motion) -> render ->
+(prepare, when the capture is unprepared: no body.npz or labelled template) -> track -> fit-physics -> fit-appearance -> build-avatar -> animate (held-out motion) -> render ->
 relight -> export -> evaluate. :func:`plan` lists the stages as :class:`Step` s: a stage function
 (``run(inputs..., out=, config=, progress=)`` of its module in ``stages/``), its inputs and its
 config. :func:`run` calls them in order, each writing ``OUT/<stage>/``.
@@ -83,10 +83,15 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
     """The stages of a run, in order (see the module docstring)."""
     from .stages import animate, appearance, avatar, evaluate, export, physics, render, track
 
+    from .capture import is_unprepared
+
     capture = Path(capture)
     held_file = capture / "ground_truth" / "heldout" / "motion.npz"
     motion = cfg.motion or (str(held_file) if held_file.exists() else "dance")
-    cap = {"capture": capture}
+    # An unprepared capture (straight from `physavatar import`) is prepared first; every other
+    # stage reads the prepared capture (OUT/prepare), which keeps the ground truth of a synthetic one.
+    unprepared = is_unprepared(capture)
+    cap = {"capture": ("step", "prepare") if unprepared else capture}
     steps = [
         Step("track", "physavatar.stages.track:run", track.pipeline_config(cfg.track_frames), cap, "tracked.npz"),
         # fit-appearance (Mitsuba, multi-threaded) runs beside fit-physics (single-threaded
@@ -121,6 +126,11 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
             inputs["sequence"] = ("step", "animate")
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run",
                           evaluate.EvaluateConfig(frames=cfg.eval_frames), inputs, "metrics.json"))
+    if unprepared:  # first of all: even the background steps read its output
+        from .stages import prepare
+
+        steps.insert(0, Step("prepare", "physavatar.stages.prepare:run", prepare.PrepareConfig(), {"capture": capture},
+                             "prepare.json"))
     for st in steps:
         st.command = _command(st, out)
     return steps
@@ -130,6 +140,8 @@ def _command(st: Step, out: Path) -> list[str]:
     """The ``physavatar`` command line equivalent to a step (shown in the report)."""
     from .stages.base import to_argv, unflagged_changes
 
+    if st.name == "prepare":  # physavatar prepare CAPTURE OUT
+        return ["prepare", str(st.inputs["capture"]), str(st.out(out))] + to_argv(st.config)
     names = {"track": "track", "appearance": "fit-appearance", "physics": "fit-physics", "avatar": "build-avatar",
              "animate": "animate", "render": "render", "relight": "render", "export": "export",
              "export-glb": "export", "references": "reference-sims", "evaluate": "evaluate"}

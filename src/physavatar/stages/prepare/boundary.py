@@ -40,6 +40,22 @@ def _project_inside(points: np.ndarray, cameras: list, masks: dict[str, np.ndarr
     return np.where(seen > 0, hits / np.maximum(seen, 1), 0.0)
 
 
+def carried_support(vertices: np.ndarray, body_frames: np.ndarray, body_faces: np.ndarray, cameras: list,
+                    masks_of: callable) -> tuple[np.ndarray, tuple]:
+    """[n] the smallest share, over the sampled frames after the first, of the cameras whose mask
+    holds each vertex when it is carried with its closest body point (1: it stays in every
+    silhouette, as a point the body holds does); and the closest-point query (d, face, bary, point)."""
+    from ...geometry.closest import MeshQuery
+
+    d, f, w, q = MeshQuery(body_frames[0], body_faces, spacing=0.02).closest(vertices)
+    offset = vertices - q
+    worst = np.ones(len(vertices))
+    for i in range(1, len(body_frames)):
+        carried = np.einsum("nk,nkd->nd", w, body_frames[i][body_faces[f]]) + offset
+        worst = np.minimum(worst, _project_inside(carried, cameras, masks_of(i)))
+    return worst, (d, f, w, q)
+
+
 def find_boundary(vertices: np.ndarray, faces: np.ndarray, body_frames: np.ndarray, body_faces: np.ndarray,
                   cameras: list, masks_of: callable, frame_index: list[int], cfg: BoundaryConfig
                   ) -> tuple[np.ndarray, dict]:
@@ -48,19 +64,9 @@ def find_boundary(vertices: np.ndarray, faces: np.ndarray, body_frames: np.ndarr
     ``body_frames``: [S, Nb, 3] the body at the sampled frames (first = the template's frame);
     ``masks_of(i)``: {camera: [H, W]} masks of sampled frame ``i``.
     """
-    from ...geometry.closest import MeshQuery
-
-    d, f, w, q = MeshQuery(body_frames[0], body_faces, spacing=0.02).closest(vertices)
+    worst, (d, _, _, _) = carried_support(vertices, body_frames, body_faces, cameras, masks_of)
     contact = d < cfg.contact
-    offset = vertices - q
-    follows = np.ones(len(vertices), bool)
-    worst = np.ones(len(vertices))
-    for i in range(1, len(body_frames)):
-        tri = body_frames[i][body_faces[f]]
-        carried = np.einsum("nk,nkd->nd", w, tri) + offset
-        share = _project_inside(carried, cameras, masks_of(i))
-        worst = np.minimum(worst, share)
-        follows &= share >= cfg.inside
+    follows = worst >= cfg.inside
     cand = contact & follows
     info = {"contact": int(contact.sum()), "follows": int(follows.sum()), "candidates": int(cand.sum())}
     if not cand.any():  # nothing is held: the highest contact band, else the garment's top

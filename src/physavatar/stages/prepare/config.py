@@ -52,7 +52,8 @@ class MaskConfig:
 class MeshConfig:
     """The first-frame mesh: visual hull, manifold repair, isotropic remeshing (mesh.py)."""
 
-    voxel: float = option(0.0, "visual-hull voxel size [m] (0: half a pixel's footprint, 4 mm .. 2 cm)",
+    voxel: float = option(0.0, "visual-hull voxel size [m] (0: a pixel's footprint, at least a third of the edge "
+                          "length, 4 mm .. 2 cm)",
                           flag="--voxel", check=lambda v: None if v >= 0 else "must be at least 0")
     edge_length: float = option(0.02, "target edge length of the remeshed surface [m]", flag="--edge-length",
                                 check=_positive)
@@ -68,10 +69,12 @@ class SegmentConfig:
     labels: Path | None = option(None, "per-vertex labels instead of the automatic segmentation: a PLY with a "
                                  "'label' property (transferred by nearest point) or a .npy/.txt with one label "
                                  "per vertex of the capture's mesh", flag="--labels", parse=_path_or_none)
-    margin: float = option(0.012, "vertices farther than this outside the fitted body are garment [m]",
+    margin: float = option(0.008, "vertices farther than this outside the fitted body are garment [m]",
                            flag="--garment-margin", check=_positive)
     softness: float = setting(0.004)  # [m] width of the distance term's transition
-    colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term
+    distance_cap: float = setting(3.0)  # the distance term's log-odds are capped at this
+    bridge_normal: float = setting(-0.8)  # unseen vertices facing further down than this are body (hull bridges)
+    colour_weight: float = setting(0.5)  # weight of the colour likelihood against the distance term
     smoothness: float = option(1.5, "graph-cut smoothness between neighbouring vertices", flag="--smoothness",
                                check=lambda v: None if v >= 0 else "must be at least 0")
     garments: int = option(1, "number of garments to separate by colour", flag="--garments",

@@ -88,10 +88,12 @@ def _grid(lo: np.ndarray, hi: np.ndarray, step: float):
     return pts, tuple(n)
 
 
-def auto_voxel(cameras: list, centre: np.ndarray) -> float:
-    """Half the finest camera's pixel footprint at ``centre``, within 4 mm .. 2 cm."""
+def auto_voxel(cameras: list, centre: np.ndarray, edge_length: float) -> float:
+    """The finest camera's pixel footprint at ``centre``, but at least a third of the target edge
+    length (the occupancy is continuous, so marching cubes places the surface between voxels),
+    within 4 mm .. 2 cm."""
     foot = min(np.linalg.norm(c.center - centre) / c.K[0, 0] for c in cameras)
-    return float(np.clip(0.5 * foot, 0.004, 0.02))
+    return float(np.clip(max(foot, edge_length / 3), 0.004, 0.02))
 
 
 def visual_hull(cameras: list, masks: dict[str, np.ndarray], cfg: MeshConfig, where: Path | None = None):
@@ -114,7 +116,7 @@ def visual_hull(cameras: list, masks: dict[str, np.ndarray], cfg: MeshConfig, wh
             raise PhysavatarError(where, "the masks have no common foreground: no point is inside every camera's "
                                   "mask (check the masks and the cameras' calibration)")
         lo, hi = pts[keep].min(0) - 2 * step, pts[keep].max(0) + 2 * step
-    voxel = cfg.voxel or auto_voxel(cameras, pts[keep].mean(0))
+    voxel = cfg.voxel or auto_voxel(cameras, pts[keep].mean(0), cfg.edge_length)
     coarse = max(4 * voxel, 0.02)
     cpts, cn = _grid(lo, hi, coarse)
     cin = (occupancy(cpts, cameras, masks, cfg.view_share) > 0.5).reshape(cn)
@@ -132,7 +134,7 @@ def visual_hull(cameras: list, masks: dict[str, np.ndarray], cfg: MeshConfig, wh
 
 # -- manifold and remeshing ----------------------------------------------------------------------
 
-def make_manifold(vertices: np.ndarray, faces: np.ndarray, where: Path | None = None):
+def make_manifold(vertices: np.ndarray, faces: np.ndarray, where: Path | None = None, process: bool = True):
     """(vertices, faces) repaired: duplicates merged, degenerate / duplicate faces dropped, the
     largest connected piece kept, outward orientation. Raises a :class:`PhysavatarError` naming
     ``where`` when the result is still not a manifold surface."""
@@ -142,7 +144,7 @@ def make_manifold(vertices: np.ndarray, faces: np.ndarray, where: Path | None = 
         raise PhysavatarError(where, "mesh has no vertices or no faces")
     if not np.isfinite(vertices).all():
         raise PhysavatarError(where, "mesh has NaN or infinite vertex coordinates")
-    m = trimesh.Trimesh(vertices, faces, process=True, validate=True)
+    m = trimesh.Trimesh(vertices, faces, process=process, validate=process)
     if len(m.faces) == 0:
         raise PhysavatarError(where, "cannot be made manifold: every face is degenerate")
     labels = trimesh.graph.connected_component_labels(m.face_adjacency, node_count=len(m.faces))
@@ -181,7 +183,7 @@ def smooth(vertices: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarr
 def reconstruct(cameras: list, masks: dict[str, np.ndarray], cfg: MeshConfig, where: Path | None = None):
     """The first frame's surface from its masks: hull, manifold, smoothed, remeshed."""
     V, F = visual_hull(cameras, masks, cfg, where)
-    V, F = make_manifold(V, F, where)
+    V, F = make_manifold(V, F, where, process=False)  # marching cubes: no duplicates to merge
     V = smooth(V, F, cfg.smooth)
     return remesh(V, F, cfg, where)
 

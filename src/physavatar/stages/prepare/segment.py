@@ -8,6 +8,8 @@ Automatic labels (:func:`segment`), per vertex:
   see it (normal towards the camera and not behind another surface point: a point z-buffer);
   a Gaussian per class, learned from the vertices the distance already decides, gives each
   vertex a colour log-likelihood ratio;
+* **bridges**: vertices no camera sees that face down (the hull closing the gap between a hem
+  and the legs) are split between the garment and the body by which is nearer;
 * a **graph cut** on the mesh (scipy's maximum flow): the two terms as unary costs, and a
   smoothness cost on every mesh edge, lower between vertices of different colours, so the
   cut follows the garment's edge.
@@ -76,12 +78,31 @@ def vertex_colours(vertices: np.ndarray, faces: np.ndarray, cameras: list, image
     return np.nan_to_num(col, nan=0.5), seen
 
 
-def _gauss_loglik(x: np.ndarray, sel: np.ndarray) -> np.ndarray:
-    mu = x[sel].mean(0)
-    cov = np.cov(x[sel].T) + np.eye(x.shape[1]) * 1e-3
-    inv = np.linalg.inv(cov)
-    d = x - mu
-    return -0.5 * np.einsum("ni,ij,nj->n", d, inv, d) - 0.5 * np.log(np.linalg.det(cov))
+def _mixture_loglik(x: np.ndarray, sel: np.ndarray, k: int = 3) -> np.ndarray:
+    """[n] log-likelihood of ``x`` under a mixture of ``k`` Gaussians fitted to ``x[sel]`` (k-means
+    clusters, each its own Gaussian, weighted by its size): a patterned garment has several colours."""
+    import cv2
+
+    data = x[sel].astype(np.float32)
+    k = max(1, min(k, len(data) // 20))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-4)
+    cv2.setRNGSeed(0)
+    _, lab, _ = cv2.kmeans(data, k, None, crit, 3, cv2.KMEANS_PP_CENTERS)
+    lab = lab.ravel()
+    terms = []
+    for j in range(k):
+        m = data[lab == j]
+        if len(m) < 4:
+            continue
+        mu = m.mean(0)
+        cov = np.cov(m.T) + np.eye(x.shape[1]) * 1e-3
+        inv = np.linalg.inv(cov)
+        d = x - mu
+        terms.append(np.log(len(m) / len(data)) - 0.5 * np.einsum("ni,ij,nj->n", d, inv, d)
+                     - 0.5 * np.log(np.linalg.det(cov)))
+    T = np.stack(terms)
+    top = T.max(0)
+    return top + np.log(np.exp(T - top).sum(0))
 
 
 # -- graph cut ------------------------------------------------------------------------------------
@@ -124,14 +145,26 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
 
     sd, _, _ = MeshQuery(body_vertices, body_faces, spacing=0.02).signed_distance(vertices)
     z = np.clip((sd - cfg.margin) / cfg.softness, -30, 30)
-    logit = z.copy()  # log p(garment) / p(body) from the distance
+    # log p(garment) / p(body) from the distance, capped: near the body (a strap, a tight top) or
+    # where the hull bulges out between limbs, the colour must be able to overrule it
+    logit = np.clip(z, -cfg.distance_cap, cfg.distance_cap)
     colour, seen = vertex_colours(vertices, faces, cameras, images, spacing)
     g_seed, b_seed = (z > 2) & (seen > 0), (z < -2) & (seen > 0)
     info = {"distance_garment": int((z > 0).sum()), "colour_used": False}
     if cfg.colour_weight > 0 and g_seed.sum() >= 20 and b_seed.sum() >= 20:
-        llr = np.clip(_gauss_loglik(colour, g_seed) - _gauss_loglik(colour, b_seed), -5, 5)
-        logit = logit + cfg.colour_weight * np.where(seen > 0, llr, 0.0)
+        base = logit
+        for _ in range(2):  # the colour models from the distance's seeds, then from their own result
+            llr = np.clip(_mixture_loglik(colour, g_seed) - _mixture_loglik(colour, b_seed), -6, 6)
+            logit = base + cfg.colour_weight * np.where(seen > 0, llr, 0.0)
+            g_seed, b_seed = (logit > 2) & (seen > 0), (logit < -2) & (seen > 0)
+            if g_seed.sum() < 20 or b_seed.sum() < 20:
+                break
         info["colour_used"] = True
+    N = vertex_normals(vertices, faces)
+    # unseen and facing down: the hull closing a gap no camera looks into (a hem to the legs)
+    bridge = (seen == 0) & (N[:, 2] < cfg.bridge_normal)
+    logit = np.where(bridge, -cfg.distance_cap, logit)
+    info["bridge"] = int(bridge.sum())
     p = 1 / (1 + np.exp(-np.clip(logit, -30, 30)))
     cost_g, cost_b = -np.log(np.maximum(p, 1e-6)), -np.log(np.maximum(1 - p, 1e-6))
     E = mesh_edges(faces)
@@ -139,6 +172,12 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
     sigma = max(float(np.median(dc)), 1e-3)
     w = cfg.smoothness * np.exp(-(dc / (2 * sigma)) ** 2)
     garment = graph_cut(cost_g, cost_b, E, w) if cfg.smoothness > 0 else p > 0.5
+    if bridge.any() and (garment & ~bridge).any():
+        # a bridge is split where it is nearer the seen garment than the body
+        from scipy.spatial import cKDTree
+
+        dg, _ = cKDTree(vertices[garment & ~bridge]).query(vertices[bridge])
+        garment[bridge] = dg < np.abs(sd[bridge])
     labels = np.where(garment, 1, LABEL_BODY).astype(np.int64)
     labels = _drop_small(labels, faces, len(vertices), cfg.min_piece)
     if cfg.garments > 1 and (labels > 0).sum() >= cfg.garments:
