@@ -81,19 +81,35 @@ def test_visual_hull_of_a_sphere():
         masks[c.name] = np.clip((r - dist) / pix + 0.5, 0, 1)
     V, F = reconstruct(cams, masks, MeshConfig(voxel=0.01, edge_length=0.03))
     d = np.linalg.norm(V - c0, axis=1) - r
-    # 6 ring views: a 12-sided section, at most r (1/cos 15° - 1) = 9 mm outside at the height
-    # of the ring; the poles, seen edge-on by the two elevated cameras only, stay farther out
-    ring = np.abs(V[:, 2] - c0[2]) < 0.05
+    # At the ring's height the hull is the intersection of the 6 cameras' wedges, whose tangent
+    # points lie at ±(90° - asin(r / D)) from each camera's direction: the widest gap between
+    # tangent points, g, puts the polygon's corner r (1 / cos(g / 2) - 1) outside the sphere.
+    D = 2.5
+    th = np.degrees(np.pi / 2 - np.arcsin(r / D))
+    pts = np.sort(np.array([(60 * k + s * th) % 360 for k in range(6) for s in (-1, 1)]))
+    gap = np.radians(np.max(np.diff(np.concatenate([pts, pts[:1] + 360]))))
+    excess = r * (1 / np.cos(gap / 2) - 1)
+    ring = np.abs(V[:, 2] - c0[2]) < 0.03
     assert d.mean() < 0.006 and d.min() > -0.006, (d.mean(), d.min())
-    assert d[ring].max() < 0.012 and d.max() < 0.03, (d[ring].max(), d.max())
+    assert excess * 0.6 < d[ring].max() < excess + 0.004, (d[ring].max(), excess)
 
 
-def test_manifold_refuses_a_fin_in_one_line():
-    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], float)
-    F = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])  # three faces on one edge
+def test_manifold_refuses_a_pinched_surface_in_one_line():
+    """A strip bent round until its ends touch at one vertex: one piece, two sheets at that vertex,
+    which no merging, dropping or orienting repairs."""
+    n = 5
+    ang = np.linspace(0, 1.5 * np.pi, n)
+    B = np.stack([np.cos(ang), np.sin(ang), 0 * ang], 1)
+    V = np.concatenate([B, B + [0, 0, 1]])
+    F = np.array([f for i in range(n - 1) for f in ([i, i + 1, n + i + 1], [i, n + i + 1, n + i])])
+    F[F == 2 * n - 1] = 0  # the strip's last top corner is its first bottom corner
     with pytest.raises(PhysavatarError) as e:
         make_manifold(V, F, Path("scan.ply"))
-    assert "scan.ply" in str(e.value) and "manifold" in str(e.value) and "\n" not in str(e.value)
+    assert "scan.ply" in str(e.value) and "cannot be made manifold" in str(e.value) and "\n" not in str(e.value)
+    # a fin (three faces on one edge) is repaired: the largest piece is kept
+    V2 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], float)
+    V2f, F2 = make_manifold(V2, np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]]))
+    assert len(F2) == 1
 
 
 def test_atlas_gives_corner_uvs_in_the_unit_square():
@@ -207,6 +223,7 @@ def test_cli_prepare_bad_input_exit_2(tiny_capture, tmp_path):
     from physavatar.cli import app
 
     src = unprepared(tiny_capture, tmp_path / "in")
+    (src / "cameras.json").unlink()  # a hard link to the shared capture's file: replaced, not written through
     (src / "cameras.json").write_text("[{\"name\": 1}]")
     r = CliRunner().invoke(app, ["prepare", str(src), str(tmp_path / "out")])
     assert r.exit_code == 2

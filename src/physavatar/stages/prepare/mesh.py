@@ -88,12 +88,16 @@ def _grid(lo: np.ndarray, hi: np.ndarray, step: float):
     return pts, tuple(n)
 
 
+def pixel_footprint(cameras: list, centre: np.ndarray) -> float:
+    """[m] the finest camera's pixel size at ``centre``: how far a visual hull can be off."""
+    return float(min(np.linalg.norm(c.center - centre) / c.K[0, 0] for c in cameras))
+
+
 def auto_voxel(cameras: list, centre: np.ndarray, edge_length: float) -> float:
     """The finest camera's pixel footprint at ``centre``, but at least a third of the target edge
     length (the occupancy is continuous, so marching cubes places the surface between voxels),
     within 4 mm .. 2 cm."""
-    foot = min(np.linalg.norm(c.center - centre) / c.K[0, 0] for c in cameras)
-    return float(np.clip(max(foot, edge_length / 3), 0.004, 0.02))
+    return float(np.clip(max(pixel_footprint(cameras, centre), edge_length / 3), 0.004, 0.02))
 
 
 def visual_hull(cameras: list, masks: dict[str, np.ndarray], cfg: MeshConfig, where: Path | None = None):

@@ -65,7 +65,8 @@ def _read_mask(path: Path) -> np.ndarray:
     return _read_png(path, "L")
 
 
-def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, cfg: PrepareConfig, progress) -> tuple[BodyPoses, dict]:
+def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, faces: np.ndarray | None, cfg: PrepareConfig,
+              progress) -> tuple[BodyPoses, dict]:
     try:
         from .body_fit import fit_body  # type: ignore[attr-defined]
     except ImportError:
@@ -73,7 +74,10 @@ def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, cfg: PrepareCon
                               "is not installed: give body.npz") from None
     from ...body.model import BodyShape
 
-    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress)
+    import inspect
+
+    extra = {"template_faces": faces} if "template_faces" in inspect.signature(fit_body).parameters else {}
+    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, **extra)
     poses = BodyPoses(BodyShape.from_array(np.asarray(fit.shape)), [str(b) for b in fit.bone_names],
                       np.asarray(fit.rotations, np.float64), np.asarray(fit.root_translation, np.float64),
                       str(fit.topology))
@@ -170,7 +174,7 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
             body = _load_body(tmp, len(raw.frames), _Problems(strict=True))
             steps["body"] = "given"
         else:
-            body, numbers["body"] = _fit_body(src, tmp, None if labelled else V, cfg, prog)
+            body, numbers["body"] = _fit_body(src, tmp, None if labelled else V, None if labelled else F, cfg, prog)
             body.save(tmp / "body.npz")
             steps["body"] = "fitted (Anny, every frame)"
         seconds["body"] = time.time() - t
@@ -233,8 +237,17 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
         from ...capture import _read_png
 
         images = {c.name: _read_png(raw.image_path(c.name, first), "RGB") for c in raw.cameras}
+        seg = cfg.segment
+        if src_mesh is None:  # a visual hull is off by up to a pixel: the margin is at least that
+            from dataclasses import replace
+
+            from .mesh import pixel_footprint
+
+            foot = pixel_footprint(raw.cameras, V.mean(0))
+            seg = replace(seg, margin=max(seg.margin, foot), softness=max(seg.softness, foot / 3))
+            numbers["segmentation_margin"] = round(seg.margin, 4)
         with prog.task("prepare: segmentation", total=1) as task:
-            labels, info = segment(V, F, BV, BF, raw.cameras, images, cfg.segment, cfg.mesh.edge_length)
+            labels, info = segment(V, F, BV, BF, raw.cameras, images, seg, cfg.mesh.edge_length)
             task.advance(garment=info["garment_vertices"])
         numbers["segmentation"] = {k: v for k, v in info.items() if not isinstance(v, np.ndarray)}
         numbers["_distance"] = info["signed_distance"]
