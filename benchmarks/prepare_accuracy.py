@@ -9,8 +9,8 @@ the same with the ``masks`` removed as well. Measured against the capture's trut
 
 * mask IoU per camera and frame (masks-removed case), against the rendered alpha > 0.5;
 * first-frame mesh: mean distance of the reconstructed surface's vertices to the true
-  template surface (and the other way, which includes the body under the garment that no
-  camera sees), target <= 5 mm;
+  template surface, target <= 5 mm (and the other way, which includes the body under the
+  garment that no camera sees; and the prepared template's garment vertices to the true surface);
 * segmentation: per-vertex accuracy of the reconstructed mesh's labels (body / garment) against
   the label of the nearest true surface point, target >= 97 %;
 * boundary: mean distance of the chosen boundary vertices to the true ones, target <= 2 cm
@@ -49,11 +49,9 @@ from _common import cpu_name  # noqa: E402
 
 
 def body_fit_available() -> bool:
-    try:
-        from physavatar.stages.prepare import body_fit  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    from physavatar.stages.prepare.config import body_fit_module
+
+    return body_fit_module() is not None
 
 
 def unprepared_copy(src: Path, dst: Path, masks: bool, body: bool) -> Path:
@@ -91,6 +89,10 @@ def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
                            "garment_as_body": int(((lab == 0) & (true > 0)).sum()),
                            "body_as_garment": int(((lab > 0) & (true == 0)).sum())}
     pt = prep.template
+    g = pt.labels > 0
+    dg = surface_distance(pt.vertices[g], tpl.vertices, tpl.faces)
+    out["mesh"]["template_garment_to_true_mean_mm"] = float(dg.mean() * 1000)
+    out["mesh"]["template_garment_to_true_median_mm"] = float(np.median(dg) * 1000)
     out["boundary"] = boundary_error(pt.vertices[pt.boundary], tpl.vertices[tpl.boundary]) | {
         "chosen": int(pt.boundary.sum()), "true": int(tpl.boundary.sum())}
     out["template"] = {"vertices": int(len(pt.vertices)), "garment_vertices": int(pt.garment_mask.sum())}
@@ -98,7 +100,7 @@ def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
     out["seconds"] = rep["seconds"]
     out["steps"] = rep["steps"]
     if rep["steps"].get("body", "").startswith("fitted"):
-        from physavatar.stages.prepare.stage import pose_body
+        from physavatar.stages.prepare.posing import pose_body
 
         _, Vt = pose_body(truth.body)
         _, Vp = pose_body(prep.body)

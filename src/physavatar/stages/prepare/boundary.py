@@ -77,9 +77,12 @@ def find_boundary(vertices: np.ndarray, faces: np.ndarray, body_frames: np.ndarr
     idx = np.flatnonzero(cand)
     A = adjacency(faces, len(vertices))[idx][:, idx]
     k, lab = connected_components(A, directed=False)
-    top = vertices[idx, 2].max()
+    sizes = np.bincount(lab, minlength=k)
+    big = sizes >= min(cfg.min_region, sizes.max())  # a lone vertex is no hold
+    top = vertices[idx[big[lab]], 2].max()
     reach = np.zeros(k, bool)
     np.maximum.at(reach, lab, vertices[idx, 2] >= top - cfg.top_band)
+    reach &= big
     out = np.zeros(len(vertices), bool)
     out[idx[reach[lab]]] = True
     info["boundary"] = int(out.sum())

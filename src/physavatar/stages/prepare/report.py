@@ -46,7 +46,7 @@ def _sheet(images, names, path: Path) -> None:
 def write_report(cap: Capture, root: Path, steps: dict, numbers: dict, progress=None) -> Path:
     """Write ``root/prepare/report.md`` and its pictures for the prepared capture ``cap``."""
     from .segment import visible
-    from .stage import pose_body
+    from .posing import pose_body
 
     out = root / "prepare"
     out.mkdir(parents=True, exist_ok=True)

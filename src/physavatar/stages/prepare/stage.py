@@ -23,6 +23,7 @@ from ...files import read_ply, write_json_atomic
 from ...labels import LABEL_BODY
 from ..base import to_dict
 from .config import PrepareConfig
+from .posing import pose_body
 from .truth import carry_truth, link_file, link_tree
 
 CORE_META = ("format_version", "fps", "frames", "units", "up")
@@ -44,21 +45,6 @@ def _finish(tmp: Path, out: Path) -> None:
     os.replace(tmp, out)
 
 
-def pose_body(body: BodyPoses, index: list[int] | None = None):
-    """(BodyModel, [S, Nb, 3] vertices) of the capture's body at frame positions ``index`` (all:
-    None); bones body.npz leaves out stay at rest."""
-    from ...body import BodyModel
-
-    model = BodyModel(body.shape, topology=body.topology)
-    idx = np.arange(len(body.rotations)) if index is None else np.asarray(index)
-    rot = np.zeros((len(idx), len(model.bone_names), 3))
-    pos = {n: i for i, n in enumerate(body.bone_names)}
-    for j, n in enumerate(model.bone_names):
-        if n in pos:
-            rot[:, j] = body.rotations[idx, pos[n]]
-    return model, model.pose(rot, body.root_translation[idx]).vertices
-
-
 def _read_mask(path: Path) -> np.ndarray:
     from ...capture import _read_png
 
@@ -67,11 +53,13 @@ def _read_mask(path: Path) -> np.ndarray:
 
 def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, faces: np.ndarray | None, cfg: PrepareConfig,
               progress) -> tuple[BodyPoses, dict]:
-    try:
-        from .body_fit import fit_body  # type: ignore[attr-defined]
-    except ImportError:
+    from .config import body_fit_module
+
+    mod = body_fit_module()
+    if mod is None:
         raise PhysavatarError(src / "body.npz", "missing, and the body fitting (physavatar.stages.prepare.body_fit) "
-                              "is not installed: give body.npz") from None
+                              "is not installed: give body.npz")
+    fit_body = mod.fit_body
     from ...body.model import BodyShape
 
     import inspect
