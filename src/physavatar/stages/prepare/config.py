@@ -56,8 +56,8 @@ class MaskConfig:
                               "camera: Otsu's method, or 3x the border colours' scatter)", flag="--mask-threshold",
                               check=lambda v: None if 0 <= v < 1 else "must be in [0, 1)")
     min_threshold: float = setting(0.04)  # Otsu's choice is never below this (noise in a static background)
-    open_px: int = setting(1)  # morphological opening radius (removes speckle)
-    close_px: int = setting(3)  # closing radius (fills cracks between body parts)
+    open_px: int = setting(0)  # morphological opening radius (removes speckle; 0: none)
+    close_px: int = setting(1)  # closing radius (fills cracks between body parts)
     min_area: float = setting(0.002)  # connected regions smaller than this share of the image are dropped
     refine: int = setting(2)  # background re-estimations without the frames' foreground
     border_share: float = setting(0.6)  # median image share explained by border colours to use them too
