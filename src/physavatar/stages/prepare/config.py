@@ -106,9 +106,9 @@ class BoundaryConfig:
                                flag="--boundary", parse=_path_or_none)
     contact: float = option(0.02, "a garment vertex within this distance of the body in every frame is in "
                             "contact [m]", flag="--contact", check=_positive)
-    top_band: float = setting(0.06)  # [m] contact regions must reach within this of a garment's highest contact
+    top_band: float = setting(0.04)  # [m] contact regions must reach within this of a garment's highest contact
     frames: int = setting(12)  # frames sampled for the contact test
-    min_region: int = setting(3)  # contact regions of fewer vertices are not holds
+    min_region: int = setting(2)  # contact regions of fewer vertices are not holds
     inside: float = setting(0.9)  # share of cameras whose mask must hold the skinned vertex in a sampled frame
 
 

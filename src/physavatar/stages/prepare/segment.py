@@ -183,7 +183,7 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
     if cfg.garments > 1 and (labels > 0).sum() >= cfg.garments:
         labels = _split_by_colour(labels, colour, faces, cfg.garments)
     info["garment_vertices"] = int((labels > 0).sum())
-    return labels, info | {"signed_distance": sd, "colour": colour}
+    return labels, info | {"signed_distance": sd, "colour": colour, "bridge_mask": bridge}
 
 
 def _components(mask: np.ndarray, faces: np.ndarray, n: int):

@@ -215,6 +215,7 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     BV, BF = posed[0], np.asarray(model.faces, np.int64)
 
     t = time.time()
+    bridge = None
     if cfg.segment.labels is not None:
         labels = user_labels(cfg.segment.labels, V, src_mesh)
         steps["segmentation"] = f"from {cfg.segment.labels}"
@@ -239,11 +240,14 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
             task.advance(garment=info["garment_vertices"])
         numbers["segmentation"] = {k: v for k, v in info.items() if not isinstance(v, np.ndarray)}
         numbers["_distance"] = info["signed_distance"]
+        bridge = info["bridge_mask"]
         steps["segmentation"] = "automatic: distance to the body + colour, graph cut"
     if not (labels > LABEL_BODY).any():
         raise PhysavatarError(src, "no garment found on the first-frame mesh (every vertex is within the garment "
                               "margin of the body): give --labels, or a smaller --garment-margin")
-    pieces = garment_pieces(V, F, labels, BV, BF, min_share=cfg.segment.min_piece)
+    # the garments are cut out without the hull's bridges: cloth ends at its hem
+    cut = np.where(bridge, LABEL_BODY, labels) if bridge is not None else labels
+    pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece)
     if not pieces:
         raise PhysavatarError(src, "the garment region of the first-frame mesh has no usable surface piece")
     from ...files import save_npz_atomic
