@@ -124,6 +124,7 @@ def camera_masks(images: list[Path], cfg: MaskConfig, plate: Path | None = None)
         t_b = cfg.threshold or max(3.0 * spread, cfg.min_threshold)
         if (d_bg < t_b).mean() >= cfg.border_share:
             border = (centres, t_b)
+            rounds = 0  # the border colours decide: the median is not refined
     for r in range(rounds + 1):
         dist = np.stack([_distance(im, bg) for im in stack])
         thr = cfg.threshold or max(_otsu(dist), cfg.min_threshold)
