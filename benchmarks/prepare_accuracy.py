@@ -34,10 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
-from physavatar.capture import _read_png, load_capture
-from physavatar.files import load_npz, read_ply
+from physavatar.capture import load_capture
+from physavatar.files import load_npz
 from physavatar.stages.base import to_dict
-from physavatar.stages.prepare import PrepareConfig, run as prepare
+from physavatar.stages.prepare import PrepareConfig
+from physavatar.stages.prepare import run as prepare
 from physavatar.stages.prepare.boundary import boundary_error
 from physavatar.stages.prepare.masks import mask_iou
 from physavatar.stages.prepare.mesh import surface_distance
@@ -45,7 +46,7 @@ from physavatar.stages.prepare.segment import transfer_labels
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_name  # noqa: E402
+from _common import cpu_name
 
 
 def body_fit_available() -> bool:
@@ -81,7 +82,7 @@ def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
     V, F, lab = z["vertices"], z["faces"], z["labels"]
     d = surface_distance(V, tpl.vertices, tpl.faces)
     d_back = surface_distance(tpl.vertices, V, F)
-    out["mesh"] = {"vertices": int(len(V)), "to_true_mean_mm": float(d.mean() * 1000),
+    out["mesh"] = {"vertices": len(V), "to_true_mean_mm": float(d.mean() * 1000),
                    "to_true_median_mm": float(np.median(d) * 1000), "to_true_p90_mm": float(np.percentile(d, 90) * 1000),
                    "true_to_mesh_mean_mm": float(d_back.mean() * 1000)}
     true = transfer_labels(V, tpl.vertices, tpl.faces, tpl.labels)
@@ -95,7 +96,7 @@ def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
     out["mesh"]["template_garment_to_true_median_mm"] = float(np.median(dg) * 1000)
     out["boundary"] = boundary_error(pt.vertices[pt.boundary], tpl.vertices[tpl.boundary]) | {
         "chosen": int(pt.boundary.sum()), "true": int(tpl.boundary.sum())}
-    out["template"] = {"vertices": int(len(pt.vertices)), "garment_vertices": int(pt.garment_mask.sum())}
+    out["template"] = {"vertices": len(pt.vertices), "garment_vertices": int(pt.garment_mask.sum())}
     rep = json.loads((prepared / "prepare.json").read_text())
     out["seconds"] = rep["seconds"]
     out["steps"] = rep["steps"]

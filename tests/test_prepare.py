@@ -6,19 +6,32 @@ from __future__ import annotations
 import itertools
 import os
 import shutil
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from physavatar.camera import ring_rig
-from physavatar.capture import CaptureError, is_unprepared, load_capture, unprepared_parts
+from physavatar.capture import (
+    CaptureError,
+    is_unprepared,
+    load_capture,
+    unprepared_parts,
+)
 from physavatar.errors import PhysavatarError
-from physavatar.stages.prepare import PrepareConfig, run as prepare
-from physavatar.stages.prepare.config import BoundaryConfig, MaskConfig, MeshConfig, SegmentConfig
+from physavatar.stages.prepare import PrepareConfig
+from physavatar.stages.prepare import run as prepare
+from physavatar.stages.prepare.config import (
+    MaskConfig,
+    MeshConfig,
+)
 from physavatar.stages.prepare.masks import camera_masks, mask_iou
-from physavatar.stages.prepare.mesh import make_manifold, reconstruct, remesh, surface_distance
+from physavatar.stages.prepare.mesh import (
+    make_manifold,
+    reconstruct,
+    remesh,
+    surface_distance,
+)
 from physavatar.stages.prepare.segment import graph_cut, transfer_labels
 from physavatar.stages.prepare.uv import atlas
 
@@ -79,7 +92,7 @@ def test_visual_hull_of_a_sphere():
         dist = np.linalg.norm(o + t[..., None] * d - c0, axis=-1)
         pix = np.linalg.norm(c0 - o) / c.K[0, 0]
         masks[c.name] = np.clip((r - dist) / pix + 0.5, 0, 1)
-    V, F = reconstruct(cams, masks, MeshConfig(voxel=0.01, edge_length=0.03))
+    V, _ = reconstruct(cams, masks, MeshConfig(voxel=0.01, edge_length=0.03))
     d = np.linalg.norm(V - c0, axis=1) - r
     # At the ring's height the hull is the intersection of the 6 cameras' wedges, whose tangent
     # points lie at ±(90° - asin(r / D)) from each camera's direction: the widest gap between
@@ -108,7 +121,7 @@ def test_manifold_refuses_a_pinched_surface_in_one_line():
     assert "scan.ply" in str(e.value) and "cannot be made manifold" in str(e.value) and "\n" not in str(e.value)
     # a fin (three faces on one edge) is repaired: the largest piece is kept
     V2 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], float)
-    V2f, F2 = make_manifold(V2, np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]]))
+    _, F2 = make_manifold(V2, np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]]))
     assert len(F2) == 1
 
 
@@ -126,7 +139,7 @@ def test_masks_without_plate_match_the_rendered_alpha(tiny_capture):
     cap = load_capture(tiny_capture)
     ious = []
     for c in cap.cameras[:2]:
-        ms, info = camera_masks([cap.image_path(c.name, f) for f in cap.frames], MaskConfig())
+        ms, _ = camera_masks([cap.image_path(c.name, f) for f in cap.frames], MaskConfig())
         ious += [mask_iou(m, cap.mask(c.name, f)) for m, f in zip(ms, cap.frames)]
     assert np.mean(ious) > 0.88, np.mean(ious)  # 96 px images: the edge pixels are a large share
 

@@ -45,8 +45,8 @@ def _sheet(images, names, path: Path) -> None:
 
 def write_report(cap: Capture, root: Path, steps: dict, numbers: dict, progress=None) -> Path:
     """Write ``root/prepare/report.md`` and its pictures for the prepared capture ``cap``."""
-    from .segment import visible
     from .posing import pose_body
+    from .segment import visible
 
     out = root / "prepare"
     out.mkdir(parents=True, exist_ok=True)
@@ -97,8 +97,8 @@ def write_report(cap: Capture, root: Path, steps: dict, numbers: dict, progress=
     lines += [f"| {k} | {v} |" for k, v in steps.items()]
     tpl = numbers.get("template")
     if tpl:
-        lines += ["", f"Template: {tpl['vertices']} vertices, {tpl['faces']} faces, garments {tpl['garments']}, "
-                  f"{tpl['boundary']} boundary vertices."]
+        lines += ["", (f"Template: {tpl['vertices']} vertices, {tpl['faces']} faces, garments {tpl['garments']}, "
+                       f"{tpl['boundary']} boundary vertices.")]
     if "masks" in numbers:
         lines += ["", "Masks per camera (background, threshold): " + ", ".join(
             f"{k}: {v['background']} {v['threshold']}" for k, v in numbers["masks"].items())]

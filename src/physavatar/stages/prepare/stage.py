@@ -16,8 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ...capture import (BodyPoses, Template, _load_body, _Problems, frame_name, load_capture, load_unprepared,
-                        save_cameras, save_capture_meta, save_png)
+from ...capture import (
+    BodyPoses,
+    Template,
+    _load_body,
+    _Problems,
+    frame_name,
+    load_capture,
+    load_unprepared,
+    save_cameras,
+    save_capture_meta,
+    save_png,
+)
 from ...errors import PhysavatarError
 from ...files import read_ply, write_json_atomic
 from ...labels import LABEL_BODY
@@ -60,9 +70,9 @@ def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, faces: np.ndarr
         raise PhysavatarError(src / "body.npz", "missing, and the body fitting (physavatar.stages.prepare.body_fit) "
                               "is not installed: give body.npz")
     fit_body = mod.fit_body
-    from ...body.model import BodyShape
-
     import inspect
+
+    from ...body.model import BodyShape
 
     extra = {"template_faces": faces} if "template_faces" in inspect.signature(fit_body).parameters else {}
     fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, **extra)
@@ -136,7 +146,13 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
         if labelled:
             steps["mesh"] = "given (labelled template)"
         else:
-            from .mesh import imported_mesh_path, make_manifold, read_mesh, reconstruct, remesh
+            from .mesh import (
+                imported_mesh_path,
+                make_manifold,
+                read_mesh,
+                reconstruct,
+                remesh,
+            )
 
             imp = imported_mesh_path(src, first)
             if imp is not None:
@@ -152,7 +168,7 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
                 V, F = reconstruct(raw.cameras, masks_of(first), cfg.mesh, tmp / "masks")
                 mesh_source = "visual hull"
                 steps["mesh"] = "reconstructed: visual hull of the masks, made manifold, remeshed"
-            numbers["mesh"] = {"vertices": int(len(V)), "faces": int(len(F)), "source": mesh_source}
+            numbers["mesh"] = {"vertices": len(V), "faces": len(F), "source": mesh_source}
         seconds["mesh"] = time.time() - t
 
         # -- body
@@ -287,7 +303,7 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     uvs = atlas(Vt, Ft)
     Template(Vt, Ft, np.concatenate(labs), np.concatenate(bflags), uvs).save(tmp / "template" / "mesh.ply")
     steps["uv"] = "xatlas"
-    numbers["template"] = {"vertices": int(len(Vt)), "faces": int(len(Ft)), "garments": [int(p[0]) for p in pieces],
+    numbers["template"] = {"vertices": len(Vt), "faces": len(Ft), "garments": [int(p[0]) for p in pieces],
                            "boundary": int(np.concatenate(bflags).sum())}
     seconds["uv"] = time.time() - t
 
