@@ -271,3 +271,28 @@ def test_run_plans_prepare_first(tiny_capture, tmp_path):
         if "capture" in st.inputs:
             assert st.inputs["capture"] == ("step", "prepare") and "prepare" in needs(st)
     assert plan(tiny_capture, tmp_path / "run2")[0].name != "prepare"
+
+
+def test_imported_mesh_and_labels_are_used(prepared_tiny, tiny_capture, tmp_path):
+    """A capture with its own first-frame mesh (meshes/<frame>.ply, as `physavatar import` writes
+    it) carrying labels: the mesh is remeshed, not reconstructed, and its labels are kept."""
+    import json
+
+    from physavatar.files import PlyMesh, load_npz, write_ply
+
+    z = load_npz(prepared_tiny / "prepare" / "first_frame_mesh.npz")
+    src = unprepared(tiny_capture, tmp_path / "in")
+    write_ply(src / "meshes" / "000000.ply",
+              PlyMesh(z["vertices"], z["faces"], {"label": z["labels"].astype(np.uint8)}))
+    out = prepare(src, out=tmp_path / "out", config=FAST, progress=False)
+    info = json.loads((out / "prepare.json").read_text())
+    assert info["steps"]["mesh"].startswith("imported (meshes/000000.ply)")
+    assert info["steps"]["segmentation"] == "from the imported mesh's labels"
+    got = load_npz(out / "prepare" / "first_frame_mesh.npz")
+    want = transfer_labels(got["vertices"], z["vertices"], z["faces"], z["labels"])
+    assert (got["labels"] == want).all()
+    # remeshed to the target edge length, on the imported surface
+    e = np.linalg.norm(got["vertices"][got["faces"][:, 0]] - got["vertices"][got["faces"][:, 1]], axis=1)
+    assert abs(np.mean(e) / FAST.mesh.edge_length - 1) < 0.3
+    assert surface_distance(got["vertices"], z["vertices"], z["faces"]).max() < 0.005
+    load_capture(out)
