@@ -85,6 +85,12 @@ def find_boundary(vertices: np.ndarray, faces: np.ndarray, body_frames: np.ndarr
     reach &= big
     out = np.zeros(len(vertices), bool)
     out[idx[reach[lab]]] = True
+    if cfg.grow and out.any():  # the whole hold: the contact around what was kept, in the band
+        near = np.flatnonzero(contact & (vertices[:, 2] >= top - cfg.top_band))
+        k2, lab2 = connected_components(adjacency(faces, len(vertices))[near][:, near], directed=False)
+        hit = np.zeros(k2, bool)
+        np.maximum.at(hit, lab2, out[near])
+        out[near[hit[lab2]]] = True
     info["boundary"] = int(out.sum())
     info["regions_kept"] = int(reach.sum())
     info["regions"] = int(k)

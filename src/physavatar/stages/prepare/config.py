@@ -109,6 +109,7 @@ class BoundaryConfig:
     top_band: float = setting(0.04)  # [m] contact regions must reach within this of a garment's highest contact
     frames: int = setting(12)  # frames sampled for the contact test
     min_region: int = setting(2)  # contact regions of fewer vertices are not holds
+    grow: bool = setting(True)  # a kept hold grows over the contact vertices joined to it, within the band
     inside: float = setting(0.9)  # share of cameras whose mask must hold the skinned vertex in a sampled frame
 
 
