@@ -13,6 +13,11 @@ Layout (docs/capture-format.md)::
 ``load_capture`` checks everything it reads and raises :class:`CaptureError` naming the file and
 the problem; ``validate_capture`` collects every problem instead of stopping at the first.
 Nothing is ever written into a capture folder by loading or validating.
+
+An **unprepared** capture (straight from ``physavatar import`` or a rig) has capture.json,
+cameras.json and images but lacks what ``physavatar prepare`` fills in (:data:`PREPARED_PARTS`:
+body.npz, a labelled template/mesh.ply; masks are optional anyway). Loading one fails with a
+single line that says so; ``load_unprepared`` reads and checks the parts it must have.
 """
 
 from __future__ import annotations
@@ -401,6 +406,72 @@ def _check_images(root: Path, cameras: list[Camera], frames: list[int], has_mask
                     P.add(path, f"image is {size[0]}x{size[1]} but camera {cam.name!r} is {cam.width}x{cam.height}")
 
 
+PREPARED_PARTS = ("body.npz", "template/mesh.ply")
+
+
+def unprepared_parts(root: str | Path) -> list[str]:
+    """The parts ``physavatar prepare`` fills in that the capture lacks (empty: prepared).
+    A template/mesh.ply without per-vertex labels (an imported scan) counts as missing."""
+    root = Path(root)
+    missing = [p for p in PREPARED_PARTS if not (root / p).is_file()]
+    t = root / "template" / "mesh.ply"
+    if t.is_file() and not _ply_has_property(t, "label"):
+        missing.append("labels in template/mesh.ply")
+    return missing
+
+
+def _ply_has_property(path: Path, name: str) -> bool:
+    """Whether a PLY header declares a vertex property ``name`` (reads the header only)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096).split(b"end_header")[0].decode("ascii", "replace")
+    except OSError:
+        return False
+    return any(line.split()[-1:] == [name] for line in head.splitlines() if line.startswith("property"))
+
+
+def is_unprepared(root: str | Path) -> bool:
+    """A capture folder (capture.json, cameras.json) that ``physavatar prepare`` must complete."""
+    root = Path(root)
+    return (root / "capture.json").is_file() and (root / "cameras.json").is_file() and bool(unprepared_parts(root))
+
+
+def unprepared_message(root: Path, missing: list[str]) -> str:
+    return (f"unprepared capture (no {', '.join(missing)}): run `physavatar prepare {root} OUT` first, "
+            "or `physavatar run`, which prepares it")
+
+
+@dataclass
+class RawCapture:
+    """The parts every capture has, prepared or not: what ``physavatar prepare`` starts from."""
+
+    root: Path
+    meta: dict
+    cameras: list[Camera]
+    frames: list[int]
+    has_masks: bool
+
+    def image_path(self, cam: str, frame: int) -> Path:
+        return self.root / "images" / cam / f"{frame_name(frame)}.png"
+
+    def mask_path(self, cam: str, frame: int) -> Path:
+        return self.root / "masks" / cam / f"{frame_name(frame)}.png"
+
+
+def load_unprepared(root: str | Path, deep: bool = False) -> RawCapture:
+    """Read and check capture.json, cameras.json, the images (and masks when present) of a
+    capture that may lack body.npz and the template; raise CaptureError on the first problem."""
+    root = Path(root)
+    P = _Problems(strict=True)
+    if not root.is_dir():
+        P.add(root, "capture folder not found")
+    meta = _load_meta(root, P)
+    cameras = _load_cameras(root, P)
+    has_masks = (root / "masks").is_dir()
+    _check_images(root, cameras, meta["frames"], has_masks, P, deep)
+    return RawCapture(root, meta, cameras, meta["frames"], has_masks)
+
+
 def _load(root: str | Path, strict: bool, deep: bool) -> tuple[Capture | None, list[CaptureError]]:
     root = Path(root)
     P = _Problems(strict)
@@ -410,6 +481,12 @@ def _load(root: str | Path, strict: bool, deep: bool) -> tuple[Capture | None, l
     meta = _load_meta(root, P)
     cameras = _load_cameras(root, P)
     frames = meta["frames"] if meta else None
+    missing = unprepared_parts(root)
+    if meta and cameras and missing:  # one line, not one per missing file
+        has_masks = (root / "masks").is_dir()
+        _check_images(root, cameras, frames, has_masks, P, deep)
+        P.add(root, unprepared_message(root, missing))
+        return None, P.items
     body = _load_body(root, len(frames) if frames else None, P)
     template = _load_template(root, P)
     has_masks = (root / "masks").is_dir()

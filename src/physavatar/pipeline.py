@@ -1,6 +1,6 @@
 """``physavatar run CAPTURE OUT``: the whole pipeline, in process, resumable.
 
-track -> fit-physics -> fit-appearance -> build-avatar -> animate (held-out motion) -> render ->
+(prepare, when the capture is unprepared: no body.npz or labelled template) -> track -> fit-physics -> fit-appearance -> build-avatar -> animate (held-out motion) -> render ->
 relight -> export -> evaluate. :func:`plan` lists the stages as :class:`Step` s: a stage function
 (``run(inputs..., out=, config=, progress=)`` of its module in ``stages/``), its inputs and its
 config. :func:`run` calls them in order, each writing ``OUT/<stage>/``.
@@ -86,10 +86,15 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
     """The stages of a run, in order (see the module docstring)."""
     from .stages import animate, appearance, avatar, evaluate, export, physics, render, track
 
+    from .capture import is_unprepared
+
     capture = Path(capture)
     held_file = capture / "ground_truth" / "heldout" / "motion.npz"
     motion = cfg.motion or (str(held_file) if held_file.exists() else "dance")
-    cap = {"capture": capture}
+    # An unprepared capture (straight from `physavatar import`) is prepared first; every other
+    # stage reads the prepared capture (OUT/prepare), which keeps the ground truth of a synthetic one.
+    unprepared = is_unprepared(capture)
+    cap = {"capture": ("step", "prepare") if unprepared else capture}
     steps = [
         Step("track", "physavatar.stages.track:run", track.pipeline_config(cfg.track_frames, cfg.holdout), cap, "tracked.npz"),
         # fit-appearance (Mitsuba, multi-threaded) runs beside fit-physics (single-threaded
@@ -125,7 +130,7 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
             # Another simulator's garment: no true material in this one's terms. The oracle row is
             # the material fitted on the true meshes (the model gap without tracking error).
             steps.insert(1, Step("oracle", "physavatar.stages.physics:run", physics.pipeline_config(cfg.quick),
-                                 {"source": capture}, "material.json", background=True))
+                                 {"source": cap["capture"]}, "material.json", background=True))
             inputs["oracle"] = ("step", "oracle")
         if cfg.motion is None:  # the animate stage ran the held-out motion: reuse it
             inputs["sequence"] = ("step", "animate")
@@ -135,6 +140,11 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         # Any capture: the cameras tracking held out are scored (the tracked meshes, textured and lit).
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run", evaluate.EvaluateConfig(),
                           cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track")}, "metrics.json"))
+    if unprepared:  # first of all: even the background steps read its output
+        from .stages import prepare
+
+        steps.insert(0, Step("prepare", "physavatar.stages.prepare:run", prepare.PrepareConfig(), {"capture": capture},
+                             "prepare.json"))
     for st in steps:
         st.command = _command(st, out)
     return steps
@@ -157,6 +167,8 @@ def _command(st: Step, out: Path) -> list[str]:
     """The ``physavatar`` command line equivalent to a step (shown in the report)."""
     from .stages.base import to_argv, unflagged_changes
 
+    if st.name == "prepare":  # physavatar prepare CAPTURE OUT
+        return ["prepare", str(st.inputs["capture"]), str(st.out(out))] + to_argv(st.config)
     names = {"track": "track", "appearance": "fit-appearance", "physics": "fit-physics", "avatar": "build-avatar",
              "animate": "animate", "render": "render", "relight": "render", "export": "export",
              "export-glb": "export", "references": "reference-sims", "evaluate": "evaluate", "oracle": "fit-physics"}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from ._common import app, console, err_console, handle_errors, motion_app  # noqa: F401
 from . import data, importing, track, physics, appearance, avatar, batch, view  # noqa: F401,E402,I001  (registers the commands, in this order)
+from . import prepare  # noqa: F401,E402  (physavatar prepare)
 
 
 def main():  # console-script entry point

@@ -1,0 +1,177 @@
+"""``physavatar prepare`` round trip on synthetic captures (issue 23).
+
+    python benchmarks/prepare_accuracy.py [--presets tiny,demo] [--demo PATH] [--work DIR] [--keep]
+
+For each synthetic capture (the tiny preset is built with ``physavatar synth``; the demo one is
+taken from ``--demo`` or built when missing), two cases are prepared from a copy of the capture
+(hard links): ``template`` removed (and ``body.npz`` too once the body fitting is installed), and
+the same with the ``masks`` removed as well. Measured against the capture's truth:
+
+* mask IoU per camera and frame (masks-removed case), against the rendered alpha > 0.5;
+* first-frame mesh: mean distance of the reconstructed surface's vertices to the true
+  template surface, target <= 5 mm (and the other way, which includes the body under the
+  garment that no camera sees; and the prepared template's garment vertices to the true surface);
+* segmentation: per-vertex accuracy of the reconstructed mesh's labels (body / garment) against
+  the label of the nearest true surface point, target >= 97 %;
+* boundary: mean distance of the chosen boundary vertices to the true ones, target <= 2 cm
+  (and the true ones' distance to the chosen: coverage);
+* the Anny body's vertex error per frame when it was fitted (target <= 15 mm mean).
+
+Writes benchmarks/results/prepare_accuracy.json with a ``checks`` dict.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from physavatar.capture import load_capture
+from physavatar.files import load_npz
+from physavatar.stages.base import to_dict
+from physavatar.stages.prepare import PrepareConfig
+from physavatar.stages.prepare import run as prepare
+from physavatar.stages.prepare.boundary import boundary_error
+from physavatar.stages.prepare.masks import mask_iou
+from physavatar.stages.prepare.mesh import surface_distance
+from physavatar.stages.prepare.segment import transfer_labels
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _common import cpu_name
+
+
+def body_fit_available() -> bool:
+    from physavatar.stages.prepare.config import body_fit_module
+
+    return body_fit_module() is not None
+
+
+def unprepared_copy(src: Path, dst: Path, masks: bool, body: bool) -> Path:
+    """A copy of capture ``src`` (hard links) without template/ (and masks/, body.npz when asked)."""
+    skip = {"template"} | (set() if masks else {"masks"}) | (set() if body else {"body.npz"})
+    dst.mkdir(parents=True)
+    for p in src.iterdir():
+        if p.name in skip:
+            continue
+        if p.is_dir():
+            shutil.copytree(p, dst / p.name, copy_function=os.link)
+        else:
+            os.link(p, dst / p.name)
+    return dst
+
+
+def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
+    """The numbers of one prepared capture against the original's truth."""
+    truth = load_capture(original)
+    prep = load_capture(prepared)
+    tpl = truth.template
+    out: dict = {}
+    if masks_computed:
+        ious = [mask_iou(prep.mask(c.name, f), truth.mask(c.name, f)) for c in truth.cameras for f in truth.frames]
+        out["mask_iou"] = {"mean": float(np.mean(ious)), "min": float(np.min(ious))}
+    z = load_npz(prepared / "prepare" / "first_frame_mesh.npz")
+    V, F, lab = z["vertices"], z["faces"], z["labels"]
+    d = surface_distance(V, tpl.vertices, tpl.faces)
+    d_back = surface_distance(tpl.vertices, V, F)
+    out["mesh"] = {"vertices": len(V), "to_true_mean_mm": float(d.mean() * 1000),
+                   "to_true_median_mm": float(np.median(d) * 1000), "to_true_p90_mm": float(np.percentile(d, 90) * 1000),
+                   "true_to_mesh_mean_mm": float(d_back.mean() * 1000)}
+    true = transfer_labels(V, tpl.vertices, tpl.faces, tpl.labels)
+    out["segmentation"] = {"accuracy": float(((lab > 0) == (true > 0)).mean()),
+                           "garment_as_body": int(((lab == 0) & (true > 0)).sum()),
+                           "body_as_garment": int(((lab > 0) & (true == 0)).sum())}
+    pt = prep.template
+    g = pt.labels > 0
+    dg = surface_distance(pt.vertices[g], tpl.vertices, tpl.faces)
+    out["mesh"]["template_garment_to_true_mean_mm"] = float(dg.mean() * 1000)
+    out["mesh"]["template_garment_to_true_median_mm"] = float(np.median(dg) * 1000)
+    out["boundary"] = boundary_error(pt.vertices[pt.boundary], tpl.vertices[tpl.boundary]) | {
+        "chosen": int(pt.boundary.sum()), "true": int(tpl.boundary.sum())}
+    out["template"] = {"vertices": len(pt.vertices), "garment_vertices": int(pt.garment_mask.sum())}
+    rep = json.loads((prepared / "prepare.json").read_text())
+    out["seconds"] = rep["seconds"]
+    out["steps"] = rep["steps"]
+    if rep["steps"].get("body", "").startswith("fitted"):
+        from physavatar.stages.prepare.posing import pose_body
+
+        _, Vt = pose_body(truth.body)
+        _, Vp = pose_body(prep.body)
+        if Vt.shape == Vp.shape:
+            e = np.linalg.norm(Vt - Vp, axis=-1).mean(1) * 1000
+            out["body"] = {"mean_mm_per_frame": e.tolist(), "mean_mm": float(e.mean()), "max_frame_mm": float(e.max())}
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--presets", default="tiny,demo")
+    ap.add_argument("--demo", type=Path, default=Path("/work/main/demo_out/capture"),
+                    help="an existing demo capture (built with physavatar synth when missing)")
+    ap.add_argument("--work", type=Path, default=None)
+    ap.add_argument("--keep", action="store_true")
+    args = ap.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="prepare_bench_"))
+    work.mkdir(parents=True, exist_ok=True)
+    load_start = os.getloadavg()
+    fit = body_fit_available()
+    results, checks = {}, {}
+    for preset in args.presets.split(","):
+        cap = args.demo if preset == "demo" else work / preset
+        if not (cap / "capture.json").is_file():
+            from physavatar.synth import PRESETS, synthesize
+
+            cap = work / preset
+            if not (cap / "capture.json").is_file():
+                synthesize(cap, PRESETS[preset], progress=False)
+        for case, keep_masks in (("no_template", True), ("no_template_no_masks", False)):
+            name = f"{preset}/{case}"
+            src = work / "inputs" / preset / case
+            dst = work / "prepared" / preset / case
+            shutil.rmtree(src, ignore_errors=True)
+            shutil.rmtree(dst, ignore_errors=True)
+            unprepared_copy(cap, src, masks=keep_masks, body=not fit)
+            t = time.time()
+            prepare(src, out=dst, config=PrepareConfig(), progress=False)
+            r = evaluate(cap, dst, masks_computed=not keep_masks)
+            r["wall_seconds"] = time.time() - t
+            results[name] = r
+            print(name, json.dumps({k: v for k, v in r.items() if k not in ("steps", "seconds")}, default=float))
+            checks[f"{name}/segmentation_accuracy"] = {
+                "value": r["segmentation"]["accuracy"], "target": ">= 0.97", "unit": "share of vertices",
+                "pass": bool(r["segmentation"]["accuracy"] >= 0.97)}
+            checks[f"{name}/boundary_mean_m"] = {
+                "value": r["boundary"]["chosen_to_true_mean"], "target": "<= 0.02", "unit": "m (chosen to true)",
+                "pass": bool(r["boundary"]["chosen_to_true_mean"] <= 0.02)}
+            checks[f"{name}/mesh_mean_mm"] = {
+                "value": r["mesh"]["to_true_mean_mm"], "target": "<= 5", "unit": "mm (mesh to true surface)",
+                "pass": bool(r["mesh"]["to_true_mean_mm"] <= 5)}
+            if "mask_iou" in r:
+                checks[f"{name}/mask_iou"] = {"value": r["mask_iou"]["mean"], "target": "reported", "unit": "IoU",
+                                              "pass": True}
+            if "body" in r:
+                checks[f"{name}/body_mean_mm"] = {"value": r["body"]["mean_mm"], "target": "<= 15", "unit": "mm",
+                                                  "pass": bool(r["body"]["mean_mm"] <= 15)}
+    result = {"benchmark": "prepare_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
+              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
+                          "load_average_start": list(load_start), "load_average_end": list(os.getloadavg())},
+              "config": to_dict(PrepareConfig()), "body_fit": fit, "cases": results, "checks": checks}
+    for k, c in checks.items():
+        print(f"{k:48s} {c['value']:.4f} (target {c['target']}) {'PASS' if c['pass'] else 'FAIL'}")
+    (HERE / "results").mkdir(exist_ok=True)
+    (HERE / "results" / "prepare_accuracy.json").write_text(json.dumps(result, indent=2, default=float) + "\n")
+    if not args.keep and args.work is None:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

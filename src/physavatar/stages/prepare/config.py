@@ -1,0 +1,128 @@
+"""``physavatar prepare``'s settings: one group per step (masks, mesh, segmentation, boundary).
+
+The body fit's settings (``BodyFitConfig``) belong to :mod:`.body_fit`; until that module is
+installed a placeholder group without options stands in, and the body step needs ``body.npz``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..base import option, setting
+
+
+def body_fit_module():
+    """stages/prepare/body_fit.py, or None while it is not installed. (Imported by name: it comes
+    from another branch, and a static import of a missing module reads, to the architecture
+    test, as an import of this package; once it is merged a plain import can replace this.)"""
+    name = __package__ + ".body_fit"
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        if e.name != name:  # body_fit.py is there but needs something missing: say so
+            raise
+        return None
+
+
+if body_fit_module() is not None:  # the Anny body fit (stages/prepare/body_fit.py)
+    BodyFitConfig = body_fit_module().BodyFitConfig
+else:  # pragma: no cover - depends on whether body_fit.py is installed
+    @dataclass(frozen=True)
+    class BodyFitConfig:  # type: ignore[no-redef]
+        """Placeholder while stages/prepare/body_fit.py is absent (the body step needs body.npz)."""
+
+        available: bool = setting(False)
+
+
+def _positive(v):
+    return None if v > 0 else "must be positive"
+
+
+def _fraction(v):
+    return None if 0 < v < 1 else "must be between 0 and 1"
+
+
+def _path_or_none(text: str) -> Path | None:
+    return Path(text) if text else None
+
+
+@dataclass(frozen=True)
+class MaskConfig:
+    """Foreground masks when the capture has none (stages/prepare/masks.py)."""
+
+    threshold: float = option(0.0, "colour difference to the background counted as foreground (0..1; 0 = chosen per "
+                              "camera: Otsu's method, or 3x the border colours' scatter)", flag="--mask-threshold",
+                              check=lambda v: None if 0 <= v < 1 else "must be in [0, 1)")
+    min_threshold: float = setting(0.04)  # Otsu's choice is never below this (noise in a static background)
+    open_px: int = setting(0)  # morphological opening radius (removes speckle; 0: none)
+    close_px: int = setting(1)  # closing radius (fills cracks between body parts)
+    min_area: float = setting(0.002)  # connected regions smaller than this share of the image are dropped
+    refine: int = setting(2)  # background re-estimations without the frames' foreground
+    border_share: float = setting(0.6)  # median image share explained by border colours to use them too
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    """The first-frame mesh: visual hull, manifold repair, isotropic remeshing (mesh.py)."""
+
+    voxel: float = option(0.0, "visual-hull voxel size [m] (0: a pixel's footprint, at least a third of the edge "
+                          "length, 4 mm .. 2 cm)",
+                          flag="--voxel", check=lambda v: None if v >= 0 else "must be at least 0")
+    edge_length: float = option(0.02, "target edge length of the remeshed surface [m]", flag="--edge-length",
+                                check=_positive)
+    remesh_iterations: int = setting(10)
+    view_share: float = setting(1.0)  # share of the cameras that must see a voxel (1: their common volume)
+    smooth: int = setting(3)  # Taubin smoothing passes on the marching-cubes surface (voxel staircase)
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """Body / garment labels of the first-frame mesh (segment.py)."""
+
+    labels: Path | None = option(None, "per-vertex labels instead of the automatic segmentation: a PLY with a "
+                                 "'label' property (transferred by nearest point) or a .npy/.txt with one label "
+                                 "per vertex of the capture's mesh", flag="--labels", parse=_path_or_none)
+    margin: float = option(0.008, "vertices farther than this outside the fitted body are garment [m]",
+                           flag="--garment-margin", check=_positive)
+    softness: float = setting(0.004)  # [m] width of the distance term's transition
+    distance_cap: float = setting(3.0)  # the distance term's log-odds are capped at this
+    bridge_normal: float = setting(-0.8)  # unseen vertices facing further down than this are body (hull bridges)
+    colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term
+    smoothness: float = option(1.5, "graph-cut smoothness between neighbouring vertices", flag="--segment-smoothness",
+                               check=lambda v: None if v >= 0 else "must be at least 0")
+    garments: int = option(1, "number of garments to separate by colour", flag="--garments",
+                           check=lambda v: None if 1 <= v <= 15 else "must be 1..15")
+    min_piece: float = setting(0.05)  # garment pieces smaller than this share of the garment are dropped
+
+
+@dataclass(frozen=True)
+class BoundaryConfig:
+    """Where each garment stays on the body (boundary.py)."""
+
+    file: Path | None = option(None, "boundary override: a PLY with a 'boundary' property or a .npy/.txt of "
+                               "3D points; garment vertices within one edge length of them become boundary",
+                               flag="--boundary", parse=_path_or_none)
+    contact: float = option(0.02, "a garment vertex within this distance of the body in every frame is in "
+                            "contact [m]", flag="--contact", check=_positive)
+    top_band: float = setting(0.04)  # [m] contact regions must reach within this of a garment's highest contact
+    frames: int = setting(12)  # frames sampled for the contact test
+    min_region: int = setting(2)  # contact regions of fewer vertices are not holds
+    grow: bool = setting(True)  # a kept hold grows over the contact vertices joined to it, within the band
+    inside: float = setting(0.9)  # share of cameras whose mask must hold the skinned vertex in a sampled frame
+
+
+@dataclass(frozen=True)
+class PrepareConfig:
+    """``physavatar prepare``: fill in what a capture lacks (docs/prepare.md)."""
+
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    body: BodyFitConfig = field(default_factory=BodyFitConfig)
+    segment: SegmentConfig = field(default_factory=SegmentConfig)
+    boundary: BoundaryConfig = field(default_factory=BoundaryConfig)
+    copy_images: bool = option(False, "copy the images instead of hard-linking them", flag="--copy-images")
+    report: bool = option(True, "write the preparation report (report.md and pictures)", flag="--report/--no-report",
+                          hash=False)
+    seed: int = setting(0)

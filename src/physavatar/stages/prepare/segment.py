@@ -1,0 +1,348 @@
+"""Garment segmentation of the first-frame mesh, and the garments cut out as separate pieces.
+
+Automatic labels (:func:`segment`), per vertex:
+
+* **distance** to the fitted body (signed, negative inside): a vertex farther than ``margin``
+  outside the body is garment, with a logistic transition ``softness`` wide;
+* **colour** from the first frame's images: each vertex's median colour over the cameras that
+  see it (normal towards the camera and not behind another surface point: a point z-buffer);
+  a Gaussian per class, learned from the vertices the distance already decides, gives each
+  vertex a colour log-likelihood ratio;
+* **bridges**: vertices no camera sees that face down (the hull closing the gap between a hem
+  and the legs) are split between the garment and the body by which is nearer;
+* a **graph cut** on the mesh (scipy's maximum flow): the two terms as unary costs, and a
+  smoothness cost on every mesh edge, lower between vertices of different colours, so the
+  cut follows the garment's edge.
+
+Several garments (``garments`` > 1) are told apart by colour: k-means on the garment
+vertices' colours, then a majority vote over mesh neighbours. Small pieces are given to their
+surroundings. A user's labels (``--labels``) are transferred by nearest point instead.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import PhysavatarError
+from ...geometry.mesh import adjacency, mesh_edges, vertex_normals
+from ...labels import LABEL_BODY, MAX_LABEL
+from .config import SegmentConfig
+
+SCALE = 1000  # capacities are integers for scipy's maximum flow
+
+
+# -- colour ---------------------------------------------------------------------------------------
+
+def visible(points: np.ndarray, normals: np.ndarray, cam, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """([n] bool, [n, 2] pixel positions): points facing ``cam`` and not behind another point
+    (a z-buffer of the points splatted ``spacing`` wide)."""
+    uv, z = cam.project(points)
+    uv = np.nan_to_num(uv)
+    to_cam = cam.center[None] - points
+    facing = (normals * to_cam).sum(1) > 0.1 * np.linalg.norm(to_cam, axis=1)
+    inside = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+    ok = facing & inside
+    r = max(1, int(np.ceil(cam.K[0, 0] * spacing / np.median(z[ok]) if ok.any() else 1)))
+    zbuf = np.full((cam.height, cam.width), np.inf)
+    px = np.round(uv[ok]).astype(np.int64)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            x = np.clip(px[:, 0] + dx, 0, cam.width - 1)
+            y = np.clip(px[:, 1] + dy, 0, cam.height - 1)
+            np.minimum.at(zbuf, (y, x), z[ok])
+    vis = np.zeros(len(points), bool)
+    vis[ok] = z[ok] <= zbuf[px[:, 1], px[:, 0]] + 2.0 * spacing
+    return vis, uv
+
+
+def vertex_colours(vertices: np.ndarray, faces: np.ndarray, cameras: list, images: dict[str, np.ndarray],
+                   spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """([V, 3] median colour over the cameras that see each vertex, [V] how many do)."""
+    N = vertex_normals(vertices, faces)
+    samples = np.full((len(cameras), len(vertices), 3), np.nan)
+    for i, c in enumerate(cameras):
+        vis, uv = visible(vertices, N, c, spacing)
+        img = images[c.name]
+        x = np.clip(np.round(uv[vis, 0]).astype(int), 0, c.width - 1)
+        y = np.clip(np.round(uv[vis, 1]).astype(int), 0, c.height - 1)
+        samples[i, vis] = img[y, x]
+    seen = np.isfinite(samples[..., 0]).sum(0)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            col = np.nanmedian(samples, axis=0)
+    return np.nan_to_num(col, nan=0.5), seen
+
+
+def _mixture_loglik(x: np.ndarray, sel: np.ndarray, k: int = 3) -> np.ndarray:
+    """[n] log-likelihood of ``x`` under a mixture of ``k`` Gaussians fitted to ``x[sel]`` (k-means
+    clusters, each its own Gaussian, weighted by its size): a patterned garment has several colours."""
+    import cv2
+
+    data = x[sel].astype(np.float32)
+    k = max(1, min(k, len(data) // 20))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-4)
+    cv2.setRNGSeed(0)
+    _, lab, _ = cv2.kmeans(data, k, None, crit, 3, cv2.KMEANS_PP_CENTERS)
+    lab = lab.ravel()
+    terms = []
+    for j in range(k):
+        m = data[lab == j]
+        if len(m) < 4:
+            continue
+        mu = m.mean(0)
+        cov = np.cov(m.T) + np.eye(x.shape[1]) * 1e-3
+        inv = np.linalg.inv(cov)
+        d = x - mu
+        terms.append(np.log(len(m) / len(data)) - 0.5 * np.einsum("ni,ij,nj->n", d, inv, d)
+                     - 0.5 * np.log(np.linalg.det(cov)))
+    T = np.stack(terms)
+    top = T.max(0)
+    return top + np.log(np.exp(T - top).sum(0))
+
+
+# -- graph cut ------------------------------------------------------------------------------------
+
+def graph_cut(cost_fg: np.ndarray, cost_bg: np.ndarray, edges: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """[V] bool, True = foreground (garment): the labelling of least total unary cost
+    (``cost_fg`` where labelled foreground, ``cost_bg`` where not) plus ``weights`` of the edges
+    cut, by a minimum s-t cut (scipy.sparse.csgraph.maximum_flow)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, maximum_flow
+
+    n = len(cost_fg)
+    s, t = n, n + 1
+    shift = np.minimum(cost_fg, cost_bg)
+    cap_s = np.round((cost_bg - shift) * SCALE).astype(np.int64)  # cut when labelled background
+    cap_t = np.round((cost_fg - shift) * SCALE).astype(np.int64)  # cut when labelled foreground
+    w = np.round(weights * SCALE).astype(np.int64)
+    rows = np.concatenate([np.full(n, s), np.arange(n), edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([np.arange(n), np.full(n, t), edges[:, 1], edges[:, 0]])
+    caps = np.concatenate([cap_s, cap_t, w, w]).astype(np.int32)
+    keep = caps > 0
+    G = coo_matrix((caps[keep], (rows[keep], cols[keep])), shape=(n + 2, n + 2)).tocsr()
+    G.sum_duplicates()
+    flow = maximum_flow(G, s, t).flow
+    residual = (G - flow).tocsr()
+    residual.data = np.where(residual.data > 0, 1, 0).astype(np.int32)
+    residual.eliminate_zeros()
+    reach = breadth_first_order(residual, s, directed=True, return_predecessors=False)
+    fg = np.zeros(n + 2, bool)
+    fg[reach] = True
+    return fg[:n]
+
+
+# -- labelling ------------------------------------------------------------------------------------
+
+def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray,
+            cameras: list, images: dict[str, np.ndarray], cfg: SegmentConfig, spacing: float) -> tuple[np.ndarray, dict]:
+    """[V] labels (0 body, 1.. garment) of the first-frame mesh, and the numbers behind them."""
+    from ...geometry.closest import MeshQuery
+
+    sd, _, _ = MeshQuery(body_vertices, body_faces, spacing=0.02).signed_distance(vertices)
+    z = np.clip((sd - cfg.margin) / cfg.softness, -30, 30)
+    # log p(garment) / p(body) from the distance, capped: near the body (a strap, a tight top) or
+    # where the hull bulges out between limbs, the colour must be able to overrule it
+    logit = np.clip(z, -cfg.distance_cap, cfg.distance_cap)
+    colour, seen = vertex_colours(vertices, faces, cameras, images, spacing)
+    g_seed, b_seed = (z > 2) & (seen > 0), (z < -2) & (seen > 0)
+    info = {"distance_garment": int((z > 0).sum()), "colour_used": False}
+    if cfg.colour_weight > 0 and g_seed.sum() >= 20 and b_seed.sum() >= 20:
+        base = logit
+        for _ in range(2):  # the colour models from the distance's seeds, then from their own result
+            llr = np.clip(_mixture_loglik(colour, g_seed) - _mixture_loglik(colour, b_seed), -6, 6)
+            logit = base + cfg.colour_weight * np.where(seen > 0, llr, 0.0)
+            g_seed, b_seed = (logit > 2) & (seen > 0), (logit < -2) & (seen > 0)
+            if g_seed.sum() < 20 or b_seed.sum() < 20:
+                break
+        info["colour_used"] = True
+    N = vertex_normals(vertices, faces)
+    # unseen and facing down: the hull closing a gap no camera looks into (a hem to the legs)
+    bridge = (seen == 0) & (N[:, 2] < cfg.bridge_normal)
+    logit = np.where(bridge, -cfg.distance_cap, logit)
+    info["bridge"] = int(bridge.sum())
+    p = 1 / (1 + np.exp(-np.clip(logit, -30, 30)))
+    cost_g, cost_b = -np.log(np.maximum(p, 1e-6)), -np.log(np.maximum(1 - p, 1e-6))
+    E = mesh_edges(faces)
+    dc = np.linalg.norm(colour[E[:, 0]] - colour[E[:, 1]], axis=1)
+    sigma = max(float(np.median(dc)), 1e-3)
+    w = cfg.smoothness * np.exp(-(dc / (2 * sigma)) ** 2)
+    garment = graph_cut(cost_g, cost_b, E, w) if cfg.smoothness > 0 else p > 0.5
+    if bridge.any() and (garment & ~bridge).any():
+        # a bridge is split where it is nearer the seen garment than the body
+        from scipy.spatial import cKDTree
+
+        dg, _ = cKDTree(vertices[garment & ~bridge]).query(vertices[bridge])
+        garment[bridge] = dg < np.abs(sd[bridge])
+    labels = np.where(garment, 1, LABEL_BODY).astype(np.int64)
+    labels = _drop_small(labels, faces, len(vertices), cfg.min_piece)
+    if cfg.garments > 1 and (labels > 0).sum() >= cfg.garments:
+        labels = _split_by_colour(labels, colour, faces, cfg.garments)
+    info["garment_vertices"] = int((labels > 0).sum())
+    return labels, info | {"signed_distance": sd, "colour": colour, "bridge_mask": bridge}
+
+
+def _components(mask: np.ndarray, faces: np.ndarray, n: int):
+    from scipy.sparse.csgraph import connected_components
+
+    A = adjacency(faces, n)
+    sub = A[mask][:, mask]
+    k, lab = connected_components(sub, directed=False)
+    return k, lab
+
+
+def _drop_small(labels: np.ndarray, faces: np.ndarray, n: int, share: float) -> np.ndarray:
+    """Garment pieces and body islands smaller than ``share`` of the garment given to their
+    surroundings."""
+    out = labels.copy()
+    total = max(int((labels > 0).sum()), 1)
+    for value, other in ((1, LABEL_BODY), (LABEL_BODY, 1)):
+        mask = (out > 0) if value else (out == LABEL_BODY)
+        if not mask.any():
+            continue
+        k, lab = _components(mask, faces, n)
+        sizes = np.bincount(lab, minlength=k)
+        idx = np.flatnonzero(mask)
+        if value:
+            small = sizes < share * total
+            if small.all():
+                small[np.argmax(sizes)] = False
+        else:
+            small = (sizes < share * total) & (sizes < sizes.max())
+        out[idx[small[lab]]] = other
+    return out
+
+
+def _split_by_colour(labels: np.ndarray, colour: np.ndarray, faces: np.ndarray, k: int) -> np.ndarray:
+    import cv2
+
+    g = np.flatnonzero(labels > 0)
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-4)
+    cv2.setRNGSeed(0)
+    _, lab, centres = cv2.kmeans(colour[g].astype(np.float32), k, None, crit, 4, cv2.KMEANS_PP_CENTERS)
+    order = np.argsort(-centres[:, 1])  # stable numbering: by the centres' brightness
+    rank = np.empty(k, np.int64)
+    rank[order] = np.arange(k)
+    out = labels.copy()
+    out[g] = rank[lab.ravel()] + 1
+    A = adjacency(faces, len(labels)).tocsr()
+    for _ in range(5):  # majority of the neighbours (garment ones)
+        onehot = np.zeros((len(labels), k + 1))
+        onehot[np.arange(len(labels)), out] = 1
+        votes = A @ onehot + onehot
+        votes[:, 0] = -1
+        new = np.where(out > 0, votes.argmax(1), 0)
+        if (new == out).all():
+            break
+        out = new
+    return out
+
+
+def transfer_labels(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray | None, values: np.ndarray) -> np.ndarray:
+    """Per-point values of the nearest vertex of another mesh's ``vertices`` (the nearest
+    triangle's nearest corner when ``faces`` are given)."""
+    if faces is not None and len(faces):
+        from ...geometry.closest import MeshQuery
+
+        _, f, w, _ = MeshQuery(vertices, faces, spacing=0.02).closest(points)
+        corner = faces[f, np.argmax(w, axis=1)]
+        return np.asarray(values)[corner]
+    from scipy.spatial import cKDTree
+
+    _, i = cKDTree(vertices).query(points)
+    return np.asarray(values)[i]
+
+
+def user_labels(path: Path, vertices: np.ndarray, source: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """Labels from a user's file (see ``--labels``) for the mesh ``vertices``; ``source`` is the
+    capture's own mesh (vertices, faces) a .npy/.txt file numbers."""
+    from ...files import read_ply
+
+    path = Path(path)
+    if not path.is_file():
+        raise PhysavatarError(path, "labels file not found")
+    if path.suffix.lower() == ".ply":
+        ply = read_ply(path)
+        if "label" not in ply.vertex_data:
+            raise PhysavatarError(path, "PLY has no per-vertex 'label' property")
+        lab = np.asarray(ply.vertex_data["label"]).astype(np.int64)
+        src_v, src_f = ply.vertices, ply.faces
+    else:
+        try:
+            lab = np.load(path) if path.suffix.lower() == ".npy" else np.loadtxt(path)
+        except Exception as e:  # noqa: BLE001 - any parse failure is the file's problem
+            raise PhysavatarError(path, f"unreadable labels ({type(e).__name__})") from None
+        lab = np.asarray(lab).astype(np.int64).ravel()
+        if source is None:
+            raise PhysavatarError(path, "a .npy/.txt labels file numbers the capture's own mesh (meshes/<first "
+                                  "frame>.ply), which this capture lacks: give a PLY with a 'label' property")
+        if len(lab) != len(source[0]):
+            raise PhysavatarError(path, f"has {len(lab)} labels but the capture's mesh has {len(source[0])} vertices")
+        src_v, src_f = source
+    if lab.min() < 0 or lab.max() > MAX_LABEL:
+        raise PhysavatarError(path, f"labels must be 0 (body) .. {MAX_LABEL}, found {lab.min()}..{lab.max()}")
+    if not (lab > 0).any():
+        raise PhysavatarError(path, "no garment vertices (every label is 0)")
+    return transfer_labels(vertices, src_v, src_f, lab)
+
+
+# -- the garments as separate pieces -------------------------------------------------------------
+
+def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, body_vertices: np.ndarray,
+                   body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05
+                   ) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """[(label, vertices [n, 3], faces [m, 3])] one open surface per garment label: the faces
+    whose corners all carry it, without bow-tie vertices or small pieces, every vertex at least
+    ``clearance`` outside the body (moved along the body's normal when not)."""
+    from ...capture import check_template_mesh
+    from ...geometry.closest import MeshQuery
+
+    q = MeshQuery(body_vertices, body_faces, spacing=0.02)
+    out = []
+    for g in sorted(set(labels.tolist()) - {LABEL_BODY}):
+        keep = (labels[faces] == g).all(1)
+        for _ in range(10):  # faces at a vertex joining separate fans go, until none is left
+            ids, F = _face_submesh(faces, keep)
+            V = vertices[ids]
+            bad = _bowtie_vertices(F, len(V))
+            if not len(bad):
+                break
+            fk = np.flatnonzero(keep)
+            keep[fk[np.isin(F, bad).any(1)]] = False
+        if not keep.any():
+            continue
+        ids, F = _face_submesh(faces, keep)
+        V = vertices[ids].copy()
+        k, lab = _components(np.ones(len(V), bool), F, len(V))
+        sizes = np.bincount(lab, minlength=k)
+        big = sizes >= min_share * sizes.sum()
+        if not big.all():
+            ids2, F = _face_submesh(F, big[lab[F[:, 0]]])
+            V = V[ids2]
+        sd, qp, n = q.signed_distance(V)
+        inside = sd < clearance
+        V[inside] = qp[inside] + clearance * n[inside]
+        problems = [p for p in check_template_mesh(V, F) if "non-manifold" in p]
+        if problems:
+            continue
+        out.append((g, V, F))
+    return out
+
+
+def _bowtie_vertices(F: np.ndarray, n: int) -> np.ndarray:
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(e, axis=0, return_counts=True)
+    per_vertex = np.bincount(uniq[counts == 1].ravel(), minlength=n)
+    over = np.bincount(uniq[counts > 2].ravel(), minlength=n)
+    return np.flatnonzero((per_vertex > 2) | (over > 0))
+
+
+def _face_submesh(faces: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(vertex ids, faces re-indexed on them) of the faces where ``keep`` [F] is true."""
+    F = faces[keep]
+    ids, inv = np.unique(F.ravel(), return_inverse=True)
+    return ids, inv.reshape(-1, 3)

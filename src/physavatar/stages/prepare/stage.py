@@ -1,0 +1,320 @@
+"""``physavatar prepare CAPTURE OUT``: fill in what a capture lacks, each step skipped when its
+output is given, and write a capture that ``inspect`` accepts and ``run`` uses.
+
+Steps, in order (docs/prepare.md): images (hard-linked), masks, the first-frame mesh, the Anny
+body of every frame, garment segmentation, boundary vertices, UVs, the template, the ground
+truth of a synthetic capture, the report. Everything is written into ``.OUT.preparing`` next to
+``OUT`` and renamed at the end, so a failed run leaves nothing half written.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ...capture import (
+    BodyPoses,
+    Template,
+    _load_body,
+    _Problems,
+    frame_name,
+    load_capture,
+    load_unprepared,
+    save_cameras,
+    save_capture_meta,
+    save_png,
+)
+from ...errors import PhysavatarError
+from ...files import read_ply, write_json_atomic
+from ...labels import LABEL_BODY
+from ..base import to_dict
+from .config import PrepareConfig
+from .posing import pose_body
+from .truth import carry_truth, link_file, link_tree
+
+CORE_META = ("format_version", "fps", "frames", "units", "up")
+
+
+def _work_dir(out: Path) -> Path:
+    if out.exists() and any(out.iterdir()) and not (out / "prepare.json").is_file():
+        raise PhysavatarError(out, "output folder exists and is not empty (choose another or remove it)")
+    tmp = out.parent / f".{out.name}.preparing"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    return tmp
+
+
+def _finish(tmp: Path, out: Path) -> None:
+    if out.exists():
+        shutil.rmtree(out)  # empty, or an earlier prepare output (checked in _work_dir)
+    os.replace(tmp, out)
+
+
+def _read_mask(path: Path) -> np.ndarray:
+    from ...capture import _read_png
+
+    return _read_png(path, "L")
+
+
+def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, faces: np.ndarray | None, cfg: PrepareConfig,
+              progress) -> tuple[BodyPoses, dict]:
+    from .config import body_fit_module
+
+    mod = body_fit_module()
+    if mod is None:
+        raise PhysavatarError(src / "body.npz", "missing, and the body fitting (physavatar.stages.prepare.body_fit) "
+                              "is not installed: give body.npz")
+    fit_body = mod.fit_body
+    import inspect
+
+    from ...body.model import BodyShape
+
+    extra = {"template_faces": faces} if "template_faces" in inspect.signature(fit_body).parameters else {}
+    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, **extra)
+    poses = BodyPoses(BodyShape.from_array(np.asarray(fit.shape)), [str(b) for b in fit.bone_names],
+                      np.asarray(fit.rotations, np.float64), np.asarray(fit.root_translation, np.float64),
+                      str(fit.topology))
+    return poses, dict(getattr(fit, "report", {}) or {})
+
+
+def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = PrepareConfig(), progress=None) -> Path:
+    """Prepare ``capture`` into ``out`` (a new capture folder); returns ``out``."""
+    from ...progress import resolve
+
+    src, out = Path(capture), Path(out)
+    cfg = config
+    raw = load_unprepared(src)
+    if src.resolve() == out.resolve():
+        raise PhysavatarError(out, "the output must be a new folder, not the capture itself")
+    prog = resolve(progress)
+    tmp = _work_dir(out)
+    t_all = time.time()
+    steps: dict[str, str] = {}
+    numbers: dict = {}
+    seconds: dict[str, float] = {}
+    try:
+        t = time.time()
+        n_img = 0
+        for c in raw.cameras:
+            for f in raw.frames:
+                link_file(raw.image_path(c.name, f), tmp / "images" / c.name / f"{frame_name(f)}.png", cfg.copy_images)
+                n_img += 1
+        if (src / "background").is_dir():
+            link_tree(src / "background", tmp / "background", cfg.copy_images)
+        if (src / "meshes").is_dir():
+            link_tree(src / "meshes", tmp / "meshes", cfg.copy_images)
+        save_cameras(tmp, raw.cameras)
+        extra = {k: v for k, v in raw.meta.items() if k not in CORE_META}
+        save_capture_meta(tmp, fps=raw.meta["fps"], frames=raw.frames, extra=extra)
+        steps["images"] = f"{n_img} images {'copied' if cfg.copy_images else 'linked'}"
+        seconds["images"] = time.time() - t
+
+        # -- masks
+        t = time.time()
+        if raw.has_masks:
+            for c in raw.cameras:
+                for f in raw.frames:
+                    link_file(raw.mask_path(c.name, f), tmp / "masks" / c.name / f"{frame_name(f)}.png", cfg.copy_images)
+            steps["masks"] = "given"
+        else:
+            from .masks import estimate_masks
+
+            masks, info = estimate_masks(src, raw.cameras, raw.frames, cfg.masks, prog)
+            for c in raw.cameras:
+                for f, m in zip(raw.frames, masks[c.name]):
+                    save_png(tmp / "masks" / c.name / f"{frame_name(f)}.png", m.astype(np.uint8) * 255)
+            numbers["masks"] = {k: {"background": v["background"], "threshold": v["threshold"]} for k, v in info.items()}
+            kinds = sorted({v["background"] for v in info.values()})
+            steps["masks"] = "computed: background differencing (" + ", ".join(kinds) + ")"
+        seconds["masks"] = time.time() - t
+
+        def masks_of(frame: int) -> dict[str, np.ndarray]:
+            return {c.name: _read_mask(tmp / "masks" / c.name / f"{frame_name(frame)}.png") for c in raw.cameras}
+
+        first = raw.frames[0]
+        given_template = src / "template" / "mesh.ply"
+        labelled = given_template.is_file() and "label" in read_ply(given_template).vertex_data
+
+        # -- first-frame mesh
+        t = time.time()
+        mesh_source, src_mesh, src_labels = None, None, None
+        if labelled:
+            steps["mesh"] = "given (labelled template)"
+        else:
+            from .mesh import (
+                imported_mesh_path,
+                make_manifold,
+                read_mesh,
+                reconstruct,
+                remesh,
+            )
+
+            imp = imported_mesh_path(src, first)
+            if imp is not None:
+                V0, F0, data = read_mesh(imp)
+                src_mesh = (V0, F0)
+                if "label" in data:
+                    src_labels = np.asarray(data["label"]).astype(np.int64)
+                V, F = make_manifold(V0, F0, imp)
+                V, F = remesh(V, F, cfg.mesh, imp)
+                mesh_source = str(imp.relative_to(src))
+                steps["mesh"] = f"imported ({mesh_source}), made manifold, remeshed"
+            else:
+                V, F = reconstruct(raw.cameras, masks_of(first), cfg.mesh, tmp / "masks")
+                mesh_source = "visual hull"
+                steps["mesh"] = "reconstructed: visual hull of the masks, made manifold, remeshed"
+            numbers["mesh"] = {"vertices": len(V), "faces": len(F), "source": mesh_source}
+        seconds["mesh"] = time.time() - t
+
+        # -- body
+        t = time.time()
+        if (src / "body.npz").is_file():
+            link_file(src / "body.npz", tmp / "body.npz", True)
+            body = _load_body(tmp, len(raw.frames), _Problems(strict=True))
+            steps["body"] = "given"
+        else:
+            body, numbers["body"] = _fit_body(src, tmp, None if labelled else V, None if labelled else F, cfg, prog)
+            body.save(tmp / "body.npz")
+            steps["body"] = "fitted (Anny, every frame)"
+        seconds["body"] = time.time() - t
+
+        # -- segmentation, boundary, UVs, template
+        if labelled:
+            link_file(given_template, tmp / "template" / "mesh.ply", True)
+            for k in ("segmentation", "boundary", "uv"):
+                steps[k] = "given"
+        else:
+            _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog)
+
+        if (src / "ground_truth").is_dir():
+            t = time.time()
+            tpl = read_ply(tmp / "template" / "mesh.ply")
+            numbers["ground_truth"] = carry_truth(src / "ground_truth", tmp / "ground_truth", tpl.vertices, tpl.faces,
+                                                  np.asarray(tpl.vertex_data["label"]).astype(np.int64))
+            seconds["ground_truth"] = time.time() - t
+
+        extra["prepared"] = {"from": str(src.resolve()), "steps": steps}
+        save_capture_meta(tmp, fps=raw.meta["fps"], frames=raw.frames, extra=extra)
+        cap = load_capture(tmp)  # what run will read: checked before anything is renamed
+        if cfg.report:
+            t = time.time()
+            from .report import write_report
+
+            write_report(cap, tmp, steps, numbers, prog)
+            seconds["report"] = time.time() - t
+        seconds["total"] = time.time() - t_all
+        write_json_atomic(tmp / "prepare.json", {"capture": str(src), "steps": steps,
+                                                 "seconds": {k: round(v, 2) for k, v in seconds.items()},
+                                                 "numbers": _jsonable(numbers), "config": to_dict(cfg)})
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    _finish(tmp, out)
+    return out
+
+
+def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog):
+    """Segmentation, garment pieces, boundary and UVs; writes template/mesh.ply."""
+    from .boundary import boundary_from_points, boundary_points, find_boundary
+    from .segment import garment_pieces, segment, transfer_labels, user_labels
+    from .uv import atlas
+
+    first = raw.frames[0]
+    T = len(raw.frames)
+    sample = sorted(set(np.linspace(0, T - 1, min(T, max(cfg.boundary.frames, 2))).round().astype(int).tolist()) | {0})
+    model, posed = pose_body(body, sample)
+    BV, BF = posed[0], np.asarray(model.faces, np.int64)
+
+    t = time.time()
+    bridge = None
+    if cfg.segment.labels is not None:
+        labels = user_labels(cfg.segment.labels, V, src_mesh)
+        steps["segmentation"] = f"from {cfg.segment.labels}"
+    elif src_labels is not None and src_mesh is not None and (src_labels > 0).any():
+        labels = transfer_labels(V, src_mesh[0], src_mesh[1], np.clip(src_labels, 0, 15))
+        steps["segmentation"] = "from the imported mesh's labels"
+    else:
+        from ...capture import _read_png
+
+        images = {c.name: _read_png(raw.image_path(c.name, first), "RGB") for c in raw.cameras}
+        seg = cfg.segment
+        if src_mesh is None:  # a visual hull is off by up to a pixel: the margin is at least that
+            from dataclasses import replace
+
+            from .mesh import pixel_footprint
+
+            foot = pixel_footprint(raw.cameras, V.mean(0))
+            seg = replace(seg, margin=max(seg.margin, foot), softness=max(seg.softness, foot / 3))
+            numbers["segmentation_margin"] = round(seg.margin, 4)
+        with prog.task("prepare: segmentation", total=1) as task:
+            labels, info = segment(V, F, BV, BF, raw.cameras, images, seg, cfg.mesh.edge_length)
+            task.advance(garment=info["garment_vertices"])
+        numbers["segmentation"] = {k: v for k, v in info.items() if not isinstance(v, np.ndarray)}
+        numbers["_distance"] = info["signed_distance"]
+        bridge = info["bridge_mask"]
+        steps["segmentation"] = "automatic: distance to the body + colour, graph cut"
+    if not (labels > LABEL_BODY).any():
+        raise PhysavatarError(src, "no garment found on the first-frame mesh (every vertex is within the garment "
+                              "margin of the body): give --labels, or a smaller --garment-margin")
+    # the garments are cut out without the hull's bridges: cloth ends at its hem
+    cut = np.where(bridge, LABEL_BODY, labels) if bridge is not None else labels
+    pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece)
+    if not pieces:
+        raise PhysavatarError(src, "the garment region of the first-frame mesh has no usable surface piece")
+    from ...files import save_npz_atomic
+
+    save_npz_atomic(tmp / "prepare" / "first_frame_mesh.npz", vertices=V, faces=F, labels=labels)
+    seconds["segmentation"] = time.time() - t
+
+    t = time.time()
+    bnd = []
+    info_b = {}
+    override = boundary_points(cfg.boundary.file) if cfg.boundary.file is not None else None
+    with prog.task("prepare: boundary", total=len(pieces)) as task:
+        for g, Vg, Fg in pieces:
+            if override is not None:
+                b = boundary_from_points(Vg, override, cfg.mesh.edge_length)
+                if not b.any():
+                    raise PhysavatarError(cfg.boundary.file, f"no vertex of garment {g} is within "
+                                          f"{cfg.mesh.edge_length} m of the boundary points")
+            else:
+                b, info_b[str(g)] = find_boundary(Vg, Fg, posed, BF, raw.cameras,
+                                                  lambda i: masks_of(raw.frames[sample[i]]), sample, cfg.boundary)
+            bnd.append(b)
+            task.advance(garment=g, boundary=int(b.sum()))
+    steps["boundary"] = f"from {cfg.boundary.file}" if override is not None else "automatic: contact with the body over the frames"
+    numbers["boundary"] = info_b
+    seconds["boundary"] = time.time() - t
+
+    t = time.time()
+    verts, faces, labs, bflags, n = [BV], [BF], [np.zeros(len(BV), np.int64)], [np.zeros(len(BV), bool)], len(BV)
+    for (g, Vg, Fg), b in zip(pieces, bnd):
+        verts.append(Vg)
+        faces.append(Fg + n)
+        labs.append(np.full(len(Vg), g, np.int64))
+        bflags.append(b)
+        n += len(Vg)
+    Vt, Ft = np.concatenate(verts), np.concatenate(faces)
+    uvs = atlas(Vt, Ft)
+    Template(Vt, Ft, np.concatenate(labs), np.concatenate(bflags), uvs).save(tmp / "template" / "mesh.ply")
+    steps["uv"] = "xatlas"
+    numbers["template"] = {"vertices": len(Vt), "faces": len(Ft), "garments": [int(p[0]) for p in pieces],
+                           "boundary": int(np.concatenate(bflags).sum())}
+    seconds["uv"] = time.time() - t
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items() if not str(k).startswith("_")}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return None
+    if isinstance(x, (np.integer, np.floating)):
+        return x.item()
+    return x
