@@ -1,0 +1,222 @@
+"""Every motion, every frame: the dress simulated on a suite of motions, checked frame by frame.
+
+The motions: the built-in ones, both CMU clips (``shared/data/motions/cmu_131_0{1,3}.bvh``,
+arm clearance applied as ``simulate`` does), and synthetic stress motions (a high jump, a spin
+at 2 turns/s, the hands pressed to the hips, a sit-down where the thighs fold into the lap).
+Each runs through ``physavatar simulate``'s stage (stages.simulate.run: the built-in dress on
+Anny's collider body, cotton, sub-steps decided per frame, frames written as finished) and is
+checked on every written frame: lag (the body stopped short of its pose, the step gave up),
+garment-body intersection (ipctk, as ``simulate`` checks), garment self-intersection (ipctk on
+the garment alone), NaN.
+
+By default a quick run (a few minutes on 2 cores): a 4-cm dress, 1-s excerpts (the CMU clips'
+hops and strides), a 0.4-s warm-up. ``--full``: the 2-cm dress, the clips whole, 4 s of each
+built-in motion, a 1-s warm-up. ``--max-substeps 1`` runs the old fixed one step per frame.
+
+    python benchmarks/motion_suite.py [--full] [--only NAME ...] [--max-substeps N] [--out FILE]
+
+Prints a table and writes benchmarks/results/motion_suite.json (``checks``: per motion, lag,
+intersection and NaN frames must all be 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "2")
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np  # noqa: E402
+
+from _common import cpu_name  # noqa: E402
+from physavatar.body import BUILTIN, BodyModel, Motion  # noqa: E402
+from physavatar.body.load import load_motion, with_arm_clearance  # noqa: E402
+from physavatar.body.motion import _x, _y, _z, bone_vertex_mask  # noqa: E402
+from physavatar.data.garment_sequence import GarmentSequence  # noqa: E402
+from physavatar.stages import simulate as simulate_stage  # noqa: E402
+
+MOTIONS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "motions"
+CLIPS = {"cmu-walk": ("cmu_131_01.bvh", 20), "cmu-hop": ("cmu_131_03.bvh", 45)}  # quick: 1 s from this frame
+
+
+def _ramp(t, t0, t1):
+    s = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
+    return s * s * (3 - 2 * s)
+
+
+def _hands_on_hips_angle(body: BodyModel, target: float = 0.01) -> float:
+    """Shoulder angle (about world y, left arm; mirrored right) that brings the left hand to
+    ``target`` [m] of the hips: the smallest angle where the hand is that close."""
+    names = body.bone_names
+    idx = {n: i for i, n in enumerate(names)}
+    hand = bone_vertex_mask(body, [n for n in names if n.startswith(("hand", "finger", "wrist", "metacarpal", "thumb"))
+                                   and n.endswith(".L")])
+    hips = bone_vertex_mask(body, [n for n in names if n.startswith(("root", "pelvis", "upperleg"))])
+    from scipy.spatial import cKDTree
+
+    best = 0.0
+    for sign in (1.0, -1.0):
+        for a in np.linspace(0.05, 1.2, 24):
+            r = np.zeros((1, len(names), 3))
+            r[0, idx["upperarm01.L"]] = [0, sign * a, 0]
+            V = body.pose(r, np.zeros((1, 3))).vertices[0]
+            d = cKDTree(V[hips]).query(V[hand])[0].min()
+            if d <= target:
+                return sign * a
+            best = best if best else 0.0
+    return 0.35
+
+
+def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Motion]:
+    """The synthetic stress motions (Anny collider bones)."""
+    names = body.bone_names
+    n = int(round(duration * fps)) + 1
+    t = np.arange(n) / fps
+    out = {}
+
+    def motion(name, rot_by_bone, tr):
+        R = np.zeros((n, len(names), 3))
+        for b, r in rot_by_bone.items():
+            R[:, names.index(b)] = r
+        out[name] = Motion(name, fps, names, R, tr, {"source": "motion_suite"})
+
+    # a spin at 2 turns/s about the vertical (after a 0.25-s ease-in: 28.8° a frame at 25 fps)
+    e = _ramp(t, 0, 0.25)
+    ang = 2 * np.pi * 2.0 * np.cumsum(e) / fps
+    motion("spin-2tps", {"root": _z(ang)}, np.zeros((n, 3)))
+    # a high jump: crouch, 0.3-m ballistic flight with the knees tucked, landing (0.1 m a frame)
+    crouch = np.sin(np.pi * np.clip(t / 0.3, 0, 1)) * (t < 0.3)
+    flight = (t >= 0.3) & (t < 0.3 + 0.5)
+    tf = np.clip(t - 0.3, 0, 0.5)
+    z = np.where(flight, 2.45 * tf - 0.5 * 9.81 * tf**2, 0.0)
+    tuck = np.sin(np.pi * tf / 0.5) * flight
+    land = np.sin(np.pi * np.clip((t - 0.8) / 0.3, 0, 1)) * (t >= 0.8)
+    bend = crouch + 0.7 * land
+    tr = np.zeros((n, 3))
+    tr[:, 2] = z - 0.12 * bend
+    motion("jump-high", {"upperleg01.L": _x(-0.7 * bend - 0.9 * tuck), "upperleg01.R": _x(-0.7 * bend - 0.9 * tuck),
+                         "lowerleg01.L": _x(1.3 * bend + 1.2 * tuck), "lowerleg01.R": _x(1.3 * bend + 1.2 * tuck),
+                         "upperarm01.L": _y(-0.6 * tuck), "upperarm01.R": _y(0.6 * tuck)}, tr)
+    # the hands brought to the hips in 0.4 s and pressed there (1 cm), with a small sway
+    a = _hands_on_hips_angle(body)
+    e = _ramp(t, 0, 0.4)
+    sway = 0.05 * np.sin(2 * np.pi * 1.5 * t) * e
+    motion("hands-on-hips", {"upperarm01.L": _y(a * e), "upperarm01.R": _y(-a * e),
+                             "spine03": _z(sway)}, np.zeros((n, 3)))
+    # sitting down in 0.8 s: the thighs fold up into the lap (hips flexed 85°, knees 90°)
+    s = _ramp(t, 0.1, 0.9)
+    tr = np.zeros((n, 3))
+    tr[:, 2] = -0.42 * s
+    tr[:, 1] = 0.12 * s
+    motion("sit-down", {"upperleg01.L": _x(-1.5 * s), "upperleg01.R": _x(-1.5 * s),
+                        "lowerleg01.L": _x(1.57 * s), "lowerleg01.R": _x(1.57 * s),
+                        "spine03": _x(-0.15 * s)}, tr)
+    return out
+
+
+def garment_self_intersections(seq: GarmentSequence) -> list[int]:
+    """Frames where the garment intersects itself (ipctk on the garment alone)."""
+    import ipctk
+
+    F = np.asarray(seq.faces, np.int32)
+    mesh = ipctk.CollisionMesh(np.asarray(seq.rest_vertices, np.float64), ipctk.edges(F), F)
+    return [f for f in range(seq.n_frames)
+            if np.all(np.isfinite(seq.vertices[f])) and ipctk.has_intersections(mesh, np.asarray(seq.vertices[f], np.float64))]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--full", action="store_true", help="2-cm dress, whole clips, 4-s built-in motions")
+    ap.add_argument("--only", nargs="*", default=None, help="run only these motions")
+    ap.add_argument("--max-substeps", type=int, default=16, help="1: the fixed one step per frame (before)")
+    ap.add_argument("--edge", type=float, default=None, help="dress edge length [m] (default 0.04, --full 0.02)")
+    ap.add_argument("--out", default=None, help="result file (default benchmarks/results/motion_suite.json)")
+    ap.add_argument("--work", default=None, help="keep the simulate folders here (default: a temporary folder)")
+    args = ap.parse_args()
+    fps = 25.0
+    edge = args.edge or (0.02 if args.full else 0.04)
+    duration = 4.0 if args.full else 1.0
+    warmup = 1.0 if args.full else 0.4
+    body = BodyModel(topology="collider")
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="motion_suite_"))
+    work.mkdir(parents=True, exist_ok=True)
+    specs: dict[str, str] = {name: name for name in BUILTIN}
+    for name, (clip, start) in CLIPS.items():
+        path = MOTIONS / clip
+        if not path.exists():
+            print(f"{name}: {path} missing, skipped")
+            continue
+        m = load_motion(str(path), fps, 4.0, body=body)
+        m, _ = with_arm_clearance(m, str(path), body, 0.03)
+        if not args.full:
+            m = m.slice(start, start + int(round(duration * fps)) + 1)
+        m.save(work / f"{name}.npz")
+        specs[name] = str(work / f"{name}.npz")
+    for name, m in stress_motions(body, fps, max(duration, 1.2) if not args.full else 2.0).items():
+        m.save(work / f"{name}.npz")
+        specs[name] = str(work / f"{name}.npz")
+    if args.only:
+        specs = {k: v for k, v in specs.items() if k in args.only}
+
+    rows, load0 = {}, os.getloadavg()
+    print(f"dress edge {edge} m, {duration:g} s built-in motions, warm-up {warmup} s, max substeps {args.max_substeps}")
+    print(f"{'motion':15s} {'frames':>6s} {'lag':>4s} {'body-x':>6s} {'self-x':>6s} {'NaN':>4s} {'s/frame':>8s} "
+          f"{'steps/frame':>11s}")
+    for name, spec in specs.items():
+        cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
+                                            max_substeps=args.max_substeps)
+        t0 = time.perf_counter()
+        r = simulate_stage.run(out=work / name, config=cfg, garment="dress", motion=spec)
+        wall = time.perf_counter() - t0
+        rec = json.loads((work / name / "config.json").read_text())
+        seq = GarmentSequence.load(work / name, finite=False)
+        nan = [f for f in range(seq.n_frames) if not np.all(np.isfinite(seq.vertices[f]))]
+        body_x = [f for f in r.bad_frames if f not in nan]
+        self_x = garment_self_intersections(seq)
+        steps = rec["per_frame"]["substeps"]
+        simulated = r.frames + r.warmup_frames - 1
+        row = {"frames": r.frames, "warmup_frames": r.warmup_frames, "frames_with_lag": rec["frames_with_lag"],
+               "frames_with_body_intersection": body_x, "frames_with_self_intersection": self_x,
+               "frames_with_nan": nan, "s_per_frame": r.seconds / max(simulated, 1), "wall_s": wall,
+               "mean_substeps": float(np.mean(steps)) if steps else 1.0, "max_substeps": int(max(steps, default=1)),
+               "max_lag_m": float(max(rec["per_frame"]["lag_m"], default=0.0))}
+        rows[name] = row
+        print(f"{name:15s} {r.frames:6d} {len(row['frames_with_lag']):4d} {len(body_x):6d} {len(self_x):6d} "
+              f"{len(nan):4d} {row['s_per_frame']:8.2f} {row['mean_substeps']:6.2f} (max {row['max_substeps']})",
+              flush=True)
+    load1 = os.getloadavg()
+    checks = {}
+    for name, row in rows.items():
+        for key in ("frames_with_lag", "frames_with_body_intersection", "frames_with_self_intersection",
+                    "frames_with_nan"):
+            checks[f"{name}:{key}"] = {"value": len(row[key]), "target": "0 frames", "unit": "frames",
+                                       "pass": not row[key]}
+    result = {
+        "benchmark": "motion_suite",
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
+                    "load_average_1_5_15min_start": [round(v, 2) for v in load0],
+                    "load_average_1_5_15min_end": [round(v, 2) for v in load1]},
+        "config": {"garment": "dress", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
+                   "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,
+                   "clip_excerpts": None if args.full else {k: [s, s + int(round(duration * fps))] for k, (_, s) in CLIPS.items()}},
+        "figures": rows,
+        "checks": checks,
+    }
+    failed = [k for k, c in checks.items() if not c["pass"]]
+    print(f"\n{len(checks) - len(failed)}/{len(checks)} checks pass" + (f"; failing: {failed}" if failed else ""))
+    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "motion_suite.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

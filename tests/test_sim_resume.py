@@ -1,0 +1,90 @@
+"""Never lose work, every frame: resumed simulations equal uninterrupted ones, sub-steps are
+decided per frame from how far the body moves, progress is logged when output is not a terminal."""
+
+import logging
+
+import numpy as np
+import pytest
+import trimesh
+
+from cloth_grid import grid
+from physavatar.sim import Material, SimSettings, simulate
+from physavatar.sim.simulate import Checkpoint, substep_count
+
+MAT = Material(density=0.15, stretch_stiffness=30.0, bend_stiffness=1e-5)
+
+
+def sphere(radius=0.1):
+    m = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def rising_sphere(frames=6, speed=0.03):
+    """A cloth pinned at its corners and a sphere rising into it, then sideways."""
+    V, F = grid(7, 0.3)
+    V = V - [0.15, 0.15, 0.0]
+    B, BF = sphere()
+    path = [np.array([0.0, 0.0, -0.13 + speed * min(t, 4)]) + [0.02 * max(t - 4, 0), 0, 0] for t in range(frames)]
+    return V, F, np.stack([B + p for p in path]), BF, [0, 6, 42, 48]
+
+
+class Stop(Exception):
+    pass
+
+
+@pytest.mark.parametrize("integrator", ["euler", "bdf2"])
+def test_an_interrupted_run_resumed_from_its_checkpoint_is_bit_identical(integrator, tmp_path):
+    V, F, seq, BF, pins = rising_sphere()
+    settings = SimSettings(integrator=integrator, damping_mass=0.5)
+    kw = dict(fps=25.0, settings=settings, max_substeps=4)
+    full = simulate(V, F, MAT, seq, BF, pins, None, **kw)
+
+    saved = {}
+
+    def on_frame(ck, report):
+        ck.save(tmp_path / "state.npz")  # as simulate/animate do: the checkpoint after each frame
+        saved[ck.frame] = ck.x
+
+    def interrupt(event):  # a progress listener that stops the run after 3 frames (Ctrl-C)
+        if event.kind == "advance" and event.done == 3:
+            raise Stop
+
+    with pytest.raises(Stop):
+        simulate(V, F, MAT, seq, BF, pins, None, on_frame=on_frame, progress=interrupt, **kw)
+    ck = Checkpoint.load(tmp_path / "state.npz")
+    assert ck.frame == 3 and sorted(saved) == [1, 2, 3]
+    if integrator == "bdf2":
+        assert "last_step" in ck.solver  # BDF2's history travels with the checkpoint
+    rest = simulate(V, F, MAT, seq, BF, pins, None, resume=ck, **kw)
+    assert np.isnan(rest[:3]).all()
+    for f in (1, 2, 3):
+        assert np.array_equal(saved[f], full[f])
+    assert np.array_equal(rest[3:], full[3:])  # bit-identical, not merely close
+    assert np.abs(full[-1] - full[0]).max() > 0.02  # the cloth did move
+
+
+def test_substeps_follow_how_far_the_body_near_the_cloth_moves():
+    s = SimSettings(max_body_move=0.05)
+    cloth, _ = grid(5, 0.3)
+    B, _ = sphere()
+    body = B + [0.15, 0.15, -0.12]  # just under the cloth
+    assert substep_count(body, body, cloth, s, 1, 16) == (1, 0.0)  # still: one step
+    assert substep_count(body, body + [0, 0, 0.04], cloth, s, 1, 16)[0] == 1
+    n, move = substep_count(body, body + [0, 0, 0.23], cloth, s, 1, 16)
+    assert n == 5 and move == pytest.approx(0.23)  # ceil(0.23 / 0.05)
+    assert substep_count(body, body + [0, 0, 2.0], cloth, s, 1, 16)[0] == 16  # capped
+    assert substep_count(body, body + [0, 0, 0.23], cloth, s, 1, 1)[0] == 1  # a fixed count
+    assert substep_count(body, body + [0, 0, 0.01], cloth, s, 3, 16)[0] == 3  # at least the minimum
+    far = body + [5.0, 0, 0]  # fast, but nowhere near the cloth
+    assert substep_count(far, far + [0, 0.3, 0], cloth, s, 1, 16)[0] == 1
+
+
+def test_progress_lines_are_logged_every_few_frames(caplog):
+    V, F, seq, BF, pins = rising_sphere(frames=6)
+    with caplog.at_level(logging.INFO, logger="physavatar.progress"):
+        simulate(V, F, MAT, seq, BF, pins, None, fps=25.0, settings=SimSettings(damping_mass=0.5), progress=False)
+    lines = [r.getMessage() for r in caplog.records if r.name == "physavatar.progress"]
+    frame5 = [x for x in lines if x.startswith("simulating: 5/5")]
+    assert frame5, lines
+    for key in ("frame 5", "s_frame", "newton", "contacts", "substeps", "lag_mm"):
+        assert key in frame5[0]
