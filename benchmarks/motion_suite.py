@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import logging
 import os
 import sys
 import tempfile
@@ -139,8 +140,11 @@ def main():
     ap.add_argument("--max-substeps", type=int, default=16, help="1: the fixed one step per frame (before)")
     ap.add_argument("--edge", type=float, default=None, help="dress edge length [m] (default 0.04, --full 0.02)")
     ap.add_argument("--out", default=None, help="result file (default benchmarks/results/motion_suite.json)")
+    ap.add_argument("--progress", action="store_true", help="log a progress line every 5 frames")
     ap.add_argument("--work", default=None, help="keep the simulate folders here (default: a temporary folder)")
     args = ap.parse_args()
+    if args.progress:
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     fps = 25.0
     edge = args.edge or (0.02 if args.full else 0.04)
     duration = 4.0 if args.full else 1.0
@@ -148,9 +152,12 @@ def main():
     body = BodyModel(topology="collider")
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="motion_suite_"))
     work.mkdir(parents=True, exist_ok=True)
-    specs: dict[str, str] = {name: name for name in BUILTIN}
+    wanted = (lambda name: not args.only or name in args.only)
+    specs: dict[str, str] = {name: name for name in BUILTIN if wanted(name)}
     for name, (clip, start) in CLIPS.items():
         path = MOTIONS / clip
+        if not wanted(name):
+            continue
         if not path.exists():
             print(f"{name}: {path} missing, skipped")
             continue
@@ -161,10 +168,9 @@ def main():
         m.save(work / f"{name}.npz")
         specs[name] = str(work / f"{name}.npz")
     for name, m in stress_motions(body, fps, max(duration, 1.2) if not args.full else 2.0).items():
-        m.save(work / f"{name}.npz")
-        specs[name] = str(work / f"{name}.npz")
-    if args.only:
-        specs = {k: v for k, v in specs.items() if k in args.only}
+        if wanted(name):
+            m.save(work / f"{name}.npz")
+            specs[name] = str(work / f"{name}.npz")
 
     rows, load0 = {}, os.getloadavg()
     print(f"dress edge {edge} m, {duration:g} s built-in motions, warm-up {warmup} s, max substeps {args.max_substeps}")

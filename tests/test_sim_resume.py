@@ -1,6 +1,7 @@
 """Never lose work, every frame: resumed simulations equal uninterrupted ones, sub-steps are
 decided per frame from how far the body moves, progress is logged when output is not a terminal."""
 
+import json
 import logging
 
 import numpy as np
@@ -88,3 +89,38 @@ def test_progress_lines_are_logged_every_few_frames(caplog):
     assert frame5, lines
     for key in ("frame 5", "s_frame", "newton", "contacts", "substeps", "lag_mm"):
         assert key in frame5[0]
+
+
+def test_simulate_interrupted_and_run_again_resumes_with_the_same_result(tmp_path):
+    """`physavatar simulate`'s stage: frames are on disk as they are finished (frames/, meshes/),
+    a second run of the same command resumes after the last one, and the final
+    garment_sequence.npz equals an uninterrupted run's; frames/ is gone at the end."""
+    from physavatar.data.garment_sequence import GarmentSequence
+    from physavatar.files import save_npz_atomic
+    from physavatar.stages import simulate as stage
+
+    V, F, seq, BF, pins = rising_sphere(frames=6)
+    V = V + [0, 0, 0.002]
+    save_npz_atomic(tmp_path / "body.npz", vertices=seq, faces=BF)
+    save_npz_atomic(tmp_path / "cloth.npz", vertices=V, faces=F, boundary=np.array(pins))
+    cfg = stage.SimulateConfig(preview=False, max_substeps=4)
+    kw = dict(config=cfg, collider=tmp_path / "body.npz", garment=tmp_path / "cloth.npz")
+    stage.run(out=tmp_path / "whole", **kw)
+
+    def interrupt(event):
+        if event.kind == "advance" and event.done == 2:
+            raise KeyboardInterrupt
+
+    out = tmp_path / "cut"
+    with pytest.raises(KeyboardInterrupt):
+        stage.run(out=out, progress=interrupt, **kw)
+    assert sorted(p.name for p in (out / "frames").glob("0*.npz")) == ["000001.npz", "000002.npz"]
+    assert len(list((out / "meshes").glob("*.ply"))) == 3 and not (out / "garment_sequence.npz").exists()
+    starts = []
+    r = stage.run(out=out, progress=lambda e: starts.append(e.total) if e.kind == "start" else None, **kw)
+    assert starts == [3]  # frames 3, 4, 5: resumed after frame 2
+    a, b = GarmentSequence.load(tmp_path / "whole"), GarmentSequence.load(out)
+    assert np.array_equal(a.vertices, b.vertices) and not (out / "frames").exists()
+    rec = json.loads((out / "config.json").read_text())
+    assert rec["resumed_after_frame"] == 2 and rec["frames_with_lag"] == [] and r.bad_frames == []
+    assert rec["per_frame"]["frame"] == [1, 2, 3, 4, 5]
