@@ -58,6 +58,7 @@ class SimulateConfig:
         material: a preset (silk, cotton, denim) or a material .json (fit-physics' too).
         fps: frames per second (a capture's own fps wins); substeps, max_substeps: implicit steps
             per frame, at least / at most (decided per frame, sim.simulate.substep_count).
+        self_contact: resolve garment-garment contact (on by default).
         integrator: euler or bdf2 (None: the one the material was fitted with).
         duration: seconds of a built-in motion.
         warmup: seconds of transition from the rest pose to the motion's first pose.
@@ -73,6 +74,8 @@ class SimulateConfig:
     max_substeps: int = option(16, "at most this many implicit steps per frame: more than --substeps where the body "
                                    "near the garment moves fast or a step could not reach the body's pose "
                                    "(docs/simulation.md 'Sub-stepping'); = --substeps for a fixed count")
+    self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
+                                      "triangles); every written frame is checked for self-intersection either way")
     integrator: str | None = option(None, "euler (implicit Euler, the paper's) or bdf2 (second order; "
                                           "docs/simulation.md); default: the one the material was fitted with "
                                           "(euler for presets)", choices=INTEGRATORS)
@@ -129,7 +132,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         integrator = mat.integrator  # a fitted material is simulated in the model it was fitted in
     if integrator not in INTEGRATORS:
         _bad_option("--integrator", f"{integrator!r} is not euler or bdf2")
-    sim_settings = SimSettings(integrator=integrator)
+    sim_settings = SimSettings(integrator=integrator, self_contact=cfg.self_contact)
     n_warm = 0  # leading frames simulated but not written (--motion's transition)
     clearance_info = None
     if capture is not None:
@@ -161,12 +164,14 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     scene = ContactScene(part.vertices, part.faces, bodies[0], body_faces, sim_settings.dhat)
     bad = [f for f in range(len(X))
            if not np.all(np.isfinite(X[f])) or scene.has_intersections(np.vstack([X[f], bodies[f]]))]
+    self_bad = _self_intersecting(part, X)
     GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.vertices).save(out / GARMENT_SEQUENCE)
     mat.save(out / "material.json")
     write_json_atomic(out / "config.json", {
         "command": "simulate", "capture": _text(capture), "garment": _text(garment), "motion": _text(motion),
         "collider": _text(collider), "material": mat.to_dict(), "fps": fps, "substeps": cfg.substeps,
-        "integrator": integrator, "frames_with_intersection_or_nan": bad,
+        "integrator": integrator, "self_contact": sim_settings.self_contact,
+        "frames_with_intersection_or_nan": bad, "frames_with_self_intersection": self_bad,
         "warmup_frames": n_warm, "arm_clearance": clearance_info, "frames": int(len(X)), "seconds": round(secs, 1),
         "resumed_after_frame": resumed, **_frame_summary(reports), "config": to_dict(cfg)})
     if cfg.preview:
@@ -203,6 +208,16 @@ def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps:
                      max_substeps=cfg.max_substeps, resume=ck, on_frame=on_frame, progress=progress)
     X, reports = store.positions(part.vertices)
     return X, reports, store, None if ck is None else ck.frame
+
+
+def _self_intersecting(part: GarmentPart, X: np.ndarray) -> list[int]:
+    """Frames (finite ones) where the garment intersects itself: ipctk's exact check on the
+    garment alone."""
+    import ipctk
+
+    F = np.asarray(part.faces, np.int32)
+    mesh = ipctk.CollisionMesh(np.asarray(part.vertices, np.float64), ipctk.edges(F), F)
+    return [f for f in range(len(X)) if np.all(np.isfinite(X[f])) and ipctk.has_intersections(mesh, X[f])]
 
 
 def _frame_summary(reports: list) -> dict:
