@@ -54,26 +54,23 @@ def _ramp(t, t0, t1):
 
 
 def _hands_on_hips_angle(body: BodyModel, target: float = 0.01) -> float:
-    """Shoulder angle (about world y, left arm; mirrored right) that brings the left hand to
-    ``target`` [m] of the hips: the smallest angle where the hand is that close."""
+    """Shoulder angle (about world y for the left arm, mirrored for the right) that brings the
+    left hand within ``target`` [m] of the hips: the smallest such angle, either direction."""
+    from scipy.spatial import cKDTree
+
     names = body.bone_names
-    idx = {n: i for i, n in enumerate(names)}
     hand = bone_vertex_mask(body, [n for n in names if n.startswith(("hand", "finger", "wrist", "metacarpal", "thumb"))
                                    and n.endswith(".L")])
     hips = bone_vertex_mask(body, [n for n in names if n.startswith(("root", "pelvis", "upperleg"))])
-    from scipy.spatial import cKDTree
-
-    best = 0.0
-    for sign in (1.0, -1.0):
-        for a in np.linspace(0.05, 1.2, 24):
+    angles = np.linspace(0.05, 1.2, 24)
+    for a in angles:
+        for sign in (1.0, -1.0):
             r = np.zeros((1, len(names), 3))
-            r[0, idx["upperarm01.L"]] = [0, sign * a, 0]
+            r[0, names.index("upperarm01.L")] = [0, sign * a, 0]
             V = body.pose(r, np.zeros((1, 3))).vertices[0]
-            d = cKDTree(V[hips]).query(V[hand])[0].min()
-            if d <= target:
+            if cKDTree(V[hips]).query(V[hand])[0].min() <= target:
                 return sign * a
-            best = best if best else 0.0
-    return 0.35
+    raise RuntimeError("no shoulder angle brings the hand to the hips")
 
 
 def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Motion]:

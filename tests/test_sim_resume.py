@@ -155,3 +155,13 @@ def test_simulate_interrupted_and_run_again_resumes_with_the_same_result(tmp_pat
     rec = json.loads((out / "config.json").read_text())
     assert rec["resumed_after_frame"] == 2 and rec["frames_with_lag"] == [] and r.bad_frames == []
     assert rec["per_frame"]["frame"] == [1, 2, 3, 4, 5]
+
+
+def test_self_contact_needs_a_start_with_the_garments_own_triangles_apart():
+    from physavatar.sim.simulate import self_contact_possible
+
+    V, F = grid(5, 0.2)
+    two = np.vstack([F, F + len(V)])
+    assert self_contact_possible(V, F, 1e-3)
+    assert self_contact_possible(np.vstack([V, V + [0, 0, 5e-3]]), two, 1e-3)  # layers 5 mm apart
+    assert not self_contact_possible(np.vstack([V, V + [0, 0, 5e-4]]), two, 1e-3)  # 0.5 mm < d̂

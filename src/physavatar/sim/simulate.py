@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import time
 from pathlib import Path
 
+import ipctk
 import numpy as np
 
 from ..files import load_npz, save_npz_atomic
@@ -78,6 +80,23 @@ def substep_count(body0, body1, cloth, settings: SimSettings, min_substeps: int 
     m = float(move[near].max()) if np.any(near) else 0.0
     n = math.ceil(m / settings.max_body_move - 1e-9) if m > 0 else 1
     return int(min(max(n, min_substeps), max_substeps)), m
+
+
+def self_contact_possible(vertices, faces, dhat: float) -> bool:
+    """Whether the garment's start leaves every pair of its own non-adjacent triangles ≥ d̂
+    apart (ipctk), as self-contact needs: coincident seam vertices of sewn panels, or layers
+    closer than d̂, would start inside the barrier. When not, the simulation runs without
+    self-contact and says so (config.json ``self_contact``)."""
+    F = np.asarray(faces, np.int32)
+    V = np.asarray(vertices, np.float64)
+    mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
+    c = ipctk.NormalCollisions()
+    c.build(mesh, V, dhat)
+    ok = len(c) == 0
+    if not ok:
+        logging.getLogger("physavatar.progress").warning(
+            "the garment's own triangles start closer than d̂ = %g m to each other: simulated without self-contact", dhat)
+    return ok
 
 
 def frame_report(frame: int, stats: list, substeps: int, attempts: int, seconds: float, move: float) -> dict:

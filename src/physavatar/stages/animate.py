@@ -10,7 +10,7 @@ but not returned, so the garment never starts from a jump.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +23,7 @@ from ..errors import PhysavatarError
 from ..geometry import count_intersections
 from ..garment_sim import simulate_on_body, split_template
 from ..sim import SimSettings
+from ..sim.simulate import self_contact_possible
 from .base import option, to_dict
 
 
@@ -83,6 +84,9 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
         raise PhysavatarError(avatar.root / "template.ply",
                               "the garment intersects Anny's collider body in the frame-1 pose; "
                               "the garment must start outside the collider to be simulated")
+    if settings is not None and settings.self_contact and not self_contact_possible(part.vertices, part.faces,
+                                                                                    settings.dhat):
+        settings = replace(settings, self_contact=False)
     t0 = time.time()
     cb = None if report is None else (lambda f, x, st: report(1))
     options = dict(settings=settings, progress=progress if report is None else False, callback=cb,
@@ -107,6 +111,7 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     stats = {"frames": int(len(V)), "warmup_frames": n_warm, "simulation_s": round(secs, 2),
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
              "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps,
+             "self_contact": bool(settings is not None and settings.self_contact),
              "frames_with_lag": [f - n_warm for f, r in enumerate(reports, start=1) if r["lagged"] and f >= n_warm],
              "substeps_per_frame": [r["substeps"] for f, r in enumerate(reports, start=1) if f >= n_warm]}
     return AnimatedSequence(V, t.faces, t.labels, t.face_uvs, fps, avatar.root), stats
@@ -136,6 +141,8 @@ class AnimateConfig:
                                   "to the hips/trunk, so the garment is not pinched (0 = off)", check=_nonnegative)
     max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
                                check=lambda v: None if v >= 1 else "must be at least 1")
+    self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
+                                      "triangles)")
 
 
 def pipeline_config(motion: str, eval_frames: int | None) -> AnimateConfig:
@@ -164,7 +171,9 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
         m, info = with_arm_clearance(m, config.motion, BodyModel(av.shape, topology="collider"), config.arm_clearance)
     if config.max_frames:
         m = m.slice(0, config.max_frames)
-    seq, stats = animate(av, m, warmup_s=config.warmup, progress=progress, max_substeps=config.max_substeps, out=out)
+    settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)
+    seq, stats = animate(av, m, warmup_s=config.warmup, settings=settings, progress=progress,
+                         max_substeps=config.max_substeps, out=out)
     seq.save(Path(out), {"command": "animate", "motion_spec": config.motion, "config": to_dict(config),
                          "arm_clearance": info, **stats})
     FrameStore(out, "", 0).remove()  # the sequence is written: the per-frame record is no longer needed

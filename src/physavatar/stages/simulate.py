@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +43,7 @@ from ..garment_sim import GarmentPart, simulate_on_body, split_template
 from ..geometry import count_intersections
 from ..sim import SimSettings
 from ..sim.contact import ContactScene
+from ..sim.simulate import self_contact_possible
 from .animate import transition
 from .base import option, to_dict
 
@@ -132,7 +133,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         integrator = mat.integrator  # a fitted material is simulated in the model it was fitted in
     if integrator not in INTEGRATORS:
         _bad_option("--integrator", f"{integrator!r} is not euler or bdf2")
-    sim_settings = SimSettings(integrator=integrator, self_contact=cfg.self_contact)
+    sim_settings = SimSettings(integrator=integrator)
     n_warm = 0  # leading frames simulated but not written (--motion's transition)
     clearance_info = None
     if capture is not None:
@@ -154,6 +155,8 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         raise PhysavatarError(collider or garment or capture,
                               f"the garment crosses the body's first frame ({n_cross} intersecting triangle pairs): "
                               "it must start outside the body, in the pose it was made for")
+    self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat)
+    sim_settings = replace(sim_settings, self_contact=self_contact)
     t0 = time.time()
     X, reports, store, resumed = _simulate_frames(out, part, bodies, body_faces, mat, fps, sim_settings, cfg, n_warm,
                                                   progress)
@@ -170,7 +173,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     write_json_atomic(out / "config.json", {
         "command": "simulate", "capture": _text(capture), "garment": _text(garment), "motion": _text(motion),
         "collider": _text(collider), "material": mat.to_dict(), "fps": fps, "substeps": cfg.substeps,
-        "integrator": integrator, "self_contact": sim_settings.self_contact,
+        "integrator": integrator, "self_contact": self_contact,
         "frames_with_intersection_or_nan": bad, "frames_with_self_intersection": self_bad,
         "warmup_frames": n_warm, "arm_clearance": clearance_info, "frames": int(len(X)), "seconds": round(secs, 1),
         "resumed_after_frame": resumed, **_frame_summary(reports), "config": to_dict(cfg)})
