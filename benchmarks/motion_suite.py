@@ -53,24 +53,22 @@ def _ramp(t, t0, t1):
     return s * s * (3 - 2 * s)
 
 
-def _hands_on_hips_angle(body: BodyModel, target: float = 0.01) -> float:
-    """Shoulder angle (about world y for the left arm, mirrored for the right) that brings the
-    left hand within ``target`` [m] of the hips: the smallest such angle, either direction."""
+def _hands_on_hips_pose(body: BodyModel, target: float = 0.01) -> np.ndarray:
+    """The left shoulder's axis-angle (down about world y by 0.9 rad, back about z) that brings
+    the left hand within ``target`` [m] of the hips (the right arm's is its mirror image)."""
     from scipy.spatial import cKDTree
 
     names = body.bone_names
     hand = bone_vertex_mask(body, [n for n in names if n.startswith(("hand", "finger", "wrist", "metacarpal", "thumb"))
                                    and n.endswith(".L")])
     hips = bone_vertex_mask(body, [n for n in names if n.startswith(("root", "pelvis", "upperleg"))])
-    angles = np.linspace(0.05, 1.2, 24)
-    for a in angles:
-        for sign in (1.0, -1.0):
-            r = np.zeros((1, len(names), 3))
-            r[0, names.index("upperarm01.L")] = [0, sign * a, 0]
-            V = body.pose(r, np.zeros((1, 3))).vertices[0]
-            if cKDTree(V[hips]).query(V[hand])[0].min() <= target:
-                return sign * a
-    raise RuntimeError("no shoulder angle brings the hand to the hips")
+    for az in np.linspace(0.3, 1.0, 15):
+        r = np.zeros((1, len(names), 3))
+        r[0, names.index("upperarm01.L")] = [0, 0.9, az]
+        V = body.pose(r, np.zeros((1, 3))).vertices[0]
+        if cKDTree(V[hips]).query(V[hand])[0].min() <= target:
+            return np.array([0.0, 0.9, az])
+    raise RuntimeError("no shoulder rotation brings the hand to the hips")
 
 
 def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Motion]:
@@ -104,10 +102,10 @@ def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Mo
                          "lowerleg01.L": _x(1.3 * bend + 1.2 * tuck), "lowerleg01.R": _x(1.3 * bend + 1.2 * tuck),
                          "upperarm01.L": _y(-0.6 * tuck), "upperarm01.R": _y(0.6 * tuck)}, tr)
     # the hands brought to the hips in 0.4 s and pressed there (1 cm), with a small sway
-    a = _hands_on_hips_angle(body)
-    e = _ramp(t, 0, 0.4)
-    sway = 0.05 * np.sin(2 * np.pi * 1.5 * t) * e
-    motion("hands-on-hips", {"upperarm01.L": _y(a * e), "upperarm01.R": _y(-a * e),
+    a = _hands_on_hips_pose(body)
+    e = _ramp(t, 0, 0.4)[:, None]
+    sway = 0.05 * np.sin(2 * np.pi * 1.5 * t) * e[:, 0]
+    motion("hands-on-hips", {"upperarm01.L": a * e, "upperarm01.R": a * [1, -1, -1] * e,
                              "spine03": _z(sway)}, np.zeros((n, 3)))
     # sitting down in 0.8 s: the thighs fold up into the lap (hips flexed 85°, knees 90°)
     s = _ramp(t, 0.1, 0.9)

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +101,9 @@ class SimulateResult:
         warmup_frames: leading frames simulated but not written.
         clearance: what arm clearance changed (body.load.with_arm_clearance), or None.
         preview: whether preview.mp4 was written.
+        lagged_frames: written frames where the body stopped short of its pose (the step gave
+            up even at max_substeps; written with the given pose).
+        self_intersecting_frames: written frames where the garment intersects itself.
     """
 
     out: Path
@@ -111,6 +114,8 @@ class SimulateResult:
     warmup_frames: int
     clearance: dict | None
     preview: bool
+    lagged_frames: list = field(default_factory=list)
+    self_intersecting_frames: list = field(default_factory=list)
 
 
 def _bad_option(name: str, problem: str):
@@ -184,7 +189,8 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         Fall = np.concatenate([body_faces, part.faces + bodies.shape[1]])
         write_video(out / "preview.mp4", render_frames(Vall, Fall, None, None, title="simulate"), fps)
     store.remove()  # the final files are written: the per-frame record is no longer needed
-    return SimulateResult(out, int(len(X)), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview)
+    return SimulateResult(out, int(len(X)), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview,
+                          [f for f, r in reports if r["lagged"]], self_bad)
 
 
 def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps: float, settings: SimSettings,
