@@ -174,6 +174,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         x, v = resume.x.copy(), resume.v.copy()
         sim.set_state(resume.solver)
     out[start - 1] = x
+    stuck = bool(resume is not None and resume.solver.get("stuck", False))
     with resolve(progress).task("simulating", total=T - start, log_every=5) as task:
         for f in range(start, T):
             t0 = time.perf_counter()
@@ -184,7 +185,11 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             while True:
                 attempts += 1
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps)
-                if n >= max_substeps or not any(s.body_gap > 0 for s in stats_frame):
+                lagged = any(s.body_gap > 0 for s in stats_frame)
+                # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
+                # the body's pose) is not undone by shorter steps: no retries until a frame passes
+                if n >= max_substeps or not lagged or stuck:
+                    stuck = lagged and (stuck or n >= max_substeps)
                     break
                 # the body could not reach its pose: the frame again, from its start, in shorter steps
                 n = min(2 * n, max_substeps)
@@ -193,7 +198,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
             if on_frame is not None:
-                on_frame(Checkpoint(f, x.copy(), v.copy(), sim.get_state()), report)
+                on_frame(Checkpoint(f, x.copy(), v.copy(), sim.get_state() | {"stuck": stuck}), report)
             if callback is not None:
                 callback(f, x, stats_frame)
             task.advance(1, frame=f, s_frame=report["seconds"], newton=report["newton_iterations"],
