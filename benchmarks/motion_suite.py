@@ -137,6 +137,9 @@ def main():
     ap.add_argument("--out", default=None, help="result file (default benchmarks/results/motion_suite.json)")
     ap.add_argument("--no-self-contact", action="store_true", help="garment self-contact off")
     ap.add_argument("--progress", action="store_true", help="log a progress line every 5 frames")
+    ap.add_argument("--reuse", action="store_true",
+                    help="read the motions already simulated in --work instead of simulating them again")
+    ap.add_argument("--append", action="store_true", help="keep the other motions' rows of an existing result file")
     ap.add_argument("--work", default=None, help="keep the simulate folders here (default: a temporary folder)")
     args = ap.parse_args()
     if args.progress:
@@ -180,48 +183,68 @@ def main():
     for name, spec in specs.items():
         cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
                                             max_substeps=args.max_substeps, self_contact=not args.no_self_contact)
+        done = work / name / "config.json"
         t0 = time.perf_counter()
-        r = simulate_stage.run(out=work / name, config=cfg, garment="dress", motion=spec)
+        reused = args.reuse and done.exists()
+        if not reused:  # (an interrupted run in work/name resumes)
+            simulate_stage.run(out=work / name, config=cfg, garment="dress", motion=spec)
         wall = time.perf_counter() - t0
-        rec = json.loads((work / name / "config.json").read_text())
+        rec = json.loads(done.read_text())
         seq = GarmentSequence.load(work / name, finite=False)
         nan = [f for f in range(seq.n_frames) if not np.all(np.isfinite(seq.vertices[f]))]
-        body_x = [f for f in r.bad_frames if f not in nan]
+        body_x = [f for f in rec["frames_with_intersection_or_nan"] if f not in nan]
         self_x = garment_self_intersections(seq)
         steps = rec["per_frame"]["substeps"]
-        simulated = r.frames + r.warmup_frames - 1
-        row = {"frames": r.frames, "warmup_frames": r.warmup_frames, "frames_with_lag": rec["frames_with_lag"],
+        frames, warm = rec["frames"], rec["warmup_frames"]
+        simulated = frames + warm - 1
+        row = {"frames": frames, "warmup_frames": warm, "frames_with_lag": rec["frames_with_lag"],
                "frames_with_body_intersection": body_x, "frames_with_self_intersection": self_x,
-               "frames_with_nan": nan, "s_per_frame": r.seconds / max(simulated, 1), "wall_s": wall,
+               "frames_with_nan": nan, "s_per_frame": rec["seconds"] / max(simulated, 1), "wall_s": wall,
+               "reused": bool(reused),
+               "resumed_after_frame": rec.get("resumed_after_frame"),
                "mean_substeps": float(np.mean(steps)) if steps else 1.0, "max_substeps": int(max(steps, default=1)),
                "max_lag_m": float(max(rec["per_frame"]["lag_m"], default=0.0))}
         rows[name] = row
-        print(f"{name:15s} {r.frames:6d} {len(row['frames_with_lag']):4d} {len(body_x):6d} {len(self_x):6d} "
+        print(f"{name:15s} {frames:6d} {len(row['frames_with_lag']):4d} {len(body_x):6d} {len(self_x):6d} "
               f"{len(nan):4d} {row['s_per_frame']:8.2f} {row['mean_substeps']:6.2f} (max {row['max_substeps']})",
               flush=True)
-    load1 = os.getloadavg()
+        _write(args, rows, load0, edge, duration, warmup, fps)
+    failed = [k for k, c in _checks(rows).items() if not c["pass"]]
+    print(f"\n{len(_checks(rows)) - len(failed)}/{len(_checks(rows))} checks pass" + (f"; failing: {failed}" if failed else ""))
+
+
+def _checks(rows: dict) -> dict:
     checks = {}
     for name, row in rows.items():
         for key in ("frames_with_lag", "frames_with_body_intersection", "frames_with_self_intersection",
                     "frames_with_nan"):
             checks[f"{name}:{key}"] = {"value": len(row[key]), "target": "0 frames", "unit": "frames",
                                        "pass": not row[key]}
+    return checks
+
+
+def _write(args, rows, load0, edge, duration, warmup, fps):
+    """The result file, rewritten after every motion; with --append, rows of an earlier run in
+    it are kept (each row says the run it came from: its date and load)."""
+    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "motion_suite.json"
+    stamp = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+             "load_average_1_5_15min_start": [round(v, 2) for v in load0],
+             "load_average_1_5_15min_now": [round(v, 2) for v in os.getloadavg()]}
+    for row in rows.values():
+        row.setdefault("run", stamp)
+    old = json.loads(out.read_text())["figures"] if args.append and out.exists() else {}
+    rows = {**old, **rows}
     result = {
-        "benchmark": "motion_suite",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
-                    "load_average_1_5_15min_start": [round(v, 2) for v in load0],
-                    "load_average_1_5_15min_end": [round(v, 2) for v in load1]},
+        "benchmark": "motion_suite", "date": stamp["date"],
+        "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None, **{k: v for k, v in stamp.items() if k != "date"}},
         "config": {"garment": "dress", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
                    "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,
                    "self_contact": not args.no_self_contact,
-                   "clip_excerpts": None if args.full else {k: [s, s + int(round(duration * fps))] for k, (_, s) in CLIPS.items()}},
+                   "clip_excerpts": None if args.full else {k: [s, s + int(round(duration * fps))]
+                                                            for k, (_, s) in CLIPS.items()}},
         "figures": rows,
-        "checks": checks,
+        "checks": _checks(rows),
     }
-    failed = [k for k, c in checks.items() if not c["pass"]]
-    print(f"\n{len(checks) - len(failed)}/{len(checks)} checks pass" + (f"; failing: {failed}" if failed else ""))
-    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "motion_suite.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
 
