@@ -113,7 +113,7 @@ def test_same_inputs_give_bit_identical_results():
 
 
 def test_step_expansion_changes_the_path_not_the_solution():
-    """Doubling accepted full steps on a linearly converging tail (ClothSim._expand_step) ends
+    """Doubling accepted full steps on a linearly converging tail (sim.linesearch.expand_step) ends
     at the same states as plain backtracking Newton, to the Newton tolerance."""
     m = Material(density=0.15, stretch_stiffness=30.0, bend_stiffness=1e-5)
     V, F = grid(7, 0.3, z=0.0)

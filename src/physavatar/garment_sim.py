@@ -51,18 +51,19 @@ def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
 
 def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: np.ndarray, material: Material,
                      fps: float, settings: SimSettings | None = None, substeps: int = 1, progress: bool = False,
-                     callback=None) -> np.ndarray:
+                     callback=None, **options) -> np.ndarray:
     """Simulate ``part`` on a body sequence [T, Nb, 3] starting at rest; returns [T, N, 3].
 
     Frame 0 of the body must be the pose the garment was made for (its rest state). Boundary
-    vertices follow the body surface point they start on.
+    vertices follow the body surface point they start on. ``options``: more of
+    :func:`physavatar.sim.simulate`'s (max_substeps, resume, on_frame).
     """
     body_sequence = np.asarray(body_sequence, dtype=np.float64)
     att = make_attachment(part.vertices[part.boundary], part.boundary, body_sequence[0], body_faces, "sequence")
     targets = attachment_positions(att, body_sequence)
     return simulate(part.vertices, part.faces, material, body_sequence, body_faces,
                     boundary_indices=part.boundary, boundary_targets=targets, fps=fps, substeps=substeps,
-                    settings=settings, progress=progress, callback=callback)
+                    settings=settings, progress=progress, callback=callback, **options)
 
 
 

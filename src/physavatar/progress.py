@@ -48,8 +48,9 @@ class ProgressEvent:
 class Task:
     """One loop's counter; a context manager that ends the task on exit."""
 
-    def __init__(self, owner: "Progress", name: str, total: int | None):
+    def __init__(self, owner: "Progress", name: str, total: int | None, log_every: int | None = None):
         self.owner, self.name, self.total = owner, name, total
+        self.log_every = log_every  # also log every this many steps (not only every tenth)
         self.done = 0
         self.t0 = time.time()
         self._next_log = 0.1
@@ -60,10 +61,13 @@ class Task:
     def advance(self, n: int = 1, **info: Any) -> None:
         self.done += n
         self.owner._emit(self, "advance", info)
-        if self.total and self.done >= self._next_log * self.total:
-            log.info("%s: %d/%d after %.1f s%s", self.name, self.done, self.total, time.time() - self.t0,
+        every = self.log_every and self.done % self.log_every == 0
+        if every or (self.total and self.done >= self._next_log * self.total):
+            log.info("%s: %d%s after %.1f s%s", self.name, self.done, f"/{self.total}" if self.total else "",
+                     time.time() - self.t0,
                      "".join(f", {k} {_fmt(v)}" for k, v in info.items()))
-            self._next_log = (int(10 * self.done / self.total) + 1) / 10
+            if self.total:
+                self._next_log = (int(10 * self.done / self.total) + 1) / 10
 
     def set_total(self, total: int | None) -> None:
         self.total = total
@@ -87,8 +91,10 @@ class Task:
 class Progress:
     """Silent progress (the base class): tasks count and log, nothing is drawn."""
 
-    def task(self, name: str, total: int | None = None) -> Task:
-        return Task(self, name, total)
+    def task(self, name: str, total: int | None = None, log_every: int | None = None) -> Task:
+        """A task of ``total`` steps; its progress is logged about every tenth of the way and,
+        with ``log_every``, every that many steps too (a slow loop: every few frames)."""
+        return Task(self, name, total, log_every)
 
     def _emit(self, task: Task, kind: str, info: dict) -> None:
         pass

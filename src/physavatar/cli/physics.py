@@ -40,6 +40,11 @@ def simulate(
                       f"{bad[:20]}{' ...' if len(bad) > 20 else ''}")
     else:
         console.print(f"checked {r.frames} frames: no garment-body intersection, no NaN")
+    for what, frames in (("the body lagged behind its pose (config.json per_frame.lag_m)", r.lagged_frames),
+                         ("the garment intersects itself", r.self_intersecting_frames)):
+        if frames:
+            console.print(f"[yellow]warning:[/] in {len(frames)} of {r.frames} frames {what}: "
+                          f"{frames[:20]}{' ...' if len(frames) > 20 else ''}")
     console.print(f"simulated {r.frames} frames of a {r.garment_vertices}-vertex garment in {r.seconds:.0f} s "
                   f"({(r.frames - 1) / max(r.seconds, 1e-9):.2f} frames/s); wrote {out}/garment_sequence.npz, meshes/"
                   + (", preview.mp4" if r.preview else ""))

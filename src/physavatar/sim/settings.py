@@ -51,7 +51,7 @@ class SimSettings:
             the path to the minimiser, not the minimiser.
         step_expansion: when a full Newton step was accepted but the residual fell by less
             than 30%, also try 2, 4, ... 64 times the step (CCD- and energy-checked;
-            ClothSim._expand_step). Changes the path to the minimiser, not the minimiser.
+            sim.linesearch.expand_step). Changes the path to the minimiser, not the minimiser.
         linear_rtol, max_cg_iterations: the Newton system is solved by CG, preconditioned
             with the Cholesky factor of a sparsified (1-ring) Newton matrix, to relative
             residual linear_rtol; max_cg_iterations bounds CG before a fresh factor is taken
@@ -76,6 +76,11 @@ class SimSettings:
             result is a minimum over the candidates, the same bits on any number of threads;
             1 by default: two were slower on a loaded 2-core machine, and process pools run
             one simulation per core (docs/simulation.md "Speed").
+        max_body_move: with sub-stepping decided per frame (``simulate(max_substeps=...)``), a
+            frame in which a body vertex within reach of the cloth moves farther than this [m]
+            is split into ceil(move / max_body_move) implicit steps (sim.simulate.substep_count).
+            0.08 m: the demo walk's body moves ≤ 6 cm a frame near the dress (one step per
+            frame), the CMU hop's 0.2–0.3 m (3–4 steps).
         gravity: [3] m/s².
     """
 
@@ -110,6 +115,7 @@ class SimSettings:
     keep_linearization: bool = False
     deterministic: bool = True
     ccd_threads: int = 1
+    max_body_move: float = 0.08
     gravity: tuple = (0.0, 0.0, -9.81)
 
 
@@ -120,7 +126,7 @@ class StepStats:
     newton_iterations: int = 0
     converged: bool = False
     line_search_iterations: int = 0
-    step_expansions: int = 0  # line-search doublings beyond α = 1 (ClothSim._expand_step)
+    step_expansions: int = 0  # line-search doublings beyond α = 1 (sim.linesearch.expand_step)
     penalty_iterations: int = 0
     body_follows: int = 0  # times the cloth was carried with the body (SimSettings.follow_body)
     body_gap: float = 0.0  # [m] how far the body (or a Dirichlet vertex) stopped short of its pose

@@ -1,21 +1,119 @@
-"""A whole sequence: a garment simulated on a moving body frame after frame (``simulate``)."""
+"""A whole sequence: a garment simulated on a moving body frame after frame (``simulate``).
+
+Sub-stepping is decided per frame (:func:`substep_count`): a frame in which the body near the
+cloth moves more than ``SimSettings.max_body_move`` is split into more implicit steps (up to
+``max_substeps``), and a frame whose step still gives up (the body *lags*, StepStats.body_gap)
+is simulated again from its start with twice the steps, until ``max_substeps``; only then is the
+lag kept (reported per frame). After every frame a :class:`Checkpoint` (positions, velocities
+and the solver's state) can be taken, and ``resume=`` continues from one with the same result
+as an uninterrupted run (docs/simulation.md "Never lose work").
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import logging
+import math
+import time
+from pathlib import Path
 
+import ipctk
 import numpy as np
 
+from ..files import load_npz, save_npz_atomic
 from ..progress import ProgressLike, resolve
 from .material import Material
 from .settings import SimSettings
 from .solver import ClothSim
 
 
+@dataclasses.dataclass
+class Checkpoint:
+    """The state of a simulation after ``frame``: cloth positions and velocities (float64) and
+    ``ClothSim.get_state()`` (adaptive barrier stiffness, BDF2 history, body lag, step length)."""
+
+    frame: int
+    x: np.ndarray
+    v: np.ndarray
+    solver: dict
+
+    def save(self, path: str | Path) -> Path:
+        """Write atomically as .npz (float64: a resumed run continues from the same bits)."""
+        arrays = {"frame": np.int64(self.frame), "x": self.x, "v": self.v,
+                  "solver_scalars": np.asarray(json.dumps(
+                      {k: v for k, v in self.solver.items() if np.ndim(v) == 0}, default=float))}
+        arrays |= {f"solver_{k}": v for k, v in self.solver.items() if np.ndim(v) > 0}
+        save_npz_atomic(Path(path), **arrays)
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Checkpoint":
+        z = load_npz(Path(path))
+        solver = json.loads(str(z["solver_scalars"]))
+        solver |= {k[len("solver_"):]: np.asarray(z[k]) for k in z if k.startswith("solver_") and k != "solver_scalars"}
+        return cls(int(z["frame"]), np.asarray(z["x"], np.float64), np.asarray(z["v"], np.float64), solver)
+
+
+def substep_count(body0, body1, cloth, settings: SimSettings, min_substeps: int = 1, max_substeps: int = 1,
+                  tree=None) -> tuple[int, float]:
+    """(implicit steps for one frame, how far the body near the cloth moves in it [m]).
+
+    A body vertex can reach the cloth within the frame when its distance to the nearest cloth
+    vertex is below its own move plus ``settings.follow_body`` (the reach of the carry that
+    starts each step, start.follow_body); the largest move among those vertices, over
+    ``settings.max_body_move``, rounded up, is the count (clamped to [min_substeps,
+    max_substeps]). A body that is still, or moves away from the cloth's reach, gets
+    ``min_substeps``. ``tree``: a scipy cKDTree of ``cloth`` (built here when None).
+    """
+    body0 = np.asarray(body0, dtype=np.float64)
+    move = np.linalg.norm(np.asarray(body1, dtype=np.float64) - body0, axis=1)
+    if not len(move) or max_substeps <= min_substeps:
+        return min_substeps, float(move.max()) if len(move) else 0.0
+    if tree is None:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(np.asarray(cloth, dtype=np.float64))
+    reach = move + settings.follow_body + settings.dhat
+    dist, _ = tree.query(body0, distance_upper_bound=float(reach.max()))
+    near = dist <= reach
+    m = float(move[near].max()) if np.any(near) else 0.0
+    n = math.ceil(m / settings.max_body_move - 1e-9) if m > 0 else 1
+    return int(min(max(n, min_substeps), max_substeps)), m
+
+
+def self_contact_possible(vertices, faces, dhat: float) -> bool:
+    """Whether the garment's start leaves every pair of its own non-adjacent triangles ≥ d̂
+    apart (ipctk), as self-contact needs: coincident seam vertices of sewn panels, or layers
+    closer than d̂, would start inside the barrier. When not, the simulation runs without
+    self-contact and says so (config.json ``self_contact``)."""
+    F = np.asarray(faces, np.int32)
+    V = np.asarray(vertices, np.float64)
+    mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
+    c = ipctk.NormalCollisions()
+    c.build(mesh, V, dhat)
+    ok = len(c) == 0
+    if not ok:
+        logging.getLogger("physavatar.progress").warning(
+            "the garment's own triangles start closer than d̂ = %g m to each other: simulated without self-contact", dhat)
+    return ok
+
+
+def frame_report(frame: int, stats: list, substeps: int, attempts: int, seconds: float, move: float) -> dict:
+    """What a frame did (JSON-ready): steps, attempts, Newton iterations, contacts, lag."""
+    gap = max((s.body_gap for s in stats), default=0.0)
+    return {"frame": int(frame), "substeps": int(substeps), "attempts": int(attempts),
+            "newton_iterations": int(sum(s.newton_iterations for s in stats)),
+            "contacts": int(stats[-1].n_contacts) if stats else 0,
+            "lag_m": float(gap), "lagged": bool(gap > 0), "body_move_m": round(float(move), 5),
+            "seconds": round(float(seconds), 3)}
+
+
 def simulate(garment_rest, faces, material: Material, collider_sequence, collider_faces,
              boundary_indices=(), boundary_targets=None, fps: float = 25.0, substeps: int = 1,
              settings: SimSettings | None = None, x0=None, v0=None, callback=None,
-             progress: ProgressLike = False):
+             progress: ProgressLike = False, max_substeps: int | None = None,
+             resume: Checkpoint | None = None, on_frame=None):
     """Simulate a garment on a moving body for a whole sequence.
 
     Args:
@@ -28,27 +126,37 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         boundary_targets: [T, K, 3] their positions per frame, or a callable
             ``rule(frame, body_vertices [Nb, 3]) -> [K, 3]`` (an attachment rule), or None
             (they stay at their initial positions).
-        fps: frames per second of the sequence; substeps: implicit steps per frame
-            (dt = 1 / (fps · substeps); body and targets are interpolated linearly in between).
+        fps: frames per second of the sequence; substeps: implicit steps per frame (at least);
+            max_substeps: at most (default ``substeps``: a fixed count). In between the count is
+            decided per frame (:func:`substep_count`, and twice as many when a frame's step
+            gave up and the body lagged). dt = 1 / (fps · steps of the frame); body and targets
+            are interpolated linearly in between.
         settings: :class:`SimSettings` (its dt is replaced by the one above); default: the
             defaults with the material's integrator (the one it was fitted with).
         x0, v0: [N, 3] initial positions / velocities (default rest, zero).
         callback: called as ``callback(frame, x [N, 3], stats list)`` after each frame.
         progress: anything :func:`physavatar.progress.resolve` takes (True: a terminal bar;
-            a callable or a Progress: its task "simulating", one step per frame).
+            a callable or a Progress: its task "simulating", one step per frame, with the
+            frame's report as info; logged every 5 frames).
+        resume: a :class:`Checkpoint` of an earlier run of the same simulation: continue after
+            its frame (the same result as an uninterrupted run).
+        on_frame: called as ``on_frame(checkpoint, report)`` after each frame (report:
+            :func:`frame_report`) — where a caller writes the frame as it is finished.
 
     Returns:
-        [T, N, 3] garment positions per frame (frame 0 = initial state).
+        [T, N, 3] garment positions per frame (frame 0 = initial state; with ``resume``, the
+        frames before the checkpoint's are NaN).
     """
     settings = settings or SimSettings(integrator=material.integrator)  # the model it was fitted in
-    dt = 1.0 / (fps * substeps)
-    settings = dataclasses.replace(settings, dt=dt)
+    max_substeps = substeps if max_substeps is None else max(int(max_substeps), substeps)
+    settings = dataclasses.replace(settings, dt=1.0 / (fps * substeps))
     bodies = np.asarray(collider_sequence, dtype=np.float64)
     T = len(bodies)
     sim = ClothSim(garment_rest, faces, material, settings, boundary_indices)
     order = np.argsort(np.asarray(boundary_indices, dtype=np.int64), kind="stable")
     x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
     v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)
+    x0_boundary = x[sim.boundary].copy()
 
     def targets(frame):
         if len(sim.boundary) == 0:
@@ -59,22 +167,54 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             return np.asarray(boundary_targets(frame, bodies[frame]))[order]
         return np.asarray(boundary_targets[frame])[order]
 
-    x0_boundary = x[sim.boundary].copy()
-    out = np.empty((T,) + x.shape)
-    out[0] = x
-    with resolve(progress).task("simulating", total=T - 1) as task:
-        for f in range(1, T):
-            stats_frame = []
+    out = np.full((T,) + x.shape, np.nan)
+    start = 1
+    if resume is not None:
+        start = resume.frame + 1
+        x, v = resume.x.copy(), resume.v.copy()
+        sim.set_state(resume.solver)
+    out[start - 1] = x
+    stuck = bool(resume is not None and resume.solver.get("stuck", False))
+    with resolve(progress).task("simulating", total=T - start, log_every=5) as task:
+        for f in range(start, T):
+            t0 = time.perf_counter()
             tb0, tb1 = targets(f - 1), targets(f)
-            for k in range(substeps):
-                w0, w1 = k / substeps, (k + 1) / substeps
-                b0 = (1 - w0) * bodies[f - 1] + w0 * bodies[f]
-                b1 = (1 - w1) * bodies[f - 1] + w1 * bodies[f]
-                tgt = None if tb1 is None else (1 - w1) * tb0 + w1 * tb1
-                x, v, st = sim.step(x, v, b0, b1, collider_faces, tgt)
-                stats_frame.append(st)
+            n, move = substep_count(bodies[f - 1], bodies[f], x, settings, substeps, max_substeps)
+            saved = (x, v, sim.get_state())
+            attempts = 0
+            while True:
+                attempts += 1
+                x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps)
+                lagged = any(s.body_gap > 0 for s in stats_frame)
+                # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
+                # the body's pose) is not undone by shorter steps: no retries until a frame passes
+                if n >= max_substeps or not lagged or stuck:
+                    stuck = lagged and (stuck or n >= max_substeps)
+                    break
+                # the body could not reach its pose: the frame again, from its start, in shorter steps
+                n = min(2 * n, max_substeps)
+                x, v = saved[0], saved[1]
+                sim.set_state(saved[2])
             out[f] = x
+            report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
+            if on_frame is not None:
+                on_frame(Checkpoint(f, x.copy(), v.copy(), sim.get_state() | {"stuck": stuck}), report)
             if callback is not None:
                 callback(f, x, stats_frame)
-            task.advance(1)
+            task.advance(1, frame=f, s_frame=report["seconds"], newton=report["newton_iterations"],
+                         contacts=report["contacts"], substeps=n, lag_mm=round(1e3 * report["lag_m"], 2))
     return out
+
+
+def _frame(sim: ClothSim, x, v, body0, body1, body_faces, tb0, tb1, n: int, fps: float):
+    """One frame in ``n`` implicit steps: (x, v, StepStats of each)."""
+    sim.set_dt(1.0 / (fps * n))
+    stats = []
+    for k in range(n):
+        w0, w1 = k / n, (k + 1) / n
+        b0 = (1 - w0) * body0 + w0 * body1
+        b1 = (1 - w1) * body0 + w1 * body1
+        tgt = None if tb1 is None else (1 - w1) * tb0 + w1 * tb1
+        x, v, st = sim.step(x, v, b0, b1, body_faces, tgt)
+        stats.append(st)
+    return x, v, stats

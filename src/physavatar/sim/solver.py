@@ -38,6 +38,7 @@ from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, Stiffnes
 from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
+from .linesearch import expand_step
 from .start import follow_body, warm_start
 from .terms import StepState
 
@@ -169,6 +170,38 @@ class ClothSim:
         self.barrier_stiffness = 0.0
         self.max_barrier_stiffness = 0.0
         self._kappa_balanced = False
+
+    def set_dt(self, dt: float):
+        """Step length of the following steps (simulate's per-frame substeps). BDF2's history
+        assumes equal steps: a new length restarts it with an implicit-Euler step."""
+        if dt != self.settings.dt:
+            self.settings = dataclasses.replace(self.settings, dt=float(dt))
+            self._last_step = None
+
+    def get_state(self) -> dict:
+        """What the next step depends on besides (x, v) and the settings: the adaptive barrier
+        stiffness (persists across steps, as in IPC), BDF2's history, where a lagging body
+        stopped. Arrays and floats (an .npz holds it); :meth:`set_state` restores it, after
+        which the next step is bit-identical to the one the captured sim would take."""
+        out = {"dt": self.settings.dt, "barrier_stiffness": self.barrier_stiffness,
+               "max_barrier_stiffness": self.max_barrier_stiffness, "kappa_balanced": self._kappa_balanced}
+        if self._last_step is not None:
+            out["last_step"] = np.stack(self._last_step)
+        if self._body_lag is not None:
+            out["body_lag"] = np.stack(self._body_lag)
+        return out
+
+    def set_state(self, state: dict):
+        """Restore :meth:`get_state`'s dict (this sim's or one saved from an equal sim)."""
+        self.set_dt(float(state["dt"]))
+        self.barrier_stiffness = float(state["barrier_stiffness"])
+        self.max_barrier_stiffness = float(state["max_barrier_stiffness"])
+        self._kappa_balanced = bool(state["kappa_balanced"])
+        if self.scene is not None:
+            self.barrier.set_stiffness(max(self.barrier_stiffness, 1e-300))
+        last, lag = state.get("last_step"), state.get("body_lag")
+        self._last_step = None if last is None else tuple(np.array(a, dtype=np.float64) for a in last)
+        self._body_lag = None if lag is None else tuple(np.array(a, dtype=np.float64) for a in lag)
 
     # -- energy --------------------------------------------------------------------------------
 
@@ -414,7 +447,7 @@ class ClothSim:
             stats.line_search_iterations += 1
         if (s.step_expansion and not sv.penalty and alpha == 1.0
                 and residual > 0.7 * sv.prev_residual):
-            X_new = self._expand_step(X, step, X_new, E1, stats)
+            X_new = expand_step(self.scene, lambda Y: self._energy(Y, False), X, step, X_new, E1, stats)
         sv.prev_residual = residual
         sv.X = X_new
         stats.time["line_search"] += time.perf_counter() - tls
@@ -539,40 +572,6 @@ class ClothSim:
         if self.settings.newton_norm == "max":
             return res_max, res_max
         return res_max, float(np.sqrt(np.sum(cloth * cloth) / self._n_free)) / h
-
-    def _expand_step(self, X, step, X_new, E_new, stats, max_scale=64.0):
-        """Try X + 2·step, 4·step, ... while the energy keeps decreasing; a move that CCD cuts is
-        tried at its collision-free fraction and ends the search. Returns the best point.
-
-        Projected Newton converges only linearly along a mode whose curvature the PSD
-        projection overstates: e.g. a vertex sliding over a body vertex, where the barrier's
-        negative tangential curvature is clamped away. The full step is then accepted every
-        iteration while the residual shrinks by a constant ratio close to 1 (docs/simulation.md
-        "The step"). Doubling the step along that direction reaches the same minimiser in a few
-        energy evaluations; the stopping rule is unchanged.
-        """
-        scale = 1.0
-        while scale < max_scale:
-            X_try = X + (2.0 * scale) * step
-            tc = time.perf_counter()
-            a = self.scene.collision_free_stepsize(X, X_try)
-            stats.time["ccd"] += time.perf_counter() - tc
-            last = a < 1.0  # the doubled step is cut by CCD: take its collision-free part, stop
-            if last:
-                if 2.0 * scale * a <= scale * 1.05:
-                    # that segment (ending at 2·scale·a·step) may stop short of X_new
-                    self.scene.covers_last_point = 2.0 * scale * a >= scale
-                    break
-                X_try = X + (2.0 * scale * a) * step
-            E_try = self._energy(X_try, False)
-            if not E_try < E_new:
-                break
-            scale = 2.0 * scale * a if last else 2.0 * scale
-            X_new, E_new = X_try, E_try
-            stats.step_expansions += 1
-            if last:
-                break
-        return X_new
 
     def _update_stiffness_init(self, X):
         """ipctk's initial κ from the balance of elastic and barrier gradients (IPC Sec. 4.3).

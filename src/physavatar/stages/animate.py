@@ -10,7 +10,7 @@ but not returned, so the garment never starts from a jump.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,10 +18,12 @@ import numpy as np
 from ..data.avatar import Avatar
 from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
 from ..data.animated import AnimatedSequence
+from ..data.sim_frames import FrameStore, fingerprint
 from ..errors import PhysavatarError
 from ..geometry import count_intersections
 from ..garment_sim import simulate_on_body, split_template
 from ..sim import SimSettings
+from ..sim.simulate import self_contact_possible
 from .base import option, to_dict
 
 
@@ -54,10 +56,14 @@ def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> i
 
 
 def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
-            progress=True, report=None) -> tuple[AnimatedSequence, dict]:
+            progress=True, report=None, max_substeps: int = 16,
+            out: Path | None = None) -> tuple[AnimatedSequence, dict]:
     """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats).
     ``progress``: see :mod:`physavatar.progress`; ``report``: called with 1 after every simulated
-    frame instead (:mod:`physavatar.parallel`)."""
+    frame instead (:mod:`physavatar.parallel`). ``max_substeps``: implicit steps a frame may be
+    split into where the body moves fast (sim.simulate.substep_count). ``out``: write each
+    simulated frame as it is finished into out/frames/ and resume an interrupted run of the same
+    avatar, motion and settings from there (data.sim_frames; the caller removes it)."""
     fps = avatar.fps
     body = BodyModel(avatar.shape, topology="collider")
     m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s)
@@ -78,10 +84,25 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
         raise PhysavatarError(avatar.root / "template.ply",
                               "the garment intersects Anny's collider body in the frame-1 pose; "
                               "the garment must start outside the collider to be simulated")
+    if settings is not None and settings.self_contact and not self_contact_possible(part.vertices, part.faces,
+                                                                                    settings.dhat):
+        settings = replace(settings, self_contact=False)
     t0 = time.time()
     cb = None if report is None else (lambda f, x, st: report(1))
-    Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, settings=settings,
-                          progress=progress if report is None else False, callback=cb)
+    options = dict(settings=settings, progress=progress if report is None else False, callback=cb,
+                   max_substeps=max_substeps)
+    reports = []
+    if out is None:
+        Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, on_frame=lambda c, r: reports.append(r),
+                              **options)
+    else:
+        key = fingerprint(part.vertices, part.faces, part.boundary, posed.vertices, body.faces,
+                          material=avatar.material.to_dict(), settings=None if settings is None else asdict(settings),
+                          fps=fps, max_substeps=max_substeps)
+        store = FrameStore(out, key, len(posed.vertices))
+        Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, resume=store.resume(),
+                              on_frame=store.write, **options)
+        Xg, reports = store.positions(part.vertices)
     secs = time.time() - t0
     V = np.empty((len(rots), len(t.vertices), 3))
     V[:, body_ids] = Vb
@@ -89,7 +110,10 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     V = V[n_warm:]
     stats = {"frames": int(len(V)), "warmup_frames": n_warm, "simulation_s": round(secs, 2),
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
-             "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps}
+             "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps,
+             "self_contact": bool(settings is not None and settings.self_contact),
+             "frames_with_lag": [f - n_warm for f, r in enumerate(reports, start=1) if r["lagged"] and f >= n_warm],
+             "substeps_per_frame": [r["substeps"] for f, r in enumerate(reports, start=1) if f >= n_warm]}
     return AnimatedSequence(V, t.faces, t.labels, t.face_uvs, fps, avatar.root), stats
 
 
@@ -115,6 +139,10 @@ class AnimateConfig:
                                     check=lambda v: None if v >= 1 else "must be at least 1")
     arm_clearance: float = option(0.03, "with a .bvh motion: raise the arms where a hand comes closer than this [m] "
                                   "to the hips/trunk, so the garment is not pinched (0 = off)", check=_nonnegative)
+    max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
+                               check=lambda v: None if v >= 1 else "must be at least 1")
+    self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
+                                      "triangles)")
 
 
 def pipeline_config(motion: str, eval_frames: int | None) -> AnimateConfig:
@@ -143,7 +171,10 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
         m, info = with_arm_clearance(m, config.motion, BodyModel(av.shape, topology="collider"), config.arm_clearance)
     if config.max_frames:
         m = m.slice(0, config.max_frames)
-    seq, stats = animate(av, m, warmup_s=config.warmup, progress=progress)
+    settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)
+    seq, stats = animate(av, m, warmup_s=config.warmup, settings=settings, progress=progress,
+                         max_substeps=config.max_substeps, out=out)
     seq.save(Path(out), {"command": "animate", "motion_spec": config.motion, "config": to_dict(config),
                          "arm_clearance": info, **stats})
+    FrameStore(out, "", 0).remove()  # the sequence is written: the per-frame record is no longer needed
     return AnimateResult(seq, stats, info)

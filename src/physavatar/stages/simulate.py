@@ -22,8 +22,9 @@ config.json (the record of the run, with the config), preview.mp4.
 
 from __future__ import annotations
 
+import logging
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,7 @@ from ..body.load import load_motion, with_arm_clearance
 from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
 from ..data.garment_sequence import GarmentSequence, boundary_ids
 from ..data.material import resolve_material
+from ..data.sim_frames import FrameStore, fingerprint
 from ..data.mesh_sequence import load_mesh_sequence
 from ..errors import PhysavatarError
 from ..files import PlyMesh, load_npz, read_ply, write_json_atomic, write_ply
@@ -41,10 +43,12 @@ from ..garment_sim import GarmentPart, simulate_on_body, split_template
 from ..geometry import count_intersections
 from ..sim import SimSettings
 from ..sim.contact import ContactScene
+from ..sim.simulate import self_contact_possible
 from .animate import transition
 from .base import option, to_dict
 
 INTEGRATORS = ("euler", "bdf2")
+log = logging.getLogger("physavatar.progress")
 
 
 @dataclass(frozen=True)
@@ -53,7 +57,9 @@ class SimulateConfig:
 
     Attributes:
         material: a preset (silk, cotton, denim) or a material .json (fit-physics' too).
-        fps: frames per second (a capture's own fps wins); substeps: implicit steps per frame.
+        fps: frames per second (a capture's own fps wins); substeps, max_substeps: implicit steps
+            per frame, at least / at most (decided per frame, sim.simulate.substep_count).
+        self_contact: resolve garment-garment contact (on by default).
         integrator: euler or bdf2 (None: the one the material was fitted with).
         duration: seconds of a built-in motion.
         warmup: seconds of transition from the rest pose to the motion's first pose.
@@ -65,7 +71,12 @@ class SimulateConfig:
 
     material: str = option("cotton", "silk, cotton, denim, or a material .json")
     fps: float = option(25.0, "frames per second (one implicit step per frame by default)")
-    substeps: int = option(1, "implicit steps per frame")
+    substeps: int = option(1, "implicit steps per frame (at least)")
+    max_substeps: int = option(16, "at most this many implicit steps per frame: more than --substeps where the body "
+                                   "near the garment moves fast or a step could not reach the body's pose "
+                                   "(docs/simulation.md 'Sub-stepping'); = --substeps for a fixed count")
+    self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
+                                      "triangles); every written frame is checked for self-intersection either way")
     integrator: str | None = option(None, "euler (implicit Euler, the paper's) or bdf2 (second order; "
                                           "docs/simulation.md); default: the one the material was fitted with "
                                           "(euler for presets)", choices=INTEGRATORS)
@@ -90,6 +101,9 @@ class SimulateResult:
         warmup_frames: leading frames simulated but not written.
         clearance: what arm clearance changed (body.load.with_arm_clearance), or None.
         preview: whether preview.mp4 was written.
+        lagged_frames: written frames where the body stopped short of its pose (the step gave
+            up even at max_substeps; written with the given pose).
+        self_intersecting_frames: written frames where the garment intersects itself.
     """
 
     out: Path
@@ -100,6 +114,8 @@ class SimulateResult:
     warmup_frames: int
     clearance: dict | None
     preview: bool
+    lagged_frames: list = field(default_factory=list)
+    self_intersecting_frames: list = field(default_factory=list)
 
 
 def _bad_option(name: str, problem: str):
@@ -115,7 +131,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     out = Path(out)
     mat = resolve_material(cfg.material, option="--material")
     fps = cfg.fps
-    if fps <= 0 or cfg.substeps < 1:
+    if fps <= 0 or cfg.substeps < 1 or cfg.max_substeps < 1:
         _bad_option("--fps/--substeps", "must be positive")
     integrator = cfg.integrator
     if integrator is None:
@@ -144,33 +160,83 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         raise PhysavatarError(collider or garment or capture,
                               f"the garment crosses the body's first frame ({n_cross} intersecting triangle pairs): "
                               "it must start outside the body, in the pose it was made for")
+    self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat)
+    sim_settings = replace(sim_settings, self_contact=self_contact)
     t0 = time.time()
-    X = simulate_on_body(part, bodies, body_faces, mat, fps, settings=sim_settings, substeps=cfg.substeps,
-                         progress=progress)
+    X, reports, store, resumed = _simulate_frames(out, part, bodies, body_faces, mat, fps, sim_settings, cfg, n_warm,
+                                                  progress)
     secs = time.time() - t0
     X, bodies = X[n_warm:], bodies[n_warm:]
+    reports = [(f - n_warm, r) for f, r in enumerate(reports, start=1) if f >= n_warm]  # (written frame, report)
     # every frame checked: finite and free of garment-body intersections (ipctk's exact test)
     scene = ContactScene(part.vertices, part.faces, bodies[0], body_faces, sim_settings.dhat)
     bad = [f for f in range(len(X))
            if not np.all(np.isfinite(X[f])) or scene.has_intersections(np.vstack([X[f], bodies[f]]))]
-    out.mkdir(parents=True, exist_ok=True)
+    self_bad = _self_intersecting(part, X)
     GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.vertices).save(out / GARMENT_SEQUENCE)
-    for f in range(len(X)):
-        write_ply(out / "meshes" / f"{f:06d}.ply", PlyMesh(X[f], part.faces))
     mat.save(out / "material.json")
     write_json_atomic(out / "config.json", {
         "command": "simulate", "capture": _text(capture), "garment": _text(garment), "motion": _text(motion),
         "collider": _text(collider), "material": mat.to_dict(), "fps": fps, "substeps": cfg.substeps,
-        "integrator": integrator, "frames_with_intersection_or_nan": bad,
+        "integrator": integrator, "self_contact": self_contact,
+        "frames_with_intersection_or_nan": bad, "frames_with_self_intersection": self_bad,
         "warmup_frames": n_warm, "arm_clearance": clearance_info, "frames": int(len(X)), "seconds": round(secs, 1),
-        "config": to_dict(cfg)})
+        "resumed_after_frame": resumed, **_frame_summary(reports), "config": to_dict(cfg)})
     if cfg.preview:
         from ..body.preview import render_frames, write_video
 
         Vall = np.concatenate([bodies, X], axis=1)
         Fall = np.concatenate([body_faces, part.faces + bodies.shape[1]])
         write_video(out / "preview.mp4", render_frames(Vall, Fall, None, None, title="simulate"), fps)
-    return SimulateResult(out, int(len(X)), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview)
+    store.remove()  # the final files are written: the per-frame record is no longer needed
+    return SimulateResult(out, int(len(X)), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview,
+                          [f for f, r in reports if r["lagged"]], self_bad)
+
+
+def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps: float, settings: SimSettings,
+                     cfg: SimulateConfig, n_warm: int, progress):
+    """Simulate every frame, writing each as it is finished (out/frames/, data.sim_frames; the
+    written frames' PLY meshes in out/meshes/), resuming an interrupted run of the same inputs
+    and settings from its last frame. Returns (positions [T, N, 3] of every simulated frame,
+    per-frame reports of frames 1..T−1, the FrameStore, the frame resumed after or None)."""
+    key = fingerprint(part.vertices, part.faces, part.boundary, bodies, body_faces, material=mat.to_dict(),
+                      settings=asdict(settings), fps=fps, substeps=cfg.substeps, max_substeps=cfg.max_substeps)
+    store = FrameStore(out, key, len(bodies))
+    ck = store.resume()
+    if ck is None and n_warm == 0:
+        write_ply(out / "meshes" / f"{0:06d}.ply", PlyMesh(part.vertices, part.faces))
+    elif ck is not None:
+        log.info("simulate: resuming %s after frame %d of %d", out, ck.frame, len(bodies) - 1)
+
+    def on_frame(checkpoint, report):
+        store.write(checkpoint, report)
+        if checkpoint.frame >= n_warm:
+            write_ply(out / "meshes" / f"{checkpoint.frame - n_warm:06d}.ply", PlyMesh(checkpoint.x, part.faces))
+
+    simulate_on_body(part, bodies, body_faces, mat, fps, settings=settings, substeps=cfg.substeps,
+                     max_substeps=cfg.max_substeps, resume=ck, on_frame=on_frame, progress=progress)
+    X, reports = store.positions(part.vertices)
+    return X, reports, store, None if ck is None else ck.frame
+
+
+def _self_intersecting(part: GarmentPart, X: np.ndarray) -> list[int]:
+    """Frames (finite ones) where the garment intersects itself: ipctk's exact check on the
+    garment alone."""
+    import ipctk
+
+    F = np.asarray(part.faces, np.int32)
+    mesh = ipctk.CollisionMesh(np.asarray(part.vertices, np.float64), ipctk.edges(F), F)
+    return [f for f in range(len(X)) if np.all(np.isfinite(X[f])) and ipctk.has_intersections(mesh, X[f])]
+
+
+def _frame_summary(reports: list) -> dict:
+    """config.json's per-frame record of the written frames, from (written frame, report) pairs
+    (the first written frame has one when a warm-up led to it): implicit steps, Newton
+    iterations, lag (how far the body stopped short of its pose; written with the given pose)."""
+    return {"frames_with_lag": [f for f, r in reports if r["lagged"]],
+            "per_frame": {"frame": [f for f, _ in reports], "lag_m": [round(r["lag_m"], 5) for _, r in reports],
+                          "substeps": [r["substeps"] for _, r in reports],
+                          "newton_iterations": [r["newton_iterations"] for _, r in reports]}}
 
 
 def _text(value) -> str | None:

@@ -1,0 +1,253 @@
+"""Every motion, every frame: the dress simulated on a suite of motions, checked frame by frame.
+
+The motions: the built-in ones, both CMU clips (``shared/data/motions/cmu_131_0{1,3}.bvh``,
+arm clearance applied as ``simulate`` does), and synthetic stress motions (a high jump, a spin
+at 2 turns/s, the hands pressed to the hips, a sit-down where the thighs fold into the lap).
+Each runs through ``physavatar simulate``'s stage (stages.simulate.run: the built-in dress on
+Anny's collider body, cotton, sub-steps decided per frame, frames written as finished) and is
+checked on every written frame: lag (the body stopped short of its pose, the step gave up),
+garment-body intersection (ipctk, as ``simulate`` checks), garment self-intersection (ipctk on
+the garment alone), NaN.
+
+By default a quick run (a few minutes on 2 cores): a 4-cm dress, 1-s excerpts (the CMU clips'
+hops and strides), a 0.4-s warm-up. ``--full``: the 2-cm dress, the clips whole, 4 s of each
+built-in motion, a 1-s warm-up. ``--max-substeps 1`` runs the old fixed one step per frame.
+
+    python benchmarks/motion_suite.py [--full] [--only NAME ...] [--max-substeps N] [--out FILE]
+
+Prints a table and writes benchmarks/results/motion_suite.json (``checks``: per motion, lag,
+intersection and NaN frames must all be 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import logging
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "2")
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np  # noqa: E402
+
+from _common import cpu_name  # noqa: E402
+from physavatar.body import BUILTIN, BodyModel, Motion  # noqa: E402
+from physavatar.body.load import load_motion, with_arm_clearance  # noqa: E402
+from physavatar.body.motion import _x, _y, _z, bone_vertex_mask  # noqa: E402
+from physavatar.data.garment_sequence import GarmentSequence  # noqa: E402
+from physavatar.stages import simulate as simulate_stage  # noqa: E402
+
+MOTIONS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "motions"
+CLIPS = {"cmu-walk": ("cmu_131_01.bvh", 20), "cmu-hop": ("cmu_131_03.bvh", 45)}  # quick: 1 s from this frame
+
+
+def _ramp(t, t0, t1):
+    s = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
+    return s * s * (3 - 2 * s)
+
+
+def _hands_on_hips_pose(body: BodyModel, target: float = 0.01) -> np.ndarray:
+    """The left shoulder's axis-angle (down about world y by 0.9 rad, back about z) that brings
+    the left hand within ``target`` [m] of the hips (the right arm's is its mirror image)."""
+    from scipy.spatial import cKDTree
+
+    names = body.bone_names
+    hand = bone_vertex_mask(body, [n for n in names if n.startswith(("hand", "finger", "wrist", "metacarpal", "thumb"))
+                                   and n.endswith(".L")])
+    hips = bone_vertex_mask(body, [n for n in names if n.startswith(("root", "pelvis", "upperleg"))])
+    for az in np.linspace(0.3, 1.0, 15):
+        r = np.zeros((1, len(names), 3))
+        r[0, names.index("upperarm01.L")] = [0, 0.9, az]
+        V = body.pose(r, np.zeros((1, 3))).vertices[0]
+        if cKDTree(V[hips]).query(V[hand])[0].min() <= target:
+            return np.array([0.0, 0.9, az])
+    raise RuntimeError("no shoulder rotation brings the hand to the hips")
+
+
+def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Motion]:
+    """The synthetic stress motions (Anny collider bones)."""
+    names = body.bone_names
+    n = int(round(duration * fps)) + 1
+    t = np.arange(n) / fps
+    out = {}
+
+    def motion(name, rot_by_bone, tr):
+        R = np.zeros((n, len(names), 3))
+        for b, r in rot_by_bone.items():
+            R[:, names.index(b)] = r
+        out[name] = Motion(name, fps, names, R, tr, {"source": "motion_suite"})
+
+    # a spin at 2 turns/s about the vertical (after a 0.25-s ease-in: 28.8° a frame at 25 fps)
+    e = _ramp(t, 0, 0.25)
+    ang = 2 * np.pi * 2.0 * np.cumsum(e) / fps
+    motion("spin-2tps", {"root": _z(ang)}, np.zeros((n, 3)))
+    # a high jump: crouch, 0.3-m ballistic flight with the knees tucked, landing (0.1 m a frame)
+    crouch = np.sin(np.pi * np.clip(t / 0.3, 0, 1)) * (t < 0.3)
+    flight = (t >= 0.3) & (t < 0.3 + 0.5)
+    tf = np.clip(t - 0.3, 0, 0.5)
+    z = np.where(flight, 2.45 * tf - 0.5 * 9.81 * tf**2, 0.0)
+    tuck = np.sin(np.pi * tf / 0.5) * flight
+    land = np.sin(np.pi * np.clip((t - 0.8) / 0.3, 0, 1)) * (t >= 0.8)
+    bend = crouch + 0.7 * land
+    tr = np.zeros((n, 3))
+    tr[:, 2] = z - 0.12 * bend
+    motion("jump-high", {"upperleg01.L": _x(-0.7 * bend - 0.9 * tuck), "upperleg01.R": _x(-0.7 * bend - 0.9 * tuck),
+                         "lowerleg01.L": _x(1.3 * bend + 1.2 * tuck), "lowerleg01.R": _x(1.3 * bend + 1.2 * tuck),
+                         "upperarm01.L": _y(-0.6 * tuck), "upperarm01.R": _y(0.6 * tuck)}, tr)
+    # the hands brought to the hips in 0.4 s and pressed there (1 cm), with a small sway
+    a = _hands_on_hips_pose(body)
+    e = _ramp(t, 0, 0.4)[:, None]
+    sway = 0.05 * np.sin(2 * np.pi * 1.5 * t) * e[:, 0]
+    motion("hands-on-hips", {"upperarm01.L": a * e, "upperarm01.R": a * [1, -1, -1] * e,
+                             "spine03": _z(sway)}, np.zeros((n, 3)))
+    # sitting down in 0.8 s: the thighs fold up into the lap (hips flexed 85°, knees 90°)
+    s = _ramp(t, 0.1, 0.9)
+    tr = np.zeros((n, 3))
+    tr[:, 2] = -0.42 * s
+    tr[:, 1] = 0.12 * s
+    motion("sit-down", {"upperleg01.L": _x(-1.5 * s), "upperleg01.R": _x(-1.5 * s),
+                        "lowerleg01.L": _x(1.57 * s), "lowerleg01.R": _x(1.57 * s),
+                        "spine03": _x(-0.15 * s)}, tr)
+    return out
+
+
+def garment_self_intersections(seq: GarmentSequence) -> list[int]:
+    """Frames where the garment intersects itself (ipctk on the garment alone)."""
+    import ipctk
+
+    F = np.asarray(seq.faces, np.int32)
+    mesh = ipctk.CollisionMesh(np.asarray(seq.rest_vertices, np.float64), ipctk.edges(F), F)
+    return [f for f in range(seq.n_frames)
+            if np.all(np.isfinite(seq.vertices[f])) and ipctk.has_intersections(mesh, np.asarray(seq.vertices[f], np.float64))]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--full", action="store_true", help="2-cm dress, whole clips, 4-s built-in motions")
+    ap.add_argument("--only", nargs="*", default=None, help="run only these motions")
+    ap.add_argument("--max-substeps", type=int, default=16, help="1: the fixed one step per frame (before)")
+    ap.add_argument("--edge", type=float, default=None, help="dress edge length [m] (default 0.04, --full 0.02)")
+    ap.add_argument("--out", default=None, help="result file (default benchmarks/results/motion_suite.json)")
+    ap.add_argument("--no-self-contact", action="store_true", help="garment self-contact off")
+    ap.add_argument("--progress", action="store_true", help="log a progress line every 5 frames")
+    ap.add_argument("--reuse", action="store_true",
+                    help="read the motions already simulated in --work instead of simulating them again")
+    ap.add_argument("--append", action="store_true", help="keep the other motions' rows of an existing result file")
+    ap.add_argument("--work", default=None, help="keep the simulate folders here (default: a temporary folder)")
+    args = ap.parse_args()
+    if args.progress:
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    fps = 25.0
+    edge = args.edge or (0.02 if args.full else 0.04)
+    duration = 4.0 if args.full else 1.0
+    warmup = 1.0 if args.full else 0.4
+    body = BodyModel(topology="collider")
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="motion_suite_"))
+    work.mkdir(parents=True, exist_ok=True)
+    wanted = (lambda name: not args.only or name in args.only)
+    specs: dict[str, str] = {name: name for name in BUILTIN if wanted(name)}
+    for name, (clip, start) in CLIPS.items():
+        path = MOTIONS / clip
+        if not wanted(name):
+            continue
+        cached = work / f"{name}{'-full' if args.full else ''}.npz"
+        if cached.exists():  # the clip retargeted with arm clearance (minutes on a loaded machine)
+            specs[name] = str(cached)
+            continue
+        if not path.exists():
+            print(f"{name}: {path} missing, skipped")
+            continue
+        m = load_motion(str(path), fps, 4.0, body=body)
+        m, _ = with_arm_clearance(m, str(path), body, 0.03)
+        if not args.full:
+            m = m.slice(start, start + int(round(duration * fps)) + 1)
+        m.save(cached)
+        specs[name] = str(cached)
+    for name, m in stress_motions(body, fps, max(duration, 1.2) if not args.full else 2.0).items():
+        if wanted(name):
+            m.save(work / f"{name}.npz")
+            specs[name] = str(work / f"{name}.npz")
+
+    rows, load0 = {}, os.getloadavg()
+    print(f"dress edge {edge} m, {duration:g} s built-in motions, warm-up {warmup} s, max substeps {args.max_substeps}, "
+          f"self-contact {'off' if args.no_self_contact else 'on'}")
+    print(f"{'motion':15s} {'frames':>6s} {'lag':>4s} {'body-x':>6s} {'self-x':>6s} {'NaN':>4s} {'s/frame':>8s} "
+          f"{'steps/frame':>11s}")
+    for name, spec in specs.items():
+        cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
+                                            max_substeps=args.max_substeps, self_contact=not args.no_self_contact)
+        done = work / name / "config.json"
+        t0 = time.perf_counter()
+        reused = args.reuse and done.exists()
+        if not reused:  # (an interrupted run in work/name resumes)
+            simulate_stage.run(out=work / name, config=cfg, garment="dress", motion=spec)
+        wall = time.perf_counter() - t0
+        rec = json.loads(done.read_text())
+        seq = GarmentSequence.load(work / name, finite=False)
+        nan = [f for f in range(seq.n_frames) if not np.all(np.isfinite(seq.vertices[f]))]
+        body_x = [f for f in rec["frames_with_intersection_or_nan"] if f not in nan]
+        self_x = garment_self_intersections(seq)
+        steps = rec["per_frame"]["substeps"]
+        frames, warm = rec["frames"], rec["warmup_frames"]
+        simulated = frames + warm - 1
+        row = {"frames": frames, "warmup_frames": warm, "frames_with_lag": rec["frames_with_lag"],
+               "frames_with_body_intersection": body_x, "frames_with_self_intersection": self_x,
+               "frames_with_nan": nan, "s_per_frame": rec["seconds"] / max(simulated, 1), "wall_s": wall,
+               "reused": bool(reused),
+               "resumed_after_frame": rec.get("resumed_after_frame"),
+               "mean_substeps": float(np.mean(steps)) if steps else 1.0, "max_substeps": int(max(steps, default=1)),
+               "max_lag_m": float(max(rec["per_frame"]["lag_m"], default=0.0))}
+        rows[name] = row
+        print(f"{name:15s} {frames:6d} {len(row['frames_with_lag']):4d} {len(body_x):6d} {len(self_x):6d} "
+              f"{len(nan):4d} {row['s_per_frame']:8.2f} {row['mean_substeps']:6.2f} (max {row['max_substeps']})",
+              flush=True)
+        _write(args, rows, load0, edge, duration, warmup, fps)
+    failed = [k for k, c in _checks(rows).items() if not c["pass"]]
+    print(f"\n{len(_checks(rows)) - len(failed)}/{len(_checks(rows))} checks pass" + (f"; failing: {failed}" if failed else ""))
+
+
+def _checks(rows: dict) -> dict:
+    checks = {}
+    for name, row in rows.items():
+        for key in ("frames_with_lag", "frames_with_body_intersection", "frames_with_self_intersection",
+                    "frames_with_nan"):
+            checks[f"{name}:{key}"] = {"value": len(row[key]), "target": "0 frames", "unit": "frames",
+                                       "pass": not row[key]}
+    return checks
+
+
+def _write(args, rows, load0, edge, duration, warmup, fps):
+    """The result file, rewritten after every motion; with --append, rows of an earlier run in
+    it are kept (each row says the run it came from: its date and load)."""
+    out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "motion_suite.json"
+    stamp = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+             "load_average_1_5_15min_start": [round(v, 2) for v in load0],
+             "load_average_1_5_15min_now": [round(v, 2) for v in os.getloadavg()]}
+    for row in rows.values():
+        row.setdefault("run", stamp)
+    old = json.loads(out.read_text())["figures"] if args.append and out.exists() else {}
+    rows = {**old, **rows}
+    result = {
+        "benchmark": "motion_suite", "date": stamp["date"],
+        "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None, **{k: v for k, v in stamp.items() if k != "date"}},
+        "config": {"garment": "dress", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
+                   "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,
+                   "self_contact": not args.no_self_contact,
+                   "clip_excerpts": None if args.full else {k: [s, s + int(round(duration * fps))]
+                                                            for k, (_, s) in CLIPS.items()}},
+        "figures": rows,
+        "checks": _checks(rows),
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,96 @@
+"""A simulation's frames written as they are finished, and where an interrupted run resumes.
+
+``simulate`` and ``animate`` keep, inside their output folder while they run::
+
+    frames/run.json     {"key": fingerprint of what is simulated and how, "frames": T}
+    frames/NNNNNN.npz   x [N, 3] float64 (the garment at that simulated frame), report (JSON:
+                        substeps, Newton iterations, contacts, lag; sim.simulate.frame_report)
+    frames/state.npz    the sim.Checkpoint after the last frame written (positions,
+                        velocities, the solver's state)
+
+Every file is written atomically, frame file first, then the state. A run that finds a
+``frames/`` folder with the same key resumes after the state's frame; with another key it
+starts over. At the end the stage assembles its final file (garment_sequence.npz /
+sequence.npz, atomically) from the frames and removes the folder.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import PhysavatarError
+from ..files import load_npz, read_json, save_npz_atomic, write_json_atomic
+from ..sim.simulate import Checkpoint
+
+FOLDER = "frames"
+
+
+def fingerprint(*arrays, **meta) -> str:
+    """A hex digest of arrays (dtype, shape and bytes) and JSON-able settings: the identity of
+    a simulation run (two runs with equal fingerprints compute the same frames)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:32]
+
+
+class FrameStore:
+    """``out/frames/`` of one run (module docstring). ``key``: :func:`fingerprint` of the run;
+    ``total``: its frame count T (frame 0, the initial state, is not written)."""
+
+    def __init__(self, out: str | Path, key: str, total: int):
+        self.folder = Path(out) / FOLDER
+        self.key, self.total = key, int(total)
+
+    def _frame_path(self, f: int) -> Path:
+        return self.folder / f"{f:06d}.npz"
+
+    def resume(self) -> Checkpoint | None:
+        """The checkpoint to continue from when the folder holds this run (same key, the state
+        and every frame up to it readable); otherwise clear it, start the run's record, None."""
+        ck = None
+        try:
+            run = read_json(self.folder / "run.json")
+            if run.get("key") == self.key and int(run.get("frames", -1)) == self.total:
+                ck = Checkpoint.load(self.folder / "state.npz")
+                if not (0 < ck.frame < self.total and all(self._frame_path(f).is_file() for f in range(1, ck.frame + 1))):
+                    ck = None
+        except (PhysavatarError, KeyError, ValueError):
+            ck = None
+        if ck is None:
+            self.remove()
+            self.folder.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(self.folder / "run.json", {"key": self.key, "frames": self.total})
+        return ck
+
+    def write(self, checkpoint: Checkpoint, report: dict) -> None:
+        """Frame ``checkpoint.frame``'s positions and report, then the state to resume from."""
+        save_npz_atomic(self._frame_path(checkpoint.frame), x=checkpoint.x, report=np.asarray(json.dumps(report)))
+        checkpoint.save(self.folder / "state.npz")
+
+    def frame(self, f: int) -> tuple[np.ndarray, dict]:
+        """(positions [N, 3] float64, report) of written frame ``f``."""
+        z = load_npz(self._frame_path(f))
+        return np.asarray(z["x"], np.float64), json.loads(str(z["report"]))
+
+    def positions(self, x0: np.ndarray) -> tuple[np.ndarray, list[dict]]:
+        """([T, N, 3] every frame, frame 0 = ``x0``; the reports of frames 1..T−1)."""
+        X = np.empty((self.total,) + np.shape(x0))
+        X[0] = x0
+        reports = []
+        for f in range(1, self.total):
+            X[f], r = self.frame(f)
+            reports.append(r)
+        return X, reports
+
+    def remove(self) -> None:
+        if self.folder.exists():
+            shutil.rmtree(self.folder)
