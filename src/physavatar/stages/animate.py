@@ -137,7 +137,7 @@ class AnimateConfig:
                            check=_nonnegative)
     max_frames: int | None = option(None, "at most this many frames",
                                     check=lambda v: None if v >= 1 else "must be at least 1")
-    arm_clearance: float = option(0.03, "with a .bvh motion: raise the arms where a hand comes closer than this [m] "
+    arm_clearance: float = option(0.03, "with motion capture (.bvh, AMASS .npz): raise the arms where a hand comes closer than this [m] "
                                   "to the hips/trunk, so the garment is not pinched (0 = off)", check=_nonnegative)
     max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
                                check=lambda v: None if v >= 1 else "must be at least 1")
@@ -167,7 +167,7 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
     av = Avatar.load(avatar)
     m = load_motion(config.motion, av.fps, config.duration)
     info = None
-    if config.arm_clearance and str(config.motion).lower().endswith(".bvh"):
+    if config.arm_clearance:  # with_arm_clearance acts on motion capture (.bvh, AMASS .npz) only
         m, info = with_arm_clearance(m, config.motion, BodyModel(av.shape, topology="collider"), config.arm_clearance)
     if config.max_frames:
         m = m.slice(0, config.max_frames)
