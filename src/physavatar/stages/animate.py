@@ -160,14 +160,14 @@ class AnimateResult:
 def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> AnimateResult:
     """Drive the avatar folder ``avatar`` with ``config.motion``; writes ``out`` (sequence.npz,
     sequence.json with the config and stats, meshes/)."""
-    from ..body.load import load_motion, with_arm_clearance
+    from ..body.load import is_capture, load_motion, with_arm_clearance
 
     if not config.motion:
         raise PhysavatarError(None, "option --motion: give a motion (built-in name, .bvh or .npz)")
     av = Avatar.load(avatar)
     m = load_motion(config.motion, av.fps, config.duration)
     info = None
-    if config.arm_clearance:  # with_arm_clearance acts on motion capture (.bvh, AMASS .npz) only
+    if config.arm_clearance and is_capture(config.motion):  # motion capture: .bvh, AMASS .npz
         m, info = with_arm_clearance(m, config.motion, BodyModel(av.shape, topology="collider"), config.arm_clearance)
     if config.max_frames:
         m = m.slice(0, config.max_frames)
