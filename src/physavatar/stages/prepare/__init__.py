@@ -1,0 +1,1 @@
+"""Preparing a capture: what it lacks (masks, first-frame mesh, body, segmentation, boundary, UVs)."""
