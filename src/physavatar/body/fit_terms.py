@@ -33,21 +33,26 @@ class MaskView:
     """One camera's silhouette at one frame, at the working resolution of ``camera``."""
 
     camera: Camera
-    dt: torch.Tensor  # [H, W] distance [px] to the foreground (0 inside)
-    contour: torch.Tensor  # [N, 2] contour pixels (u, v)
+    dt: torch.Tensor  # [H, W] signed distance [px] to the mask's edge (> 0 outside, < 0 inside)
+    contour: torch.Tensor  # [N, 2] points on the mask's edge (u, v), between pixel centres
     mask: np.ndarray  # [H, W] bool
 
     @staticmethod
     def build(camera: Camera, mask: np.ndarray, max_contour: int, rng: np.random.Generator) -> "MaskView":
         m = np.asarray(mask) > 0.5
-        dt = ndimage.distance_transform_edt(~m) if m.any() else np.full(m.shape, 1e3)
-        edge = m & ~ndimage.binary_erosion(m, border_value=0)
-        v, u = np.nonzero(edge)
-        if len(u) > max_contour:
-            keep = rng.choice(len(u), max_contour, replace=False)
-            u, v = u[keep], v[keep]
-        return MaskView(camera, torch.as_tensor(dt, dtype=torch.float32),
-                        torch.as_tensor(np.stack([u, v], 1), dtype=DTYPE), m)
+        if m.any() and not m.all():
+            # pixel centres lie half a pixel from the edge between a pixel and its neighbour:
+            # this signed distance is 0 on that edge, so bilinear lookups are unbiased there
+            dt = np.where(m, 0.5 - ndimage.distance_transform_edt(m), ndimage.distance_transform_edt(~m) - 0.5)
+        else:
+            dt = np.full(m.shape, -1e3 if m.all() else 1e3)
+        # edge points: midpoints between horizontally or vertically neighbouring pixels that differ
+        vh, uh = np.nonzero(m[:, 1:] != m[:, :-1])
+        vv, uv_ = np.nonzero(m[1:] != m[:-1])
+        pts = np.concatenate([np.stack([uh + 0.5, vh], 1), np.stack([uv_, vv + 0.5], 1)]).astype(np.float64)
+        if len(pts) > max_contour:
+            pts = pts[rng.choice(len(pts), max_contour, replace=False)]
+        return MaskView(camera, torch.as_tensor(dt, dtype=torch.float32), torch.as_tensor(pts, dtype=DTYPE), m)
 
 
 def camera_tensors(cam: Camera) -> tuple[torch.Tensor, torch.Tensor]:
@@ -72,7 +77,7 @@ def sample_field(field: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return out[0, 0, 0]
 
 
-def gm(d2: torch.Tensor, sigma: float) -> torch.Tensor:
+def gm(d2: torch.Tensor, sigma) -> torch.Tensor:
     """Geman-McClure on squared distances: ~d^2 near 0, at most sigma^2 far away."""
     s2 = sigma * sigma
     return s2 * d2 / (d2 + s2)
@@ -86,14 +91,15 @@ def silhouette_terms(points: torch.Tensor, views: list[MaskView], sigma: float) 
         uv, z = project(points, view.camera)
         f = float(view.camera.K[0, 0])
         scale = z.clamp(min=1e-3) / f  # metres per pixel at each point
-        d_out = sample_field(view.dt, uv) * scale
+        d_out = torch.relu(sample_field(view.dt, uv)) * scale
         out = out + (d_out ** 2).mean()
         q = view.contour
         if len(q):
             with torch.no_grad():
                 nn = torch.as_tensor(cKDTree(uv.detach().numpy()).query(q.numpy())[1])
             d2 = ((q - uv[nn]) ** 2).sum(-1) * scale[nn] ** 2
-            cont = cont + gm(d2, sigma).mean()
+            # the kernel is never narrower than a pixel (edges are only known to a pixel)
+            cont = cont + gm(d2, torch.clamp(scale[nn].detach(), min=sigma)).mean()
     n = max(len(views), 1)
     return out / n, cont / n
 

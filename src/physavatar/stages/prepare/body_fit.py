@@ -54,7 +54,7 @@ class BodyFitConfig:
                             flag="--keypoints", choices=("auto", "mediapipe", "none"))
     topology: str = option("collider", "Anny topology of the fitted body", flag="--body-topology",
                            choices=tuple(TOPOLOGIES))
-    smoothness: float = option(0.3, "weight of the joints' acceleration against the image terms", flag="--body-smoothness",
+    smoothness: float = option(0.1, "weight of the joints' acceleration against the image terms", flag="--body-smoothness",
                                check=lambda v: None if v >= 0 else "must be >= 0")
     max_resolution: int = setting(384)  # masks are fitted at most at this size (longer side, px)
     max_contour: int = setting(300)  # contour pixels per view and frame
@@ -334,7 +334,7 @@ class _Fitter:
             if phen is not None:
                 with torch.no_grad():
                     phen.clamp_(0.0, 1.0)
-            last = float(loss)
+            last = float(loss.detach())
         return last
 
     # phase 1
@@ -400,10 +400,11 @@ class _Fitter:
             loss = self.data_loss([t], V, H, sigma) + self.prior(rot)
             if t >= 2:
                 acc = H[0] - 2 * Hs[-1] + Hs[-2]
-                loss = loss + cfg.smoothness * (acc ** 2).sum(-1).mean()
+                # weak here: a constant-velocity prior would carry one frame's error into the next
+                loss = loss + 0.1 * cfg.smoothness * (acc ** 2).sum(-1).mean()
             return loss
 
-        self._run([rot, tau], [0.02, 0.005], cfg.frame_iterations, f, 2 * cfg.sigma_end, cfg.sigma_end)
+        self._run([rot, tau], [0.02, 0.005], cfg.frame_iterations, f, 0.5 * cfg.sigma_start, cfg.sigma_end)
         with torch.no_grad():
             _, H = self.model.pose(rot, tau, phen)
         return rot.detach(), tau.detach(), H[0]
