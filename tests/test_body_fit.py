@@ -1,7 +1,7 @@
 """Body fitting (stages/prepare/body_fit.py, keypoints.py, body/differentiable.py).
 
 The capture here is made without the renderer: an Anny body of a known, non-average shape walks
-for a few frames inside a "clothed" surface (the body pushed 1.5 cm out along its normals, the
+for a few frames inside a "clothed" surface (the body pushed 3 mm out along its normals (skin), the
 hips and thighs 5 cm, like a skirt), and each view's mask is that surface's triangles filled
 (PIL) at low resolution. The fit sees the masks and the first frame's clothed mesh; the truth
 is the body that made them.
@@ -25,7 +25,8 @@ from physavatar.geometry.mesh import vertex_normals
 
 TRUE_SHAPE = BodyShape(gender=0.35, age=0.55, muscle=0.5, weight=0.6, height=0.6, proportions=0.5)
 FRAMES = 4
-SIZE = 80
+SIZE = 128
+FOV = 40.0
 SHARED = Path(os.environ.get("PHYSAVATAR_SHARED_DATA", "/work/shared/data"))
 
 
@@ -43,14 +44,14 @@ def walking(tmp_path_factory):
     root = tmp_path_factory.mktemp("bodyfit") / "cap"
     body = BodyModel(TRUE_SHAPE, topology="collider")
     motion = builtin_motion("walk", body.bone_names, 25.0, 1.0)
-    idx = np.linspace(8, 20, FRAMES).astype(int)  # mid-stride, moving
+    idx = 10 + np.arange(FRAMES)  # mid-stride, moving
     rot, tr = motion.rotations[idx], motion.root_translation[idx]
     posed = body.pose(rot, tr)
     skirt = bone_vertex_mask(body, ("pelvis", "upperleg", "root", "spine05"))
-    off = np.where(skirt, 0.05, 0.015)
+    off = np.where(skirt, 0.05, 0.003)
     rest_clothed = body.rest_vertices + off[:, None] * vertex_normals(body.rest_vertices, body.faces)
     clothed = linear_blend_skinning(rest_clothed, body.skinning_weights, posed.bone_transforms)
-    cams = ring_rig(4, 3.0, 1.0, (0, 0, 0.9), SIZE, SIZE, 45.0, n_elevated=1, elevated_height=2.6)
+    cams = ring_rig(4, 3.0, 1.0, (0, 0, 0.9), SIZE, SIZE, FOV, n_elevated=1, elevated_height=2.6)
     save_capture_meta(root, fps=25.0, frames=list(range(FRAMES)))
     save_cameras(root, cams)
     for c in cams:

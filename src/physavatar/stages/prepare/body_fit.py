@@ -30,7 +30,7 @@ import torch
 from PIL import Image
 
 from ...body.differentiable import DTYPE, DiffBody
-from ...body.fit_terms import ClothedSurface, MaskView, keypoint_term, project, silhouette_terms
+from ...body.fit_terms import ClothedSurface, MaskView, keypoint_term, project, sample_field, silhouette_terms
 from ...body.model import PHENOTYPES, TOPOLOGIES, BodyShape
 from ...camera import Camera
 from ...errors import PhysavatarError
@@ -58,19 +58,22 @@ class BodyFitConfig:
                                check=lambda v: None if v >= 0 else "must be >= 0")
     max_resolution: int = setting(384)  # masks are fitted at most at this size (longer side, px)
     max_contour: int = setting(300)  # contour pixels per view and frame
+    samples_per_face: int = setting(5)
+    shape_step: float = setting(0.08)  # how far the phenotypes move between Anny evaluations
+    relinearize_every: int = setting(25)  # body surface samples per triangle for the silhouettes
     first_iterations: int = setting(300)
     heading_iterations: int = setting(60)  # per candidate heading, without keypoints
     frame_iterations: int = setting(50)
     sequence_iterations: int = setting(60)
-    sigma_start: float = setting(0.06)  # robust kernel of the contour term [m], annealed to ...
+    sigma_start: float = setting(0.12)  # robust kernel of the contour term [m], annealed to ...
     sigma_end: float = setting(0.015)
     w_outside: float = setting(1.0)
     w_contour: float = setting(1.0)
-    w_keypoints: float = setting(1.0)
-    w_clothing_inside: float = setting(1.0)
+    w_keypoints: float = setting(0.2)  # keypoints guide; silhouettes decide the last centimetres
+    w_clothing_inside: float = setting(10.0)
     w_clothing_near: float = setting(0.1)
     w_pose_prior: float = setting(2e-4)
-    w_shape_prior: float = setting(2e-4)
+    w_shape_prior: float = setting(1e-3)
     clothing_margin: float = setting(0.003)  # [m] the body keeps this far under the clothing
     bones: tuple = setting(FIT_BONES)
     seed: int = setting(0)
@@ -298,6 +301,14 @@ class _Fitter:
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
         self.model = _Model(cfg)
         self.A = len(cfg.bones)
+        # silhouette samples: the vertices and points spread over the triangles (about 1 cm
+        # apart on the collider body), so a mask's edge always has a body point near it
+        F_ = self.model.body.faces
+        rng = np.random.default_rng(cfg.seed)
+        n = cfg.samples_per_face
+        bary = rng.dirichlet([1.0, 1.0, 1.0], size=(len(F_), n)).reshape(-1, 3)
+        self.sample_faces = torch.as_tensor(np.repeat(F_, n, axis=0))
+        self.sample_bary = torch.as_tensor(bary, dtype=DTYPE)
         self.kp_ids = np.array(self.model.kp_ids)
 
     def data_loss(self, frames: list[int], V, H, sigma: float) -> torch.Tensor:
@@ -305,21 +316,27 @@ class _Fitter:
         total = V.new_zeros(())
         kps = self.model.keypoints(V, H) if obs.kp is not None else None
         for i, t in enumerate(frames):
-            o, c = silhouette_terms(V[i], obs.views(t), sigma)
+            o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma)
             total = total + cfg.w_outside * o + cfg.w_contour * c
             if kps is not None:
                 conf = obs.conf[t][:, self.kp_ids] * self.model.kp_weight
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
-                                                                max(sigma, 0.03))
+                                                                max(sigma, 0.05))
             if t == 0 and self.clothing is not None:
                 inside, near = self.clothing.terms(V[i], cfg.clothing_margin, sigma)
                 total = total + cfg.w_clothing_inside * inside + cfg.w_clothing_near * near
         return total / len(frames)
 
+    def samples(self, V: torch.Tensor) -> torch.Tensor:
+        """[V, 3] body vertices -> [V + n F, 3] vertices and surface samples."""
+        P = (V[self.sample_faces] * self.sample_bary[:, :, None]).sum(1)
+        return torch.cat([V, P])
+
     def prior(self, rot) -> torch.Tensor:
         return self.cfg.w_pose_prior * (rot[:, 1:] ** 2).sum((1, 2)).mean()
 
     def _run(self, params: list, lrs: list, iters: int, loss_fn, sigma0: float, sigma1: float, phen=None):
+        cfg = self.cfg
         opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in zip(params, lrs)])
         last = None
         for it in range(iters):
@@ -332,8 +349,12 @@ class _Fitter:
             loss.backward()
             opt.step()
             if phen is not None:
-                with torch.no_grad():
-                    phen.clamp_(0.0, 1.0)
+                body = self.model.body
+                with torch.no_grad():  # trust region of the linearised shape, inside [0, 1]
+                    lo, hi = (body.p0 - cfg.shape_step).clamp(min=0.0), (body.p0 + cfg.shape_step).clamp(max=1.0)
+                    phen.copy_(torch.maximum(torch.minimum(phen, hi), lo))
+                if (it + 1) % cfg.relinearize_every == 0 and it + 1 < iters:
+                    body.relinearize(BodyShape.from_array(phen.detach().numpy()))
             last = float(loss.detach())
         return last
 
@@ -376,10 +397,13 @@ class _Fitter:
             yaw = scores[0][1]
         info["heading_deg"] = round(float(np.degrees(yaw)), 1)
         rot, tau, ph = start(yaw)
-        half = cfg.first_iterations // 2
-        for k, (s0, s1) in enumerate([(cfg.sigma_start, 2 * cfg.sigma_end), (2 * cfg.sigma_end, cfg.sigma_end)]):
-            loss = self._run([rot, tau, ph], [0.03, 0.01, 0.02], half, loss_fn(rot, tau, ph), s0, s1, ph)
-            # re-linearise the shape where it has got to (the model is exact at that point)
+        third = cfg.first_iterations // 3
+        # pose first with the shape held (a wrong pose is not absorbed by a wrong shape), wide
+        # kernel to narrow; then shape and pose together, re-linearising the shape after each part
+        loss = self._run([rot, tau], [0.03, 0.01], third, loss_fn(rot, tau, ph), cfg.sigma_start, 2 * cfg.sigma_end)
+        task.advance()
+        for s0, s1 in [(2 * cfg.sigma_end, cfg.sigma_end), (cfg.sigma_end, cfg.sigma_end)]:
+            loss = self._run([rot, tau, ph], [0.02, 0.005, 0.02], third, loss_fn(rot, tau, ph), s0, s1, ph)
             body.relinearize(BodyShape.from_array(ph.detach().numpy()))
             task.advance()
         info["first_frame_loss"] = loss
@@ -437,18 +461,23 @@ def _check(fitter: _Fitter, rot, tau, phen) -> dict:
     V, H = V.numpy(), H.numpy()
     T = len(V)
     share = np.zeros((T, len(obs.cams)))
+    near = np.zeros((T, len(obs.cams)))
     for t in range(T):
         for c, view in enumerate(obs.views(t)):
-            uv, z = view.camera.project(V[t])
-            u, w = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
-            ok = (z > 0) & (u >= 0) & (w >= 0) & (u < view.camera.width) & (w < view.camera.height)
-            hit = np.zeros(len(u), bool)
-            hit[ok] = view.mask[w[ok], u[ok]]
-            share[t, c] = hit.mean()
+            uv, z = project(torch.as_tensor(V[t]), view.camera)
+            H_, W_ = view.mask.shape
+            inimg = ((uv[:, 0] >= -0.5) & (uv[:, 1] >= -0.5) & (uv[:, 0] <= W_ - 0.5) & (uv[:, 1] <= H_ - 0.5)
+                     & (z > 0)).numpy()
+            sd = sample_field(view.dt, uv).numpy()  # signed distance to the mask's edge [px]
+            share[t, c] = (inimg & (sd <= 0)).mean()
+            near[t, c] = (inimg & (sd <= 1.0)).mean()
     rep = {"inside_masks": {
         "mean": round(float(share.mean()), 4),
+        "mean_within_1px": round(float(near.mean()), 4),
         "per_camera_mean": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.mean(0))},
-        "per_camera_worst_frame": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.min(0))}}}
+        "per_camera_worst_frame": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.min(0))},
+        "pixel_mm": round(1000 * float(np.median([np.linalg.norm(c.center - V[0].mean(0)) / c.K[0, 0]
+                                                 for c in obs.cams])), 1)}}
     if kps is not None:
         errs = {c.name: [] for c in obs.native}
         for t in range(T):
@@ -519,7 +548,7 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
     report: dict = {"detector": obs.detector_note, "frames": T, "cameras": len(obs.cams),
                     "working_resolution": [[c.width, c.height] for c in obs.cams][:1][0]}
     with torch.set_grad_enabled(True):
-        with prog.task("prepare: body, first frame", total=(0 if obs.kp is not None else 4) + 2) as task:
+        with prog.task("prepare: body, first frame", total=(0 if obs.kp is not None else 4) + 3) as task:
             rot0, tau0, phen, info = fitter.first_frame(task)
         report.update(info)
         t1 = time.time()

@@ -37,7 +37,7 @@ MEDIAPIPE_TO_ANNY: dict[int, tuple[str, str]] = {
     31: ("vertex", "toe.L"), 32: ("vertex", "toe.R"),
 }
 # How much each keypoint is trusted (MediaPipe's hips sit above and outside the hip joints).
-KEYPOINT_WEIGHT = {23: 0.5, 24: 0.5, 7: 0.5, 8: 0.5}
+KEYPOINT_WEIGHT = {23: 0.3, 24: 0.3, 7: 0.5, 8: 0.5}
 N_LANDMARKS = 33
 
 
