@@ -70,7 +70,7 @@ class BodyFitConfig:
     w_outside: float = setting(1.0)
     w_contour: float = setting(1.0)
     w_keypoints: float = setting(0.2)  # keypoints guide; silhouettes decide the last centimetres
-    w_clothing_inside: float = setting(10.0)
+    w_clothing_inside: float = setting(3.0)
     w_clothing_near: float = setting(0.1)
     w_pose_prior: float = setting(2e-4)
     w_shape_prior: float = setting(1e-3)
@@ -301,6 +301,9 @@ class _Fitter:
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
         self.model = _Model(cfg)
         self.A = len(cfg.bones)
+        # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
+        # from a far pose they squeeze the body into the wrong part of the clothing
+        self.use_clothing = False
         # silhouette samples: the vertices and points spread over the triangles (about 1 cm
         # apart on the collider body), so a mask's edge always has a body point near it
         F_ = self.model.body.faces
@@ -322,7 +325,7 @@ class _Fitter:
                 conf = obs.conf[t][:, self.kp_ids] * self.model.kp_weight
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
                                                                 max(sigma, 0.05))
-            if t == 0 and self.clothing is not None:
+            if t == 0 and self.clothing is not None and self.use_clothing:
                 inside, near = self.clothing.terms(V[i], cfg.clothing_margin, sigma)
                 total = total + cfg.w_clothing_inside * inside + cfg.w_clothing_near * near
         return total / len(frames)
@@ -402,6 +405,7 @@ class _Fitter:
         # kernel to narrow; then shape and pose together, re-linearising the shape after each part
         loss = self._run([rot, tau], [0.03, 0.01], third, loss_fn(rot, tau, ph), cfg.sigma_start, 2 * cfg.sigma_end)
         task.advance()
+        self.use_clothing = True
         for s0, s1 in [(2 * cfg.sigma_end, cfg.sigma_end), (cfg.sigma_end, cfg.sigma_end)]:
             loss = self._run([rot, tau, ph], [0.02, 0.005, 0.02], third, loss_fn(rot, tau, ph), s0, s1, ph)
             body.relinearize(BodyShape.from_array(ph.detach().numpy()))
