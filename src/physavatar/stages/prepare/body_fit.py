@@ -150,7 +150,10 @@ class _Observations:
         self._views: dict[int, list[MaskView]] = {}
         if not (root / "masks").is_dir():
             raise PhysavatarError(root / "masks", "no masks: the body fit needs the masks of every view")
-        self.detector, self.detector_note = make_detector(cfg.keypoints)
+        try:
+            self.detector, self.detector_note = make_detector(cfg.keypoints)
+        except ImportError as e:
+            raise PhysavatarError(None, f"option --keypoints mediapipe: {e}") from None
         self.kp = None  # [T, C, K, 2] px at the working resolution, conf [T, C, K]
         if self.detector is not None:
             self._detect(progress)
