@@ -49,12 +49,6 @@ sys.path.insert(0, str(HERE))
 from _common import cpu_name
 
 
-def body_fit_available() -> bool:
-    from physavatar.stages.prepare.config import body_fit_module
-
-    return body_fit_module() is not None
-
-
 def unprepared_copy(src: Path, dst: Path, masks: bool, body: bool) -> Path:
     """A copy of capture ``src`` (hard links) without template/ (and masks/, body.npz when asked)."""
     skip = {"template"} | (set() if masks else {"masks"}) | (set() if body else {"body.npz"})
@@ -118,11 +112,13 @@ def main() -> int:
                     help="an existing demo capture (built with physavatar synth when missing)")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--keep", action="store_true")
+    ap.add_argument("--given-body", action="store_true",
+                    help="keep the capture's body.npz (skip the body fit: the other steps alone, in minutes)")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="prepare_bench_"))
     work.mkdir(parents=True, exist_ok=True)
     load_start = os.getloadavg()
-    fit = body_fit_available()
+    fit = not args.given_body
     results, checks = {}, {}
     for preset in args.presets.split(","):
         cap = args.demo if preset == "demo" else work / preset

@@ -1,39 +1,15 @@
 """``physavatar prepare``'s settings: one group per step (masks, mesh, segmentation, boundary).
 
-The body fit's settings (``BodyFitConfig``) belong to :mod:`.body_fit`; until that module is
-installed a placeholder group without options stands in, and the body step needs ``body.npz``.
+The body fit's settings (``BodyFitConfig``) belong to :mod:`.body_fit`.
 """
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..base import option, setting
-
-
-def body_fit_module():
-    """stages/prepare/body_fit.py, or None while it is not installed. (Imported by name: it comes
-    from another branch, and a static import of a missing module reads, to the architecture
-    test, as an import of this package; once it is merged a plain import can replace this.)"""
-    name = __package__ + ".body_fit"
-    try:
-        return importlib.import_module(name)
-    except ModuleNotFoundError as e:
-        if e.name != name:  # body_fit.py is there but needs something missing: say so
-            raise
-        return None
-
-
-if body_fit_module() is not None:  # the Anny body fit (stages/prepare/body_fit.py)
-    BodyFitConfig = body_fit_module().BodyFitConfig
-else:  # pragma: no cover - depends on whether body_fit.py is installed
-    @dataclass(frozen=True)
-    class BodyFitConfig:  # type: ignore[no-redef]
-        """Placeholder while stages/prepare/body_fit.py is absent (the body step needs body.npz)."""
-
-        available: bool = setting(False)
+from .body_fit import BodyFitConfig
 
 
 def _positive(v):

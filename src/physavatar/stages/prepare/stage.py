@@ -63,19 +63,10 @@ def _read_mask(path: Path) -> np.ndarray:
 
 def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, faces: np.ndarray | None, cfg: PrepareConfig,
               progress) -> tuple[BodyPoses, dict]:
-    from .config import body_fit_module
-
-    mod = body_fit_module()
-    if mod is None:
-        raise PhysavatarError(src / "body.npz", "missing, and the body fitting (physavatar.stages.prepare.body_fit) "
-                              "is not installed: give body.npz")
-    fit_body = mod.fit_body
-    import inspect
-
     from ...body.model import BodyShape
+    from .body_fit import fit_body
 
-    extra = {"template_faces": faces} if "template_faces" in inspect.signature(fit_body).parameters else {}
-    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, **extra)
+    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, template_faces=faces)
     poses = BodyPoses(BodyShape.from_array(np.asarray(fit.shape)), [str(b) for b in fit.bone_names],
                       np.asarray(fit.rotations, np.float64), np.asarray(fit.root_translation, np.float64),
                       str(fit.topology))

@@ -1,0 +1,592 @@
+"""The Anny body for every frame of a capture: shape once, pose per frame.
+
+Observations: the masks of every view (required), 2D keypoints of an offline detector when one
+is installed (:mod:`.keypoints`), and the first-frame clothed mesh when given. The fit is a torch
+optimisation of the differentiable Anny (:mod:`physavatar.body.differentiable`) against the
+terms of :mod:`physavatar.body.fit_terms`:
+
+1. **First frame**: phenotypes, pose and translation. The body is placed in the masks' visual
+   hull (feet on its floor, centred in it); its facing comes from the triangulated shoulders and
+   hips, or, without keypoints, from the best of four headings after a short fit each. Then the
+   terms: body inside every mask, skin contours on the body's outline, keypoints, body inside the
+   clothed mesh and near it where it is skin; weak priors on pose and shape.
+2. **Every later frame**, in order: pose and translation starting from the previous frames
+   (constant velocity), with a smoothness term on the joints' acceleration.
+3. **All frames together**: a few iterations on the whole sequence with the same terms, so the
+   smoothness acts both ways in time.
+
+A check at the end reports how much of the projected body falls inside each mask, keypoint
+reprojection errors, penetration of the clothed mesh, and jitter (joint acceleration).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from ...body.differentiable import DTYPE, DiffBody
+from ...body.fit_terms import ClothedSurface, MaskView, keypoint_term, project, sample_field, silhouette_terms
+from ...body.model import PHENOTYPES, TOPOLOGIES, BodyShape
+from ...camera import Camera
+from ...errors import PhysavatarError
+from ...files import read_json
+from ..base import option, setting
+from .keypoints import KEYPOINT_WEIGHT, MEDIAPIPE_TO_ANNY, make_detector, triangulate
+
+# The bones a fit moves (the rest follow their parents): trunk, neck and head, arms to the
+# wrists, legs to the feet. Twist bones (upperarm02, ...) and fingers stay at rest.
+FIT_BONES = ("root", "spine05", "spine03", "spine01", "neck01", "head",
+             "clavicle.L", "upperarm01.L", "lowerarm01.L", "wrist.L",
+             "clavicle.R", "upperarm01.R", "lowerarm01.R", "wrist.R",
+             "upperleg01.L", "lowerleg01.L", "foot.L", "upperleg01.R", "lowerleg01.R", "foot.R")
+
+
+@dataclass(frozen=True)
+class BodyFitConfig:
+    """How the body is fitted (``physavatar prepare`` options)."""
+
+    keypoints: str = option("auto", "2D keypoint detector: auto (mediapipe when installed), mediapipe, none",
+                            flag="--keypoints", choices=("auto", "mediapipe", "none"))
+    topology: str = option("collider", "Anny topology of the fitted body", flag="--body-topology",
+                           choices=tuple(TOPOLOGIES))
+    smoothness: float = option(0.1, "weight of the joints' acceleration against the image terms", flag="--body-smoothness",
+                               check=lambda v: None if v >= 0 else "must be >= 0")
+    max_resolution: int = setting(384)  # masks are fitted at most at this size (longer side, px)
+    max_contour: int = setting(300)  # contour pixels per view and frame
+    samples_per_face: int = setting(5)
+    shape_step: float = setting(0.08)  # how far the phenotypes move between Anny evaluations
+    relinearize_every: int = setting(25)  # body surface samples per triangle for the silhouettes
+    first_iterations: int = setting(300)
+    heading_iterations: int = setting(60)  # per candidate heading, without keypoints
+    frame_iterations: int = setting(50)
+    sequence_iterations: int = setting(60)
+    sigma_start: float = setting(0.12)  # robust kernel of the contour term [m], annealed to ...
+    sigma_end: float = setting(0.015)
+    w_outside: float = setting(1.0)
+    w_contour: float = setting(1.0)
+    w_keypoints: float = setting(0.2)  # keypoints guide; silhouettes decide the last centimetres
+    w_clothing_inside: float = setting(3.0)
+    w_clothing_near: float = setting(0.1)
+    w_pose_prior: float = setting(2e-4)
+    w_shape_prior: float = setting(1e-3)
+    clothing_margin: float = setting(0.003)  # [m] the body keeps this far under the clothing
+    bones: tuple = setting(FIT_BONES)
+    seed: int = setting(0)
+
+
+@dataclass
+class BodyFit:
+    """The fitted body, arrays exactly as ``body.npz`` holds them (docs/capture-format.md)."""
+
+    shape: np.ndarray  # [6]
+    bone_names: list[str]
+    rotations: np.ndarray  # [T, B, 3]
+    root_translation: np.ndarray  # [T, 3]
+    topology: str
+    report: dict = field(default_factory=dict)
+
+    def body_poses(self):
+        from ...capture import BodyPoses
+
+        return BodyPoses(BodyShape.from_array(self.shape), self.bone_names, self.rotations, self.root_translation,
+                         self.topology)
+
+    def save(self, path: str | Path) -> None:
+        self.body_poses().save(path)
+
+
+# -- reading the capture -------------------------------------------------------------------------
+
+def _read_capture(root: Path) -> tuple[list[Camera], list[int]]:
+    meta = read_json(root / "capture.json")
+    try:
+        frames = [int(f) for f in meta["frames"]]
+        cams = [Camera.from_dict(d) for d in read_json(root / "cameras.json")]
+    except (KeyError, TypeError, ValueError) as e:
+        raise PhysavatarError(root, f"capture.json or cameras.json is malformed ({e})") from None
+    if not frames or not cams:
+        raise PhysavatarError(root, "the capture lists no frames or no cameras")
+    return cams, frames
+
+
+def _read_mask(path: Path, size: tuple[int, int]) -> np.ndarray:
+    try:
+        with Image.open(path) as im:
+            im = im.convert("L")
+            if im.size != size:
+                im = im.resize(size, Image.BILINEAR)
+            return np.asarray(im, dtype=np.float32) / 255.0
+    except FileNotFoundError:
+        raise PhysavatarError(path, "mask not found (the body fit needs a mask for every camera and frame)") from None
+    except Exception as e:  # noqa: BLE001
+        raise PhysavatarError(path, f"unreadable or corrupt mask ({type(e).__name__})") from None
+
+
+def _read_image(path: Path) -> np.ndarray:
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except FileNotFoundError:
+        raise PhysavatarError(path, "image not found") from None
+    except Exception as e:  # noqa: BLE001
+        raise PhysavatarError(path, f"unreadable or corrupt image ({type(e).__name__})") from None
+
+
+class _Observations:
+    """Masks (at the working resolution), keypoints and the clothed mesh of a capture."""
+
+    def __init__(self, root: Path, cfg: BodyFitConfig, progress):
+        self.root = root
+        cams, self.frames = _read_capture(root)
+        self.native = cams
+        self.cams = [c.scaled(min(1.0, cfg.max_resolution / max(c.width, c.height))) for c in cams]
+        self.rng = np.random.default_rng(cfg.seed)
+        self.cfg = cfg
+        self._views: dict[int, list[MaskView]] = {}
+        if not (root / "masks").is_dir():
+            raise PhysavatarError(root / "masks", "no masks: the body fit needs the masks of every view")
+        try:
+            self.detector, self.detector_note = make_detector(cfg.keypoints)
+        except ImportError as e:
+            raise PhysavatarError(None, f"option --keypoints mediapipe: {e}") from None
+        self.kp = None  # [T, C, K, 2] px at the working resolution, conf [T, C, K]
+        if self.detector is not None:
+            self._detect(progress)
+
+    def views(self, t: int) -> list[MaskView]:
+        if t not in self._views:
+            f = f"{self.frames[t]:06d}.png"
+            self._views[t] = [MaskView.build(c, _read_mask(self.root / "masks" / n.name / f, (c.width, c.height)),
+                                             self.cfg.max_contour, self.rng) for c, n in zip(self.cams, self.native)]
+        return self._views[t]
+
+    def _detect(self, progress) -> None:
+        T, C = len(self.frames), len(self.cams)
+        kp = np.zeros((T, C, 33, 2))
+        conf = np.zeros((T, C, 33))
+        with progress.task("prepare: detecting keypoints", total=T * C) as task:
+            for t, f in enumerate(self.frames):
+                for c, (cam, nat) in enumerate(zip(self.cams, self.native)):
+                    img = _read_image(self.root / "images" / nat.name / f"{f:06d}.png")
+                    k, w = self.detector.detect(img)
+                    s = cam.width / nat.width
+                    kp[t, c] = (k + 0.5) * s - 0.5
+                    conf[t, c] = w
+                    task.advance()
+        # drop detections that disagree with the other views (RANSAC triangulation)
+        thr = np.array([0.04 * max(c.width, c.height) for c in self.cams])
+        self.tri = []
+        for t in range(T):
+            tri = triangulate(kp[t], conf[t], self.cams, threshold_px=thr)
+            conf[t] = np.where(tri.inliers, conf[t], 0.0)
+            self.tri.append(tri)
+        self.kp, self.conf = kp, conf
+
+
+# -- the model's keypoints -----------------------------------------------------------------------
+
+def _keypoint_vertices(rest: np.ndarray, body: DiffBody) -> dict[str, int]:
+    """Surface points of the keypoints that are not joints, picked on the rest body (faces -y,
+    left at +x, z up)."""
+    w = body.weights.numpy()
+    names = body.bone_names
+    dom = np.array([names[i] for i in w.argmax(1)])
+    out = {}
+    head = np.flatnonzero(np.char.startswith(dom.astype(str), "head"))
+    if len(head):
+        out["nose"] = int(head[np.argmin(rest[head, 1])])
+        zc = rest[head, 2].mean()
+        band = head[np.abs(rest[head, 2] - zc) < 0.04]
+        band = band if len(band) else head
+        out["ear.L"] = int(band[np.argmax(rest[band, 0])])
+        out["ear.R"] = int(band[np.argmin(rest[band, 0])])
+    for s in ("L", "R"):
+        foot = np.flatnonzero([d == f"foot.{s}" or d.startswith("toe") and d.endswith(s) for d in dom])
+        if len(foot):
+            low = foot[rest[foot, 2] < rest[foot, 2].min() + 0.03]
+            out[f"heel.{s}"] = int(low[np.argmax(rest[low, 1])])
+            out[f"toe.{s}"] = int(foot[np.argmin(rest[foot, 1])])
+    return out
+
+
+class _Model:
+    """The differentiable body with the fit's parameterisation (the moving bones only)."""
+
+    def __init__(self, cfg: BodyFitConfig):
+        self.body = DiffBody(cfg.topology)
+        names = self.body.bone_names
+        missing = [b for b in cfg.bones if b not in names]
+        if missing:
+            raise PhysavatarError(None, f"body fit: bones {missing} are not Anny bones")
+        self.active = torch.as_tensor([names.index(b) for b in cfg.bones])
+        self.B = len(names)
+        with torch.no_grad():
+            v, _ = self.body.rest(self.body.p0)
+        kv = _keypoint_vertices(v.numpy(), self.body)
+        self.kp_ids, self.kp_src = [], []
+        for k, (kind, name) in MEDIAPIPE_TO_ANNY.items():
+            if kind == "bone":
+                self.kp_ids.append(k)
+                self.kp_src.append(("bone", names.index(name)))
+            elif name in kv:
+                self.kp_ids.append(k)
+                self.kp_src.append(("vertex", kv[name]))
+        self.kp_weight = np.array([KEYPOINT_WEIGHT.get(k, 1.0) for k in self.kp_ids])
+
+    def full_rotations(self, rot: torch.Tensor) -> torch.Tensor:
+        """[T, A, 3] rotations of the moving bones -> [T, B, 3]."""
+        R = torch.zeros(rot.shape[0], self.B, 3, dtype=DTYPE)
+        return R.index_copy(1, self.active, rot)
+
+    def pose(self, rot, tau, phen):
+        return self.body.pose(self.full_rotations(rot), tau, phen)
+
+    def keypoints(self, V: torch.Tensor, H: torch.Tensor) -> torch.Tensor:
+        """[T, K, 3] model positions of the detector's keypoints (order of ``kp_ids``)."""
+        cols = [H[:, i] if kind == "bone" else V[:, i] for kind, i in self.kp_src]
+        return torch.stack(cols, 1)
+
+
+# -- placement -----------------------------------------------------------------------------------
+
+def _hull_extent(views: list[MaskView], step: float = 0.05) -> tuple[np.ndarray, float, float]:
+    """Centre (x, y), lowest and highest z of the masks' visual hull (coarse voxels)."""
+    cams = [v.camera for v in views]
+    # the point nearest to every optical axis: where the rig looks
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cams:
+        d = c.c2w[:3, 2]
+        M = np.eye(3) - np.outer(d, d)
+        A += M
+        b += M @ c.center
+    centre = np.linalg.lstsq(A, b, rcond=None)[0]
+    xs = np.arange(-1.2, 1.2 + 1e-9, step)
+    zs = np.arange(-2.0, 2.0 + 1e-9, step)
+    X, Y, Z = np.meshgrid(xs + centre[0], xs + centre[1], zs + centre[2], indexing="ij")
+    P = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    inside = np.ones(len(P), bool)
+    seen = np.zeros(len(P), int)
+    for v in views:
+        uv, z = v.camera.project(P)
+        u, w = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+        vis = (z > 0) & (u >= 0) & (w >= 0) & (u < v.camera.width) & (w < v.camera.height)
+        ok = np.zeros(len(P), bool)
+        ok[vis] = v.mask[w[vis], u[vis]]
+        inside &= ok | ~vis
+        seen += vis
+    inside &= seen >= 2
+    if inside.sum() < 10:
+        raise PhysavatarError(None, "body fit: the masks of the first frame have no common foreground "
+                                    "(is the calibration consistent with the images?)")
+    Q = P[inside]
+    return np.median(Q[:, :2], 0), float(np.percentile(Q[:, 2], 0.5)), float(np.percentile(Q[:, 2], 99.5))
+
+
+def _heading_from_keypoints(tri) -> float | None:
+    """Yaw that turns the rest body (left at +x) to the triangulated shoulders and hips."""
+    pairs = [(11, 12), (23, 24)]
+    left = [tri.points[a] - tri.points[b] for a, b in pairs if tri.ok[a] and tri.ok[b]]
+    if not left:
+        return None
+    d = np.mean(left, 0)
+    return float(np.arctan2(d[1], d[0]))
+
+
+# -- optimisation --------------------------------------------------------------------------------
+
+class _Fitter:
+    def __init__(self, cfg: BodyFitConfig, obs: _Observations, clothing: ClothedSurface | None, fps: float):
+        self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
+        self.model = _Model(cfg)
+        self.A = len(cfg.bones)
+        # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
+        # from a far pose they squeeze the body into the wrong part of the clothing
+        self.use_clothing = False
+        # silhouette samples: the vertices and points spread over the triangles (about 1 cm
+        # apart on the collider body), so a mask's edge always has a body point near it
+        F_ = self.model.body.faces
+        rng = np.random.default_rng(cfg.seed)
+        n = cfg.samples_per_face
+        bary = rng.dirichlet([1.0, 1.0, 1.0], size=(len(F_), n)).reshape(-1, 3)
+        self.sample_faces = torch.as_tensor(np.repeat(F_, n, axis=0))
+        self.sample_bary = torch.as_tensor(bary, dtype=DTYPE)
+        self.kp_ids = np.array(self.model.kp_ids)
+
+    def data_loss(self, frames: list[int], V, H, sigma: float) -> torch.Tensor:
+        cfg, obs = self.cfg, self.obs
+        total = V.new_zeros(())
+        kps = self.model.keypoints(V, H) if obs.kp is not None else None
+        for i, t in enumerate(frames):
+            o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma)
+            total = total + cfg.w_outside * o + cfg.w_contour * c
+            if kps is not None:
+                conf = obs.conf[t][:, self.kp_ids] * self.model.kp_weight
+                total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
+                                                                max(sigma, 0.05))
+            if t == 0 and self.clothing is not None and self.use_clothing:
+                inside, near = self.clothing.terms(V[i], cfg.clothing_margin, sigma)
+                total = total + cfg.w_clothing_inside * inside + cfg.w_clothing_near * near
+        return total / len(frames)
+
+    def samples(self, V: torch.Tensor) -> torch.Tensor:
+        """[V, 3] body vertices -> [V + n F, 3] vertices and surface samples."""
+        P = (V[self.sample_faces] * self.sample_bary[:, :, None]).sum(1)
+        return torch.cat([V, P])
+
+    def prior(self, rot) -> torch.Tensor:
+        return self.cfg.w_pose_prior * (rot[:, 1:] ** 2).sum((1, 2)).mean()
+
+    def _run(self, params: list, lrs: list, iters: int, loss_fn, sigma0: float, sigma1: float, phen=None):
+        cfg = self.cfg
+        opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in zip(params, lrs)])
+        last = None
+        for it in range(iters):
+            frac = it / max(iters - 1, 1)
+            sigma = sigma0 * (sigma1 / sigma0) ** frac
+            for g, lr in zip(opt.param_groups, lrs):
+                g["lr"] = lr * (1.0 if frac < 0.7 else 0.2)
+            opt.zero_grad()
+            loss = loss_fn(sigma)
+            loss.backward()
+            opt.step()
+            if phen is not None:
+                body = self.model.body
+                with torch.no_grad():  # trust region of the linearised shape, inside [0, 1]
+                    lo, hi = (body.p0 - cfg.shape_step).clamp(min=0.0), (body.p0 + cfg.shape_step).clamp(max=1.0)
+                    phen.copy_(torch.maximum(torch.minimum(phen, hi), lo))
+                if (it + 1) % cfg.relinearize_every == 0 and it + 1 < iters:
+                    body.relinearize(BodyShape.from_array(phen.detach().numpy()))
+            last = float(loss.detach())
+        return last
+
+    # phase 1
+    def first_frame(self, task) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+        cfg, obs, body = self.cfg, self.obs, self.model.body
+        views = obs.views(0)
+        (cx, cy), zmin, zmax = _hull_extent(views)
+        info = {"hull_height_m": round(zmax - zmin, 3)}
+        phen = torch.full((6,), 0.5, dtype=DTYPE)
+        with torch.no_grad():
+            v, _ = body.rest(phen)
+        base = torch.as_tensor([cx - float(v[:, 0].mean()), cy - float(v[:, 1].mean()), zmin - float(v[:, 2].min())],
+                               dtype=DTYPE)
+        yaw = _heading_from_keypoints(obs.tri[0]) if obs.kp is not None else None
+        candidates = [yaw] if yaw is not None else [0.0, 0.5 * np.pi, np.pi, -0.5 * np.pi]
+        info["heading_from"] = "keypoints" if yaw is not None else "silhouettes (best of 4 headings)"
+
+        def start(y):
+            rot = torch.zeros(1, self.A, 3, dtype=DTYPE)
+            rot[0, 0, 2] = y
+            return rot.requires_grad_(), base.clone()[None].requires_grad_(), phen.clone().requires_grad_()
+
+        def loss_fn(rot, tau, ph):
+            def f(sigma):
+                V, H = self.model.pose(rot, tau, ph)
+                return (self.data_loss([0], V, H, sigma) + self.prior(rot)
+                        + cfg.w_shape_prior * ((ph - 0.5) ** 2).sum())
+            return f
+
+        if len(candidates) > 1:
+            scores = []
+            for y in candidates:
+                rot, tau, ph = start(y)
+                scores.append((self._run([rot, tau, ph], [0.03, 0.01, 0.02], cfg.heading_iterations,
+                                         loss_fn(rot, tau, ph), cfg.sigma_start, cfg.sigma_start, ph), y))
+                task.advance()
+            scores.sort()
+            info["heading_losses"] = {f"{np.degrees(y):.0f}": round(s, 8) for s, y in scores}
+            yaw = scores[0][1]
+        info["heading_deg"] = round(float(np.degrees(yaw)), 1)
+        rot, tau, ph = start(yaw)
+        third = cfg.first_iterations // 3
+        # pose first with the shape held (a wrong pose is not absorbed by a wrong shape), wide
+        # kernel to narrow; then shape and pose together, re-linearising the shape after each part
+        loss = self._run([rot, tau], [0.03, 0.01], third, loss_fn(rot, tau, ph), cfg.sigma_start, 2 * cfg.sigma_end)
+        task.advance()
+        self.use_clothing = True
+        for s0, s1 in [(2 * cfg.sigma_end, cfg.sigma_end), (cfg.sigma_end, cfg.sigma_end)]:
+            loss = self._run([rot, tau, ph], [0.02, 0.005, 0.02], third, loss_fn(rot, tau, ph), s0, s1, ph)
+            body.relinearize(BodyShape.from_array(ph.detach().numpy()))
+            task.advance()
+        info["first_frame_loss"] = loss
+        return rot.detach(), tau.detach(), ph.detach(), info
+
+    # phase 2
+    def frame(self, t: int, rots: list, taus: list, Hs: list, phen) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        cfg = self.cfg
+        if t >= 2:
+            r0 = 2 * rots[-1] - rots[-2]
+            t0 = 2 * taus[-1] - taus[-2]
+        else:
+            r0, t0 = rots[-1].clone(), taus[-1].clone()
+        rot, tau = r0.clone().requires_grad_(), t0.clone().requires_grad_()
+
+        def f(sigma):
+            V, H = self.model.pose(rot, tau, phen)
+            loss = self.data_loss([t], V, H, sigma) + self.prior(rot)
+            if t >= 2:
+                acc = H[0] - 2 * Hs[-1] + Hs[-2]
+                # weak here: a constant-velocity prior would carry one frame's error into the next
+                loss = loss + 0.1 * cfg.smoothness * (acc ** 2).sum(-1).mean()
+            return loss
+
+        self._run([rot, tau], [0.02, 0.005], cfg.frame_iterations, f, 0.5 * cfg.sigma_start, cfg.sigma_end)
+        with torch.no_grad():
+            _, H = self.model.pose(rot, tau, phen)
+        return rot.detach(), tau.detach(), H[0]
+
+    # phase 3
+    def sequence(self, rot: torch.Tensor, tau: torch.Tensor, phen) -> tuple[torch.Tensor, torch.Tensor]:
+        cfg = self.cfg
+        frames = list(range(rot.shape[0]))
+        rot, tau = rot.clone().requires_grad_(), tau.clone().requires_grad_()
+
+        def f(sigma):
+            V, H = self.model.pose(rot, tau, phen)
+            loss = self.data_loss(frames, V, H, sigma) + self.prior(rot)
+            if len(frames) >= 3:
+                acc = H[2:] - 2 * H[1:-1] + H[:-2]
+                loss = loss + cfg.smoothness * (acc ** 2).sum(-1).mean()
+            return loss
+
+        self._run([rot, tau], [0.005, 0.002], cfg.sequence_iterations, f, cfg.sigma_end, cfg.sigma_end)
+        return rot.detach(), tau.detach()
+
+
+# -- the check -----------------------------------------------------------------------------------
+
+def _check(fitter: _Fitter, rot, tau, phen) -> dict:
+    obs, model = fitter.obs, fitter.model
+    with torch.no_grad():
+        V, H = model.pose(rot, tau, phen)
+        kps = model.keypoints(V, H) if obs.kp is not None else None
+    V, H = V.numpy(), H.numpy()
+    T = len(V)
+    share = np.zeros((T, len(obs.cams)))
+    near = np.zeros((T, len(obs.cams)))
+    for t in range(T):
+        for c, view in enumerate(obs.views(t)):
+            uv, z = project(torch.as_tensor(V[t]), view.camera)
+            H_, W_ = view.mask.shape
+            inimg = ((uv[:, 0] >= -0.5) & (uv[:, 1] >= -0.5) & (uv[:, 0] <= W_ - 0.5) & (uv[:, 1] <= H_ - 0.5)
+                     & (z > 0)).numpy()
+            sd = sample_field(view.dt, uv).numpy()  # signed distance to the mask's edge [px]
+            share[t, c] = (inimg & (sd <= 0)).mean()
+            near[t, c] = (inimg & (sd <= 1.0)).mean()
+    rep = {"inside_masks": {
+        "mean": round(float(share.mean()), 4),
+        "mean_within_1px": round(float(near.mean()), 4),
+        "per_camera_mean": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.mean(0))},
+        "per_camera_worst_frame": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.min(0))},
+        "pixel_mm": round(1000 * float(np.median([np.linalg.norm(c.center - V[0].mean(0)) / c.K[0, 0]
+                                                 for c in obs.cams])), 1)}}
+    if kps is not None:
+        errs = {c.name: [] for c in obs.native}
+        for t in range(T):
+            for c, (cam, nat) in enumerate(zip(obs.cams, obs.native)):
+                uv, _ = cam.project(kps[t].numpy())
+                sel = obs.conf[t, c, fitter.kp_ids] > 0.5
+                d = np.linalg.norm(uv - obs.kp[t, c, fitter.kp_ids], axis=1)[sel] * nat.width / cam.width
+                errs[nat.name] += d.tolist()
+        allv = sum(errs.values(), [])
+        rep["keypoints_px"] = {"median": round(float(np.median(allv)), 2) if allv else None,
+                               "per_camera_median": {k: round(float(np.median(v)), 2) if v else None
+                                                     for k, v in errs.items()},
+                               "count": len(allv)}
+    if fitter.clothing is not None:
+        s = fitter.clothing.signed_distance(torch.as_tensor(V[0])).numpy()
+        rep["clothing_first_frame"] = {"share_outside": round(float((s > 0).mean()), 4),
+                                       "max_outside_mm": round(float(max(s.max(), 0.0)) * 1000, 1),
+                                       "depth_p95_mm": round(float(np.percentile(s, 95)) * 1000, 1)}
+    joints = H[:, fitter.model.active.numpy()]
+    if T >= 3:
+        acc = np.linalg.norm(joints[2:] - 2 * joints[1:-1] + joints[:-2], axis=-1) * fitter.fps ** 2
+        rep["jitter"] = {"joint_acceleration_mean_m_s2": round(float(acc.mean()), 3),
+                         "joint_acceleration_max_m_s2": round(float(acc.max()), 3)}
+    return rep
+
+
+# -- entry point ---------------------------------------------------------------------------------
+
+def fit_body(capture_dir: str | Path, *, template_vertices: np.ndarray | None, config: BodyFitConfig | None = None,
+             progress=None, template_faces: np.ndarray | None = None) -> BodyFit:
+    """Fit the Anny body to every frame of a capture (see the module doc).
+
+    Args:
+        capture_dir: a capture folder with cameras, frames and masks (images when a keypoint
+            detector is used).
+        template_vertices: [V, 3] the first frame's clothed mesh (or None); ``template_faces``
+            [F, 3] its triangles when known (better normals for the inside test).
+        config: :class:`BodyFitConfig`.
+    Returns:
+        :class:`BodyFit`, arrays as body.npz holds them, and a report (``report``).
+    """
+    cfg = config or BodyFitConfig()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # small tensors: one thread is faster, and far faster on a busy machine
+    try:
+        return _fit(Path(capture_dir), template_vertices, template_faces, cfg, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, progress) -> BodyFit:
+    from ...progress import resolve
+
+    t0 = time.time()
+    torch.manual_seed(cfg.seed)
+    prog = resolve(progress)
+    obs = _Observations(root, cfg, prog)
+    meta = read_json(root / "capture.json")
+    fps = float(meta.get("fps", 25.0))
+    clothing = None
+    if template_vertices is not None:
+        tv = np.asarray(template_vertices, dtype=np.float64)
+        if tv.ndim != 2 or tv.shape[1] != 3 or not np.isfinite(tv).all():
+            raise PhysavatarError(None, f"body fit: template vertices must be finite [V, 3], got {tv.shape}")
+        clothing = ClothedSurface(tv, template_faces)
+    fitter = _Fitter(cfg, obs, clothing, fps)
+    T = len(obs.frames)
+    report: dict = {"detector": obs.detector_note, "frames": T, "cameras": len(obs.cams),
+                    "working_resolution": [[c.width, c.height] for c in obs.cams][:1][0]}
+    with torch.set_grad_enabled(True):
+        with prog.task("prepare: body, first frame", total=(0 if obs.kp is not None else 4) + 3) as task:
+            rot0, tau0, phen, info = fitter.first_frame(task)
+        report.update(info)
+        t1 = time.time()
+        rots, taus = [rot0], [tau0]
+        with torch.no_grad():
+            _, H0 = fitter.model.pose(rot0, tau0, phen)
+        Hs = [H0[0]]
+        with prog.task("prepare: body, per frame", total=T - 1) as task:
+            for t in range(1, T):
+                r, tr, H = fitter.frame(t, rots, taus, Hs, phen)
+                rots.append(r)
+                taus.append(tr)
+                Hs.append(H)
+                task.advance(frame=obs.frames[t])
+        rot, tau = torch.cat(rots), torch.cat(taus)
+        t2 = time.time()
+        if T >= 3 and cfg.sequence_iterations > 0:
+            with prog.task("prepare: body, whole sequence", total=1) as task:
+                rot, tau = fitter.sequence(rot, tau, phen)
+                task.advance()
+    report.update(_check(fitter, rot, tau, phen))
+    shape = BodyShape.from_array(np.clip(phen.numpy(), 0.0, 1.0))
+    report["shape"] = shape.to_dict()
+    with torch.no_grad():
+        R = fitter.model.full_rotations(rot).numpy()
+    trans = tau.numpy() - np.array([0.0, 0.0, DiffBody.floor_offset(shape)])
+    elapsed = time.time() - t0
+    report["seconds"] = {"total": round(elapsed, 1), "first_frame": round(t1 - t0, 1),
+                         "per_frame": round((t2 - t1) / max(T - 1, 1), 2),
+                         "sequence": round(time.time() - t2, 1), "per_frame_overall": round(elapsed / T, 2)}
+    return BodyFit(shape.as_array(), list(fitter.model.body.bone_names), R, trans, cfg.topology, report)
+
+
+__all__ = ["BodyFitConfig", "BodyFit", "fit_body", "FIT_BONES", "PHENOTYPES"]
