@@ -191,7 +191,7 @@ def lights_for(center_z: float):
 
     return [Ambient((0.16, 0.18, 0.22)),
             AreaLight(center=(-2.0, -1.6, center_z + 1.6), target=(0.0, 0.0, center_z), size=(1.2, 1.2),
-                      radiance=(7.0, 5.6, 4.0)),
+                      radiance=(10.0, 8.0, 5.8)),
             PointLight(position=(1.8, 1.5, center_z + 0.8), intensity=(2.0, 2.6, 3.4))]
 
 

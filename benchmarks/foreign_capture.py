@@ -1,0 +1,217 @@
+"""Accuracy on captures physavatar did not make (issue 22 part 1): the foreign-capture benchmark.
+
+    python benchmarks/foreign_capture.py [--full] [--cases NAME,NAME] [--work DIR] [--out FILE]
+
+Builds captures with benchmarks/foreign/ (a generator that shares as little as possible with the
+project: NVIDIA Newton's VBD cloth solver with penalty contact and its own membrane and bending
+models, procedural garments that are not physavatar's designs, its own textures, lights, camera
+rig and body shape; the body model, the file writers and the Mitsuba renderer are physavatar's),
+runs `physavatar run` on each (pipeline.run, in process, `--quick` budgets unless --full) and
+writes benchmarks/results/foreign_capture.json:
+
+- tracking: garment / body mean and p95 vertex error per frame, and the garment's last-quarter
+  over first-quarter ratio (frames after the first);
+- material fit: RMS residual of the fit on the tracked garment and of the "oracle" fit on the
+  true meshes (the model gap to Newton without tracking error);
+- held-out motion: garment chamfer distance ×10³ of the estimated material, LBS, a random
+  material and the oracle material;
+- held-out views: PSNR / SSIM / LPIPS on the held-out motion's novel cameras and on the
+  capture's own held-out cameras; texture error against the true texture;
+- checks: the targets of issue 22 (parts 2-4). Today most of them fail; the JSON records that.
+
+Captures are cached in --work (default /tmp/foreign_capture): a capture whose config is unchanged
+is not rebuilt and `physavatar run` resumes finished stages.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import numpy as np  # noqa: E402
+
+from _common import cpu_name  # noqa: E402
+from foreign.capture import ForeignConfig, build  # noqa: E402
+
+# The reduced cases (default: fits ~30 min on 2 idle cores) and the full set.
+QUICK_CASES = [
+    ForeignConfig(name="skirt-plaid-256", garment="flared-skirt", texture="plaid", size=256, cameras=8,
+                  frames=16, heldout_frames=12),
+    ForeignConfig(name="top-print-512", garment="fitted-top", texture="print", size=512, cameras=6,
+                  frames=10, heldout_frames=8, texture_size=1024),
+]
+FULL_CASES = [
+    ForeignConfig(name="skirt-plaid-256", garment="flared-skirt", texture="plaid", size=256, cameras=8,
+                  frames=40, heldout_frames=32, spp=16),
+    ForeignConfig(name="skirt-plaid-512", garment="flared-skirt", texture="plaid", size=512, cameras=8,
+                  frames=40, heldout_frames=32, spp=16),
+    ForeignConfig(name="top-print-512", garment="fitted-top", texture="print", size=512, cameras=10,
+                  frames=40, heldout_frames=32, spp=16),
+    ForeignConfig(name="skirt-plain-256", garment="flared-skirt", texture="plain", size=256, cameras=12,
+                  frames=40, heldout_frames=32, spp=16),
+]
+
+
+def quarter_ratio(per_frame: list[float]) -> float:
+    """Mean of the last quarter over the first quarter of the frames after the first."""
+    e = np.asarray(per_frame[1:], float)
+    if len(e) < 4:
+        return float("nan")
+    q = max(1, len(e) // 4)
+    return float(e[-q:].mean() / max(e[:q].mean(), 1e-9))
+
+
+def texture_error(run_dir: Path, capture: Path) -> dict | None:
+    """PSNR [dB] (sRGB) and mean absolute error (linear) of the fitted texture against the true one,
+    over the texels the template's UV triangles cover (garment and body apart)."""
+    from PIL import Image
+
+    from physavatar.capture import load_capture
+    from physavatar.render import linear_to_srgb8, srgb_to_linear
+
+    fitted = run_dir / "appearance" / "texture.png"
+    true_file = capture / "ground_truth" / "texture_linear.npy"
+    if not fitted.exists() or not true_file.exists():
+        return None
+    true = np.load(true_file)
+    img = np.asarray(Image.open(fitted).convert("RGB").resize(true.shape[1::-1], Image.BILINEAR), np.float32) / 255
+    t = load_capture(capture).template
+    from PIL import ImageDraw
+
+    out = {}
+    for part, sel in (("garment", t.labels[t.faces].all(1) > 0), ("body", (t.labels[t.faces] == 0).all(1))):
+        m = Image.new("L", true.shape[1::-1], 0)
+        d = ImageDraw.Draw(m)
+        for tri in t.face_uvs[sel]:
+            d.polygon([(float(u * true.shape[1]), float((1 - v) * true.shape[0])) for u, v in tri], fill=255)
+        m = np.asarray(m) > 0
+        ts = linear_to_srgb8(true).astype(np.float32) / 255
+        mse = float(np.mean((img[m] - ts[m]) ** 2))
+        out[part] = {"psnr_srgb": float(10 * np.log10(1 / max(mse, 1e-12))),
+                     "mae_linear": float(np.mean(np.abs(srgb_to_linear(img[m]) - true[m])))}
+    return out
+
+
+def figures_for(cfg: ForeignConfig, capture: Path, run_dir: Path, record: dict) -> dict:
+    m = json.loads((run_dir / "evaluate" / "metrics.json").read_text())
+    fig: dict = {"size_px": cfg.size, "cameras": cfg.cameras, "frames": cfg.frames, "heldout_frames": cfg.heldout_frames,
+                 "garment": cfg.garment, "texture": cfg.texture, "motion": cfg.motion, "heldout_motion": cfg.heldout_motion}
+    tr = m.get("tracking", {})
+    if tr:
+        g = tr["garment"]
+        fig["tracking"] = {"garment_mean_mm": g["mean_mm"], "garment_p95_mm": g["p95_mm"],
+                           "garment_per_frame_mean_mm": g["per_frame_mean_mm"],
+                           "garment_last_over_first_quarter": quarter_ratio(g["per_frame_mean_mm"]),
+                           "body_mean_mm": tr["body"]["mean_mm"], "body_p95_mm": tr["body"]["p95_mm"]}
+    fits = {}
+    for step in ("physics", "oracle"):
+        f = run_dir / step / "material.json"
+        if f.exists():
+            d = json.loads(f.read_text())
+            fits[step] = {"rms_mm": d.get("rms_mm", d.get("fit", {}).get("rms_mm")),
+                          "stretch_stiffness": d.get("stretch_stiffness", d.get("material", {}).get("stretch_stiffness")),
+                          "bend_stiffness": d.get("bend_stiffness", d.get("material", {}).get("bend_stiffness")),
+                          "density": d.get("density", d.get("material", {}).get("density")),
+                          "iterations": d.get("iterations")}
+    fig["material_fit"] = {"tracked": fits.get("physics"), "true_meshes_oracle": fits.get("oracle")}
+    rows = m.get("rows", {})
+    fig["heldout_garment_cd_x1e3"] = {r: rows[r]["garment"]["chamfer_x1e3"] for r in rows}
+    app = m.get("appearance")
+    if app:
+        fig["heldout_motion_views"] = {k: app[k] for k in ("psnr", "ssim", "lpips")}
+    hc = m.get("heldout_cameras")
+    if hc:
+        fig["capture_heldout_cameras"] = {"cameras": hc["cameras"], **{k: hc[k] for k in ("psnr", "ssim", "lpips")}}
+    fig["texture_error"] = texture_error(run_dir, capture)
+    fig["seconds"] = {k: v.get("seconds") for k, v in record.items() if isinstance(v, dict) and "seconds" in v}
+    return fig
+
+
+def checks_for(name: str, fig: dict) -> dict:
+    c = {}
+    tr = fig.get("tracking")
+    if tr:
+        lim = 5.0 if fig["size_px"] >= 512 else 8.0
+        c[f"{name}:tracking_garment_mean"] = {"value": tr["garment_mean_mm"], "target": f"<= {lim}", "unit": "mm",
+                                              "pass": tr["garment_mean_mm"] <= lim}
+        r = tr["garment_last_over_first_quarter"]
+        c[f"{name}:tracking_no_drift"] = {"value": r, "target": "<= 1.5", "unit": "last/first quarter",
+                                          "pass": bool(r <= 1.5)}
+    app = fig.get("heldout_motion_views")
+    if app:
+        c[f"{name}:heldout_views_psnr"] = {"value": app["psnr"], "target": ">= 28", "unit": "dB", "pass": app["psnr"] >= 28}
+        c[f"{name}:heldout_views_lpips"] = {"value": app["lpips"], "target": "<= 0.03", "unit": "LPIPS",
+                                            "pass": app["lpips"] <= 0.03}
+    cd = fig.get("heldout_garment_cd_x1e3", {})
+    est = cd.get("estimated material")
+    if est is not None and "LBS" in cd:
+        v = 1 - est / cd["LBS"]
+        c[f"{name}:heldout_cd_below_lbs"] = {"value": v, "target": ">= 0.25", "unit": "1 - CD/CD_LBS", "pass": v >= 0.25}
+    if est is not None and "random material" in cd:
+        v = 1 - est / cd["random material"]
+        c[f"{name}:heldout_cd_below_random"] = {"value": v, "target": ">= 0.10", "unit": "1 - CD/CD_random",
+                                                "pass": v >= 0.10}
+    return c
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--full", action="store_true", help="all cases, 40 frames, full `physavatar run` budgets")
+    ap.add_argument("--cases", default=None, help="comma-separated case names (default: all of the set)")
+    ap.add_argument("--frames", type=int, default=None, help="override the training frames of every case")
+    ap.add_argument("--heldout-frames", type=int, default=None, help="override the held-out frames of every case")
+    ap.add_argument("--work", default="/tmp/foreign_capture", help="captures and runs are kept here")
+    ap.add_argument("--out", default=str(HERE / "results" / "foreign_capture.json"))
+    args = ap.parse_args(argv)
+    from physavatar.pipeline import RunConfig, run
+
+    cases = FULL_CASES if args.full else QUICK_CASES
+    if args.cases:
+        want = args.cases.split(",")
+        cases = [c for c in cases if c.name in want]
+    if args.frames or args.heldout_frames:
+        cases = [dataclasses.replace(c, frames=args.frames or c.frames,
+                                     heldout_frames=args.heldout_frames or c.heldout_frames) for c in cases]
+    work = Path(args.work)
+    out = Path(args.out)
+    result = {"benchmark": "foreign_capture", "date": datetime.datetime.now().isoformat(timespec="seconds"),
+              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
+                          "load_average_start": list(os.getloadavg())},
+              "config": {"full": args.full, "run": "physavatar run " + ("" if args.full else "--quick"),
+                         "cases": [c.to_dict() for c in cases]},
+              "figures": {}, "checks": {}}
+    for cfg in cases:
+        t0 = time.time()
+        cap = build(work / cfg.name / "capture", cfg, say=lambda s: print(s, flush=True))
+        t_build = time.time() - t0
+        run_dir = work / cfg.name / "run"
+        rc = RunConfig(quick=not args.full)
+        record = run(cap, run_dir, rc, say=lambda s: print(f"[{cfg.name}] {s}", flush=True))
+        fig = figures_for(cfg, cap, run_dir, record)
+        fig["seconds"]["build_capture"] = round(t_build, 1)
+        fig["seconds"]["run_total"] = round(time.time() - t0 - t_build, 1)
+        gen = json.loads((cap / "ground_truth" / "foreign.json").read_text())
+        fig["generator"] = {k: gen[k] for k in ("fabric_newton", "newton_settings", "seconds", "garment_vertices")}
+        result["figures"][cfg.name] = fig
+        result["checks"].update(checks_for(cfg.name, fig))
+        result["machine"]["load_average_end"] = list(os.getloadavg())
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=2) + "\n")  # after every case: a partial result survives
+        print(json.dumps({cfg.name: {k: v for k, v in fig.items() if k not in ("seconds",)}}, indent=1)[:3000], flush=True)
+    n_pass = sum(c["pass"] for c in result["checks"].values())
+    print(f"checks: {n_pass}/{len(result['checks'])} pass; wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
