@@ -196,7 +196,17 @@ def main(argv=None) -> int:
         t_build = time.time() - t0
         run_dir = work / cfg.name / "run"
         rc = RunConfig(quick=not args.full)
-        record = run(cap, run_dir, rc, say=lambda s: print(f"[{cfg.name}] {s}", flush=True))
+        from physavatar.errors import PhysavatarError
+
+        try:
+            record = run(cap, run_dir, rc, say=lambda s: print(f"[{cfg.name}] {s}", flush=True))
+        except PhysavatarError as e:  # recorded, and the next case still runs
+            print(f"[{cfg.name}] run failed: {e}", flush=True)
+            result["figures"][cfg.name] = {"error": str(e)}
+            result["checks"][f"{cfg.name}:run_completes"] = {"value": 0, "target": "1", "unit": "bool", "pass": False}
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(result, indent=2) + "\n")
+            continue
         fig = figures_for(cfg, cap, run_dir, record)
         fig["seconds"]["build_capture"] = round(t_build, 1)
         fig["seconds"]["run_total"] = round(time.time() - t0 - t_build, 1)

@@ -52,6 +52,8 @@ class ForeignConfig:
     settle_frames: int = 12
     substeps: int = 10
     iterations: int = 10
+    contact_ke: float = 1.0e4  # Newton penalty stiffness [N/m]
+    contact_radius: float = 6.0e-3  # particle radius: the cloth's contact thickness [m]
     spp: int = 8
     texture_size: int = 1024
     seed: int = 3
@@ -245,7 +247,8 @@ def build(out: str | Path, cfg: ForeignConfig, say=print) -> Path:
     BF = np.asarray(body.faces)
     garment = {"flared-skirt": flared_skirt, "fitted-top": fitted_top}[cfg.garment](body, edge=cfg.edge)
     fabric = FABRICS[cfg.garment]
-    settings = NewtonSettings(substeps=cfg.substeps, iterations=cfg.iterations)
+    settings = NewtonSettings(substeps=cfg.substeps, iterations=cfg.iterations, contact_ke=cfg.contact_ke,
+                              radius=cfg.contact_radius)
     motion = builtin_motion(cfg.motion, body.bone_names, cfg.fps, (cfg.frames - 1) / cfg.fps)
     held = builtin_motion(cfg.heldout_motion, body.bone_names, cfg.fps, (cfg.heldout_frames - 1) / cfg.fps)
     say(f"{cfg.name}: simulating {len(garment.vertices)} garment vertices with Newton VBD")
@@ -257,6 +260,11 @@ def build(out: str | Path, cfg: ForeignConfig, say=print) -> Path:
         if not np.isfinite(g).all():
             raise RuntimeError(f"{cfg.name}: the Newton simulation of the {name} motion diverged")
     nb = len(body.rest_vertices)
+    from physavatar.geometry.intersect import count_intersections
+
+    crossings = {name: [int(count_intersections(g[f], garment.faces, b[f], BF)) for f in range(len(g))]
+                 for name, g, b in (("training", gar_tr, body_tr), ("heldout", gar_he, body_he))}
+    say(f"{cfg.name}: garment-body crossings per frame {crossings}")
     V0 = np.concatenate([body_tr[0], gar_tr[0]])
     F = np.concatenate([BF, garment.faces + nb])
     labels = np.r_[np.zeros(nb, np.int64), np.ones(len(garment.vertices), np.int64)]
@@ -302,7 +310,7 @@ def build(out: str | Path, cfg: ForeignConfig, say=print) -> Path:
     save_cameras(gt / "heldout", novel)
     write_json_atomic(gt / "foreign.json", {
         "config": cfg.to_dict(), "fabric_newton": dataclasses.asdict(fabric),
-        "newton_settings": dataclasses.asdict(settings),
+        "newton_settings": dataclasses.asdict(settings), "crossing_triangle_pairs": crossings,
         "seconds": {"simulate": round(t_sim, 1), "render": round(t_r, 1), "total": round(time.time() - t0, 1)},
         "garment_vertices": int(len(garment.vertices)), "template_vertices": int(len(V0))})
     if out.exists():

@@ -77,7 +77,9 @@ def _ring_mesh(rings: list[np.ndarray]) -> np.ndarray:
 def _garment(name, body, keep, center, z_top, length, clearance, flare_deg, edge, pin_rows=1):
     V, BF = body.rest_vertices, body.faces
     mesh = V[BF[keep[BF].all(1)]]  # the body's triangles, arms left out
-    n_ang = max(24, int(round(2 * np.pi * 0.17 / edge)))
+    # columns: the hem's edges (the widest ring) are at most 1.2 edge long
+    r_max = 0.2 + length * np.tan(np.radians(flare_deg))
+    n_ang = max(24, int(round(2 * np.pi * r_max / (1.2 * edge))))
     phis = np.linspace(-np.pi, np.pi, n_ang, endpoint=False)
     rows = max(3, int(round(length / edge)) + 1)
     zs = np.linspace(z_top, z_top - length, rows)
@@ -109,7 +111,7 @@ def arm_mask(body) -> np.ndarray:
     return W[:, arm].sum(1) > 0.3
 
 
-def flared_skirt(body, edge: float = 0.025, length: float = 0.5, flare_deg: float = 28.0,
+def flared_skirt(body, edge: float = 0.025, length: float = 0.5, flare_deg: float = 22.0,
                  clearance: float = 0.012) -> ProceduralGarment:
     V = body.rest_vertices
     H = V[:, 2].max()

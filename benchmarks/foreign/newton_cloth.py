@@ -68,10 +68,10 @@ class NewtonSettings:
 
     substeps: int = 10
     iterations: int = 10
-    contact_ke: float = 2.0e3
+    contact_ke: float = 1.0e4
     contact_kd: float = 1.0e-2
     friction: float = 0.3
-    radius: float = 4.0e-3
+    radius: float = 6.0e-3
     margin: float = 1.0e-2
     gravity: float = -9.81
     self_contact: bool = False
@@ -139,7 +139,7 @@ class ClothOnBody:
                                                particle_self_contact_gap=settings.radius)
         self.s0, self.s1 = model.state(), model.state()
         self.control = model.control()
-        self.pipeline = newton.CollisionPipeline(model, soft_contact_margin=settings.margin) \
+        self.pipeline = newton.CollisionPipeline(model, soft_contact_gap=settings.margin) \
             if self.body_mesh is not None else None
         self.contacts = self.pipeline.contacts() if self.pipeline is not None else None
         self._body = None if body_vertices is None else np.asarray(body_vertices, np.float32)
