@@ -38,10 +38,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "2")
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-import numpy as np  # noqa: E402
-
-from _common import cpu_name  # noqa: E402
-from foreign.capture import ForeignConfig, build  # noqa: E402
+import numpy as np
+from _common import cpu_name
+from foreign.capture import ForeignConfig, build
 
 # The reduced cases (default: fits ~30 min on 2 idle cores) and the full set.
 QUICK_CASES = [
@@ -199,7 +198,7 @@ def main(argv=None) -> int:
         from physavatar.errors import PhysavatarError
 
         try:
-            record = run(cap, run_dir, rc, say=lambda s: print(f"[{cfg.name}] {s}", flush=True))
+            record = run(cap, run_dir, rc, say=lambda s, n=cfg.name: print(f"[{n}] {s}", flush=True))
         except PhysavatarError as e:  # recorded, and the next case still runs
             print(f"[{cfg.name}] run failed: {e}", flush=True)
             result["figures"][cfg.name] = {"error": str(e)}

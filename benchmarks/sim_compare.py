@@ -39,9 +39,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "2")
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-import numpy as np  # noqa: E402
-
-from _common import cpu_name  # noqa: E402
+import numpy as np
+from _common import cpu_name
 
 
 def crossing_frames(traj, faces, bodies, body_faces) -> list[int]:
@@ -60,6 +59,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from foreign.newton_cloth import ClothOnBody, Fabric, NewtonSettings
+
     from physavatar.body import builtin_motion
     from physavatar.garment import attachment_positions, make_attachment
     from physavatar.garment_sim import simulate_on_body, split_template

@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("newton")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from foreign.newton_cloth import ClothOnBody, Fabric, NewtonSettings  # noqa: E402
+from foreign.newton_cloth import ClothOnBody, Fabric, NewtonSettings
 
 G = 9.81
 

@@ -229,7 +229,14 @@ def _simulate(body, garment, fabric, settings, motion, cfg, BF):
 def build(out: str | Path, cfg: ForeignConfig, say=print) -> Path:
     """Write the capture of ``cfg`` to ``out`` (kept if it exists with the same config)."""
     from physavatar.body import BodyModel, BodyShape, builtin_motion
-    from physavatar.capture import BodyPoses, Template, frame_name, save_cameras, save_capture_meta, save_png
+    from physavatar.capture import (
+        BodyPoses,
+        Template,
+        frame_name,
+        save_cameras,
+        save_capture_meta,
+        save_png,
+    )
     from physavatar.files import save_npz_atomic, write_json_atomic
     from physavatar.render import linear_to_srgb8, load_scene, render, save_lights
     from physavatar.render.avatar import AvatarMeshes
@@ -312,7 +319,7 @@ def build(out: str | Path, cfg: ForeignConfig, say=print) -> Path:
         "config": cfg.to_dict(), "fabric_newton": dataclasses.asdict(fabric),
         "newton_settings": dataclasses.asdict(settings), "crossing_triangle_pairs": crossings,
         "seconds": {"simulate": round(t_sim, 1), "render": round(t_r, 1), "total": round(time.time() - t0, 1)},
-        "garment_vertices": int(len(garment.vertices)), "template_vertices": int(len(V0))})
+        "garment_vertices": len(garment.vertices), "template_vertices": len(V0)})
     if out.exists():
         shutil.rmtree(out)
     work.rename(out)

@@ -79,9 +79,9 @@ def _garment(name, body, keep, center, z_top, length, clearance, flare_deg, edge
     mesh = V[BF[keep[BF].all(1)]]  # the body's triangles, arms left out
     # columns: the hem's edges (the widest ring) are at most 1.2 edge long
     r_max = 0.2 + length * np.tan(np.radians(flare_deg))
-    n_ang = max(24, int(round(2 * np.pi * r_max / (1.2 * edge))))
+    n_ang = max(24, round(2 * np.pi * r_max / (1.2 * edge)))
     phis = np.linspace(-np.pi, np.pi, n_ang, endpoint=False)
-    rows = max(3, int(round(length / edge)) + 1)
+    rows = max(3, round(length / edge) + 1)
     zs = np.linspace(z_top, z_top - length, rows)
     rings, r_prev = [], None
     for z in zs:

@@ -44,7 +44,7 @@ class Fabric:
 
     @staticmethod
     def from_physical(density: float, stretch: float, bend: float, poisson: float, edge_length: float,
-                      stretch_scale: float = 1.0) -> "Fabric":
+                      stretch_scale: float = 1.0) -> Fabric:
         """The closest Newton fabric to an isotropic shell (ρ, κs = E·t [N/m], κb = D [N·m], ν).
 
         Membrane: plane-stress Lamé constants μ = κs / (2(1+ν)), λ = κs ν / (1−ν²) (λ is kept
