@@ -108,11 +108,11 @@ def test_capture_writer_output_loads(tmp_path):
     from physavatar.capture import load_capture
     from physavatar.data.ground_truth import ground_truth_problems
 
-    cfg = ForeignConfig(name="t", size=48, cameras=6, frames=3, heldout_frames=2, settle_frames=1, substeps=3,
-                        iterations=4, spp=1, texture_size=128, edge=0.05)
+    cfg = ForeignConfig(name="t", size=32, cameras=3, heldout_views=1, frames=3, heldout_frames=2, settle_frames=0,
+                        substeps=2, iterations=3, spp=1, texture_size=128, edge=0.05)
     root = build(tmp_path / "cap", cfg, say=lambda s: None)
     cap = load_capture(root, deep=True)
-    assert cap.frames == [0, 1, 2] and len(cap.cameras) == 6
+    assert cap.frames == [0, 1, 2] and len(cap.cameras) == 3
     assert ground_truth_problems(cap) == []
     gt = np.load(root / "ground_truth" / "meshes.npz")
     assert gt["vertices"].shape == (3, len(cap.template.vertices), 3)
