@@ -104,7 +104,8 @@ def texture_error(run_dir: Path, capture: Path) -> dict | None:
     for part, sel in (("garment", (t.labels[t.faces] > 0).all(1)), ("body", (t.labels[t.faces] == 0).all(1))):
         a = _sample(true, np.einsum("sk,fkd->fsd", w, t.face_uvs[sel]).reshape(-1, 2))
         b = _sample(fit, np.einsum("sk,fkd->fsd", w, fit_uvs[sel]).reshape(-1, 2))
-        def psnr(x):
+
+        def psnr(x, a=a):
             mse = float(np.mean((linear_to_srgb(np.clip(a, 0, 1)) - linear_to_srgb(np.clip(x, 0, 1))) ** 2))
             return float(10 * np.log10(1 / max(mse, 1e-12)))
 
