@@ -48,6 +48,8 @@ QUICK_CASES = [
                   frames=16, heldout_frames=12),
     ForeignConfig(name="top-print-512", garment="fitted-top", texture="print", size=512, cameras=6,
                   frames=10, heldout_frames=8, texture_size=1024),
+    ForeignConfig(name="top-plain-256", garment="fitted-top", texture="plain", size=256, cameras=6,
+                  frames=10, heldout_frames=8, motion="twist", heldout_motion="arm-swing"),
 ]
 FULL_CASES = [
     ForeignConfig(name="skirt-plaid-256", garment="flared-skirt", texture="plaid", size=256, cameras=8,
