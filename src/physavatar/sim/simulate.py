@@ -15,7 +15,7 @@ from .solver import ClothSim
 def simulate(garment_rest, faces, material: Material, collider_sequence, collider_faces,
              boundary_indices=(), boundary_targets=None, fps: float = 25.0, substeps: int = 1,
              settings: SimSettings | None = None, x0=None, v0=None, callback=None,
-             progress: ProgressLike = False):
+             progress: ProgressLike = False, extra_terms=()):
     """Simulate a garment on a moving body for a whole sequence.
 
     Args:
@@ -36,6 +36,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         callback: called as ``callback(frame, x [N, 3], stats list)`` after each frame.
         progress: anything :func:`physavatar.progress.resolve` takes (True: a terminal bar;
             a callable or a Progress: its task "simulating", one step per frame).
+        extra_terms: further terms of E (ClothSim's, e.g. a seam :class:`~physavatar.sim.stitch.Stitch`).
 
     Returns:
         [T, N, 3] garment positions per frame (frame 0 = initial state).
@@ -45,7 +46,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     settings = dataclasses.replace(settings, dt=dt)
     bodies = np.asarray(collider_sequence, dtype=np.float64)
     T = len(bodies)
-    sim = ClothSim(garment_rest, faces, material, settings, boundary_indices)
+    sim = ClothSim(garment_rest, faces, material, settings, boundary_indices, extra_terms=extra_terms)
     order = np.argsort(np.asarray(boundary_indices, dtype=np.int64), kind="stable")
     x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
     v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)
