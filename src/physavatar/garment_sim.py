@@ -18,18 +18,35 @@ from .sim import Material, SimSettings, simulate
 
 @dataclass
 class GarmentPart:
-    """The garment of a template, re-indexed on its own.
+    """The garment of a template (or a garment file), re-indexed on its own.
 
     Attributes:
         vertex_ids: [N] template indices of the garment vertices.
-        vertices: [N, 3] rest positions. faces: [F, 3] (garment-local indices).
-        boundary: [K] garment-local indices of the Dirichlet vertices.
+        vertices: [N, 3] start positions on the body's first frame. faces: [F, 3] (garment-local).
+        boundary: [K] garment-local indices of the Dirichlet vertices (may be empty: the garment
+            is held by contact and friction alone).
+        rest: [N, 3] the rest (stress-free) shape, None = ``vertices`` (a garment made in place).
+        seams: [S, 2] vertex pairs sewn together (sim.stitch.Stitch), None = none.
     """
 
     vertex_ids: np.ndarray
     vertices: np.ndarray
     faces: np.ndarray
     boundary: np.ndarray
+    rest: np.ndarray | None = None
+    seams: np.ndarray | None = None
+
+    @property
+    def rest_shape(self) -> np.ndarray:
+        return self.vertices if self.rest is None else self.rest
+
+    def terms(self, stiffness: float | None = None) -> list:
+        """The garment's own terms of E: its seams' stitch term, if it has seams."""
+        from .sim.stitch import STITCH_STIFFNESS, Stitch
+
+        if self.seams is None or not len(self.seams):
+            return []
+        return [Stitch(self.seams, STITCH_STIFFNESS if stiffness is None else stiffness)]
 
 
 def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, boundary: np.ndarray):
@@ -54,15 +71,19 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
                      callback=None) -> np.ndarray:
     """Simulate ``part`` on a body sequence [T, Nb, 3] starting at rest; returns [T, N, 3].
 
-    Frame 0 of the body must be the pose the garment was made for (its rest state). Boundary
-    vertices follow the body surface point they start on.
+    Frame 0 of the body must be the pose the garment starts on (``part.vertices``; its rest
+    shape is ``part.rest_shape``). Boundary vertices follow the body surface point they start
+    on; seams are held by a stitch term.
     """
     body_sequence = np.asarray(body_sequence, dtype=np.float64)
-    att = make_attachment(part.vertices[part.boundary], part.boundary, body_sequence[0], body_faces, "sequence")
-    targets = attachment_positions(att, body_sequence)
-    return simulate(part.vertices, part.faces, material, body_sequence, body_faces,
+    targets = None
+    if len(part.boundary):
+        att = make_attachment(part.vertices[part.boundary], part.boundary, body_sequence[0], body_faces, "sequence")
+        targets = attachment_positions(att, body_sequence)
+    return simulate(part.rest_shape, part.faces, material, body_sequence, body_faces,
                     boundary_indices=part.boundary, boundary_targets=targets, fps=fps, substeps=substeps,
-                    settings=settings, progress=progress, callback=callback)
+                    settings=settings, progress=progress, callback=callback, x0=part.vertices,
+                    extra_terms=part.terms())
 
 
 
@@ -74,3 +95,48 @@ def simulate_on_body_job(part: GarmentPart, body_sequence: np.ndarray, body_face
     cb = None if report is None else (
         (lambda f, x, st: report(1, (f, x.copy()))) if send_frames else (lambda f, x, st: report(1)))
     return simulate_on_body(part, body_sequence, body_faces, material, fps, settings=settings, callback=cb)
+
+
+def rest_strain(x, rest, faces) -> np.ndarray:
+    """[F] per-triangle strain of positions x [N, 3] against the rest shape [N, 3]: the largest
+    |σ − 1| of the deformation gradient's singular values σ (0 = the rest shape, 0.05 = 5 %)."""
+    from .sim.mesh import ClothTopology
+
+    topo = ClothTopology.build(rest, faces)
+    Fd = np.einsum("fad,fak->fdk", np.asarray(x, dtype=np.float64)[topo.faces], topo.face_grad)  # [F, 3, 2]
+    s = np.linalg.svd(Fd, compute_uv=False)
+    return np.abs(s - 1.0).max(axis=1)
+
+
+def fit_on_body(garment, body, material: Material, settings: SimSettings | None = None, frames: int = 20,
+                hold: int = 10, fps: float = 25.0, repair_limit: float = 0.03, progress=False):
+    """Fit a garment made for another body (a garment.files.GarmentMesh) onto ``body``'s rest
+    pose: align it (garment.fit.align_garment), repair the start against the shrunk body,
+    and simulate it, held by contact and friction alone with its seams stitched, while the body
+    grows to full size and lowers its arms (garment.fit.growing_bodies). Returns
+    (GarmentPart on the rest body, report dict)."""
+    from .errors import PhysavatarError
+    from .garment.fit import align_garment, growing_bodies
+    from .sim.start import repair_start
+    from .sim.stitch import seam_gaps
+
+    settings = settings or SimSettings(integrator=material.integrator)
+    al = align_garment(garment.vertices, body)
+    rest = garment.rest * al.grade
+    bodies, shrink = growing_bodies(body, al, frames, hold)
+    try:
+        x0, repair = repair_start(al.vertices, garment.faces, bodies[0], body.faces, settings.dhat, repair_limit)
+    except PhysavatarError as e:
+        raise PhysavatarError(garment.path, f"fitting onto the body: {e.problem}") from None
+    part = GarmentPart(np.arange(len(x0)), x0, garment.faces, np.zeros(0, np.int64), rest, garment.seams)
+    X = simulate_on_body(part, bodies, body.faces, material, fps, settings=settings, progress=progress)
+    x = X[-1]
+    if not np.all(np.isfinite(x)):
+        raise PhysavatarError(garment.path, "fitting onto the body: the settling simulation diverged")
+    strain = rest_strain(x, rest, garment.faces)
+    gaps = seam_gaps(x, garment.seams)
+    report = {"alignment": al.report(), "shrink_m": round(shrink, 4), "start_repair": repair,
+              "frames": int(len(X)), "strain_mean": float(strain.mean()), "strain_p95": float(np.percentile(strain, 95)),
+              "seam_gap_max_m": float(gaps.max()) if len(gaps) else 0.0}
+    fitted = GarmentPart(np.arange(len(x)), x, garment.faces, np.zeros(0, np.int64), rest, garment.seams)
+    return fitted, report
