@@ -194,7 +194,11 @@ def load_garment(path, *, up: str | None = None, scale=1.0, rest=None, seam_tole
     # -- weld corners into panel vertices: same world point and same rest point
     size = float(np.linalg.norm(P.reshape(-1, 3).max(0) - P.reshape(-1, 3).min(0)))
     q = max(seam_tolerance * size, 1e-12)
-    keys = np.round(np.concatenate([P, rest_corners], axis=2).reshape(-1, 6) / q).astype(np.int64)
+    if source == "world" or path.suffix.lower() == ".npz":
+        # no rest information, or per-vertex rest: the file's own vertices (coincident ones are sewn, not merged)
+        keys = np.asarray(Ff, np.int64).reshape(-1, 1)
+    else:  # one vertex per (world point, rest point): the panels, however the file splits its corners
+        keys = np.round(np.concatenate([P, rest_corners], axis=2).reshape(-1, 6) / q).astype(np.int64)
     first, inv = _weld(keys)
     V = P.reshape(-1, 3)[first]
     Vr = rest_corners.reshape(-1, 3)[first]

@@ -193,7 +193,8 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
         scene.prepare_static(X)
         crossing = scene.has_intersections(X)
         dist = scene.min_distance(X)
-        if not crossing and dist >= dhat:
+        sd, q, nrm = body.signed_distance(x, max_dist=4 * target)
+        if not crossing and dist >= dhat and sd.min() > 0:  # (a cloth wholly inside crosses nothing)
             break
         if rounds == iters:
             raise PhysavatarError(None, f"the start crosses the body and {iters} rounds of pushing the cloth out "
@@ -204,7 +205,6 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
             longer = np.linalg.norm(d, axis=1) > np.linalg.norm(delta[idx], axis=1)
             delta[idx[longer]] = d[longer]
 
-        sd, q, nrm = body.signed_distance(x, max_dist=4 * target)
         bad = np.flatnonzero(sd < target)
         propose(bad, q[bad] + nrm[bad] * (1.25 * target) - x[bad])
         # body vertices near (or through) the cloth: move the cloth triangle they face
