@@ -108,6 +108,11 @@ def rest_strain(x, rest, faces) -> np.ndarray:
     return np.abs(s - 1.0).max(axis=1)
 
 
+FIT_NEWTON_TOL = 1e-2  # m/s: the settling's Newton tolerance
+FIT_NEWTON_ITERATIONS = 30
+FIT_DAMPING = 2.0  # 1/s: mass damping while settling
+
+
 def fit_on_body(garment, body, material: Material, settings: SimSettings | None = None, frames: int = 20,
                 hold: int = 10, fps: float = 25.0, repair_limit: float = 0.03, progress=False):
     """Fit a garment made for another body (a garment.files.GarmentMesh) onto ``body``'s rest
@@ -120,7 +125,14 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     from .sim.start import repair_start
     from .sim.stitch import seam_gaps
 
+    import dataclasses
+
     settings = settings or SimSettings(integrator=material.integrator)
+    # a settling, not a motion to reproduce: a looser Newton tolerance, a cap on iterations and
+    # mass damping (the settled shape, not the path to it, is the result)
+    settings = dataclasses.replace(settings, newton_tol=max(settings.newton_tol, FIT_NEWTON_TOL),
+                                   max_newton_iterations=min(settings.max_newton_iterations, FIT_NEWTON_ITERATIONS),
+                                   damping_mass=max(settings.damping_mass, FIT_DAMPING))
     al = align_garment(garment.vertices, body)
     rest = garment.rest * al.grade
     bodies, shrink = growing_bodies(body, al, frames, hold)

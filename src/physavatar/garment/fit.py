@@ -9,8 +9,8 @@ source garment was close to its own body. The search: the four quarter turns × 
 each with a scan of the height (2 cm steps) and a Nelder–Mead refinement of the translation
 (scipy). :func:`growing_bodies` then gives the body sequence of the settling simulation
 (garment_sim.fit_on_body): from the body shrunk along its normals by the garment's deepest
-crossing (arms raised as aligned) to the full body in its rest pose. A garment that still crosses
-the body by more than 1 cm where it fits best is graded up (uniformly, about its top, rest shape
+crossing (arms raised as aligned) to the full body in its rest pose. A garment whose 2 % deepest
+vertices still cross the body by more than 1 cm where it fits best is graded up (uniformly, about its top, rest shape
 too) in 4 % steps up to 20 %: it was made for a smaller body.
 """
 
@@ -61,13 +61,13 @@ def _rot_z(deg):
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def arms_raised(body, degrees: float, frames: int = 1) -> np.ndarray:
-    """Pose rotations [frames, B, 3] raising both upper arms by ``degrees`` (about the front
-    axis, each towards its own side's up) from the rest pose; frames interpolate 1 → 0."""
-    rots = np.zeros((frames, len(body.bone_names), 3))
+def arms_raised(body, degrees: float) -> np.ndarray:
+    """Pose rotations [1, B, 3] raising both upper arms by ``degrees`` (about the front axis,
+    each towards its own side's up) from the rest pose."""
+    rots = np.zeros((1, len(body.bone_names), 3))
     if degrees == 0.0:
         return rots
-    w = np.linspace(1.0, 0.0, frames) if frames > 1 else np.ones(1)
+    w = np.ones(1)
     for name in body.bone_names:
         if name.startswith("upperarm01"):
             i = body.bone_names.index(name)
@@ -163,7 +163,7 @@ def align_garment(vertices, body, *, arm_raises=ARM_RAISES, samples: int = 800, 
     grade = 1.0
     sd = Q.signed_distance(placed, max_dist=0.1)[0]
     for g in grades:  # a garment too small for this body is graded up (uniformly, rest shape too)
-        if -sd.min() <= max_depth:
+        if -np.percentile(sd, 2) <= max_depth:  # (a few vertices deeper, a sleeve across an arm, are the growing body's)
             break
         top = placed[:, 2].max()
         centre = np.r_[placed[:, :2].mean(0), top]  # graded about its top: it still hangs from there
@@ -185,9 +185,8 @@ def growing_bodies(body, alignment: Alignment, frames: int, hold: int, *, margin
                                     f"best (more than {max_shrink * 100:.0f} cm): it was not made for a body like this")
     s = np.linspace(0.0, 1.0, frames + 1)
     s = s * s * (3 - 2 * s)
-    rots = arms_raised(body, alignment.arm_raise, frames + 1)
     if alignment.arm_raise:
-        rots = rots[:, None] * 0 + (arms_raised(body, alignment.arm_raise)[0] * (1 - s)[:, None, None])
+        rots = arms_raised(body, alignment.arm_raise)[0][None] * (1 - s)[:, None, None]
         posed = body.pose(rots, np.zeros((frames + 1, 3))).vertices
     else:
         posed = np.repeat(body.rest_vertices[None], frames + 1, axis=0)
