@@ -8,6 +8,7 @@ Used by synthetic captures (ground-truth garment motion), ``physavatar simulate`
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -117,15 +118,15 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
                 hold: int = 10, fps: float = 25.0, repair_limit: float = 0.03, progress=False):
     """Fit a garment made for another body (a garment.files.GarmentMesh) onto ``body``'s rest
     pose: align it (garment.fit.align_garment), repair the start against the shrunk body,
-    and simulate it, held by contact and friction alone with its seams stitched, while the body
-    grows to full size and lowers its arms (garment.fit.growing_bodies). Returns
-    (GarmentPart on the rest body, report dict)."""
+    simulate it without gravity, seams stitched, while the body grows to full size and lowers
+    its arms (garment.fit.growing_bodies), then ``hold`` frames under gravity hanging from where
+    it rests (garment.boundary.auto_boundary). Returns (GarmentPart on the rest body, with that
+    boundary; report dict)."""
     from .errors import PhysavatarError
+    from .garment.boundary import auto_boundary
     from .garment.fit import align_garment, growing_bodies
     from .sim.start import repair_start
     from .sim.stitch import seam_gaps
-
-    import dataclasses
 
     settings = settings or SimSettings(integrator=material.integrator)
     # a settling, not a motion to reproduce: a looser Newton tolerance, a cap on iterations and
@@ -141,14 +142,22 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     except PhysavatarError as e:
         raise PhysavatarError(garment.path, f"fitting onto the body: {e.problem}") from None
     part = GarmentPart(np.arange(len(x0)), x0, garment.faces, np.zeros(0, np.int64), rest, garment.seams)
-    X = simulate_on_body(part, bodies, body.faces, material, fps, settings=settings, progress=progress)
+    # growing without gravity (the body pushes the garment out; nothing makes it slide down the
+    # shrunk body), then settling under gravity hanging from where it rests (auto boundary)
+    grow = dataclasses.replace(settings, gravity=(0.0, 0.0, 0.0))
+    X = simulate_on_body(part, bodies[: frames + 1], body.faces, material, fps, settings=grow, progress=progress)
+    part = dataclasses.replace(part, vertices=X[-1])
+    part.boundary, _ = auto_boundary(part.vertices, part.faces, bodies[frames], body.faces)
+    if hold:
+        X = simulate_on_body(part, bodies[frames:], body.faces, material, fps, settings=settings, progress=progress)
     x = X[-1]
     if not np.all(np.isfinite(x)):
         raise PhysavatarError(garment.path, "fitting onto the body: the settling simulation diverged")
     strain = rest_strain(x, rest, garment.faces)
     gaps = seam_gaps(x, garment.seams)
     report = {"alignment": al.report(), "shrink_m": round(shrink, 4), "start_repair": repair,
-              "frames": int(len(X)), "strain_mean": float(strain.mean()), "strain_p95": float(np.percentile(strain, 95)),
+              "frames": int(frames + hold), "boundary_while_settling": int(len(part.boundary)),
+              "strain_mean": float(strain.mean()), "strain_p95": float(np.percentile(strain, 95)),
               "seam_gap_max_m": float(gaps.max()) if len(gaps) else 0.0}
-    fitted = GarmentPart(np.arange(len(x)), x, garment.faces, np.zeros(0, np.int64), rest, garment.seams)
+    fitted = GarmentPart(np.arange(len(x)), x, garment.faces, part.boundary, rest, garment.seams)
     return fitted, report

@@ -10,7 +10,7 @@ each with a scan of the height (2 cm steps) and a Nelder–Mead refinement of th
 (scipy). :func:`growing_bodies` then gives the body sequence of the settling simulation
 (garment_sim.fit_on_body): from the body shrunk along its normals by the garment's deepest
 crossing (arms raised as aligned) to the full body in its rest pose. A garment whose 2 % deepest
-vertices still cross the body by more than 1 cm where it fits best is graded up (uniformly, about its top, rest shape
+vertices still cross the body by more than 3 mm where it fits best is graded up (uniformly, about its top, rest shape
 too) in 4 % steps up to 20 %: it was made for a smaller body.
 """
 
@@ -121,7 +121,7 @@ def _cost(body: "_Surface", P: np.ndarray, Bz: np.ndarray) -> float:
 
 
 def align_garment(vertices, body, *, arm_raises=ARM_RAISES, samples: int = 800, seed: int = 0,
-                  grades=(1.04, 1.08, 1.12, 1.16, 1.2), max_depth: float = 0.01) -> Alignment:
+                  grades=(1.04, 1.08, 1.12, 1.16, 1.2), max_depth: float = 0.003) -> Alignment:
     """Place a garment's world shape [N, 3] (z up, metres) on ``body`` (a BodyModel) in its rest
     pose, arms raised as the search finds best (module docstring)."""
     from scipy.optimize import minimize
