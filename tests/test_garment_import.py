@@ -220,3 +220,50 @@ def test_bad_garments_give_one_line(tmp_path):
                             "--out", str(tmp_path / "o"), "--no-preview"])
     assert r.exit_code == 2 and "far.obj" in r.output and "nothing holds it" in r.output
     assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
+
+
+def test_simulate_a_garment_file_on_a_motion(tmp_path):
+    """`simulate --garment FILE --motion M` (--no-fit: the file is already on Anny's rest pose):
+    a skirt of two half-panels (separate vertices at the side seams, a rest-shape file) around
+    the hips; the seams stay shut, the boundary is chosen at the top, every frame is clean."""
+    import json
+
+    from physavatar.body import BodyModel
+
+    B = BodyModel(topology="collider").rest_vertices
+    torso = B[np.abs(B[:, 0]) < 0.22]  # not the hands
+    c = torso[(torso[:, 2] > 0.85) & (torso[:, 2] < 1.05), :2].mean(0)
+    V, F = frustum(1.0, 1.0, 1.05, 0.75, n_around=24, n_down=6)
+    radius = []
+    for z in np.linspace(1.05, 0.75, 7):  # each row 6 mm outside the body's widest point near its height
+        near = torso[np.abs(torso[:, 2] - z) < 0.03]
+        radius.append(np.linalg.norm(near[:, :2] - c, axis=1).max() + 0.006)
+    radius = np.maximum.accumulate(radius)  # a skirt: never narrower below
+    V[:, :2] = V[:, :2] * np.repeat(radius, 24)[:, None] + c
+    halves = []
+    for lo, hi in ((0, 12), (12, 24)):  # each half has its own copy of the seam columns 0/12 (and 24 = 0)
+        cols = [(lo + k) % 24 for k in range(hi - lo + 1)]
+        idx = np.array([[row * 24 + col for col in cols] for row in range(7)])
+        Vh = V[idx.ravel()]
+        a, b, cc, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
+        loc = {g: i for i, g in enumerate(idx.ravel())}
+        Fh = np.array([[loc[x] for x in t] for t in np.concatenate([np.stack([a.ravel(), b.ravel(), cc.ravel()], 1),
+                                                                    np.stack([a.ravel(), cc.ravel(), d.ravel()], 1)])])
+        halves.append((Vh, Fh))
+    world = np.vstack([halves[0][0], halves[1][0]])
+    faces = np.vstack([halves[0][1], halves[1][1] + len(halves[0][0])])
+    write_obj(tmp_path / "s-w.obj", world, faces)
+    rest = world * 0.98  # 2 % smaller: the world is stretched by 1/0.98; the second panel laid apart
+    rest[len(halves[0][0]):, 0] += 2.0
+    write_obj(tmp_path / "s-m.obj", rest, faces)
+    r = runner.invoke(app, ["simulate", "--garment", str(tmp_path / "s-w.obj"), "--motion", "walk", "--no-fit",
+                            "--duration", "0.12", "--out", str(tmp_path / "o"), "--no-preview"])
+    assert r.exit_code == 0, r.output
+    cfg = json.loads((tmp_path / "o" / "config.json").read_text())
+    gi = cfg["garment_import"]
+    assert gi["rest_source"] == "file" and gi["seam_pairs"] == 14 and cfg["frames_with_intersection_or_nan"] == []
+    z = np.load(tmp_path / "o" / "garment_sequence.npz")
+    g = load_garment(tmp_path / "s-w.obj")
+    assert np.allclose(z["rest_vertices"], g.rest, atol=1e-6)
+    assert max(seam_gaps(x, g.seams).max() for x in z["vertices"]) < 2e-3
+    assert len(z["boundary"]) and world[:, 2].max() - g.vertices[z["boundary"], 2].min() < 0.3 * 0.3 + 1e-6

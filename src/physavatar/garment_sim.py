@@ -134,11 +134,13 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     settings = dataclasses.replace(settings, newton_tol=max(settings.newton_tol, FIT_NEWTON_TOL),
                                    max_newton_iterations=min(settings.max_newton_iterations, FIT_NEWTON_ITERATIONS),
                                    damping_mass=max(settings.damping_mass, FIT_DAMPING))
-    al = align_garment(garment.vertices, body)
+    al = align_garment(garment.vertices, body, faces=garment.faces)
     rest = garment.rest * al.grade
-    bodies, shrink = growing_bodies(body, al, frames, hold)
     try:
-        x0, repair = repair_start(al.vertices, garment.faces, bodies[0], body.faces, settings.dhat, repair_limit)
+        bodies, alpha0 = growing_bodies(body, al, frames, hold, dhat=settings.dhat)
+        # (a no-op unless the shrunk body's clearance check missed a contact)
+        x0, repair = repair_start(al.vertices, garment.faces, bodies[0], body.faces, settings.dhat, repair_limit,
+                                  seams=garment.seams)
     except PhysavatarError as e:
         raise PhysavatarError(garment.path, f"fitting onto the body: {e.problem}") from None
     part = GarmentPart(np.arange(len(x0)), x0, garment.faces, np.zeros(0, np.int64), rest, garment.seams)
@@ -155,7 +157,7 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
         raise PhysavatarError(garment.path, "fitting onto the body: the settling simulation diverged")
     strain = rest_strain(x, rest, garment.faces)
     gaps = seam_gaps(x, garment.seams)
-    report = {"alignment": al.report(), "shrink_m": round(shrink, 4), "start_repair": repair,
+    report = {"alignment": al.report(), "start_girth": round(alpha0, 3), "start_repair": repair,
               "frames": int(frames + hold), "boundary_while_settling": int(len(part.boundary)),
               "strain_mean": float(strain.mean()), "strain_p95": float(np.percentile(strain, 95)),
               "seam_gap_max_m": float(gaps.max()) if len(gaps) else 0.0}

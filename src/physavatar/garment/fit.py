@@ -8,8 +8,9 @@ garment goes where most of it is close to the body without crossing it, which is
 source garment was close to its own body. The search: the four quarter turns × the arm raises,
 each with a scan of the height (2 cm steps) and a Nelder–Mead refinement of the translation
 (scipy). :func:`growing_bodies` then gives the body sequence of the settling simulation
-(garment_sim.fit_on_body): from the body shrunk along its normals by the garment's deepest
-crossing (arms raised as aligned) to the full body in its rest pose. A garment whose 2 % deepest
+(garment_sim.fit_on_body): from the body shrunk enough to clear the garment's deepest
+crossing (arms raised as aligned) to the full body in its rest pose: each body vertex scaled
+towards its main bone's axis, by the largest factor that clears the garment. A garment whose 2 % deepest
 vertices still cross the body by more than 3 mm where it fits best is graded up (uniformly, about its top, rest shape
 too) in 4 % steps up to 20 %: it was made for a smaller body.
 """
@@ -48,6 +49,7 @@ class Alignment:
     cost: float
     near_fraction: float
     grade: float = 1.0
+    faces: np.ndarray | None = None
 
     def report(self) -> dict:
         return {"yaw_deg": self.yaw, "translation_m": [round(float(v), 4) for v in self.translation],
@@ -120,7 +122,7 @@ def _cost(body: "_Surface", P: np.ndarray, Bz: np.ndarray) -> float:
     return float(g + np.minimum(d, 0.05).mean() / 0.05)
 
 
-def align_garment(vertices, body, *, arm_raises=ARM_RAISES, samples: int = 800, seed: int = 0,
+def align_garment(vertices, body, *, faces=None, arm_raises=ARM_RAISES, samples: int = 800, seed: int = 0,
                   grades=(1.04, 1.08, 1.12, 1.16, 1.2), max_depth: float = 0.003) -> Alignment:
     """Place a garment's world shape [N, 3] (z up, metres) on ``body`` (a BodyModel) in its rest
     pose, arms raised as the search finds best (module docstring)."""
@@ -171,27 +173,64 @@ def align_garment(vertices, body, *, arm_raises=ARM_RAISES, samples: int = 800, 
         sd_t = Q.signed_distance(trial, max_dist=0.1)[0]
         placed, sd, grade = trial, sd_t, g
     return Alignment(placed, yaw, t - c0 @ _rot_z(yaw).T, raise_deg, B, float(max(0.0, -sd.min())), cost,
-                     float(np.mean(np.abs(sd) < 0.02)), grade)
+                     float(np.mean(np.abs(sd) < 0.02)), grade, faces)
 
 
-def growing_bodies(body, alignment: Alignment, frames: int, hold: int, *, margin: float = 0.004,
-                   max_shrink: float = 0.06) -> tuple[np.ndarray, float]:
-    """(body vertices [frames + hold + 1, Nb, 3], shrink [m]): the body shrunk along its vertex
-    normals by the garment's depth + ``margin`` with the arms as aligned, growing (smoothstep)
-    to the full body in its rest pose over ``frames``, then held ``hold`` frames."""
-    shrink = alignment.depth + margin if alignment.depth > 0 else 0.0
-    if shrink > max_shrink:
-        raise PhysavatarError(None, f"the garment crosses the body by {alignment.depth * 100:.1f} cm where it fits "
-                                    f"best (more than {max_shrink * 100:.0f} cm): it was not made for a body like this")
+def _bone_axes(body, joints):
+    """Per body vertex, the closest point on its main bone's axis (the segment from the bone's
+    head to the mean of its children's heads) for joints [B, 3] posed like the vertices."""
+    bone = np.argmax(body.skinning_weights, axis=1)
+    parents = np.asarray(body.parents)
+    end = joints.copy()
+    for j in range(len(joints)):
+        kids = np.flatnonzero(parents == j)
+        if len(kids):
+            end[j] = joints[kids].mean(0)
+    a, b = joints[bone], end[bone]
+    return a, b - a
+
+
+def _shrunk(V, axes, alpha):
+    a, d = axes
+    t = np.clip(np.einsum("nd,nd->n", V - a, d) / np.maximum(np.einsum("nd,nd->n", d, d), 1e-12), 0.0, 1.0)
+    q = a + t[:, None] * d
+    return q + alpha * (V - q)
+
+
+def growing_bodies(body, alignment: Alignment, frames: int, hold: int, *, dhat: float = 1e-3,
+                   min_alpha: float = 0.3) -> tuple[np.ndarray, float]:
+    """(body vertices [frames + hold + 1, Nb, 3], start scale α₀): the body shrunk towards its
+    bones (each vertex towards the axis of its main bone, by α₀: no part turns inside out, as an
+    offset along the normals would turn a thin arm) with the arms as aligned, growing
+    (smoothstep α₀ → 1, arms lowered) to the full body in its rest pose over ``frames``, then
+    held ``hold`` frames. α₀ is the largest of 1, 0.95, … that leaves every garment vertex
+    outside the shrunk body by 2 d̂ and no garment triangle crossing it."""
+    from ..geometry import count_intersections
+
     s = np.linspace(0.0, 1.0, frames + 1)
     s = s * s * (3 - 2 * s)
     if alignment.arm_raise:
         rots = arms_raised(body, alignment.arm_raise)[0][None] * (1 - s)[:, None, None]
-        posed = body.pose(rots, np.zeros((frames + 1, 3))).vertices
+        pb = body.pose(rots, np.zeros((frames + 1, 3)))
+        posed, joints = pb.vertices, pb.joints
     else:
         posed = np.repeat(body.rest_vertices[None], frames + 1, axis=0)
+        joints = np.repeat(body.rest_joints[None], frames + 1, axis=0)
+    axes0 = _bone_axes(body, joints[0])
+    alpha0 = None
+    for alpha in np.arange(1.0, min_alpha - 1e-9, -0.05):
+        B0 = _shrunk(posed[0], axes0, alpha)
+        sd = MeshQuery(B0, body.faces).signed_distance(alignment.vertices, max_dist=0.05)[0]
+        if sd.min() > 2 * dhat and (alignment.faces is None or
+                                    count_intersections(alignment.vertices, alignment.faces, B0, body.faces) == 0):
+            alpha0 = float(alpha)
+            break
+    if alpha0 is None:
+        raise PhysavatarError(None, f"the garment crosses the body where it fits best (by {alignment.depth * 100:.1f} cm) "
+                                    f"and still does on the body shrunk to {min_alpha:.0%} of its girth: it was not "
+                                    "made for a body like this")
     out = np.empty_like(posed)
     for k in range(frames + 1):
-        out[k] = posed[k] - (shrink * (1 - s[k])) * vertex_normals(posed[k], body.faces)
+        out[k] = _shrunk(posed[k], _bone_axes(body, joints[k]), alpha0 + (1 - alpha0) * s[k])
     out = np.concatenate([out, np.repeat(out[-1:], hold, axis=0)])
-    return out, shrink
+    return out, alpha0

@@ -148,7 +148,7 @@ REPAIR_LIMIT = 0.03  # m: a start that needs a vertex moved farther than this is
 
 
 def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float = REPAIR_LIMIT,
-                 clearance: float = 1.5, iters: int = 60):
+                 clearance: float = 1.5, iters: int = 60, seams=None):
     """Push a cloth that touches or slightly crosses the body out of it, to at least d̂.
 
     The simulator needs an intersection-free start with every cloth–body distance above 0 (the
@@ -159,7 +159,8 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
     of a cloth triangle a body vertex is closer than that to (or pokes through) along that body
     vertex's normal, and lets each moved vertex's unmoved neighbours follow halfway (so no
     spike is made), until ipctk finds no intersection and its minimum distance (vertex–triangle
-    and edge–edge) is at least d̂.
+    and edge–edge) is at least d̂. The vertices of a seam (``seams`` [S, 2] pairs) move together
+    (by their mean move), so a repair opens no seam.
 
     Args:
         x: [N, 3] cloth start; faces: [F, 3]; body_vertices: [Nb, 3]; body_faces: [Fb, 3].
@@ -187,6 +188,15 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
     A = adjacency(F, n)
     scene = ContactScene(x0, F, B, BF, dhat)
     target = clearance * dhat
+    group = count = None
+    if seams is not None and len(seams):
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+
+        pairs = np.asarray(seams, dtype=np.int64).reshape(-1, 2)
+        _, group = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                                                      shape=(n, n)), directed=False)
+        count = np.bincount(group, minlength=n).astype(float)
     rounds, dist = 0, 0.0
     for rounds in range(iters + 1):
         X = np.vstack([x, B])
@@ -222,7 +232,12 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
             continue
         moved = (np.abs(delta).sum(1) > 0).astype(float)
         spread = (A @ delta) / np.maximum(A @ moved, 1.0)[:, None]
-        x = x + np.where(moved[:, None] > 0, delta, 0.5 * spread)
+        step = np.where(moved[:, None] > 0, delta, 0.5 * spread)
+        if group is not None:  # seam vertices: one move per seam point
+            mean = np.zeros((n, 3))
+            np.add.at(mean, group, step)
+            step = mean[group] / count[group][:, None]
+        x = x + step
         worst = float(np.linalg.norm(x - x0, axis=1).max())
         if worst > limit:
             raise PhysavatarError(None, f"the start crosses the body by more than the repair limit: a vertex would "

@@ -284,7 +284,7 @@ def _repaired_start(part, body_vertices, body_faces, sim_settings, cfg, source):
                                       "onto Anny)")
     try:
         x, report = repair_start(part.vertices, part.faces, body_vertices, body_faces, sim_settings.dhat,
-                                 cfg.repair_limit)
+                                 cfg.repair_limit, seams=part.seams)
     except PhysavatarError as e:
         raise PhysavatarError(source, f"{e.problem} (--repair-limit)") from None
     return dataclasses.replace(part, vertices=x), report
