@@ -24,7 +24,8 @@ import numpy as np
 from ..errors import PhysavatarError
 from ..geometry import MeshQuery, vertex_normals
 
-ARM_RAISES = (0.0, 30.0)  # degrees: candidate raises of the upper arms for a garment with sleeves
+ARM_RAISES = (0.0, 30.0)  # degrees: candidate raises of the upper arms while aligning
+ARM_RAISES_GROW = (0.0, 20.0, 35.0, 50.0)  # and while growing: the one a sleeve holds best
 
 
 @dataclass
@@ -197,38 +198,59 @@ def _shrunk(V, axes, alpha):
     return q + alpha * (V - q)
 
 
-def growing_bodies(body, alignment: Alignment, frames: int, hold: int, *, dhat: float = 1e-3,
-                   min_alpha: float = 0.3) -> tuple[np.ndarray, float]:
-    """(body vertices [frames + hold + 1, Nb, 3], start scale α₀): the body shrunk towards its
-    bones (each vertex towards the axis of its main bone, by α₀: no part turns inside out, as an
-    offset along the normals would turn a thin arm) with the arms as aligned, growing
-    (smoothstep α₀ → 1, arms lowered) to the full body in its rest pose over ``frames``, then
-    held ``hold`` frames. α₀ is the largest of 1, 0.95, … that leaves every garment vertex
-    outside the shrunk body by 2 d̂ and no garment triangle crossing it."""
+def _posed(body, raise_deg, s):
+    """(vertices [K, Nb, 3], joints [K, B, 3]) with the arms raised by raise_deg × (1 − s) for s [K]."""
+    if raise_deg:
+        rots = arms_raised(body, raise_deg)[0][None] * (1 - s)[:, None, None]
+        pb = body.pose(rots, np.zeros((len(s), 3)))
+        return pb.vertices, pb.joints
+    return np.repeat(body.rest_vertices[None], len(s), axis=0), np.repeat(body.rest_joints[None], len(s), axis=0)
+
+
+def _start_girth(body, V, F, raise_deg, dhat, min_alpha):
+    """(α, vertices left): the largest α in 1, 0.9, … ≥ min_alpha at which the body (arms raised
+    by raise_deg) shrunk towards its bones leaves every garment vertex outside by 2 d̂ and no
+    triangle crossing it (0 left), else (min_alpha, the vertices closer than 2 d̂ there)."""
     from ..geometry import count_intersections
 
+    P, J = _posed(body, raise_deg, np.zeros(1))
+    axes = _bone_axes(body, J[0])
+    for alpha in np.arange(1.0, min_alpha - 1e-9, -0.1):
+        B0 = _shrunk(P[0], axes, alpha)
+        sd = MeshQuery(B0, body.faces).signed_distance(V, max_dist=0.05)[0]
+        if sd.min() > 2 * dhat and (F is None or count_intersections(V, F, B0, body.faces) == 0):
+            return float(alpha), 0
+    return float(min_alpha), int(np.sum(sd <= 2 * dhat))
+
+
+def growing_bodies(body, alignment: Alignment, frames: int, hold: int, *, dhat: float = 1e-3,
+                   min_alpha: float = 0.3, arm_raises=ARM_RAISES_GROW, max_left: float = 0.02
+                   ) -> tuple[np.ndarray, float]:
+    """(body vertices [frames + hold + 1, Nb, 3], start girth α₀): the body shrunk towards its
+    bones (each vertex towards the axis of its main bone, by α₀: no part turns inside out, as an
+    offset along the normals would turn a thin arm), arms raised, growing (smoothstep α₀ → 1,
+    arms lowered) to the full body in its rest pose over ``frames``, then held ``hold`` frames.
+    The arm raise is the one of ``arm_raises`` (and the aligned one) that needs the least
+    shrinking (a sleeve must hold its arm); α₀ the largest of 1, 0.9, … that leaves every
+    garment vertex outside the shrunk body by 2 d̂ and no garment triangle crossing it, or
+    ``min_alpha`` when up to ``max_left`` of the vertices are still too close there (the start
+    repair pushes those out); refused beyond."""
+    best = None  # (α₀, raise, vertices still too close at α₀ (left to the start repair))
+    for raise_deg in dict.fromkeys((alignment.arm_raise,) + tuple(arm_raises)):
+        a0, left = _start_girth(body, alignment.vertices, alignment.faces, raise_deg, dhat, min_alpha)
+        if best is None or (left, -a0) < (best[2], -best[0]):
+            best = (a0, raise_deg, left)
+        if a0 == 1.0:
+            break
+    if best[2] > max_left * len(alignment.vertices):
+        raise PhysavatarError(None, f"the garment crosses the body where it fits best (by {alignment.depth * 100:.1f} cm) "
+                                    f"and still does on the body shrunk to {min_alpha:.0%} of its girth, arms raised "
+                                    f"by any of {', '.join(f'{a:g}' for a in arm_raises)} degrees: it was not made "
+                                    "for a body like this")
+    alpha0, alignment.arm_raise, _ = best
     s = np.linspace(0.0, 1.0, frames + 1)
     s = s * s * (3 - 2 * s)
-    if alignment.arm_raise:
-        rots = arms_raised(body, alignment.arm_raise)[0][None] * (1 - s)[:, None, None]
-        pb = body.pose(rots, np.zeros((frames + 1, 3)))
-        posed, joints = pb.vertices, pb.joints
-    else:
-        posed = np.repeat(body.rest_vertices[None], frames + 1, axis=0)
-        joints = np.repeat(body.rest_joints[None], frames + 1, axis=0)
-    axes0 = _bone_axes(body, joints[0])
-    alpha0 = None
-    for alpha in np.arange(1.0, min_alpha - 1e-9, -0.05):
-        B0 = _shrunk(posed[0], axes0, alpha)
-        sd = MeshQuery(B0, body.faces).signed_distance(alignment.vertices, max_dist=0.05)[0]
-        if sd.min() > 2 * dhat and (alignment.faces is None or
-                                    count_intersections(alignment.vertices, alignment.faces, B0, body.faces) == 0):
-            alpha0 = float(alpha)
-            break
-    if alpha0 is None:
-        raise PhysavatarError(None, f"the garment crosses the body where it fits best (by {alignment.depth * 100:.1f} cm) "
-                                    f"and still does on the body shrunk to {min_alpha:.0%} of its girth: it was not "
-                                    "made for a body like this")
+    posed, joints = _posed(body, alignment.arm_raise, s)
     out = np.empty_like(posed)
     for k in range(frames + 1):
         out[k] = _shrunk(posed[k], _bone_axes(body, joints[k]), alpha0 + (1 - alpha0) * s[k])

@@ -49,8 +49,8 @@ from ..garment.boundary import auto_boundary
 from ..garment.files import FORMATS, load_garment
 from ..garment_sim import GarmentPart, fit_on_body, simulate_on_body, split_template
 from ..sim import SimSettings
-from ..sim.start import repair_start
 from ..sim.contact import ContactScene
+from ..sim.start import repair_start
 from .animate import transition
 from .base import option, setting, to_dict
 
@@ -185,7 +185,8 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         "command": "simulate", "capture": _text(capture), "garment": _text(garment), "motion": _text(motion),
         "collider": _text(collider), "material": mat.to_dict(), "fps": fps, "substeps": cfg.substeps,
         "integrator": integrator, "frames_with_intersection_or_nan": bad,
-        "warmup_frames": n_warm, "arm_clearance": clearance_info, "garment_import": imported, "frames": int(len(X)), "seconds": round(secs, 1),
+        "warmup_frames": n_warm, "arm_clearance": clearance_info, "garment_import": imported,
+        "frames": int(len(X)), "seconds": round(secs, 1),
         "config": to_dict(cfg)})
     if cfg.preview:
         from ..body.preview import render_frames, write_video
