@@ -27,7 +27,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from _common import cpu_name
 
 ROOT = Path(__file__).resolve().parent
@@ -84,8 +83,8 @@ def main():
         fit_s = time.time() - t0
         fitted.boundary, brep = auto_boundary(fitted.vertices, fitted.faces, body.rest_vertices, body.faces)
         area = ClothTopology.build(fitted.rest_shape, fitted.faces).face_area
-        entry = {"vertices": len(gm.vertices), "faces": len(gm.faces), "panels": int(len(np.unique(gm.panels()))),
-                 "seam_pairs": int(len(gm.seams)), "rest_source": gm.rest_source, "fit": fit,
+        entry = {"vertices": len(gm.vertices), "faces": len(gm.faces), "panels": len(np.unique(gm.panels())),
+                 "seam_pairs": len(gm.seams), "rest_source": gm.rest_source, "fit": fit,
                  "fit_seconds": round(fit_s, 1), "boundary": brep, "motions": {}}
         print(f"{name}: {len(gm.vertices)} vertices, {len(gm.seams)} seam pairs; fitted in {fit_s:.0f} s "
               f"(grade {fit['alignment']['grade']}, strain {fit['strain_mean'] * 100:.2f} %), "
@@ -112,7 +111,7 @@ def main():
             gaps = np.array([seam_gaps(X[f], fitted.seams).max() if len(fitted.seams) else 0.0 for f in range(len(X))])
             s0 = rest_strain(X[n_warm], fitted.rest_shape, fitted.faces)  # the clip's first frame
             strain_first = float(np.sum(s0 * area) / area.sum())
-            res = {"frames": int(len(X)), "warmup_frames": n_warm, "seconds_per_frame": round(secs / (len(X) - 1), 2),
+            res = {"frames": len(X), "warmup_frames": n_warm, "seconds_per_frame": round(secs / (len(X) - 1), 2),
                    "bad_frames": bad, "seam_gap_max_mm": round(float(gaps.max()) * 1000, 4),
                    "strain_first_frame_mean": round(strain_first, 4),
                    "strain_first_frame_p95": round(float(np.percentile(s0, 95)), 4)}
@@ -126,7 +125,7 @@ def main():
     load1 = os.getloadavg()
     result = {
         "benchmark": "garment_import",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                     "load_average_1_5_15min_start": [round(v, 2) for v in load0],
                     "load_average_1_5_15min_end": [round(v, 2) for v in load1]},

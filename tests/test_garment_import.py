@@ -45,16 +45,12 @@ def two_panels(n=4, rest_width=0.18):
 
 def write_obj(path, V, F, vt=None):
     with open(path, "w") as f:
-        for v in V:
-            f.write(f"v {v[0]:.9g} {v[1]:.9g} {v[2]:.9g}\n")
+        f.writelines(f"v {v[0]:.9g} {v[1]:.9g} {v[2]:.9g}\n" for v in V)
         if vt is not None:
-            for t in vt.reshape(-1, 2):
-                f.write(f"vt {t[0]:.9g} {t[1]:.9g}\n")
-            for k, tri in enumerate(F):
-                f.write("f " + " ".join(f"{i + 1}/{3 * k + c + 1}" for c, i in enumerate(tri)) + "\n")
+            f.writelines(f"vt {t[0]:.9g} {t[1]:.9g}\n" for t in vt.reshape(-1, 2))
+            f.writelines("f " + " ".join(f"{i + 1}/{3 * k + c + 1}" for c, i in enumerate(tri)) + "\n" for k, tri in enumerate(F))
         else:
-            for tri in F:
-                f.write("f " + " ".join(str(i + 1) for i in tri) + "\n")
+            f.writelines("f " + " ".join(str(i + 1) for i in tri) + "\n" for tri in F)
 
 
 def edge_lengths(V, F):
@@ -184,7 +180,7 @@ def frustum(r_top, r_bottom, z_top, z_bottom, n_around=40, n_down=10):
 def test_auto_boundary_of_a_skirt_is_its_waistband():
     B, BF = cylinder_body()
     V, F = frustum(0.155, 0.3, 0.9, 0.5)  # tight (5 mm) at the waist, flaring to the hem
-    ids, report = auto_boundary(V, F, B, BF)
+    ids, _ = auto_boundary(V, F, B, BF)
     waist = np.flatnonzero(V[:, 2] > 0.899)
     assert set(waist) <= set(ids)  # the whole waist ring
     assert V[ids, 2].min() > 0.85 and len(ids) <= 3 * len(waist)  # and only a band under it
@@ -233,7 +229,7 @@ def test_simulate_a_garment_file_on_a_motion(tmp_path):
     B = BodyModel(topology="collider").rest_vertices
     torso = B[np.abs(B[:, 0]) < 0.22]  # not the hands
     c = torso[(torso[:, 2] > 0.85) & (torso[:, 2] < 1.05), :2].mean(0)
-    V, F = frustum(1.0, 1.0, 1.05, 0.75, n_around=24, n_down=6)
+    V, _ = frustum(1.0, 1.0, 1.05, 0.75, n_around=24, n_down=6)
     radius = []
     for z in np.linspace(1.05, 0.75, 7):  # each row 6 mm outside the body's widest point near its height
         near = torso[np.abs(torso[:, 2] - z) < 0.03]

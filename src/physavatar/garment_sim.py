@@ -158,7 +158,7 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     strain = rest_strain(x, rest, garment.faces)
     gaps = seam_gaps(x, garment.seams)
     report = {"alignment": al.report(), "start_girth": round(alpha0, 3), "start_repair": repair,
-              "frames": int(frames + hold), "boundary_while_settling": int(len(part.boundary)),
+              "frames": int(frames + hold), "boundary_while_settling": len(part.boundary),
               "strain_mean": float(strain.mean()), "strain_p95": float(np.percentile(strain, 95)),
               "seam_gap_max_m": float(gaps.max()) if len(gaps) else 0.0}
     fitted = GarmentPart(np.arange(len(x)), x, garment.faces, part.boundary, rest, garment.seams)

@@ -31,6 +31,6 @@ def auto_boundary(vertices, faces, body_vertices, body_faces, *, near: float = 0
     if up.sum() < min_count:
         chosen, rule = close, "close to the body in the top band"
     ids = np.flatnonzero(chosen)
-    report = {"rule": rule, "vertices": int(len(ids)), "near": near, "top_fraction": top_fraction,
+    report = {"rule": rule, "vertices": len(ids), "near": near, "top_fraction": top_fraction,
               "height_range": [float(z[ids].min()), float(z[ids].max())] if len(ids) else None}
     return ids, report

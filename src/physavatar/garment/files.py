@@ -114,13 +114,13 @@ def _corners(path: Path, up_default: list) -> tuple[np.ndarray, np.ndarray, np.n
             V, F = np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
             data = {k: np.asarray(v) for k, v in m.vertex_data.items()}
             return V[F], F, None, data
-        except Exception:  # not the project's PLY flavour: trimesh reads any
+        except Exception:  # noqa: BLE001, S110 - not the project's PLY flavour: trimesh reads any
             pass
     if suffix in (".gltf", ".glb"):
         up_default[0] = "y"
     try:
         loaded = trimesh.load(path, process=False, force="mesh")
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001 - any reader failure is the file's problem, in one line
         raise PhysavatarError(path, f"cannot read the mesh ({type(e).__name__}: {e})") from None
     V, F = np.asarray(loaded.vertices, float), np.asarray(loaded.faces, np.int64)
     if F.ndim != 2 or F.shape[1] != 3 or not len(F):

@@ -105,7 +105,7 @@ class _Surface:
         return np.where(np.isfinite(d), np.where(s < 0, -1.0, 1.0) * d, 0.2)
 
 
-def _cost(body: "_Surface", P: np.ndarray, Bz: np.ndarray) -> float:
+def _cost(body: _Surface, P: np.ndarray, Bz: np.ndarray) -> float:
     """Two-sided closeness of garment samples P to the body and of the body samples Bz (those in
     the garment's height range) to the garment: each term saturates at 5 cm; a garment sample
     inside the body costs more the deeper it is (the growing body corrects a few centimetres)."""
@@ -155,7 +155,7 @@ def align_garment(vertices, body, *, faces=None, arm_raises=ARM_RAISES, samples:
     for cost0, yaw, t0, raise_deg, bi in trials[:4]:
         P = (S - c0) @ _rot_z(yaw).T
         _, surf, Bz = bodies[bi]
-        res = minimize(lambda t: _cost(surf, P + t, Bz), t0, method="Nelder-Mead",
+        res = minimize(lambda t, surf=surf, P=P, Bz=Bz: _cost(surf, P + t, Bz), t0, method="Nelder-Mead",
                        options={"initial_simplex": t0 + np.vstack([np.zeros(3), 0.02 * np.eye(3)]),
                                 "xatol": 1e-3, "fatol": 1e-4, "maxfev": 120})
         if best is None or res.fun < best[0]:

@@ -211,7 +211,7 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
                                         "did not separate them")
         delta = np.zeros_like(x)
 
-        def propose(idx, d):
+        def propose(idx, d, delta=delta):
             longer = np.linalg.norm(d, axis=1) > np.linalg.norm(delta[idx], axis=1)
             delta[idx[longer]] = d[longer]
 
@@ -221,7 +221,7 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
         near = np.isfinite(cKDTree(x).query(B, distance_upper_bound=4 * target + _longest_edge(x, F))[0])
         if near.any():
             bi = np.flatnonzero(near)
-            d, f, w, cq = MeshQuery(x, F).closest(B[bi], max_dist=4 * target)
+            d, f, _, cq = MeshQuery(x, F).closest(B[bi], max_dist=4 * target)
             side = np.einsum("nd,nd->n", cq - B[bi], body.normals[bi])
             low = (d < target) | (side < 0)  # close, or the cloth point is inside the body
             push = body.normals[bi[low]] * (1.25 * target + np.maximum(-side[low], 0.0))[:, None]

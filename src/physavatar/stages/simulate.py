@@ -186,7 +186,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         "collider": _text(collider), "material": mat.to_dict(), "fps": fps, "substeps": cfg.substeps,
         "integrator": integrator, "frames_with_intersection_or_nan": bad,
         "warmup_frames": n_warm, "arm_clearance": clearance_info, "garment_import": imported,
-        "frames": int(len(X)), "seconds": round(secs, 1),
+        "frames": len(X), "seconds": round(secs, 1),
         "config": to_dict(cfg)})
     if cfg.preview:
         from ..body.preview import render_frames, write_video
@@ -194,7 +194,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         Vall = np.concatenate([bodies, X], axis=1)
         Fall = np.concatenate([body_faces, part.faces + bodies.shape[1]])
         write_video(out / "preview.mp4", render_frames(Vall, Fall, None, None, title="simulate"), fps)
-    return SimulateResult(out, int(len(X)), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview)
+    return SimulateResult(out, len(X), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview)
 
 
 def _text(value) -> str | None:
@@ -251,8 +251,8 @@ def _file_on_body(path: Path, cfg: SimulateConfig, body, mat, sim_settings, prog
     """A garment file on Anny's rest pose: fitted (garment_sim.fit_on_body) unless --fit off;
     its boundary from the file or chosen automatically (or none)."""
     gm = load_garment(path, up=cfg.up, scale=cfg.scale, rest=cfg.rest)
-    imported = {"file": str(path), "rest_source": gm.rest_source, "vertices": int(len(gm.vertices)),
-                "seam_pairs": int(len(gm.seams)), "repairs": gm.repairs}
+    imported = {"file": str(path), "rest_source": gm.rest_source, "vertices": len(gm.vertices),
+                "seam_pairs": len(gm.seams), "repairs": gm.repairs}
     if cfg.fit:
         part, imported["fit"] = fit_on_body(gm, body, mat, sim_settings, frames=cfg.fit_frames, hold=cfg.fit_hold,
                                             repair_limit=cfg.repair_limit, progress=progress)
@@ -268,7 +268,7 @@ def _boundary(gm, vertices, body_vertices, body_faces, cfg):
     if cfg.boundary == "none":
         return np.zeros(0, np.int64), {"rule": "none: held by contact and friction alone", "vertices": 0}
     if gm.boundary is not None and len(gm.boundary):
-        return gm.boundary, {"rule": "the file's boundary flags", "vertices": int(len(gm.boundary))}
+        return gm.boundary, {"rule": "the file's boundary flags", "vertices": len(gm.boundary)}
     return auto_boundary(vertices, gm.faces, body_vertices, body_faces)
 
 
@@ -305,8 +305,8 @@ def garment_file(path: Path, cfg: SimulateConfig | None = None, body_vertices=No
             return part, {"file": str(path), "rest_source": "garment sequence", "boundary": {"vertices": len(d.boundary)}}
     gm = load_garment(path, up=cfg.up, scale=cfg.scale, rest=cfg.rest)
     part = GarmentPart(np.arange(len(gm.vertices)), gm.vertices, gm.faces, np.zeros(0, np.int64), gm.rest, gm.seams)
-    imported = {"file": str(path), "rest_source": gm.rest_source, "vertices": int(len(gm.vertices)),
-                "seam_pairs": int(len(gm.seams)), "repairs": gm.repairs}
+    imported = {"file": str(path), "rest_source": gm.rest_source, "vertices": len(gm.vertices),
+                "seam_pairs": len(gm.seams), "repairs": gm.repairs}
     if body_vertices is not None:
         part.boundary, imported["boundary"] = _boundary(gm, gm.vertices, body_vertices, body_faces, cfg)
     elif gm.boundary is not None:
