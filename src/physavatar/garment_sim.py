@@ -112,6 +112,7 @@ def rest_strain(x, rest, faces) -> np.ndarray:
 FIT_NEWTON_TOL = 1e-2  # m/s: the settling's Newton tolerance
 FIT_NEWTON_ITERATIONS = 30
 FIT_DAMPING = 2.0  # 1/s: mass damping while settling
+FIT_REPAIR_LIMIT = 0.08  # m: the fit's start repair works against the shrunk body (a few vertices near a bone axis)
 
 
 def fit_on_body(garment, body, material: Material, settings: SimSettings | None = None, frames: int = 20,
@@ -139,7 +140,8 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     try:
         bodies, alpha0 = growing_bodies(body, al, frames, hold, dhat=settings.dhat)
         # (a no-op unless the shrunk body's clearance check missed a contact)
-        x0, repair = repair_start(al.vertices, garment.faces, bodies[0], body.faces, settings.dhat, repair_limit,
+        x0, repair = repair_start(al.vertices, garment.faces, bodies[0], body.faces, settings.dhat,
+                                  max(repair_limit, FIT_REPAIR_LIMIT),
                                   seams=garment.seams)
     except PhysavatarError as e:
         raise PhysavatarError(garment.path, f"fitting onto the body: {e.problem}") from None

@@ -10,7 +10,8 @@ each with a scan of the height (2 cm steps) and a Nelder–Mead refinement of th
 (scipy). :func:`growing_bodies` then gives the body sequence of the settling simulation
 (garment_sim.fit_on_body): from the body shrunk enough to clear the garment's deepest
 crossing (arms raised as aligned) to the full body in its rest pose: each body vertex scaled
-towards its main bone's axis, by the largest factor that clears the garment. A garment whose 2 % deepest
+towards its main bone's axis (a trunk vertex towards the spine line), by the largest factor
+that clears the garment. A garment whose 2 % deepest
 vertices still cross the body by more than 3 mm where it fits best is graded up (uniformly, about its top, rest shape
 too) in 4 % steps up to 20 %: it was made for a smaller body.
 """
@@ -177,9 +178,22 @@ def align_garment(vertices, body, *, faces=None, arm_raises=ARM_RAISES, samples:
                      float(np.mean(np.abs(sd) < 0.02)), grade, faces)
 
 
-def _bone_axes(body, joints):
-    """Per body vertex, the closest point on its main bone's axis (the segment from the bone's
-    head to the mean of its children's heads) for joints [B, 3] posed like the vertices."""
+TRUNK = ("root", "pelvis", "spine", "clavicle", "shoulder01", "neck", "head")  # shrunk towards the spine line
+CHAIN = ("root", "spine04", "spine03", "spine02", "spine01", "neck01", "neck02", "neck03", "head")
+
+
+def _closest_on_segments(P, a, d):
+    """Closest points of P [n, 3] on segments a [n, 3] + t d [n, 3], t ∈ [0, 1]."""
+    t = np.clip(np.einsum("nd,nd->n", P - a, d) / np.maximum(np.einsum("nd,nd->n", d, d), 1e-12), 0.0, 1.0)
+    return a + t[:, None] * d
+
+
+def _axis_points(body, joints, V):
+    """Per body vertex of V [Nb, 3] (posed with joints [B, 3]), the point it shrinks towards: on
+    its main bone's axis (head to the mean of its children's heads) for a limb, on the spine line
+    (root, spine, neck, head joints) for the trunk, whose clavicle and shoulder axes run just under
+    the skin of the chest."""
+    names = list(body.bone_names)
     bone = np.argmax(body.skinning_weights, axis=1)
     parents = np.asarray(body.parents)
     end = joints.copy()
@@ -187,14 +201,24 @@ def _bone_axes(body, joints):
         kids = np.flatnonzero(parents == j)
         if len(kids):
             end[j] = joints[kids].mean(0)
-    a, b = joints[bone], end[bone]
-    return a, b - a
+    q = _closest_on_segments(V, joints[bone], end[bone] - joints[bone])
+    trunk = np.array([names[j].startswith(TRUNK) for j in bone])
+    chain = np.array([joints[names.index(n)] for n in CHAIN if n in names])
+    chain = np.vstack([chain, chain[-1] + [0.0, 0.0, 0.2]])  # through the head
+    if trunk.any():
+        Vt = V[trunk]
+        best = np.full(len(Vt), np.inf)
+        qt = np.zeros_like(Vt)
+        for k in range(len(chain) - 1):
+            c = _closest_on_segments(Vt, np.broadcast_to(chain[k], Vt.shape), np.broadcast_to(chain[k + 1] - chain[k], Vt.shape))
+            dist = np.linalg.norm(Vt - c, axis=1)
+            better = dist < best
+            best[better], qt[better] = dist[better], c[better]
+        q[trunk] = qt
+    return q
 
 
-def _shrunk(V, axes, alpha):
-    a, d = axes
-    t = np.clip(np.einsum("nd,nd->n", V - a, d) / np.maximum(np.einsum("nd,nd->n", d, d), 1e-12), 0.0, 1.0)
-    q = a + t[:, None] * d
+def _shrunk(V, q, alpha):
     return q + alpha * (V - q)
 
 
@@ -214,7 +238,7 @@ def _start_girth(body, V, F, raise_deg, dhat, min_alpha):
     from ..geometry import count_intersections
 
     P, J = _posed(body, raise_deg, np.zeros(1))
-    axes = _bone_axes(body, J[0])
+    axes = _axis_points(body, J[0], P[0])
     for alpha in np.arange(1.0, min_alpha - 1e-9, -0.1):
         B0 = _shrunk(P[0], axes, alpha)
         sd = MeshQuery(B0, body.faces).signed_distance(V, max_dist=0.05)[0]
@@ -253,6 +277,6 @@ def growing_bodies(body, alignment: Alignment, frames: int, hold: int, *, dhat: 
     posed, joints = _posed(body, alignment.arm_raise, s)
     out = np.empty_like(posed)
     for k in range(frames + 1):
-        out[k] = _shrunk(posed[k], _bone_axes(body, joints[k]), alpha0 + (1 - alpha0) * s[k])
+        out[k] = _shrunk(posed[k], _axis_points(body, joints[k], posed[k]), alpha0 + (1 - alpha0) * s[k])
     out = np.concatenate([out, np.repeat(out[-1:], hold, axis=0)])
     return out, alpha0
