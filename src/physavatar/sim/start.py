@@ -156,7 +156,7 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
     in a few triangles. Each round moves every cloth vertex closer to the body than
     ``clearance`` × d̂ (or inside it: signed distance by the body's normals, geometry.MeshQuery) to
     that distance outside along the body normal at its closest point, moves the three vertices
-    of a cloth triangle a body vertex is closer than that to (or pokes through) along that body
+    of a cloth triangle a body vertex is closer than that to along that body
     vertex's normal, and lets each moved vertex's unmoved neighbours follow halfway (so no
     spike is made), until ipctk finds no intersection and its minimum distance (vertex–triangle
     and edge–edge) is at least d̂. The vertices of a seam (``seams`` [S, 2] pairs) move together
@@ -223,7 +223,7 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
             bi = np.flatnonzero(near)
             d, f, _, cq = MeshQuery(x, F).closest(B[bi], max_dist=4 * target)
             side = np.einsum("nd,nd->n", cq - B[bi], body.normals[bi])
-            low = (d < target) | (side < 0)  # close, or the cloth point is inside the body
+            low = d < target  # close (a cloth point "behind" a body vertex farther away is concavity, not a crossing)
             push = body.normals[bi[low]] * (1.25 * target + np.maximum(-side[low], 0.0))[:, None]
             for k in range(3):
                 propose(F[f[low], k], push)
