@@ -147,12 +147,12 @@ def write(args, garments, all_ok, load0, material, settings, fps, seconds, warmu
             "finite_and_intersection_free": {"value": all_ok["finite_and_intersection_free"], "target": "every frame",
                                              "pass": all_ok["finite_and_intersection_free"]},
             "strain_first_frame": {"value": max((m["strain_first_frame_mean"] for g in garments.values()
-                                                 for m in g["motions"].values() if "strain_first_frame_mean" in m),
+                                                 for m in g.get("motions", {}).values() if "strain_first_frame_mean" in m),
                                                 default=None),
                                    "target": "< 0.05", "unit": "area-weighted mean of max |sigma - 1|",
                                    "pass": all_ok["strain_first_frame"]},
             "seams_closed": {"value": max((m["seam_gap_max_mm"] for g in garments.values()
-                                           for m in g["motions"].values() if "seam_gap_max_mm" in m), default=None),
+                                           for m in g.get("motions", {}).values() if "seam_gap_max_mm" in m), default=None),
                              "target": "< 2", "unit": "mm", "pass": all_ok["seams_closed"]},
         },
     }
