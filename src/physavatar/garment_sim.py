@@ -8,6 +8,7 @@ Used by synthetic captures (ground-truth garment motion), ``physavatar simulate`
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,18 +19,35 @@ from .sim import Material, SimSettings, simulate
 
 @dataclass
 class GarmentPart:
-    """The garment of a template, re-indexed on its own.
+    """The garment of a template (or a garment file), re-indexed on its own.
 
     Attributes:
         vertex_ids: [N] template indices of the garment vertices.
-        vertices: [N, 3] rest positions. faces: [F, 3] (garment-local indices).
-        boundary: [K] garment-local indices of the Dirichlet vertices.
+        vertices: [N, 3] start positions on the body's first frame. faces: [F, 3] (garment-local).
+        boundary: [K] garment-local indices of the Dirichlet vertices (may be empty: the garment
+            is held by contact and friction alone).
+        rest: [N, 3] the rest (stress-free) shape, None = ``vertices`` (a garment made in place).
+        seams: [S, 2] vertex pairs sewn together (sim.stitch.Stitch), None = none.
     """
 
     vertex_ids: np.ndarray
     vertices: np.ndarray
     faces: np.ndarray
     boundary: np.ndarray
+    rest: np.ndarray | None = None
+    seams: np.ndarray | None = None
+
+    @property
+    def rest_shape(self) -> np.ndarray:
+        return self.vertices if self.rest is None else self.rest
+
+    def terms(self, stiffness: float | None = None) -> list:
+        """The garment's own terms of E: its seams' stitch term, if it has seams."""
+        from .sim.stitch import STITCH_STIFFNESS, Stitch
+
+        if self.seams is None or not len(self.seams):
+            return []
+        return [Stitch(self.seams, STITCH_STIFFNESS if stiffness is None else stiffness)]
 
 
 def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, boundary: np.ndarray):
@@ -54,16 +72,20 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
                      callback=None, **options) -> np.ndarray:
     """Simulate ``part`` on a body sequence [T, Nb, 3] starting at rest; returns [T, N, 3].
 
-    Frame 0 of the body must be the pose the garment was made for (its rest state). Boundary
-    vertices follow the body surface point they start on. ``options``: more of
-    :func:`physavatar.sim.simulate`'s (max_substeps, resume, on_frame).
+    Frame 0 of the body must be the pose the garment starts on (``part.vertices``; its rest
+    shape is ``part.rest_shape``). Boundary vertices follow the body surface point they start
+    on; seams are held by a stitch term. ``options``: more of :func:`physavatar.sim.simulate`'s
+    (max_substeps, resume, on_frame).
     """
     body_sequence = np.asarray(body_sequence, dtype=np.float64)
-    att = make_attachment(part.vertices[part.boundary], part.boundary, body_sequence[0], body_faces, "sequence")
-    targets = attachment_positions(att, body_sequence)
-    return simulate(part.vertices, part.faces, material, body_sequence, body_faces,
+    targets = None
+    if len(part.boundary):
+        att = make_attachment(part.vertices[part.boundary], part.boundary, body_sequence[0], body_faces, "sequence")
+        targets = attachment_positions(att, body_sequence)
+    return simulate(part.rest_shape, part.faces, material, body_sequence, body_faces,
                     boundary_indices=part.boundary, boundary_targets=targets, fps=fps, substeps=substeps,
-                    settings=settings, progress=progress, callback=callback, **options)
+                    settings=settings, progress=progress, callback=callback, x0=part.vertices,
+                    extra_terms=part.terms(), **options)
 
 
 
@@ -75,3 +97,72 @@ def simulate_on_body_job(part: GarmentPart, body_sequence: np.ndarray, body_face
     cb = None if report is None else (
         (lambda f, x, st: report(1, (f, x.copy()))) if send_frames else (lambda f, x, st: report(1)))
     return simulate_on_body(part, body_sequence, body_faces, material, fps, settings=settings, callback=cb)
+
+
+def rest_strain(x, rest, faces) -> np.ndarray:
+    """[F] per-triangle strain of positions x [N, 3] against the rest shape [N, 3]: the largest
+    |σ − 1| of the deformation gradient's singular values σ (0 = the rest shape, 0.05 = 5 %)."""
+    from .sim.mesh import ClothTopology
+
+    topo = ClothTopology.build(rest, faces)
+    Fd = np.einsum("fad,fak->fdk", np.asarray(x, dtype=np.float64)[topo.faces], topo.face_grad)  # [F, 3, 2]
+    s = np.linalg.svd(Fd, compute_uv=False)
+    return np.abs(s - 1.0).max(axis=1)
+
+
+FIT_NEWTON_TOL = 1e-2  # m/s: the settling's Newton tolerance
+FIT_NEWTON_ITERATIONS = 30
+FIT_DAMPING = 2.0  # 1/s: mass damping while settling
+FIT_REPAIR_LIMIT = 0.08  # m: the fit's start repair works against the shrunk body (a few vertices near a bone axis)
+
+
+def fit_on_body(garment, body, material: Material, settings: SimSettings | None = None, frames: int = 20,
+                hold: int = 10, fps: float = 25.0, repair_limit: float = 0.03, progress=False):
+    """Fit a garment made for another body (a garment.files.GarmentMesh) onto ``body``'s rest
+    pose: align it (garment.fit.align_garment), repair the start against the shrunk body,
+    simulate it without gravity, seams stitched, while the body grows to full size and lowers
+    its arms (garment.fit.growing_bodies), then ``hold`` frames under gravity hanging from where
+    it rests (garment.boundary.auto_boundary). Returns (GarmentPart on the rest body, with that
+    boundary; report dict)."""
+    from .errors import PhysavatarError
+    from .garment.boundary import auto_boundary
+    from .garment.fit import align_garment, growing_bodies
+    from .sim.start import repair_start
+    from .sim.stitch import seam_gaps
+
+    settings = settings or SimSettings(integrator=material.integrator)
+    # a settling, not a motion to reproduce: a looser Newton tolerance, a cap on iterations and
+    # mass damping (the settled shape, not the path to it, is the result)
+    settings = dataclasses.replace(settings, newton_tol=max(settings.newton_tol, FIT_NEWTON_TOL),
+                                   max_newton_iterations=min(settings.max_newton_iterations, FIT_NEWTON_ITERATIONS),
+                                   damping_mass=max(settings.damping_mass, FIT_DAMPING))
+    al = align_garment(garment.vertices, body, faces=garment.faces)
+    rest = garment.rest * al.grade
+    try:
+        bodies, alpha0 = growing_bodies(body, al, frames, hold, dhat=settings.dhat)
+        # (a no-op unless the shrunk body's clearance check missed a contact)
+        x0, repair = repair_start(al.vertices, garment.faces, bodies[0], body.faces, settings.dhat,
+                                  max(repair_limit, FIT_REPAIR_LIMIT),
+                                  seams=garment.seams)
+    except PhysavatarError as e:
+        raise PhysavatarError(garment.path, f"fitting onto the body: {e.problem}") from None
+    part = GarmentPart(np.arange(len(x0)), x0, garment.faces, np.zeros(0, np.int64), rest, garment.seams)
+    # growing without gravity (the body pushes the garment out; nothing makes it slide down the
+    # shrunk body), then settling under gravity hanging from where it rests (auto boundary)
+    grow = dataclasses.replace(settings, gravity=(0.0, 0.0, 0.0))
+    X = simulate_on_body(part, bodies[: frames + 1], body.faces, material, fps, settings=grow, progress=progress)
+    part = dataclasses.replace(part, vertices=X[-1])
+    part.boundary, _ = auto_boundary(part.vertices, part.faces, bodies[frames], body.faces)
+    if hold:
+        X = simulate_on_body(part, bodies[frames:], body.faces, material, fps, settings=settings, progress=progress)
+    x = X[-1]
+    if not np.all(np.isfinite(x)):
+        raise PhysavatarError(garment.path, "fitting onto the body: the settling simulation diverged")
+    strain = rest_strain(x, rest, garment.faces)
+    gaps = seam_gaps(x, garment.seams)
+    report = {"alignment": al.report(), "start_girth": round(alpha0, 3), "start_repair": repair,
+              "frames": int(frames + hold), "boundary_while_settling": len(part.boundary),
+              "strain_mean": float(strain.mean()), "strain_p95": float(np.percentile(strain, 95)),
+              "seam_gap_max_m": float(gaps.max()) if len(gaps) else 0.0}
+    fitted = GarmentPart(np.arange(len(x)), x, garment.faces, part.boundary, rest, garment.seams)
+    return fitted, report

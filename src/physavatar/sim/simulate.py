@@ -113,7 +113,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
              boundary_indices=(), boundary_targets=None, fps: float = 25.0, substeps: int = 1,
              settings: SimSettings | None = None, x0=None, v0=None, callback=None,
              progress: ProgressLike = False, max_substeps: int | None = None,
-             resume: Checkpoint | None = None, on_frame=None):
+             resume: Checkpoint | None = None, on_frame=None, extra_terms=()):
     """Simulate a garment on a moving body for a whole sequence.
 
     Args:
@@ -142,6 +142,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             its frame (the same result as an uninterrupted run).
         on_frame: called as ``on_frame(checkpoint, report)`` after each frame (report:
             :func:`frame_report`) — where a caller writes the frame as it is finished.
+        extra_terms: further terms of E (ClothSim's, e.g. a seam :class:`~physavatar.sim.stitch.Stitch`).
 
     Returns:
         [T, N, 3] garment positions per frame (frame 0 = initial state; with ``resume``, the
@@ -152,7 +153,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     settings = dataclasses.replace(settings, dt=1.0 / (fps * substeps))
     bodies = np.asarray(collider_sequence, dtype=np.float64)
     T = len(bodies)
-    sim = ClothSim(garment_rest, faces, material, settings, boundary_indices)
+    sim = ClothSim(garment_rest, faces, material, settings, boundary_indices, extra_terms=extra_terms)
     order = np.argsort(np.asarray(boundary_indices, dtype=np.int64), kind="stable")
     x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
     v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)

@@ -142,3 +142,113 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
             return X_seg + alpha * (X_next - X_seg), False
         X_seg = X_next
     return X_seg, True
+
+
+REPAIR_LIMIT = 0.03  # m: a start that needs a vertex moved farther than this is refused
+
+
+def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float = REPAIR_LIMIT,
+                 clearance: float = 1.5, iters: int = 60, seams=None):
+    """Push a cloth that touches or slightly crosses the body out of it, to at least d̂.
+
+    The simulator needs an intersection-free start with every cloth–body distance above 0 (the
+    barrier is infinite at contact); a drape made elsewhere often touches the body or crosses it
+    in a few triangles. Each round moves every cloth vertex closer to the body than
+    ``clearance`` × d̂ (or inside it: signed distance by the body's normals, geometry.MeshQuery) to
+    that distance outside along the body normal at its closest point, moves the three vertices
+    of a cloth triangle a body vertex is closer than that to along that body
+    vertex's normal, and lets each moved vertex's unmoved neighbours follow halfway (so no
+    spike is made), until ipctk finds no intersection and its minimum distance (vertex–triangle
+    and edge–edge) is at least d̂. The vertices of a seam (``seams`` [S, 2] pairs) move together
+    (by their mean move), so a repair opens no seam.
+
+    Args:
+        x: [N, 3] cloth start; faces: [F, 3]; body_vertices: [Nb, 3]; body_faces: [Fb, 3].
+        dhat: the barrier's activation distance [m]; limit: the largest move allowed [m].
+    Returns:
+        (x [N, 3], report dict: moved_vertices, max_move, mean_move [m] (over moved vertices),
+        rounds, min_distance [m], limit).
+    Raises:
+        PhysavatarError(None, ...) when a vertex would move more than ``limit`` or no
+        intersection-free start is reached.
+    """
+    from scipy.spatial import cKDTree
+
+    from ..errors import PhysavatarError
+    from ..geometry import MeshQuery, adjacency
+    from .contact import ContactScene
+
+    x0 = np.asarray(x, dtype=np.float64)
+    x = x0.copy()
+    F = np.asarray(faces, dtype=np.int64)
+    B = np.asarray(body_vertices, dtype=np.float64)
+    BF = np.asarray(body_faces, dtype=np.int64)
+    n = len(x)
+    body = MeshQuery(B, BF)
+    A = adjacency(F, n)
+    scene = ContactScene(x0, F, B, BF, dhat)
+    target = clearance * dhat
+    group = count = None
+    if seams is not None and len(seams):
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+
+        pairs = np.asarray(seams, dtype=np.int64).reshape(-1, 2)
+        _, group = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                                                      shape=(n, n)), directed=False)
+        count = np.bincount(group, minlength=n).astype(float)
+    rounds, dist = 0, 0.0
+    for rounds in range(iters + 1):
+        X = np.vstack([x, B])
+        scene.prepare_static(X)
+        crossing = scene.has_intersections(X)
+        dist = scene.min_distance(X)
+        sd, q, nrm = body.signed_distance(x, max_dist=4 * target)
+        if not crossing and dist >= dhat and sd.min() > 0:  # (a cloth wholly inside crosses nothing)
+            break
+        if rounds == iters:
+            raise PhysavatarError(None, f"the start crosses the body and {iters} rounds of pushing the cloth out "
+                                        "did not separate them")
+        delta = np.zeros_like(x)
+
+        def propose(idx, d, delta=delta):
+            longer = np.linalg.norm(d, axis=1) > np.linalg.norm(delta[idx], axis=1)
+            delta[idx[longer]] = d[longer]
+
+        bad = np.flatnonzero(sd < target)
+        propose(bad, q[bad] + nrm[bad] * (1.25 * target) - x[bad])
+        # body vertices near (or through) the cloth: move the cloth triangle they face
+        near = np.isfinite(cKDTree(x).query(B, distance_upper_bound=4 * target + _longest_edge(x, F))[0])
+        if near.any():
+            bi = np.flatnonzero(near)
+            d, f, _, cq = MeshQuery(x, F).closest(B[bi], max_dist=4 * target)
+            side = np.einsum("nd,nd->n", cq - B[bi], body.normals[bi])
+            low = d < target  # close (a cloth point "behind" a body vertex farther away is concavity, not a crossing)
+            push = body.normals[bi[low]] * (1.25 * target + np.maximum(-side[low], 0.0))[:, None]
+            for k in range(3):
+                propose(F[f[low], k], push)
+        if not (np.abs(delta).sum(1) > 0).any():  # an edge–edge contact only: widen the band pushed out
+            target *= 1.5
+            continue
+        moved = (np.abs(delta).sum(1) > 0).astype(float)
+        spread = (A @ delta) / np.maximum(A @ moved, 1.0)[:, None]
+        step = np.where(moved[:, None] > 0, delta, 0.5 * spread)
+        if group is not None:  # seam vertices: one move per seam point
+            mean = np.zeros((n, 3))
+            np.add.at(mean, group, step)
+            step = mean[group] / count[group][:, None]
+        x = x + step
+        worst = float(np.linalg.norm(x - x0, axis=1).max())
+        if worst > limit:
+            raise PhysavatarError(None, f"the start crosses the body by more than the repair limit: a vertex would "
+                                        f"move {worst * 1000:.1f} mm > {limit * 1000:.1f} mm")
+    move = np.linalg.norm(x - x0, axis=1)
+    moved = move > 0
+    report = {"moved_vertices": int(moved.sum()), "max_move": float(move.max()),
+              "mean_move": float(move[moved].mean()) if moved.any() else 0.0, "rounds": int(rounds),
+              "min_distance": float(dist), "limit": float(limit)}
+    return x, report
+
+
+def _longest_edge(x, F):
+    return float(np.linalg.norm(x[F] - x[F[:, [1, 2, 0]]], axis=2).max())

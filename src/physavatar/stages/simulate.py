@@ -7,14 +7,21 @@ Three ways to say what to simulate (the inputs of :func:`run`):
   or .npz) on the Anny collider body; a motion that does not start in the rest pose the garment
   is made for is reached by a warm-up transition (simulated, not written);
 - ``collider`` (any animated body: .npz or a folder of OBJ/PLY frames) and ``garment`` (a garment
-  file: .ply with boundary flags, .npz with vertices/faces/boundary, or a garment sequence).
+  file already on its first frame: OBJ, PLY, glTF or npz, garment.files; or a garment sequence);
+- ``garment`` a garment file and ``motion``: the garment, made for another body, is fitted onto
+  Anny's rest pose first (garment_sim.fit_on_body), then simulated like a built-in one.
+
+A garment file's seams are stitched (sim.stitch), its rest shape is its own (a rest-shape file,
+material uv), its boundary its flags or chosen where it rests on the body (``--boundary none``:
+held by contact and friction alone).
 
 ``garment`` and ``motion`` are inputs although they may be a built-in name rather than a file:
 they say *what* is simulated, as ``capture`` and ``collider`` do; :class:`SimulateConfig` holds
 *how* (material, time stepping, warm-up, the garment's edge length).
 
 The boundary vertices follow the body surface they start on (:mod:`physavatar.garment_sim`).
-The garment must start outside the body; every written frame is checked for garment–body
+A start that touches or slightly crosses the body is pushed out to d̂ (sim.start.repair_start;
+refused beyond ``--repair-limit``); every written frame is checked for garment–body
 intersections and non-finite values. Outputs (``out/``): garment_sequence.npz
 (:class:`~physavatar.data.garment_sequence.GarmentSequence`), meshes/NNNNNN.ply, material.json,
 config.json (the record of the run, with the config), preview.mp4.
@@ -22,6 +29,7 @@ config.json (the record of the run, with the config), preview.mp4.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -32,20 +40,22 @@ import numpy as np
 from ..body import BodyModel, Motion
 from ..body.load import load_motion, with_arm_clearance
 from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
-from ..data.garment_sequence import GarmentSequence, boundary_ids
+from ..data.garment_sequence import GarmentSequence
 from ..data.material import resolve_material
-from ..data.sim_frames import FrameStore, fingerprint
 from ..data.mesh_sequence import load_mesh_sequence
+from ..data.sim_frames import FrameStore, fingerprint
 from ..errors import PhysavatarError
-from ..files import PlyMesh, load_npz, read_ply, write_json_atomic, write_ply
+from ..files import PlyMesh, load_npz, write_json_atomic, write_ply
 from ..garment import GARMENTS, make_garment
-from ..garment_sim import GarmentPart, simulate_on_body, split_template
-from ..geometry import count_intersections
+from ..garment.boundary import auto_boundary
+from ..garment.files import FORMATS, load_garment
+from ..garment_sim import GarmentPart, fit_on_body, simulate_on_body, split_template
 from ..sim import SimSettings
 from ..sim.contact import ContactScene
 from ..sim.simulate import self_contact_possible
+from ..sim.start import repair_start
 from .animate import transition
-from .base import option, to_dict
+from .base import option, setting, to_dict
 
 INTEGRATORS = ("euler", "bdf2")
 log = logging.getLogger("physavatar.progress")
@@ -87,6 +97,20 @@ class SimulateConfig:
                                         "to the hips/trunk, so the garment is not pinched (0 = off)",
                                   flag="--arm-clearance")
     edge_length: float = option(0.02, "garment edge length [m] (with --garment KIND)")
+    up: str | None = option(None, "a garment file's up axis: x, y, z, -x, -y, -z (default z; y for glTF)",
+                            choices=("x", "y", "z", "-x", "-y", "-z"))
+    scale: str = option("1", "a garment file's scale: a factor or its unit (m, cm, mm, in)")
+    rest: str | None = option(None, "a garment file's rest shape: a file with the same triangles, 'uv' or 'world' "
+                                    "(default: NAME-m.obj beside NAME-w.obj, else material uv, else the world shape)")
+    boundary: str = option("auto", "a garment file's attached vertices: auto (the file's flags, else where it rests "
+                                   "on the body: waistband, shoulders) or none (held by contact and friction alone)",
+                           choices=("auto", "none"))
+    fit: bool = option(True, "with --motion and a garment file: fit it onto Anny's rest pose (align, then settle "
+                             "while the body grows from a shrunk one); off: it is already on Anny's rest pose")
+    repair_limit: float = option(0.03, "largest move [m] the start repair may make to push the garment out of "
+                                       "the body (beyond it the start is refused)", flag="--repair-limit")
+    fit_frames: int = setting(20)  # frames of the body growing to full size while fitting
+    fit_hold: int = setting(10)  # frames the fitted garment settles on the full body
     preview: bool = option(True, "write preview.mp4")
 
 
@@ -141,25 +165,24 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     sim_settings = SimSettings(integrator=integrator)
     n_warm = 0  # leading frames simulated but not written (--motion's transition)
     clearance_info = None
+    imported = None  # what reading, fitting and repairing a garment file did (config.json)
     if capture is not None:
         part, bodies, body_faces, fps = _from_capture(Path(capture))
     elif collider is not None:
         if garment is None or not Path(garment).exists():
             _bad_option("--garment", "with --collider, give a garment mesh file (.ply with label/boundary, or .npz)")
         bodies, body_faces = load_mesh_sequence(collider)
-        part = garment_file(Path(garment))
+        part, imported = garment_file(Path(garment), cfg, bodies[0], body_faces)
     elif garment is not None and motion is not None:
-        part, bodies, body_faces, n_warm, clearance_info = _on_motion(str(garment), motion, fps, cfg)
+        part, bodies, body_faces, n_warm, clearance_info, imported = _on_motion(garment, motion, fps, cfg, mat,
+                                                                                sim_settings, progress)
     else:
         _bad_option("--capture/--garment/--collider",
                     "say what to simulate: --capture C, or --garment KIND --motion M, or --collider SEQ --garment FILE")
-    if len(part.boundary) == 0:
-        _bad_option("--garment", "the garment has no boundary vertices to attach to the body")
-    n_cross = count_intersections(part.vertices, part.faces, bodies[0], body_faces)
-    if n_cross:
-        raise PhysavatarError(collider or garment or capture,
-                              f"the garment crosses the body's first frame ({n_cross} intersecting triangle pairs): "
-                              "it must start outside the body, in the pose it was made for")
+    source = garment if garment is not None and Path(str(garment)).exists() else (capture or collider or garment)
+    part, repair = _repaired_start(part, bodies[0], body_faces, sim_settings, cfg, source)
+    if imported is not None:
+        imported["start_repair"] = repair
     self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat)
     sim_settings = replace(sim_settings, self_contact=self_contact)
     t0 = time.time()
@@ -169,18 +192,18 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     X, bodies = X[n_warm:], bodies[n_warm:]
     reports = [(f - n_warm, r) for f, r in enumerate(reports, start=1) if f >= n_warm]  # (written frame, report)
     # every frame checked: finite and free of garment-body intersections (ipctk's exact test)
-    scene = ContactScene(part.vertices, part.faces, bodies[0], body_faces, sim_settings.dhat)
+    scene = ContactScene(part.rest_shape, part.faces, bodies[0], body_faces, sim_settings.dhat)
     bad = [f for f in range(len(X))
            if not np.all(np.isfinite(X[f])) or scene.has_intersections(np.vstack([X[f], bodies[f]]))]
     self_bad = _self_intersecting(part, X)
-    GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.vertices).save(out / GARMENT_SEQUENCE)
+    GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.rest_shape).save(out / GARMENT_SEQUENCE)
     mat.save(out / "material.json")
     write_json_atomic(out / "config.json", {
         "command": "simulate", "capture": _text(capture), "garment": _text(garment), "motion": _text(motion),
         "collider": _text(collider), "material": mat.to_dict(), "fps": fps, "substeps": cfg.substeps,
         "integrator": integrator, "self_contact": self_contact,
         "frames_with_intersection_or_nan": bad, "frames_with_self_intersection": self_bad,
-        "warmup_frames": n_warm, "arm_clearance": clearance_info, "frames": int(len(X)), "seconds": round(secs, 1),
+        "warmup_frames": n_warm, "arm_clearance": clearance_info, "garment_import": imported, "frames": len(X), "seconds": round(secs, 1),
         "resumed_after_frame": resumed, **_frame_summary(reports), "config": to_dict(cfg)})
     if cfg.preview:
         from ..body.preview import render_frames, write_video
@@ -189,7 +212,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         Fall = np.concatenate([body_faces, part.faces + bodies.shape[1]])
         write_video(out / "preview.mp4", render_frames(Vall, Fall, None, None, title="simulate"), fps)
     store.remove()  # the final files are written: the per-frame record is no longer needed
-    return SimulateResult(out, int(len(X)), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview,
+    return SimulateResult(out, len(X), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview,
                           [f for f, r in reports if r["lagged"]], self_bad)
 
 
@@ -199,7 +222,8 @@ def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps:
     written frames' PLY meshes in out/meshes/), resuming an interrupted run of the same inputs
     and settings from its last frame. Returns (positions [T, N, 3] of every simulated frame,
     per-frame reports of frames 1..T−1, the FrameStore, the frame resumed after or None)."""
-    key = fingerprint(part.vertices, part.faces, part.boundary, bodies, body_faces, material=mat.to_dict(),
+    key = fingerprint(part.vertices, part.rest_shape, part.faces, part.boundary, bodies, body_faces,
+                      *([] if part.seams is None else [part.seams]), material=mat.to_dict(),
                       settings=asdict(settings), fps=fps, substeps=cfg.substeps, max_substeps=cfg.max_substeps)
     store = FrameStore(out, key, len(bodies))
     ck = store.resume()
@@ -260,14 +284,20 @@ def _from_capture(capture: Path):
     return part, m.pose(body).vertices, body_faces, cap.fps
 
 
-def _on_motion(kind: str, motion, fps: float, cfg: SimulateConfig):
-    """(garment part, body vertices, body faces, warm-up frames, arm clearance summary) of a
-    built-in garment on the Anny collider driven by ``motion``."""
-    if kind not in GARMENTS:
-        _bad_option("--garment", f"{kind!r} is not one of {', '.join(GARMENTS)}")
+def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settings, progress):
+    """(garment part, body vertices, body faces, warm-up frames, arm clearance summary, import
+    report) of a built-in garment, or a garment file (fitted onto Anny's rest pose), on the Anny
+    collider driven by ``motion``."""
     body = BodyModel(topology="collider")
-    g = make_garment(kind, body, edge_length=cfg.edge_length)
-    part = GarmentPart(np.arange(len(g.vertices)), g.vertices, g.faces, np.flatnonzero(g.boundary))
+    imported = None
+    if str(garment) in GARMENTS:
+        g = make_garment(str(garment), body, edge_length=cfg.edge_length)
+        part = GarmentPart(np.arange(len(g.vertices)), g.vertices, g.faces, np.flatnonzero(g.boundary))
+    elif Path(garment).suffix.lower() in FORMATS:
+        part, imported = _file_on_body(Path(garment), cfg, body, mat, sim_settings, progress)
+    else:
+        _bad_option("--garment", f"{garment!r} is not one of {', '.join(GARMENTS)} nor a garment file "
+                                 f"({', '.join(FORMATS)})")
     mot = load_motion(motion, fps, cfg.duration)
     mot, clearance_info = with_arm_clearance(mot, motion, body, cfg.arm_clearance)
     rots, trs = mot.rotations, mot.root_translation
@@ -280,30 +310,71 @@ def _on_motion(kind: str, motion, fps: float, cfg: SimulateConfig):
         n_warm = max(2, int(round(cfg.warmup * fps)))
         wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
         rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
-    return part, body.pose(rots, trs).vertices, body.faces, n_warm, clearance_info
+    return part, body.pose(rots, trs).vertices, body.faces, n_warm, clearance_info, imported
 
 
-def garment_file(path: Path) -> GarmentPart:
-    """A garment from a file: a garment sequence (its rest shape and boundary), an .npz with
-    ``vertices``, ``faces`` and ``boundary`` (flags or ids), or a .ply with a per-vertex
-    ``boundary`` property."""
+def _file_on_body(path: Path, cfg: SimulateConfig, body, mat, sim_settings, progress):
+    """A garment file on Anny's rest pose: fitted (garment_sim.fit_on_body) unless --fit off;
+    its boundary from the file or chosen automatically (or none)."""
+    gm = load_garment(path, up=cfg.up, scale=cfg.scale, rest=cfg.rest)
+    imported = {"file": str(path), "rest_source": gm.rest_source, "vertices": len(gm.vertices),
+                "seam_pairs": len(gm.seams), "repairs": gm.repairs}
+    if cfg.fit:
+        part, imported["fit"] = fit_on_body(gm, body, mat, sim_settings, frames=cfg.fit_frames, hold=cfg.fit_hold,
+                                            repair_limit=cfg.repair_limit, progress=progress)
+    else:
+        part = GarmentPart(np.arange(len(gm.vertices)), gm.vertices, gm.faces, np.zeros(0, np.int64), gm.rest,
+                           gm.seams)
+    part.boundary, imported["boundary"] = _boundary(gm, part.vertices, body.rest_vertices, body.faces, cfg)
+    return part, imported
+
+
+def _boundary(gm, vertices, body_vertices, body_faces, cfg):
+    """(boundary ids, report): the file's flags, the automatic choice, or none (--boundary)."""
+    if cfg.boundary == "none":
+        return np.zeros(0, np.int64), {"rule": "none: held by contact and friction alone", "vertices": 0}
+    if gm.boundary is not None and len(gm.boundary):
+        return gm.boundary, {"rule": "the file's boundary flags", "vertices": len(gm.boundary)}
+    return auto_boundary(vertices, gm.faces, body_vertices, body_faces)
+
+
+def _repaired_start(part, body_vertices, body_faces, sim_settings, cfg, source):
+    """The part with its start pushed out of the body's first frame to >= d̂ (sim.start.repair_start),
+    and the repair's report; refused beyond --repair-limit, or when the garment is nowhere near
+    the body (nothing would hold it)."""
+    from ..geometry import MeshQuery
+
+    d = MeshQuery(body_vertices, body_faces).closest(part.vertices, max_dist=0.1)[0]
+    if d.min() > 0.05:
+        raise PhysavatarError(source, f"the garment is {d.min() * 100:.0f} cm from the body's first frame at its "
+                                      "closest: nothing holds it (place it on the body, or give --motion to fit it "
+                                      "onto Anny)")
+    try:
+        x, report = repair_start(part.vertices, part.faces, body_vertices, body_faces, sim_settings.dhat,
+                                 cfg.repair_limit, seams=part.seams)
+    except PhysavatarError as e:
+        raise PhysavatarError(source, f"{e.problem} (--repair-limit)") from None
+    return dataclasses.replace(part, vertices=x), report
+
+
+def garment_file(path: Path, cfg: SimulateConfig | None = None, body_vertices=None, body_faces=None):
+    """(GarmentPart, import report) of a garment file placed on the body's first frame: a garment
+    sequence (its rest shape and boundary), or an OBJ/PLY/glTF/npz garment (garment.files; its
+    boundary flags, else chosen where it rests on the body, or none with --boundary none)."""
+    cfg = cfg or SimulateConfig()
     if path.suffix == ".npz":
         z = load_npz(path)
         if "vertices" in z and np.ndim(z["vertices"]) == 3:
             # a garment sequence (simulate's garment_sequence.npz, another simulator's): its rest shape
             d = GarmentSequence.from_arrays(z, path)
-            if not len(d.boundary):
-                raise PhysavatarError(path, "the garment sequence has no boundary (attached) vertices")
-            return GarmentPart(np.arange(len(d.rest_vertices)), d.rest_vertices, d.faces, d.boundary)
-        if not {"vertices", "faces", "boundary"} <= set(z):
-            raise PhysavatarError(path, "garment .npz needs 'vertices', 'faces' and 'boundary'")
-        V, F = z["vertices"], z["faces"]
-        try:
-            bidx = boundary_ids(z["boundary"], len(V))  # per-vertex flags, or indices
-        except ValueError as e:
-            raise PhysavatarError(path, str(e)) from None
-        return GarmentPart(np.arange(len(V)), np.asarray(V, float), np.asarray(F, np.int64), bidx)
-    m = read_ply(path)
-    if "boundary" not in m.vertex_data:
-        raise PhysavatarError(path, "needs a per-vertex 'boundary' property (1 = attached to the body)")
-    return GarmentPart(np.arange(len(m.vertices)), m.vertices, m.faces, np.flatnonzero(m.vertex_data["boundary"]))
+            part = GarmentPart(np.arange(len(d.rest_vertices)), d.rest_vertices, d.faces, d.boundary)
+            return part, {"file": str(path), "rest_source": "garment sequence", "boundary": {"vertices": len(d.boundary)}}
+    gm = load_garment(path, up=cfg.up, scale=cfg.scale, rest=cfg.rest)
+    part = GarmentPart(np.arange(len(gm.vertices)), gm.vertices, gm.faces, np.zeros(0, np.int64), gm.rest, gm.seams)
+    imported = {"file": str(path), "rest_source": gm.rest_source, "vertices": len(gm.vertices),
+                "seam_pairs": len(gm.seams), "repairs": gm.repairs}
+    if body_vertices is not None:
+        part.boundary, imported["boundary"] = _boundary(gm, gm.vertices, body_vertices, body_faces, cfg)
+    elif gm.boundary is not None:
+        part.boundary = gm.boundary
+    return part, imported

@@ -1,0 +1,168 @@
+"""Garments made by another tool, fitted onto Anny and simulated (issue 24 parts 3-6).
+
+The four Berkeley Garment Library garments in ../shared/data/garments (dress3, skirt, tshirt,
+pants: NAME-iso-w.obj world drape on the Library's mannequin + NAME-iso-m.obj rest panels) are
+read with their rest shape and seams (physavatar.garment.files), fitted onto Anny's rest pose
+(garment_sim.fit_on_body: aligned, then settled on a body that grows from a shrunk one), given
+their automatic boundary (garment.boundary) and simulated on the built-in walk and dance and
+both CMU clips (each reached from the rest pose by a warm-up transition, simulated and checked
+too). Every simulated frame is checked: finite, free of garment-body intersections (ipctk),
+seams closed (largest distance across a seam pair < 2 mm); the strain against the rest shape
+(largest |σ − 1| per triangle, area-weighted mean) at the first frame < 5 %.
+
+    python benchmarks/garment_import.py            # short clips (0.4 s each, after a 1 s warm-up)
+    python benchmarks/garment_import.py --full     # 4 s built-in motions, whole CMU clips
+    python benchmarks/garment_import.py --garments skirt --motions walk
+
+Writes benchmarks/results/garment_import.json (figures, seconds per frame, ``checks``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import cpu_name
+
+ROOT = Path(__file__).resolve().parent
+DATA = ROOT.parent.parent / "shared" / "data"
+GARMENTS = ("skirt", "pants", "dress3", "tshirt")
+MOTIONS = ("walk", "dance", "cmu_131_01.bvh", "cmu_131_03.bvh")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--full", action="store_true", help="whole clips (4 s built-ins, whole CMU clips)")
+    ap.add_argument("--garments", nargs="*", default=list(GARMENTS))
+    ap.add_argument("--motions", nargs="*", default=list(MOTIONS))
+    ap.add_argument("--material", default="cotton")
+    ap.add_argument("--warmup", type=float, default=1.0,
+                    help="seconds of transition from the rest pose to a clip's first pose (simulate's default)")
+    ap.add_argument("--data", default=str(DATA))
+    ap.add_argument("--out", default=str(ROOT / "results" / "garment_import.json"))
+    args = ap.parse_args()
+
+    from physavatar.body import BodyModel
+    from physavatar.body.load import load_motion, with_arm_clearance
+    from physavatar.errors import PhysavatarError
+    from physavatar.garment.boundary import auto_boundary
+    from physavatar.garment.files import load_garment
+    from physavatar.garment_sim import fit_on_body, rest_strain, simulate_on_body
+    from physavatar.sim import SimSettings, preset
+    from physavatar.sim.contact import ContactScene
+    from physavatar.sim.mesh import ClothTopology
+    from physavatar.sim.stitch import seam_gaps
+    from physavatar.stages.animate import transition
+
+    data = Path(args.data)
+    fps = 25.0
+    seconds, warmup = (4.0, args.warmup) if args.full else (0.4, args.warmup)
+    material = preset(args.material)
+    settings = SimSettings(integrator=material.integrator)
+    body = BodyModel(topology="collider")
+    load0 = os.getloadavg()
+    garments = {}
+    all_ok = {"finite_and_intersection_free": True, "strain_first_frame": True, "seams_closed": True}
+    for name in args.garments:
+        path = data / "garments" / f"{name}-iso-w.obj"
+        if not path.exists():
+            print(f"{path} missing: skipped")
+            continue
+        gm = load_garment(path)
+        t0 = time.time()
+        try:
+            fitted, fit = fit_on_body(gm, body, material, settings)
+        except PhysavatarError as e:  # reported, and a failed check
+            print(f"{name}: {e}", flush=True)
+            garments[name] = {"fit_error": str(e)}
+            all_ok["finite_and_intersection_free"] = False
+            write(args, garments, all_ok, load0, material, settings, fps, seconds, warmup)
+            continue
+        fit_s = time.time() - t0
+        fitted.boundary, brep = auto_boundary(fitted.vertices, fitted.faces, body.rest_vertices, body.faces)
+        area = ClothTopology.build(fitted.rest_shape, fitted.faces).face_area
+        entry = {"vertices": len(gm.vertices), "faces": len(gm.faces), "panels": len(np.unique(gm.panels())),
+                 "seam_pairs": len(gm.seams), "rest_source": gm.rest_source, "fit": fit,
+                 "fit_seconds": round(fit_s, 1), "boundary": brep, "motions": {}}
+        print(f"{name}: {len(gm.vertices)} vertices, {len(gm.seams)} seam pairs; fitted in {fit_s:.0f} s "
+              f"(grade {fit['alignment']['grade']}, strain {fit['strain_mean'] * 100:.2f} %), "
+              f"{brep['vertices']} boundary vertices", flush=True)
+        for mname in args.motions:
+            spec = str(data / "motions" / mname) if mname.endswith(".bvh") else mname
+            try:
+                mot = load_motion(spec, fps, seconds)  # a BVH clip comes whole: cut below unless --full
+            except Exception as e:  # noqa: BLE001 - reported, not fatal to the other motions
+                entry["motions"][mname] = {"error": str(e)}
+                continue
+            n = len(mot.rotations) if args.full else min(len(mot.rotations), int(round(seconds * fps)) + 1)
+            mot, _ = with_arm_clearance(mot, spec, body, 0.03)  # as `simulate` does for a .bvh clip
+            rots, trs = mot.rotations[:n], mot.root_translation[:n]
+            trs = trs - trs[0] * np.array([1.0, 1.0, 0.0])  # the clip starts where the body stands
+            n_warm = max(2, int(round(warmup * fps)))
+            wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
+            rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
+            bodies = body.pose(rots, trs).vertices
+            t0 = time.time()
+            X = simulate_on_body(fitted, bodies, body.faces, material, fps, settings=settings)
+            secs = time.time() - t0
+            scene = ContactScene(fitted.rest_shape, fitted.faces, bodies[0], body.faces, settings.dhat)
+            bad = [f for f in range(len(X)) if not np.all(np.isfinite(X[f]))
+                   or scene.has_intersections(np.vstack([X[f], bodies[f]]))]
+            gaps = np.array([seam_gaps(X[f], fitted.seams).max() if len(fitted.seams) else 0.0 for f in range(len(X))])
+            s0 = rest_strain(X[n_warm], fitted.rest_shape, fitted.faces)  # the clip's first frame
+            strain_first = float(np.sum(s0 * area) / area.sum())
+            res = {"frames": len(X), "warmup_frames": n_warm, "seconds_per_frame": round(secs / (len(X) - 1), 2),
+                   "bad_frames": bad, "seam_gap_max_mm": round(float(gaps.max()) * 1000, 4),
+                   "strain_first_frame_mean": round(strain_first, 4),
+                   "strain_first_frame_p95": round(float(np.percentile(s0, 95)), 4)}
+            entry["motions"][mname] = res
+            all_ok["finite_and_intersection_free"] &= not bad
+            all_ok["strain_first_frame"] &= strain_first < 0.05
+            all_ok["seams_closed"] &= bool(gaps.max() < 0.002)
+            print(f"  {mname}: {len(X)} frames, {res['seconds_per_frame']} s/frame, bad {bad}, "
+                  f"seam gap {res['seam_gap_max_mm']} mm, strain {strain_first * 100:.2f} %", flush=True)
+        garments[name] = entry
+        write(args, garments, all_ok, load0, material, settings, fps, seconds, warmup)  # after every garment
+
+
+def write(args, garments, all_ok, load0, material, settings, fps, seconds, warmup):
+    """benchmarks/results/garment_import.json (atomic): what has been measured so far."""
+    load1 = os.getloadavg()
+    result = {
+        "benchmark": "garment_import",
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
+                    "load_average_1_5_15min_start": [round(v, 2) for v in load0],
+                    "load_average_1_5_15min_end": [round(v, 2) for v in load1]},
+        "config": {"garments": args.garments, "motions": args.motions, "full": args.full, "fps": fps,
+                   "clip_seconds": None if args.full else seconds, "warmup_seconds": warmup,
+                   "material": material.to_dict(), "dhat": settings.dhat, "friction": settings.friction},
+        "figures": garments,
+        "checks": {
+            "finite_and_intersection_free": {"value": all_ok["finite_and_intersection_free"], "target": "every frame",
+                                             "pass": all_ok["finite_and_intersection_free"]},
+            "strain_first_frame": {"value": max((m["strain_first_frame_mean"] for g in garments.values()
+                                                 for m in g.get("motions", {}).values() if "strain_first_frame_mean" in m),
+                                                default=None),
+                                   "target": "< 0.05", "unit": "area-weighted mean of max |sigma - 1|",
+                                   "pass": all_ok["strain_first_frame"]},
+            "seams_closed": {"value": max((m["seam_gap_max_mm"] for g in garments.values()
+                                           for m in g.get("motions", {}).values() if "seam_gap_max_mm" in m), default=None),
+                             "target": "< 2", "unit": "mm", "pass": all_ok["seams_closed"]},
+        },
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, indent=2, default=float) + "\n")
+    tmp.replace(out)
+    print(json.dumps(result["checks"], indent=1), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,265 @@
+"""Garments from other tools' files (physavatar.garment.files), their seams held by the stitch
+term (physavatar.sim.stitch), the automatic boundary (garment.boundary) and the start repair
+(sim.start.repair_start), against analytic expectations and finite differences."""
+
+import numpy as np
+import pytest
+import trimesh
+from typer.testing import CliRunner
+
+from physavatar.cli import app
+from physavatar.errors import PhysavatarError
+from physavatar.files import PlyMesh, write_ply
+from physavatar.garment.boundary import auto_boundary
+from physavatar.garment.files import load_garment
+from physavatar.sim import SimSettings, preset
+from physavatar.sim.contact import ContactScene
+from physavatar.sim.simulate import simulate
+from physavatar.sim.start import repair_start
+from physavatar.sim.stitch import Stitch, seam_gaps
+
+runner = CliRunner()
+
+
+def panel(x0, width, height, n, y=0.0):
+    """A flat (n+1)×(n+1) grid panel in the x–z plane at y: vertices [(n+1)², 3], faces."""
+    u, v = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
+    V = np.stack([x0 + width * u.ravel(), np.full(u.size, y), height * v.ravel()], axis=1)
+    idx = np.arange(u.size).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return V, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def two_panels(n=4, rest_width=0.18):
+    """Two 0.2 m panels side by side in the world (meeting along x = 0.2), and their rest
+    panels, narrower (``rest_width``), laid apart in a material plane (z = 0)."""
+    Va, Fa = panel(0.0, 0.2, 0.2, n)
+    Vb, Fb = panel(0.2, 0.2, 0.2, n)
+    Ra, _ = panel(0.0, rest_width, 0.2, n)
+    Rb, _ = panel(1.0, rest_width, 0.2, n)
+    world = np.vstack([Va, Vb])
+    rest = np.vstack([Ra, Rb])[:, [0, 2, 1]]  # material coordinates in x–y
+    faces = np.vstack([Fa, Fb + len(Va)])
+    return world, rest, faces
+
+
+def write_obj(path, V, F, vt=None):
+    with open(path, "w") as f:
+        f.writelines(f"v {v[0]:.9g} {v[1]:.9g} {v[2]:.9g}\n" for v in V)
+        if vt is not None:
+            f.writelines(f"vt {t[0]:.9g} {t[1]:.9g}\n" for t in vt.reshape(-1, 2))
+            f.writelines("f " + " ".join(f"{i + 1}/{3 * k + c + 1}" for c, i in enumerate(tri)) + "\n" for k, tri in enumerate(F))
+        else:
+            f.writelines("f " + " ".join(str(i + 1) for i in tri) + "\n" for tri in F)
+
+
+def edge_lengths(V, F):
+    return np.linalg.norm(V[F[:, [1, 2, 0]]] - V[F], axis=2)
+
+
+def test_obj_panels_with_a_rest_file_and_coincident_seams(tmp_path):
+    world, rest, faces = two_panels(n=4)
+    write_obj(tmp_path / "g-w.obj", world, faces)
+    write_obj(tmp_path / "g-m.obj", rest, faces)
+    g = load_garment(tmp_path / "g-w.obj")  # g-m.obj found beside it (the Berkeley Library's naming)
+    assert g.rest_source == "file" and len(g.vertices) == 50 and len(np.unique(g.panels())) == 2
+    # the rest shape of every triangle is the rest file's, not the world's (world is 0.2/0.18 wider)
+    assert np.allclose(edge_lengths(g.rest, g.faces), edge_lengths(rest, faces), atol=1e-7)
+    assert np.allclose(edge_lengths(g.vertices, g.faces), edge_lengths(world, faces), atol=1e-7)
+    # the seam: the 5 vertex pairs on x = 0.2, one from each panel
+    assert len(g.seams) == 5 and np.all(seam_gaps(g.vertices, g.seams) < 1e-9)
+    assert np.allclose(g.vertices[g.seams.ravel(), 0], 0.2)
+    assert np.all(g.panels()[g.seams[:, 0]] != g.panels()[g.seams[:, 1]])
+
+
+def test_combined_obj_with_material_uv_and_a_layered_seam(tmp_path):
+    """The Library's combined file: seam vertices merged, material coordinates in vt per corner;
+    a third panel folded onto the seam line makes a layered seam (three vertices at one point)."""
+    world, rest, faces = two_panels(n=2)
+    Vc, Fc = panel(0.2, 0.1, 0.2, 2, y=0.0)  # a third panel from the seam line
+    Vc = np.stack([np.full(len(Vc), 0.2), Vc[:, 0] - 0.2, Vc[:, 2]], 1)  # in the y–z plane at x = 0.2
+    Rc = np.stack([Vc[:, 1] + 2.0, Vc[:, 2], np.zeros(len(Vc))], 1)
+    world = np.vstack([world, Vc])
+    rest = np.vstack([rest, Rc])
+    faces = np.vstack([faces, Fc + 18])
+    merged, inv = np.unique(np.round(world, 9), axis=0, return_inverse=True)
+    write_obj(tmp_path / "c.obj", merged, inv.ravel()[faces], vt=rest[faces][:, :, :2])
+    g = load_garment(tmp_path / "c.obj")
+    assert g.rest_source == "uv" and len(g.vertices) == 27 and len(np.unique(g.panels())) == 3
+    assert np.allclose(np.sort(edge_lengths(g.rest, g.faces).ravel()), np.sort(edge_lengths(rest, faces).ravel()))
+    # x = 0.2 has 3 vertices in each of the two side panels' column and in the third panel's y = 0 column:
+    # every point there is one layered seam group of 3 -> 2 pairs each
+    assert len(g.seams) == 6
+    assert np.all(np.isclose(g.vertices[g.seams.ravel(), 0], 0.2))
+
+
+def test_ply_gltf_npz_up_axis_and_units(tmp_path):
+    world, rest, faces = two_panels(n=2)
+    yup = world[:, [0, 2, 1]] * np.array([1, 1, -1])  # the same garment with y up (x, z, -y)
+    trimesh.Trimesh(yup * 100, faces, process=False).export(tmp_path / "g.ply")
+    g = load_garment(tmp_path / "g.ply", up="y", scale="cm")
+    assert g.rest_source == "world" and np.allclose(np.sort(g.vertices[:, 2]), np.sort(world[:, 2]), atol=1e-6)
+    trimesh.Trimesh(yup, faces, process=False).export(tmp_path / "g.glb")  # glTF: y up by convention
+    g = load_garment(tmp_path / "g.glb")
+    assert np.allclose(np.sort(g.vertices[:, 2]), np.sort(world[:, 2]), atol=1e-6)
+    assert np.allclose(np.sort(g.vertices[:, 1]), np.sort(world[:, 1]), atol=1e-6)
+    assert len(g.seams) == 3  # coincident vertices of the two panels (a glb keeps them apart)
+    np.savez(tmp_path / "g.npz", vertices=world, faces=faces, rest=rest, boundary=np.array([0, 3]),
+             seams=np.array([[1, 10]]))
+    g = load_garment(tmp_path / "g.npz")
+    assert g.rest_source == "file" and np.allclose(g.rest, rest) and set(g.boundary) == {0, 3}
+    assert [1, 10] in g.seams.tolist() and len(g.seams) == 4  # the listed pair + the 3 coincident ones
+
+
+def test_stitch_derivatives_match_finite_differences():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(6, 3))
+    term = Stitch([[0, 3], [1, 4], [0, 5]], 7.0, weights=[1.0, 0.5, 2.0])
+    g, H = term.gradient(x), term.hessian(x).to_sparse(18).toarray()
+    eps = 1e-6
+    fd_g, fd_H = np.zeros(18), np.zeros((18, 18))
+    for i in range(18):
+        d = np.zeros(18)
+        d[i] = eps
+        fd_g[i] = (term.energy(x.ravel() + d) - term.energy(x.ravel() - d)) / (2 * eps)
+        fd_H[:, i] = (term.gradient(x.ravel() + d) - term.gradient(x.ravel() - d)) / (2 * eps)
+    assert np.abs(fd_g - g).max() < 1e-6 * np.abs(g).max()
+    assert np.abs(fd_H - H).max() < 1e-6 * np.abs(H).max()
+    assert np.linalg.eigvalsh(H).min() > -1e-9  # PSD: projection is a no-op
+    assert np.isclose(term.energy(x), 0.5 * 7.0 * sum(w * np.sum((x[i] - x[j]) ** 2)
+                                                     for (i, j), w in zip([(0, 3), (1, 4), (0, 5)], [1, 0.5, 2])))
+
+
+@pytest.mark.parametrize("stitched", [True, False])
+def test_a_seam_pulled_apart_is_held_by_the_stitch(stitched, tmp_path):
+    """Two panels pinned at their outer edges, each 10 % narrower at rest than in the world: sewn,
+    the seam stays shut and both stretch uniformly to 0.4 / 0.36 (cotton's Poisson ratio is 0);
+    unsewn, each contracts to its rest width and the seam opens by 0.4 − 2 × 0.18 = 4 cm."""
+    world, rest, faces = two_panels(n=4)
+    write_obj(tmp_path / "g-w.obj", world, faces)
+    write_obj(tmp_path / "g-m.obj", rest, faces)
+    g = load_garment(tmp_path / "g-w.obj")
+    pinned = np.flatnonzero(np.isclose(g.vertices[:, 0], 0.0) | np.isclose(g.vertices[:, 0], 0.4))
+    settings = SimSettings(gravity=(0.0, 0.0, 0.0), damping_mass=5.0)
+    T = 25
+    X = simulate(g.rest, g.faces, preset("cotton"), np.zeros((T, 0, 3)), np.zeros((0, 3), int),
+                 boundary_indices=pinned, x0=g.vertices, settings=settings,
+                 extra_terms=[Stitch(g.seams)] if stitched else [])
+    gap = seam_gaps(X[-1], g.seams)
+    if stitched:
+        assert gap.max() < 1e-4
+        # every horizontal edge stretched by 0.4 / 0.36 (its rest length from the rest file)
+        e = g.faces[:, [0, 1]]
+        horiz = np.isclose(g.rest[e[:, 0], 1], g.rest[e[:, 1], 1])
+        ratio = (np.linalg.norm(X[-1][e[:, 0]] - X[-1][e[:, 1]], axis=1) /
+                 np.linalg.norm(g.rest[e[:, 0]] - g.rest[e[:, 1]], axis=1))[horiz]
+        assert np.allclose(ratio, 0.4 / 0.36, rtol=0.01)
+    else:
+        assert np.allclose(gap, 0.04, rtol=0.1)
+
+
+def cylinder_body(radius=0.15, height=1.0):
+    m = trimesh.creation.cylinder(radius=radius, height=height, sections=48)
+    m.apply_translation([0, 0, height / 2])
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def frustum(r_top, r_bottom, z_top, z_bottom, n_around=40, n_down=10):
+    a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    t = np.linspace(0, 1, n_down + 1)
+    r = r_top + (r_bottom - r_top) * t
+    z = z_top + (z_bottom - z_top) * t
+    V = np.stack([np.outer(r, np.cos(a)).ravel(), np.outer(r, np.sin(a)).ravel(), np.repeat(z, n_around)], 1)
+    idx = np.arange(V.shape[0]).reshape(n_down + 1, n_around)
+    nxt = np.roll(idx, -1, axis=1)
+    F = np.concatenate([np.stack([idx[:-1].ravel(), nxt[:-1].ravel(), idx[1:].ravel()], 1),
+                        np.stack([nxt[:-1].ravel(), nxt[1:].ravel(), idx[1:].ravel()], 1)])
+    return V, F
+
+
+def test_auto_boundary_of_a_skirt_is_its_waistband():
+    B, BF = cylinder_body()
+    V, F = frustum(0.155, 0.3, 0.9, 0.5)  # tight (5 mm) at the waist, flaring to the hem
+    ids, _ = auto_boundary(V, F, B, BF)
+    waist = np.flatnonzero(V[:, 2] > 0.899)
+    assert set(waist) <= set(ids)  # the whole waist ring
+    assert V[ids, 2].min() > 0.85 and len(ids) <= 3 * len(waist)  # and only a band under it
+
+
+def test_start_repair_pushes_a_crossing_cloth_out_to_dhat_and_refuses_beyond_the_limit():
+    B, BF = cylinder_body()
+    V, F = frustum(0.148, 0.148, 0.8, 0.6, n_around=48)  # 2 mm inside the body
+    dhat = 1e-3
+    x, rep = repair_start(V, F, B, BF, dhat, limit=0.03)
+    scene = ContactScene(x, F, B, BF, dhat)
+    X = np.vstack([x, B])
+    scene.prepare_static(X)
+    assert not scene.has_intersections(X) and scene.min_distance(X) >= dhat
+    assert rep["moved_vertices"] == len(V) and 0.002 < rep["max_move"] < 0.006
+    V, F = frustum(0.1, 0.1, 0.8, 0.6, n_around=48)  # 5 cm inside
+    with pytest.raises(PhysavatarError, match="repair limit"):
+        repair_start(V, F, B, BF, dhat, limit=0.03)
+
+
+def test_bad_garments_give_one_line(tmp_path):
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1.0]])
+    write_obj(tmp_path / "nm.obj", V, np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]]))
+    with pytest.raises(PhysavatarError, match="non-manifold") as e:
+        load_garment(tmp_path / "nm.obj")
+    assert e.value.path == tmp_path / "nm.obj"
+    B, BF = cylinder_body()
+    for k in range(2):
+        write_ply(tmp_path / "body" / f"{k}.ply", PlyMesh(B, BF))
+    Vg, Fg = frustum(0.2, 0.3, 3.0, 2.6)  # two metres above the body
+    write_obj(tmp_path / "far.obj", Vg, Fg)
+    r = runner.invoke(app, ["simulate", "--collider", str(tmp_path / "body"), "--garment", str(tmp_path / "far.obj"),
+                            "--out", str(tmp_path / "o"), "--no-preview"])
+    assert r.exit_code == 2 and "far.obj" in r.output and "nothing holds it" in r.output
+    assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
+
+
+def test_simulate_a_garment_file_on_a_motion(tmp_path):
+    """`simulate --garment FILE --motion M` (--no-fit: the file is already on Anny's rest pose):
+    a skirt of two half-panels (separate vertices at the side seams, a rest-shape file) around
+    the hips; the seams stay shut, the boundary is chosen at the top, every frame is clean."""
+    import json
+
+    from physavatar.body import BodyModel
+
+    B = BodyModel(topology="collider").rest_vertices
+    torso = B[np.abs(B[:, 0]) < 0.22]  # not the hands
+    c = torso[(torso[:, 2] > 0.85) & (torso[:, 2] < 1.05), :2].mean(0)
+    V, _ = frustum(1.0, 1.0, 1.05, 0.75, n_around=24, n_down=6)
+    radius = []
+    for z in np.linspace(1.05, 0.75, 7):  # each row 6 mm outside the body's widest point near its height
+        near = torso[np.abs(torso[:, 2] - z) < 0.03]
+        radius.append(np.linalg.norm(near[:, :2] - c, axis=1).max() + 0.006)
+    radius = np.maximum.accumulate(radius)  # a skirt: never narrower below
+    V[:, :2] = V[:, :2] * np.repeat(radius, 24)[:, None] + c
+    halves = []
+    for lo, hi in ((0, 12), (12, 24)):  # each half has its own copy of the seam columns 0/12 (and 24 = 0)
+        cols = [(lo + k) % 24 for k in range(hi - lo + 1)]
+        idx = np.array([[row * 24 + col for col in cols] for row in range(7)])
+        Vh = V[idx.ravel()]
+        a, b, cc, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
+        loc = {g: i for i, g in enumerate(idx.ravel())}
+        Fh = np.array([[loc[x] for x in t] for t in np.concatenate([np.stack([a.ravel(), b.ravel(), cc.ravel()], 1),
+                                                                    np.stack([a.ravel(), cc.ravel(), d.ravel()], 1)])])
+        halves.append((Vh, Fh))
+    world = np.vstack([halves[0][0], halves[1][0]])
+    faces = np.vstack([halves[0][1], halves[1][1] + len(halves[0][0])])
+    write_obj(tmp_path / "s-w.obj", world, faces)
+    rest = world * 0.98  # 2 % smaller: the world is stretched by 1/0.98; the second panel laid apart
+    rest[len(halves[0][0]):, 0] += 2.0
+    write_obj(tmp_path / "s-m.obj", rest, faces)
+    r = runner.invoke(app, ["simulate", "--garment", str(tmp_path / "s-w.obj"), "--motion", "walk", "--no-fit",
+                            "--duration", "0.12", "--out", str(tmp_path / "o"), "--no-preview"])
+    assert r.exit_code == 0, r.output
+    cfg = json.loads((tmp_path / "o" / "config.json").read_text())
+    gi = cfg["garment_import"]
+    assert gi["rest_source"] == "file" and gi["seam_pairs"] == 14 and cfg["frames_with_intersection_or_nan"] == []
+    z = np.load(tmp_path / "o" / "garment_sequence.npz")
+    g = load_garment(tmp_path / "s-w.obj")
+    assert np.allclose(z["rest_vertices"], g.rest, atol=1e-6)
+    assert max(seam_gaps(x, g.seams).max() for x in z["vertices"]) < 2e-3
+    assert len(z["boundary"]) and world[:, 2].max() - g.vertices[z["boundary"], 2].min() < 0.3 * 0.3 + 1e-6
