@@ -121,7 +121,7 @@ def test_heldout_cameras_of_a_capture_without_ground_truth(tmp_path, tiny_captur
     cap = tmp_path / "cap"
     shutil.copytree(tiny_capture, cap, ignore=shutil.ignore_patterns("ground_truth"))
     gt_dir = tiny_capture / "ground_truth"
-    av = build_avatar(cap, tmp_path / "avatar", material=gt_dir / "material.json")
+    build_avatar(cap, tmp_path / "avatar", material=gt_dir / "material.json")
     shutil.copyfile(gt_dir / "texture_linear.npy", tmp_path / "avatar" / "texture_linear.npy")
     shutil.copyfile(gt_dir / "lighting.json", tmp_path / "avatar" / "light.json")
     gt = np.load(gt_dir / "meshes.npz")

@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from physavatar.camera import Camera, intrinsics, look_at, ring_rig
 from physavatar.stages.track.flow import (FlowObservation, FlowPrediction, ReferenceAppearance, optical_flow,
