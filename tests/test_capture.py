@@ -187,3 +187,44 @@ def test_all_problems_are_listed(cap):
     assert {"body.npz", "cam01"} <= files
     r = inspect(cap)
     assert r.exit_code == 2 and "2 problem(s)" in r.output
+
+
+def test_garment_rest_shape_in_the_template(cap, tmp_path):
+    """template/mesh.ply's optional rest_x/y/z: read back exactly, used as the garment's rest shape
+    by the simulator's split and by fit-physics' data, and checked (partial, NaN, degenerate)."""
+    from physavatar.garment_sim import split_template
+    from physavatar.stages.physics.data import load_physics_data
+
+    c = load_capture(cap)
+    assert c.template.rest is None and c.template.rest_shape is c.template.vertices
+    t = c.template
+    rest = t.vertices.copy()
+    g = t.labels > 0
+    rest[g] = t.vertices[g].mean(0) + 0.9 * (t.vertices[g] - t.vertices[g].mean(0))  # a garment 10 % smaller at rest
+    from physavatar.capture import Template
+
+    Template(t.vertices, t.faces, t.labels, t.boundary, t.face_uvs, rest).save(cap / "template" / "mesh.ply")
+    c2 = load_capture(cap)
+    assert np.allclose(c2.template.rest, rest, atol=1e-6)  # float32 in the PLY
+    _, _, part = split_template(c2.template.vertices, c2.template.faces, c2.template.labels, c2.template.boundary,
+                                c2.template.rest)
+    assert np.allclose(part.rest_shape, rest[g], atol=1e-6) and np.allclose(part.vertices, t.vertices[g], atol=1e-6)
+    # fit-physics on a capture's true meshes takes the rest shape from the template
+    gt = np.repeat(t.vertices[None], 3, axis=0)
+    (cap / "ground_truth").mkdir()
+    np.savez(cap / "ground_truth" / "meshes.npz", vertices=gt, faces=t.faces, labels=t.labels)
+    data = load_physics_data(cap)
+    assert np.allclose(data.rest, rest[g], atol=1e-6)
+    # bad rest shapes: one line each
+    p = cap / "template" / "mesh.ply"
+    ply = read_ply(p)
+    orig = dict(ply.vertex_data)
+    for change, words in ((lambda d: d.pop("rest_z"), "needs all of"),
+                          (lambda d: d["rest_x"].__setitem__(np.flatnonzero(g)[0], np.nan), "NaN"),
+                          (lambda d: [d[k].__setitem__(np.flatnonzero(g), 0.0) for k in ("rest_x", "rest_y", "rest_z")],
+                           "degenerate in the rest shape")):
+        data = {k: np.array(v, copy=True) for k, v in orig.items()}
+        change(data)
+        ply.vertex_data = data
+        write_ply(p, ply)
+        expect_error(cap, "mesh.ply", words)

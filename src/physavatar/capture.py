@@ -50,6 +50,8 @@ class Template:
         labels: [V] 0 body, 1.. garment id.
         boundary: [V] bool, garment vertices that stay on the body (Dirichlet).
         face_uvs: [F, 3, 2] per-corner UVs or None.
+        rest: [V, 3] the garments' stress-free shape (PLY ``rest_x rest_y rest_z``), or None:
+            the garments rest as they are in frame 1. Only garment rows are used.
     """
 
     vertices: np.ndarray
@@ -57,15 +59,22 @@ class Template:
     labels: np.ndarray
     boundary: np.ndarray
     face_uvs: np.ndarray | None = None
+    rest: np.ndarray | None = None
 
     @property
     def garment_mask(self) -> np.ndarray:
         return self.labels > LABEL_BODY
 
+    @property
+    def rest_shape(self) -> np.ndarray:
+        """[V, 3] the stress-free shape: ``rest`` where given, else the frame-1 positions."""
+        return self.vertices if self.rest is None else self.rest
+
     def to_ply(self) -> PlyMesh:
-        return PlyMesh(self.vertices, self.faces,
-                       {"label": self.labels.astype(np.uint8), "boundary": self.boundary.astype(np.uint8)},
-                       self.face_uvs)
+        data = {"label": self.labels.astype(np.uint8), "boundary": self.boundary.astype(np.uint8)}
+        if self.rest is not None:
+            data |= {f"rest_{a}": self.rest[:, i] for i, a in enumerate("xyz")}
+        return PlyMesh(self.vertices, self.faces, data, self.face_uvs)
 
     def save(self, path: str | Path) -> None:
         write_ply(path, self.to_ply())
@@ -375,7 +384,35 @@ def _load_template(root: Path, P: _Problems) -> Template | None:
                         "somewhere (shoulder straps, waistband) to be simulated")
     if ply.face_uvs is not None and not np.isfinite(ply.face_uvs).all():
         P.add(path, "texture coordinates have NaN or infinite values")
-    return Template(ply.vertices, ply.faces, labels, boundary, ply.face_uvs)
+    rest = template_rest(ply, labels, path, P)
+    return Template(ply.vertices, ply.faces, labels, boundary, ply.face_uvs, rest)
+
+
+def template_rest(ply: PlyMesh, labels: np.ndarray, path: Path, P: _Problems | None = None) -> np.ndarray | None:
+    """The template's optional garment rest shape (``rest_x rest_y rest_z``), checked: all three
+    properties, finite, no garment triangle degenerate at rest. Problems go to ``P`` (or raise)."""
+    P = P or _Problems(strict=True)
+    keys = [f"rest_{a}" for a in "xyz"]
+    present = [k for k in keys if k in ply.vertex_data]
+    if not present:
+        return None
+    if len(present) < 3:
+        P.add(path, f"rest shape needs all of {', '.join(keys)}; found only {', '.join(present)}")
+        return None
+    rest = np.stack([np.asarray(ply.vertex_data[k], np.float64) for k in keys], axis=1)
+    if not np.isfinite(rest).all():
+        P.add(path, "rest shape (rest_x/y/z) has NaN or infinite values")
+        return None
+    g = (labels[ply.faces] > LABEL_BODY).all(axis=1)  # garment triangles
+    e1, e2 = rest[ply.faces[g, 1]] - rest[ply.faces[g, 0]], rest[ply.faces[g, 2]] - rest[ply.faces[g, 0]]
+    area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
+    scale = float(np.median(np.linalg.norm(e1, axis=1))) if len(e1) else 0.0
+    tiny = area <= 1e-6 * scale * scale
+    if tiny.any():
+        P.add(path, f"{int(tiny.sum())} garment triangles are degenerate in the rest shape "
+                    f"(first: face {int(np.flatnonzero(g)[np.argmax(tiny)])})")
+        return None
+    return rest
 
 
 def _check_images(root: Path, cameras: list[Camera], frames: list[int], has_masks: bool, P: _Problems,

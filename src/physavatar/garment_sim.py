@@ -50,8 +50,10 @@ class GarmentPart:
         return [Stitch(self.seams, STITCH_STIFFNESS if stiffness is None else stiffness)]
 
 
-def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, boundary: np.ndarray):
-    """(body vertex ids [Nb], body faces [Fb, 3] (body-local), GarmentPart) of a labelled mesh."""
+def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, boundary: np.ndarray,
+                   rest: np.ndarray | None = None):
+    """(body vertex ids [Nb], body faces [Fb, 3] (body-local), GarmentPart) of a labelled mesh;
+    ``rest`` [V, 3]: the garments' stress-free shape (capture template's ``rest``), None = as placed."""
     gmask = labels > 0
     body_ids = np.flatnonzero(~gmask)
     gar_ids = np.flatnonzero(gmask)
@@ -63,7 +65,8 @@ def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
         raise ValueError("a face joins body and garment vertices; garments must be separate pieces")
     body_faces = remap[faces[~fg.any(1)]]
     gar_faces = remap[faces[fg.all(1)]]
-    part = GarmentPart(gar_ids, vertices[gar_ids].copy(), gar_faces, np.flatnonzero(boundary[gar_ids]))
+    part = GarmentPart(gar_ids, vertices[gar_ids].copy(), gar_faces, np.flatnonzero(boundary[gar_ids]),
+                       None if rest is None else np.asarray(rest, np.float64)[gar_ids].copy())
     return body_ids, body_faces, part
 
 

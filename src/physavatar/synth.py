@@ -224,7 +224,7 @@ def pose_sequences(scene: _Scene, motions: list, progress=True, on_frame=None) -
         from .parallel import Job, run_jobs
         from .sim import preset
 
-        _, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
+        _, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary, t.rest)
         assert np.array_equal(part.vertex_ids, gar_idx)
         mat = preset(scene.cfg.material)
         for i, V in enumerate(out):  # the garment starts at rest

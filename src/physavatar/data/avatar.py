@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..body import BodyShape
-from ..capture import Template
+from ..capture import Template, template_rest
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, read_ply
 from ..sim import Material
@@ -64,7 +64,8 @@ class Avatar:
             raise PhysavatarError(root / "template.ply", "missing per-vertex 'label'")
         labels = np.asarray(ply.vertex_data["label"]).astype(np.int64)
         boundary = np.asarray(ply.vertex_data.get("boundary", np.zeros(len(labels)))).astype(bool)
-        template = Template(ply.vertices, ply.faces, labels, boundary, ply.face_uvs)
+        template = Template(ply.vertices, ply.faces, labels, boundary, ply.face_uvs,
+                            template_rest(ply, labels, root / "template.ply"))
         z = load_npz(root / "skinning.npz")
         W = z["weights"].astype(np.float64)
         if W.shape[0] != int((labels == 0).sum()):

@@ -76,7 +76,7 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     posed0 = body.pose(rest.rotations, rest.root_translation)
 
     t = avatar.template
-    body_ids, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
+    body_ids, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary, t.rest)
     # Skinning relative to the capture's frame-1 pose, which the template is in.
     T_rel = posed.bone_transforms @ np.linalg.inv(posed0.bone_transforms[0])[None]
     Vb = linear_blend_skinning(t.vertices[body_ids], avatar.body_weights, T_rel)

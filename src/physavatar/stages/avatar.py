@@ -56,7 +56,7 @@ def build_avatar(capture: str | Path | Capture, out: str | Path, *, material: st
     out.mkdir(parents=True, exist_ok=True)
     t = cap.template
     if template_vertices is not None:
-        t = Template(np.asarray(template_vertices, np.float64), t.faces, t.labels, t.boundary, t.face_uvs)
+        t = Template(np.asarray(template_vertices, np.float64), t.faces, t.labels, t.boundary, t.face_uvs, t.rest)
     if texture_dir is not None and (Path(texture_dir) / "atlas.npz").exists():
         # the texture was fitted on this atlas (made by xatlas when the capture's template has
         # no UVs): the avatar must carry the same UVs as its texture

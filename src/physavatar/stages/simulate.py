@@ -274,7 +274,7 @@ def _from_capture(capture: Path):
 
     cap = load_capture(capture)
     t = cap.template
-    body_ids, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary)
+    body_ids, body_faces, part = split_template(t.vertices, t.faces, t.labels, t.boundary, t.rest)
     body = BodyModel(cap.body.shape, topology=cap.body.topology)
     if len(body.rest_vertices) != len(body_ids):
         raise PhysavatarError(capture / "template" / "mesh.ply",

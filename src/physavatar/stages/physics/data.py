@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...capture import template_rest
 from ...data.garment_sequence import FILE as GARMENT_SEQUENCE
 from ...data.garment_sequence import GarmentSequence
 from ...data.tracked import FILE as TRACKED
@@ -233,7 +234,8 @@ def load_physics_data(folder: str | Path) -> PhysicsData:
             raise PhysavatarError(ply, f"template has {len(mesh.vertices)} vertices, {src.name} has {len(labels)}")
         if boundary is None:
             boundary = np.asarray(mesh.vertex_data.get("boundary", np.zeros(len(labels)))).astype(bool)
-        rest = mesh.vertices
+        given = template_rest(mesh, np.asarray(labels), ply)  # the template's own rest shape, if it has one
+        rest = mesh.vertices if given is None else given
     garment_ids = sorted(set(labels.tolist()) - {0})
     if not garment_ids:
         raise PhysavatarError(src, "no garment vertices (labels >= 1)")
