@@ -277,7 +277,9 @@ def test_integrator_selection_recovers_the_model_the_motion_came_from():
                            settings=dataclasses.replace(TIGHT, integrator="euler"), shape_weight=0.0,
                            select_integrator=True)
         sel, m = res.model_selection, res.material
-        assert m.integrator == ("euler" if sel["chosen"] == "euler" else "bdf2"), sel
+        at_euler = sel["chosen"] == "euler" or sel["fits"][sel["chosen"]]["bdf2_blend"] == 0.0  # γ = 0: Euler
+        assert m.integrator == ("euler" if at_euler else "bdf2"), sel
+        assert ("recorded_as" in sel) == (sel["chosen"] != "euler" and at_euler)
         fitted_gamma = 0.0 if m.integrator == "euler" else m.bdf2_blend
         assert abs(fitted_gamma - gamma) < 0.05, sel
         if gamma > 0:

@@ -85,9 +85,6 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
                               fit_blend=key == "bdf2_blend")
     chosen = min(fits, key=lambda k: fits[k].objective)
     best = fits[chosen]
-    if best.material.integrator == "bdf2" and best.material.bdf2_blend == 0.0:
-        # γ = 0 is implicit Euler exactly (ClothSim.step_base): say so instead of "bdf2".
-        best.material = dataclasses.replace(best.material, integrator="euler", bdf2_blend=1.0)
     best.model_selection = {
         "chosen": chosen,
         "criterion": "lower objective on the fitted window (docs/physics.md, 'Which simulation model')",
@@ -98,6 +95,10 @@ def fit_selecting_integrator(data: PhysicsData, initial: Material, settings: Sim
                      "bdf2_blend": r.material.bdf2_blend if k != "euler" else None,
                      "material": r.material.to_dict()} for k, r in fits.items()},
     }
+    if best.material.integrator == "bdf2" and best.material.bdf2_blend == 0.0:
+        # γ = 0 is implicit Euler exactly (ClothSim.step_base): the material says so, not "bdf2"
+        best.material = dataclasses.replace(best.material, integrator="euler", bdf2_blend=1.0)
+        best.model_selection["recorded_as"] = "euler: the blend ended at γ = 0, which is implicit Euler"
     best.history = history
     best.iterations = len(history) - len(fits)
     best.simulations = sum(r.simulations for r in fits.values()) + len(scan["objective"])
