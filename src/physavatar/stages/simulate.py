@@ -317,16 +317,19 @@ def _file_on_body(path: Path, cfg: SimulateConfig, body, mat, sim_settings, prog
     """A garment file on Anny's rest pose: fitted (garment_sim.fit_on_body) unless --fit off;
     its boundary from the file or chosen automatically (or none)."""
     gm = load_garment(path, up=cfg.up, scale=cfg.scale, rest=cfg.rest)
-    imported = {"file": str(path), "rest_source": gm.rest_source, "vertices": len(gm.vertices),
-                "seam_pairs": len(gm.seams), "repairs": gm.repairs}
+    part, imported = _garment_part(gm, path)
     if cfg.fit:
         part, imported["fit"] = fit_on_body(gm, body, mat, sim_settings, frames=cfg.fit_frames, hold=cfg.fit_hold,
                                             repair_limit=cfg.repair_limit, progress=progress)
-    else:
-        part = GarmentPart(np.arange(len(gm.vertices)), gm.vertices, gm.faces, np.zeros(0, np.int64), gm.rest,
-                           gm.seams)
     part.boundary, imported["boundary"] = _boundary(gm, part.vertices, body.rest_vertices, body.faces, cfg)
     return part, imported
+
+
+def _garment_part(gm, path: Path):
+    """(GarmentPart as the file places it, without boundary; the import report) of a loaded garment file."""
+    part = GarmentPart(np.arange(len(gm.vertices)), gm.vertices, gm.faces, np.zeros(0, np.int64), gm.rest, gm.seams)
+    return part, {"file": str(path), "rest_source": gm.rest_source, "vertices": len(gm.vertices),
+                  "seam_pairs": len(gm.seams), "repairs": gm.repairs}
 
 
 def _boundary(gm, vertices, body_vertices, body_faces, cfg):
@@ -370,9 +373,7 @@ def garment_file(path: Path, cfg: SimulateConfig | None = None, body_vertices=No
             part = GarmentPart(np.arange(len(d.rest_vertices)), d.rest_vertices, d.faces, d.boundary)
             return part, {"file": str(path), "rest_source": "garment sequence", "boundary": {"vertices": len(d.boundary)}}
     gm = load_garment(path, up=cfg.up, scale=cfg.scale, rest=cfg.rest)
-    part = GarmentPart(np.arange(len(gm.vertices)), gm.vertices, gm.faces, np.zeros(0, np.int64), gm.rest, gm.seams)
-    imported = {"file": str(path), "rest_source": gm.rest_source, "vertices": len(gm.vertices),
-                "seam_pairs": len(gm.seams), "repairs": gm.repairs}
+    part, imported = _garment_part(gm, path)
     if body_vertices is not None:
         part.boundary, imported["boundary"] = _boundary(gm, gm.vertices, body_vertices, body_faces, cfg)
     elif gm.boundary is not None:
