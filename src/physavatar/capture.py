@@ -170,7 +170,8 @@ class _Problems:
         self.items.append(err)
 
 
-def _check_rigid(w2c: np.ndarray) -> str | None:
+def rigid_problem(w2c: np.ndarray) -> str | None:
+    """What makes ``w2c`` [4, 4] not a rigid world-to-camera transform, or None."""
     if w2c.shape != (4, 4):
         return f"w2c must be 4x4, got {w2c.shape}"
     if not np.isfinite(w2c).all():
@@ -221,7 +222,7 @@ def _load_cameras(root: Path, P: _Problems) -> list[Camera]:
         if K[0, 0] <= 0 or K[1, 1] <= 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-9:
             P.add(path, f"{where}: K must have positive focal lengths and last row [0, 0, 1]")
             continue
-        msg = _check_rigid(w2c)
+        msg = rigid_problem(w2c)
         if msg:
             P.add(path, f"{where}: {msg}")
             continue

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..capture import rigid_problem
 from ..errors import PhysavatarError
 
 log = logging.getLogger("physavatar.importers")
@@ -223,15 +224,12 @@ def rigid_w2c(R, t, where: Path, camera: str, what: str = "rotation") -> np.ndar
     if R.shape != (3, 3) or t.shape != (3,):
         raise PhysavatarError(where, f"camera {camera!r}: {what} must be 3x3 and translation 3 values, "
                                      f"got {list(R.shape)} and {list(t.shape)}")
-    if not (np.isfinite(R).all() and np.isfinite(t).all()):
-        raise PhysavatarError(where, f"camera {camera!r}: extrinsics have NaN or infinite values")
-    err = np.abs(R @ R.T - np.eye(3)).max()
-    if err > 1e-4 or np.linalg.det(R) < 0:
-        raise PhysavatarError(where, f"camera {camera!r}: {what} is not a rotation (|RRᵀ - I| = {err:.2g}, "
-                                     f"det = {np.linalg.det(R):.3g}): extrinsics must be rigid")
     w2c = np.eye(4)
     w2c[:3, :3] = R
     w2c[:3, 3] = t
+    problem = rigid_problem(w2c)  # the capture's own check: finite, R a rotation
+    if problem:
+        raise PhysavatarError(where, f"camera {camera!r} ({what}): {problem}: extrinsics must be rigid")
     return w2c
 
 
