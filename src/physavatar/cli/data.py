@@ -28,7 +28,7 @@ def inspect(
     from ..capture_checks import alignment_problems
     from ..data.ground_truth import ground_truth_problems
 
-    problems = validate_capture(capture, deep=not quick)
+    problems, cap = validate_capture(capture, deep=not quick), None
     if not problems:  # the pieces together: cameras against masks, and the ground truth
         cap = load_capture(capture)
         problems = [CaptureError(p, m) for p, m in alignment_problems(cap) + ground_truth_problems(cap)]
@@ -37,7 +37,7 @@ def inspect(
             err_console.print(f"[bold red]error:[/] {p}", highlight=False, soft_wrap=True)
         err_console.print(f"{len(problems)} problem(s) in {capture}")
         raise typer.Exit(2)
-    s = summarize(load_capture(capture))
+    s = summarize(cap)
     if as_json:
         console.print_json(json.dumps(s))
         return
