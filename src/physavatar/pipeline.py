@@ -1,7 +1,8 @@
 """``physavatar run CAPTURE OUT``: the whole pipeline, in process, resumable.
 
-(prepare, when the capture is unprepared: no body.npz or labelled template) -> track -> fit-physics -> fit-appearance -> build-avatar -> animate (held-out motion) -> render ->
-relight -> export -> evaluate. :func:`plan` lists the stages as :class:`Step` s: a stage function
+(prepare, when the capture is unprepared: no body.npz or labelled template) -> track ->
+fit-physics -> fit-appearance -> build-avatar -> animate (held-out motion) -> render -> relight ->
+export -> evaluate (with an oracle fit beside, for a capture whose material no file gives). :func:`plan` lists the stages as :class:`Step` s: a stage function
 (``run(inputs..., out=, config=, progress=)`` of its module in ``stages/``), its inputs and its
 config. :func:`run` calls them in order, each writing ``OUT/<stage>/``.
 
