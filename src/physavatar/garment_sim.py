@@ -28,6 +28,8 @@ class GarmentPart:
             is held by contact and friction alone).
         rest: [N, 3] the rest (stress-free) shape, None = ``vertices`` (a garment made in place).
         seams: [S, 2] vertex pairs sewn together (sim.stitch.Stitch), None = none.
+        layer: [N] which garment of a layered system (:func:`layered`) each vertex belongs to,
+            0 = the innermost; None = one garment.
     """
 
     vertex_ids: np.ndarray
@@ -36,6 +38,7 @@ class GarmentPart:
     boundary: np.ndarray
     rest: np.ndarray | None = None
     seams: np.ndarray | None = None
+    layer: np.ndarray | None = None
 
     @property
     def rest_shape(self) -> np.ndarray:
@@ -48,6 +51,92 @@ class GarmentPart:
         if self.seams is None or not len(self.seams):
             return []
         return [Stitch(self.seams, STITCH_STIFFNESS if stiffness is None else stiffness)]
+
+    def contact_exclusions(self) -> np.ndarray:
+        """[P, 2] vertex pairs self-contact leaves out: the primitives that touch at its sewn
+        seams (sim.simulate.seam_exclusions); none without seams."""
+        from .sim.simulate import seam_exclusions
+
+        return seam_exclusions(self.faces, self.seams, len(self.vertices))
+
+
+LAYER_GAP = 0.004  # m: the least start distance between a garment and the garments (and body) under it
+
+
+def layered(parts: list[GarmentPart], body_vertices=None, body_faces=None, gap: float = LAYER_GAP) -> GarmentPart:
+    """One cloth system of several garments worn over each other, ``parts`` innermost first.
+
+    Each garment after the first is pushed out over the garments under it (:func:`push_over`)
+    until it is at least ``gap`` outside them; with no body given, the parts are stacked as they
+    are. Vertices, triangles, boundaries, rest shapes and seams are stacked (the garments stay
+    separate components, each with its own boundary); ``layer`` says which garment a vertex is.
+    The layers are then simulated together, in contact with each other through self-contact
+    (SimSettings.self_contact).
+    """
+    placed = []
+    for i, p in enumerate(parts):
+        if i and body_vertices is not None:
+            p = dataclasses.replace(p, vertices=push_over(p.vertices, p.faces, [(q.vertices, q.faces) for q in placed],
+                                                          body_vertices, body_faces, gap))
+        placed.append(p)
+    offsets = np.cumsum([0] + [len(p.vertices) for p in placed])
+    seams = [p.seams + o for p, o in zip(placed, offsets) if p.seams is not None and len(p.seams)]
+    rest = np.vstack([p.rest_shape for p in placed]) if any(p.rest is not None for p in placed) else None
+    return GarmentPart(np.arange(offsets[-1]), np.vstack([p.vertices for p in placed]),
+                       np.vstack([p.faces + o for p, o in zip(placed, offsets)]),
+                       np.concatenate([p.boundary + o for p, o in zip(placed, offsets)]).astype(np.int64),
+                       rest, np.vstack(seams) if seams else None,
+                       np.concatenate([np.full(len(p.vertices), i) for i, p in enumerate(placed)]))
+
+
+def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_GAP, reach: float = 0.03,
+              iterations: int = 30) -> np.ndarray:
+    """A garment's vertices V [N, 3] (triangles F) moved out over the garments ``under`` (a list
+    of (vertices, faces)) so that it lies at least ``gap`` outside each of them, both ways: every
+    vertex of V within ``reach`` of an under-garment at least ``gap`` above its surface, and every
+    under-garment vertex at least ``gap`` below V's surface. Outside is away from the body: each
+    under-garment's vertex normals are turned to face away from the closest body point. A vertex
+    that is too low moves out along that normal, a triangle above a poking vertex is lifted, and
+    the vertices around a moved one follow halfway (the cloth stays smooth), as garment.garment.
+    push_out does against a closed body (whose inside/outside test an open garment has not).
+    """
+    from .geometry import MeshQuery, adjacency, vertex_normals
+
+    V = np.array(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    body = MeshQuery(body_vertices, body_faces)
+    surfaces = []
+    for Vu, Fu in under:
+        Vu, Fu = np.asarray(Vu, np.float64), np.asarray(Fu, np.int64)
+        N = vertex_normals(Vu, Fu)
+        _, _, _, qb = body.closest(Vu)
+        N *= np.where(((Vu - qb) * N).sum(1) < 0, -1.0, 1.0)[:, None]  # away from the body
+        surfaces.append((Vu, Fu, N, MeshQuery(Vu, Fu)))
+    A = adjacency(F, len(V))
+    for _ in range(iterations):
+        delta = np.zeros_like(V)
+
+        def propose(idx, d):
+            longer = np.linalg.norm(d, axis=1) > np.linalg.norm(delta[idx], axis=1)
+            delta[idx[longer]] = d[longer]
+
+        for Vu, Fu, N, Q in surfaces:
+            d, f, w, q = Q.closest(V, max_dist=reach)
+            n = np.einsum("nk,nkd->nd", w, N[Fu[f]])
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+            low = np.flatnonzero((d < reach) & (((V - q) * n).sum(1) < gap))
+            propose(low, q[low] + 1.25 * gap * n[low] - V[low])
+            d2, f2, w2, q2 = MeshQuery(V, F).closest(Vu, max_dist=reach)
+            above = ((q2 - Vu) * N).sum(1)  # how far V's surface is above each under-garment vertex
+            poke = np.flatnonzero((d2 < reach) & (above < gap))
+            for k in range(3):
+                propose(F[f2[poke], k], N[poke] * (1.25 * gap - above[poke])[:, None])
+        moved = np.linalg.norm(delta, axis=1) > 0
+        if not moved.any():
+            break
+        spread = (A @ delta) / np.maximum(A @ moved.astype(float), 1.0)[:, None]
+        V += np.where(moved[:, None], delta, 0.5 * spread)
+    return V
 
 
 def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, boundary: np.ndarray,
@@ -88,7 +177,7 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
     return simulate(part.rest_shape, part.faces, material, body_sequence, body_faces,
                     boundary_indices=part.boundary, boundary_targets=targets, fps=fps, substeps=substeps,
                     settings=settings, progress=progress, callback=callback, x0=part.vertices,
-                    extra_terms=part.terms(), **options)
+                    extra_terms=part.terms(), contact_exclude=part.contact_exclusions(), **options)
 
 
 

@@ -22,10 +22,13 @@ class ContactScene:
         cloth_rest: [N, 3]; cloth_faces: [F, 3]; body_rest: [Nb, 3]; body_faces: [Fb, 3].
         dhat: barrier activation distance [m]; dmin: minimum separation (thickness) [m].
         self_contact: also resolve cloth–cloth contact.
+        exclude: [P, 2] cloth vertex pairs never in contact with each other, nor the edges and
+            faces holding them (ipctk's filter: a pair of primitives is skipped when every pair
+            of their vertices is excluded); e.g. a sewn seam's neighbourhood (sim.simulate.seam_exclusions).
     """
 
     def __init__(self, cloth_rest, cloth_faces, body_rest, body_faces, dhat, dmin=0.0,
-                 self_contact=False, ccd_rescaling=0.9):
+                 self_contact=False, ccd_rescaling=0.9, exclude=None):
         self.n_cloth = len(cloth_rest)
         self.n_body = len(body_rest)
         faces = np.vstack([cloth_faces, np.asarray(body_faces) + self.n_cloth]).astype(np.int32)
@@ -34,7 +37,7 @@ class ContactScene:
         self.mesh = ipctk.CollisionMesh(rest, ipctk.edges(faces), faces)
         if self_contact:
             # Only body–body pairs are rejected (both vertices ≥ n_cloth).
-            self.mesh.can_collide = ipctk.make_static_obstacle_filter(self.n_cloth)
+            self.mesh.can_collide = cloth_filter(self.n_cloth, exclude)
         else:
             patch = np.r_[np.zeros(self.n_cloth), np.ones(self.n_body)].astype(np.int32)
             self.mesh.can_collide = ipctk.make_vertex_patches_filter(patch)
@@ -99,6 +102,16 @@ class ContactScene:
 
     def bbox_diagonal(self, X):
         return ipctk.world_bbox_diagonal_length(X)
+
+
+def cloth_filter(n_cloth: int, exclude=None):
+    """ipctk filter: no body–body pairs (vertices ≥ n_cloth) and none of the ``exclude`` pairs [P, 2]."""
+    static = ipctk.make_static_obstacle_filter(n_cloth)
+    if exclude is None or not len(exclude):
+        return static
+    pairs = np.sort(np.asarray(exclude, dtype=np.int64).reshape(-1, 2), axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    return static & ipctk.make_sparse_filter(dict.fromkeys(map(tuple, pairs.tolist()), False), True)
 
 
 class Barrier(Term):

@@ -82,14 +82,50 @@ def substep_count(body0, body1, cloth, settings: SimSettings, min_substeps: int 
     return int(min(max(n, min_substeps), max_substeps)), m
 
 
-def self_contact_possible(vertices, faces, dhat: float) -> bool:
+def seam_exclusions(faces, seams, n_vertices: int | None = None) -> np.ndarray:
+    """[P, 2] cloth vertex pairs (i < j) that self-contact must leave out for sewn seams.
+
+    Sewn panels meet at seam vertex pairs (sim.stitch: coincident, or stitched closed) that are
+    separate vertices of the mesh, so the triangles on either side of a seam touch at distance 0
+    without sharing a vertex, and the barrier could never be evaluated there. Out go the pairs of
+    the seam vertices' closed one-rings across each seam: for every two vertices a, b joined by
+    seams (directly or through a third panel), every p in {a} ∪ ring(a) with every q in
+    {b} ∪ ring(b). ipctk skips an edge–edge or face–vertex pair when every pair of their vertices
+    is left out, so exactly the primitives that touch at the seam line are skipped; the rest of
+    the panels, one ring away from the seam, collide as usual.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    seams = np.asarray(seams if seams is not None else np.zeros((0, 2)), dtype=np.int64).reshape(-1, 2)
+    F = np.asarray(faces, dtype=np.int64)
+    if not len(seams):
+        return np.zeros((0, 2), np.int64)
+    n = int(n_vertices if n_vertices is not None else max(F.max(), seams.max()) + 1)
+    e = np.vstack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    ring = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), (n, n)).tocsr()
+    ring = ((ring + sp.identity(n, format="csr")) > 0).astype(np.float64)  # closed one-rings
+    S = sp.coo_matrix((np.ones(len(seams)), (seams[:, 0], seams[:, 1])), (n, n))
+    _, comp = connected_components(S, directed=False)  # vertices joined by seams, through any panel
+    sewn = np.unique(seams)
+    groups = sp.coo_matrix((np.ones(len(sewn)), (sewn, comp[sewn])), (n, n)).tocsr()
+    same = (groups @ groups.T).tocsr()  # a ~ b: joined by seams (a = b included)
+    pairs = sp.triu(ring @ same @ ring, k=1).tocoo()
+    return np.c_[pairs.row, pairs.col].astype(np.int64)
+
+
+def self_contact_possible(vertices, faces, dhat: float, exclude=None) -> bool:
     """Whether the garment's start leaves every pair of its own non-adjacent triangles ≥ d̂
-    apart (ipctk), as self-contact needs: coincident seam vertices of sewn panels, or layers
-    closer than d̂, would start inside the barrier. When not, the simulation runs without
-    self-contact and says so (config.json ``self_contact``)."""
+    apart (ipctk), as self-contact needs, apart from the pairs ``exclude`` [P, 2] leaves out
+    (seam_exclusions: the primitives that touch at a sewn seam). Layers closer than d̂ would
+    start inside the barrier; the simulation then runs without self-contact and says so
+    (config.json ``self_contact``)."""
+    from .contact import cloth_filter
+
     F = np.asarray(faces, np.int32)
     V = np.asarray(vertices, np.float64)
     mesh = ipctk.CollisionMesh(V, ipctk.edges(F), F)
+    mesh.can_collide = cloth_filter(len(V), exclude)
     c = ipctk.NormalCollisions()
     c.build(mesh, V, dhat)
     ok = len(c) == 0
@@ -97,6 +133,19 @@ def self_contact_possible(vertices, faces, dhat: float) -> bool:
         logging.getLogger("physavatar.progress").warning(
             "the garment's own triangles start closer than d̂ = %g m to each other: simulated without self-contact", dhat)
     return ok
+
+
+def self_intersecting_frames(X, faces, exclude=None) -> list[int]:
+    """Frames f of X [T, N, 3] (finite ones) where the garment intersects itself: ipctk's exact
+    check on the garment alone, leaving out the pairs ``exclude`` (seam_exclusions: a sewn seam's
+    two sides touch by construction)."""
+    from .contact import cloth_filter
+
+    F = np.asarray(faces, np.int32)
+    X = np.asarray(X, np.float64)
+    mesh = ipctk.CollisionMesh(X[0] if np.all(np.isfinite(X[0])) else np.zeros_like(X[0]), ipctk.edges(F), F)
+    mesh.can_collide = cloth_filter(X.shape[1], exclude)
+    return [f for f in range(len(X)) if np.all(np.isfinite(X[f])) and ipctk.has_intersections(mesh, X[f])]
 
 
 def frame_report(frame: int, stats: list, substeps: int, attempts: int, seconds: float, move: float) -> dict:
@@ -113,7 +162,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
              boundary_indices=(), boundary_targets=None, fps: float = 25.0, substeps: int = 1,
              settings: SimSettings | None = None, x0=None, v0=None, callback=None,
              progress: ProgressLike = False, max_substeps: int | None = None,
-             resume: Checkpoint | None = None, on_frame=None, extra_terms=()):
+             resume: Checkpoint | None = None, on_frame=None, extra_terms=(), contact_exclude=None):
     """Simulate a garment on a moving body for a whole sequence.
 
     Args:
@@ -143,6 +192,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         on_frame: called as ``on_frame(checkpoint, report)`` after each frame (report:
             :func:`frame_report`) — where a caller writes the frame as it is finished.
         extra_terms: further terms of E (ClothSim's, e.g. a seam :class:`~physavatar.sim.stitch.Stitch`).
+        contact_exclude: [P, 2] cloth vertex pairs left out of self-contact (:func:`seam_exclusions`).
 
     Returns:
         [T, N, 3] garment positions per frame (frame 0 = initial state; with ``resume``, the
@@ -153,7 +203,8 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     settings = dataclasses.replace(settings, dt=1.0 / (fps * substeps))
     bodies = np.asarray(collider_sequence, dtype=np.float64)
     T = len(bodies)
-    sim = ClothSim(garment_rest, faces, material, settings, boundary_indices, extra_terms=extra_terms)
+    sim = ClothSim(garment_rest, faces, material, settings, boundary_indices, extra_terms=extra_terms,
+                   contact_exclude=contact_exclude)
     order = np.argsort(np.asarray(boundary_indices, dtype=np.int64), kind="stable")
     x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
     v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)

@@ -71,10 +71,11 @@ class ClothSim:
         boundary_indices: [K] Dirichlet vertices (follow prescribed targets every step).
         extra_terms: further terms of E (the protocol of terms.py), added after the built-in
             ones; they see the stacked positions [cloth; body] like every term.
+        contact_exclude: [P, 2] cloth vertex pairs left out of self-contact (ContactScene's ``exclude``).
     """
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
-                 boundary_indices=(), extra_terms=()):
+                 boundary_indices=(), extra_terms=(), contact_exclude=None):
         if settings.newton_norm not in ("rms", "max") or settings.newton_window < 1:
             raise ValueError(f"newton_norm {settings.newton_norm!r} / newton_window {settings.newton_window}: "
                              "expected 'rms' or 'max' and a window >= 1")
@@ -89,7 +90,7 @@ class ClothSim:
         self.topo = ClothTopology.build(rest_vertices, faces)
         self.n = len(self.topo.rest)
         self.boundary = np.unique(np.asarray(boundary_indices, dtype=np.int64))
-        self.extra_terms = list(extra_terms)
+        self.extra_terms, self.contact_exclude = list(extra_terms), contact_exclude
         self.scene = None
         self.barrier_stiffness = 0.0
         self.max_barrier_stiffness = 0.0
@@ -125,7 +126,7 @@ class ClothSim:
         self.linear_solver_all.reset()
         n_total = self.n + self.nb
         self.scene = ContactScene(self.topo.rest, self.topo.faces, body_vertices, body_faces,
-                                  s.dhat, s.dmin, s.self_contact)
+                                  s.dhat, s.dmin, s.self_contact, exclude=self.contact_exclude)
         self.scene.ccd_threads = s.ccd_threads if s.deterministic else 0
         free = np.ones(n_total)
         free[self.boundary] = 0.0

@@ -49,10 +49,10 @@ from ..files import PlyMesh, load_npz, write_json_atomic, write_ply
 from ..garment import GARMENTS, make_garment
 from ..garment.boundary import auto_boundary
 from ..garment.files import FORMATS, load_garment
-from ..garment_sim import GarmentPart, fit_on_body, simulate_on_body, split_template
+from ..garment_sim import GarmentPart, fit_on_body, layered, simulate_on_body, split_template
 from ..sim import SimSettings
 from ..sim.contact import ContactScene
-from ..sim.simulate import self_contact_possible
+from ..sim.simulate import self_contact_possible, self_intersecting_frames
 from ..sim.start import repair_start
 from .animate import transition
 from .base import option, setting, to_dict
@@ -76,6 +76,8 @@ class SimulateConfig:
         arm_clearance: with a .bvh motion, raise the arms where a hand comes closer than this [m]
             to the hips/trunk (0: off).
         edge_length: the built-in garment's edge length [m].
+        over: built-in garments layered over the garment (comma-separated, innermost first;
+            garment_sim.layered), or None.
         preview: write preview.mp4.
     """
 
@@ -97,6 +99,10 @@ class SimulateConfig:
                                         "to the hips/trunk, so the garment is not pinched (0 = off)",
                                   flag="--arm-clearance")
     edge_length: float = option(0.02, "garment edge length [m] (with --garment KIND)")
+    over: str | None = option(None, "with --motion: built-in garments worn over --garment, innermost first "
+                                    "(comma-separated: dress, skirt, tshirt), simulated together with it as one cloth, "
+                                    "each with its own boundary, in contact with each other (self-contact); "
+                                    "e.g. --garment skirt --over tshirt")
     up: str | None = option(None, "a garment file's up axis: x, y, z, -x, -y, -z (default z; y for glTF)",
                             choices=("x", "y", "z", "-x", "-y", "-z"))
     scale: str = option("1", "a garment file's scale: a factor or its unit (m, cm, mm, in)")
@@ -163,6 +169,8 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     if integrator not in INTEGRATORS:
         _bad_option("--integrator", f"{integrator!r} is not euler or bdf2")
     sim_settings = SimSettings(integrator=integrator)
+    if cfg.over and (capture is not None or collider is not None or garment is None or motion is None):
+        _bad_option("--over", "layers built-in garments over --garment on --motion (Anny's body): give both")
     n_warm = 0  # leading frames simulated but not written (--motion's transition)
     clearance_info = None
     imported = None  # what reading, fitting and repairing a garment file did (config.json)
@@ -183,7 +191,11 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     part, repair = _repaired_start(part, bodies[0], body_faces, sim_settings, cfg, source)
     if imported is not None:
         imported["start_repair"] = repair
-    self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat)
+    exclude = part.contact_exclusions()  # the primitives that touch at sewn seams
+    self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat, exclude)
+    if cfg.over and cfg.self_contact and not self_contact:
+        _bad_option("--over", f"the layers start closer than d̂ = {sim_settings.dhat} m to each other (or a garment "
+                              "to itself), so they cannot be simulated in contact")
     sim_settings = replace(sim_settings, self_contact=self_contact)
     t0 = time.time()
     X, reports, store, resumed = _simulate_frames(out, part, bodies, body_faces, mat, fps, sim_settings, cfg, n_warm,
@@ -195,7 +207,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     scene = ContactScene(part.rest_shape, part.faces, bodies[0], body_faces, sim_settings.dhat)
     bad = [f for f in range(len(X))
            if not np.all(np.isfinite(X[f])) or scene.has_intersections(np.vstack([X[f], bodies[f]]))]
-    self_bad = _self_intersecting(part, X)
+    self_bad = self_intersecting_frames(X, part.faces, exclude)
     GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.rest_shape).save(out / GARMENT_SEQUENCE)
     mat.save(out / "material.json")
     write_json_atomic(out / "config.json", {
@@ -204,7 +216,8 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         "integrator": integrator, "self_contact": self_contact,
         "frames_with_intersection_or_nan": bad, "frames_with_self_intersection": self_bad,
         "warmup_frames": n_warm, "arm_clearance": clearance_info, "garment_import": imported, "frames": len(X), "seconds": round(secs, 1),
-        "resumed_after_frame": resumed, **_frame_summary(reports), "config": to_dict(cfg)})
+        "resumed_after_frame": resumed, "layers": _layers_record(garment, cfg.over, part),
+        **_frame_summary(reports), "config": to_dict(cfg)})
     if cfg.preview:
         from ..body.preview import render_frames, write_video
 
@@ -243,14 +256,31 @@ def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps:
     return X, reports, store, None if ck is None else ck.frame
 
 
-def _self_intersecting(part: GarmentPart, X: np.ndarray) -> list[int]:
-    """Frames (finite ones) where the garment intersects itself: ipctk's exact check on the
-    garment alone."""
-    import ipctk
+def _layers_record(garment, over: str | None, part: GarmentPart) -> list | None:
+    """config.json's record of layered garments: each one's name and vertex count, innermost first."""
+    if not over or part.layer is None:
+        return None
+    names = [str(garment)] + _over_names(over)
+    return [{"garment": n, "vertices": int(np.sum(part.layer == i))} for i, n in enumerate(names)]
 
-    F = np.asarray(part.faces, np.int32)
-    mesh = ipctk.CollisionMesh(np.asarray(part.vertices, np.float64), ipctk.edges(F), F)
-    return [f for f in range(len(X)) if np.all(np.isfinite(X[f])) and ipctk.has_intersections(mesh, X[f])]
+
+def _over_names(over: str) -> list[str]:
+    names = [n.strip() for n in over.split(",") if n.strip()]
+    bad = [n for n in names if n not in GARMENTS]
+    if not names or bad:
+        _bad_option("--over", f"{', '.join(bad) or repr(over)}: give built-in garments ({', '.join(GARMENTS)}), "
+                              "comma-separated, innermost first")
+    return names
+
+
+def _layered(part: GarmentPart, over: str, body, cfg) -> GarmentPart:
+    """``part`` with the built-in garments ``over`` (comma-separated, innermost first) made for
+    ``body``'s rest pose and layered over it (garment_sim.layered)."""
+    parts = [part]
+    for name in _over_names(over):
+        g = make_garment(name, body, edge_length=cfg.edge_length)
+        parts.append(GarmentPart(np.arange(len(g.vertices)), g.vertices, g.faces, np.flatnonzero(g.boundary)))
+    return layered(parts, body.rest_vertices, body.faces)
 
 
 def _frame_summary(reports: list) -> dict:
@@ -298,6 +328,8 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
     else:
         _bad_option("--garment", f"{garment!r} is not one of {', '.join(GARMENTS)} nor a garment file "
                                  f"({', '.join(FORMATS)})")
+    if cfg.over:
+        part = _layered(part, cfg.over, body, cfg)
     mot = load_motion(motion, fps, cfg.duration)
     mot, clearance_info = with_arm_clearance(mot, motion, body, cfg.arm_clearance)
     rots, trs = mot.rotations, mot.root_translation
