@@ -89,6 +89,25 @@ def layered(parts: list[GarmentPart], body_vertices=None, body_faces=None, gap: 
                        np.concatenate([np.full(len(p.vertices), i) for i, p in enumerate(placed)]))
 
 
+def split_layers(part: GarmentPart) -> list[GarmentPart]:
+    """The garments of a layered part (:func:`layered`), innermost first, each re-indexed on its
+    own (``[part]`` for a single garment)."""
+    if part.layer is None:
+        return [part]
+    out = []
+    for i in range(int(part.layer.max()) + 1):
+        ids = np.flatnonzero(part.layer == i)
+        remap = -np.ones(len(part.vertices), np.int64)
+        remap[ids] = np.arange(len(ids))
+        faces = remap[part.faces[np.all(part.layer[part.faces] == i, axis=1)]]
+        seams = None
+        if part.seams is not None:
+            seams = remap[part.seams[np.all(part.layer[part.seams] == i, axis=1)]]
+        out.append(GarmentPart(np.arange(len(ids)), part.vertices[ids], faces, remap[part.boundary[part.layer[part.boundary] == i]],
+                               None if part.rest is None else part.rest[ids], seams))
+    return out
+
+
 def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_GAP, reach: float = 0.03,
               iterations: int = 30) -> np.ndarray:
     """A garment's vertices V [N, 3] (triangles F) moved out over the garments ``under`` (a list
@@ -131,12 +150,36 @@ def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_G
             poke = np.flatnonzero((d2 < reach) & (above < gap))
             for k in range(3):
                 propose(F[f2[poke], k], N[poke] * (1.25 * gap - above[poke])[:, None])
+        if not delta.any():  # vertices clear: edges and triangles too? (ipctk, at half the gap)
+            for Vu, Fu, N, Q in surfaces:
+                for ids, up in _close_pairs(V, F, Vu, Fu, 0.5 * gap):
+                    n = N[up].sum(0)
+                    propose(ids, np.tile(gap * n / max(np.linalg.norm(n), 1e-30), (len(ids), 1)))
         moved = np.linalg.norm(delta, axis=1) > 0
         if not moved.any():
             break
         spread = (A @ delta) / np.maximum(A @ moved.astype(float), 1.0)[:, None]
         V += np.where(moved[:, None], delta, 0.5 * spread)
     return V
+
+
+def _close_pairs(V, F, Vu, Fu, dist: float):
+    """(vertex ids in V, vertex ids in Vu) of each pair of primitives, one of V's triangles, edges
+    or vertices and one of Vu's, closer than ``dist`` (ipctk's collision set)."""
+    import ipctk
+
+    X = np.vstack([Vu, V])
+    faces = np.vstack([Fu, np.asarray(F) + len(Vu)]).astype(np.int32)
+    edges = ipctk.edges(faces)
+    mesh = ipctk.CollisionMesh(X, edges, faces)
+    mesh.can_collide = ipctk.make_vertex_patches_filter(np.r_[np.zeros(len(Vu)), np.ones(len(V))].astype(np.int32))
+    c = ipctk.NormalCollisions()
+    c.build(mesh, X, dist)
+    out = []
+    for k in range(len(c)):
+        ids = np.asarray([i for i in c[k].vertex_ids(edges, faces) if i >= 0])
+        out.append((ids[ids >= len(Vu)] - len(Vu), ids[ids < len(Vu)]))
+    return out
 
 
 def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, boundary: np.ndarray,

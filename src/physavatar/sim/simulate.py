@@ -109,9 +109,12 @@ def seam_exclusions(faces, seams, n_vertices: int | None = None) -> np.ndarray:
     _, comp = connected_components(S, directed=False)  # vertices joined by seams, through any panel
     sewn = np.unique(seams)
     groups = sp.coo_matrix((np.ones(len(sewn)), (sewn, comp[sewn])), (n, n)).tocsr()
-    same = (groups @ groups.T).tocsr()  # a ~ b: joined by seams (a = b included)
+    same = (groups @ groups.T).tocsr()  # a ~ b: joined by seams
+    same.setdiag(0)  # (a = b is not a pair across a seam)
+    same.eliminate_zeros()
     pairs = sp.triu(ring @ same @ ring, k=1).tocoo()
-    return np.c_[pairs.row, pairs.col].astype(np.int64)
+    keep = pairs.data > 0
+    return np.c_[pairs.row[keep], pairs.col[keep]].astype(np.int64)
 
 
 def self_contact_possible(vertices, faces, dhat: float, exclude=None) -> bool:

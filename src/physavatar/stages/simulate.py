@@ -49,7 +49,7 @@ from ..files import PlyMesh, load_npz, write_json_atomic, write_ply
 from ..garment import GARMENTS, make_garment
 from ..garment.boundary import auto_boundary
 from ..garment.files import FORMATS, load_garment
-from ..garment_sim import GarmentPart, fit_on_body, layered, simulate_on_body, split_template
+from ..garment_sim import GarmentPart, fit_on_body, layered, simulate_on_body, split_layers, split_template
 from ..sim import SimSettings
 from ..sim.contact import ContactScene
 from ..sim.simulate import self_contact_possible, self_intersecting_frames
@@ -191,6 +191,8 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     part, repair = _repaired_start(part, bodies[0], body_faces, sim_settings, cfg, source)
     if imported is not None:
         imported["start_repair"] = repair
+    if part.layer is not None:  # the repair may have pushed a garment into the one over it: layered again
+        part = layered(split_layers(part), bodies[0], body_faces)
     exclude = part.contact_exclusions()  # the primitives that touch at sewn seams
     self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat, exclude)
     if cfg.over and cfg.self_contact and not self_contact:
