@@ -3,11 +3,13 @@
 The motions: the built-in ones, both CMU clips (``shared/data/motions/cmu_131_0{1,3}.bvh``,
 arm clearance applied as ``simulate`` does), and synthetic stress motions (a high jump, a spin
 at 2 turns/s, the hands pressed to the hips, a sit-down where the thighs fold into the lap).
+And two layered cases (``simulate --over``): a t-shirt over a skirt on the walk, a dress over a
+skirt (a petticoat) on the dance, simulated together with self-contact between the layers.
 Each runs through ``physavatar simulate``'s stage (stages.simulate.run: the built-in dress on
 Anny's collider body, cotton, sub-steps decided per frame, frames written as finished) and is
 checked on every written frame: lag (the body stopped short of its pose, the step gave up),
 garment-body intersection (ipctk, as ``simulate`` checks), garment self-intersection (ipctk on
-the garment alone), NaN.
+the garment alone, seams left out as ``simulate`` does), NaN.
 
 By default a quick run (a few minutes on 2 cores): a 4-cm dress, 1-s excerpts (the CMU clips'
 hops and strides), a 0.4-s warm-up. ``--full``: the 2-cm dress, the clips whole, 4 s of each
@@ -42,10 +44,13 @@ from physavatar.body import BUILTIN, BodyModel, Motion  # noqa: E402
 from physavatar.body.load import load_motion, with_arm_clearance  # noqa: E402
 from physavatar.body.motion import _x, _y, _z, bone_vertex_mask  # noqa: E402
 from physavatar.data.garment_sequence import GarmentSequence  # noqa: E402
+from physavatar.sim.simulate import self_intersecting_frames  # noqa: E402
 from physavatar.stages import simulate as simulate_stage  # noqa: E402
 
 MOTIONS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "motions"
 CLIPS = {"cmu-walk": ("cmu_131_01.bvh", 20), "cmu-hop": ("cmu_131_03.bvh", 45)}  # quick: 1 s from this frame
+# layered garments (simulate --garment G --over O): name -> (garment, garments over it, motion)
+LAYERED = {"layers-walk": ("skirt", "tshirt", "walk"), "layers-dance": ("skirt", "dress", "dance")}
 
 
 def _ramp(t, t0, t1):
@@ -119,19 +124,15 @@ def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Mo
 
 
 def garment_self_intersections(seq: GarmentSequence) -> list[int]:
-    """Frames where the garment intersects itself (ipctk on the garment alone)."""
-    import ipctk
-
-    F = np.asarray(seq.faces, np.int32)
-    mesh = ipctk.CollisionMesh(np.asarray(seq.rest_vertices, np.float64), ipctk.edges(F), F)
-    return [f for f in range(seq.n_frames)
-            if np.all(np.isfinite(seq.vertices[f])) and ipctk.has_intersections(mesh, np.asarray(seq.vertices[f], np.float64))]
+    """Frames where the garment (all its layers) intersects itself (ipctk on the garments alone;
+    the suite's garments have no sewn seams to leave out)."""
+    return self_intersecting_frames(np.asarray(seq.vertices, np.float64), seq.faces)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--full", action="store_true", help="2-cm dress, whole clips, 4-s built-in motions")
-    ap.add_argument("--only", nargs="*", default=None, help="run only these motions")
+    ap.add_argument("--only", nargs="*", default=None, help="run only these motions (or layered cases)")
     ap.add_argument("--max-substeps", type=int, default=16, help="1: the fixed one step per frame (before)")
     ap.add_argument("--edge", type=float, default=None, help="dress edge length [m] (default 0.04, --full 0.02)")
     ap.add_argument("--out", default=None, help="result file (default benchmarks/results/motion_suite.json)")
@@ -153,6 +154,7 @@ def main():
     work.mkdir(parents=True, exist_ok=True)
     wanted = (lambda name: not args.only or name in args.only)
     specs: dict[str, str] = {name: name for name in BUILTIN if wanted(name)}
+    layered = {name: v for name, v in LAYERED.items() if wanted(name)}
     for name, (clip, start) in CLIPS.items():
         path = MOTIONS / clip
         if not wanted(name):
@@ -180,14 +182,16 @@ def main():
           f"self-contact {'off' if args.no_self_contact else 'on'}")
     print(f"{'motion':15s} {'frames':>6s} {'lag':>4s} {'body-x':>6s} {'self-x':>6s} {'NaN':>4s} {'s/frame':>8s} "
           f"{'steps/frame':>11s}")
-    for name, spec in specs.items():
+    cases = {name: ("dress", None, spec) for name, spec in specs.items()} | layered
+    for name, (garment, over, spec) in cases.items():
         cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
-                                            max_substeps=args.max_substeps, self_contact=not args.no_self_contact)
+                                            max_substeps=args.max_substeps, self_contact=not args.no_self_contact,
+                                            over=over)
         done = work / name / "config.json"
         t0 = time.perf_counter()
         reused = args.reuse and done.exists()
         if not reused:  # (an interrupted run in work/name resumes)
-            simulate_stage.run(out=work / name, config=cfg, garment="dress", motion=spec)
+            simulate_stage.run(out=work / name, config=cfg, garment=garment, motion=spec)
         wall = time.perf_counter() - t0
         rec = json.loads(done.read_text())
         seq = GarmentSequence.load(work / name, finite=False)
@@ -197,7 +201,8 @@ def main():
         steps = rec["per_frame"]["substeps"]
         frames, warm = rec["frames"], rec["warmup_frames"]
         simulated = frames + warm - 1
-        row = {"frames": frames, "warmup_frames": warm, "frames_with_lag": rec["frames_with_lag"],
+        row = {"garment": garment if over is None else f"{garment} under {over}", "vertices": seq.vertices.shape[1],
+               "frames": frames, "warmup_frames": warm, "frames_with_lag": rec["frames_with_lag"],
                "frames_with_body_intersection": body_x, "frames_with_self_intersection": self_x,
                "frames_with_nan": nan, "s_per_frame": rec["seconds"] / max(simulated, 1), "wall_s": wall,
                "reused": bool(reused),
@@ -237,7 +242,7 @@ def _write(args, rows, load0, edge, duration, warmup, fps):
     result = {
         "benchmark": "motion_suite", "date": stamp["date"],
         "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None, **{k: v for k, v in stamp.items() if k != "date"}},
-        "config": {"garment": "dress", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
+        "config": {"garment": "dress (layered cases: their rows' garment)", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
                    "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,
                    "self_contact": not args.no_self_contact,
                    "clip_excerpts": None if args.full else {k: [s, s + int(round(duration * fps))]

@@ -197,8 +197,10 @@ def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
         raise ValueError("a face joins body and garment vertices; garments must be separate pieces")
     body_faces = remap[faces[~fg.any(1)]]
     gar_faces = remap[faces[fg.all(1)]]
+    kinds = np.unique(labels[gar_ids])  # several garments (labels 1, 2, ...): layers of one cloth system
+    layer = np.searchsorted(kinds, labels[gar_ids]) if len(kinds) > 1 else None
     part = GarmentPart(gar_ids, vertices[gar_ids].copy(), gar_faces, np.flatnonzero(boundary[gar_ids]),
-                       None if rest is None else np.asarray(rest, np.float64)[gar_ids].copy())
+                       None if rest is None else np.asarray(rest, np.float64)[gar_ids].copy(), layer=layer)
     return body_ids, body_faces, part
 
 

@@ -84,8 +84,8 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
         raise PhysavatarError(avatar.root / "template.ply",
                               "the garment intersects Anny's collider body in the frame-1 pose; "
                               "the garment must start outside the collider to be simulated")
-    if settings is not None and settings.self_contact and not self_contact_possible(part.vertices, part.faces,
-                                                                                    settings.dhat):
+    if settings is not None and settings.self_contact and not self_contact_possible(
+            part.vertices, part.faces, settings.dhat, part.contact_exclusions()):
         settings = replace(settings, self_contact=False)
     t0 = time.time()
     cb = None if report is None else (lambda f, x, st: report(1))
