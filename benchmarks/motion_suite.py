@@ -53,9 +53,10 @@ CLIPS = {"cmu-walk": ("cmu_131_01.bvh", 20), "cmu-hop": ("cmu_131_03.bvh", 45)} 
 LAYERED = {"layers-walk": ("skirt", "tshirt", "walk"), "layers-dance": ("skirt", "dress", "dance")}
 
 
-# hands pressed to the hips: the hand's surface this far [m] from the hips' (session 14: the
-# earlier 1-cm *vertex* distance left 0.4-1.2 mm between the surfaces, no room for the cloth)
+# hands pressed to the hips, akimbo: the hand's surface this far [m] from the trunk's (session 14:
+# the earlier 1-cm *vertex* distance left 0.4-1.2 mm between the surfaces, no room for the cloth)
 HANDS_ON_HIPS_GAP = 0.006
+AKIMBO_BONES = ("upperarm01", "lowerarm01", "lowerarm02", "wrist")
 
 
 def _ramp(t, t0, t1):
@@ -63,31 +64,121 @@ def _ramp(t, t0, t1):
     return s * s * (3 - 2 * s)
 
 
-def _hands_on_hips_pose(body: BodyModel, target: float = HANDS_ON_HIPS_GAP) -> np.ndarray:
-    """The left shoulder's axis-angle (down about world y by 0.9 rad, then back about z by the
-    angle found by bisection) that brings the left hand's surface to ``target`` [m] from the hips'
-    surface (the right arm's is its mirror image)."""
-    from physavatar.geometry import MeshQuery
+def _frame(a, b):
+    """Rotation matrix whose columns are a, b (orthogonalised against a) and a x b."""
+    a = a / np.linalg.norm(a)
+    b = b - (b @ a) * a
+    b = b / np.linalg.norm(b)
+    return np.stack([a, b, np.cross(a, b)], 1)
+
+
+def _akimbo_rotations(body: BodyModel, wrist: np.ndarray, swivel: float = -0.3, hand_dir=(0.0, -1.0, 0.0),
+                      palm_dir=(-1.0, 0.0, 0.0)) -> list[np.ndarray]:
+    """The left arm's rotations (axis-angle, ``AKIMBO_BONES`` order) that put the wrist joint at
+    ``wrist`` [m] with the elbow a hinge: the upper arm swung and rolled so that the elbow lies on
+    the circle of reach, ``swivel`` [rad] behind straight out to the side; the elbow flexed to
+    reach; the forearm's twist (lowerarm02) turning the palm to ``palm_dir`` (its normal) and the
+    wrist bending the hand to point along ``hand_dir``."""
+    from scipy.spatial.transform import Rotation
 
     names = body.bone_names
-    hand = bone_vertex_mask(body, [n for n in names if n.startswith(("hand", "finger", "wrist", "metacarpal", "thumb"))
+    r, t = body.rest_pose()
+    P = body.pose(r, t)
+    J, V = P.joints[0], P.vertices[0]
+    S, E0, W0 = (J[names.index(b)] for b in ("upperarm01.L", "lowerarm01.L", "wrist.L"))
+    L1, L2 = np.linalg.norm(E0 - S), np.linalg.norm(W0 - E0)
+    u0, f0 = (E0 - S) / L1, (W0 - E0) / L2
+    n0 = np.cross(u0, f0) / np.linalg.norm(np.cross(u0, f0))  # the elbow's hinge axis at rest
+    # the hand at rest: wrist -> middle fingertip, and its palm normal (palm x hand = thumb side)
+    hand = bone_vertex_mask(body, [n for n in names if n.startswith(("wrist", "finger", "metacarpal"))
                                    and n.endswith(".L")])
-    hips = bone_vertex_mask(body, [n for n in names if n.startswith(("root", "pelvis", "upperleg"))])
+    h0 = V[bone_vertex_mask(body, ["finger3-3.L"])].mean(0) - W0
+    h0 /= np.linalg.norm(h0)
+    thumb = V[bone_vertex_mask(body, ["finger1-"]) & hand].mean(0) - V[hand].mean(0)
+    p0 = np.cross(h0, thumb - (thumb @ h0) * h0)
+    # the elbow on the circle of points L1 from the shoulder and L2 from the wrist
+    d = np.asarray(wrist, float) - S
+    dl = np.linalg.norm(d)
+    dh = d / dl
+    a = (L1**2 - L2**2 + dl**2) / (2 * dl)
+    ex = np.array([1.0, 0, 0]) - dh[0] * dh
+    ex /= np.linalg.norm(ex)
+    E = S + a * dh + np.sqrt(max(L1**2 - a**2, 0.0)) * (np.cos(swivel) * ex + np.sin(swivel) * np.cross(dh, ex))
+    u, f = (E - S) / L1, (wrist - E) / L2
+    R1 = _frame(u, f) @ _frame(u0, f0).T  # upper arm: (u0, f0)'s plane onto (u, f)'s
+    R2 = Rotation.from_rotvec(n0 * (np.arccos(np.clip(u @ f, -1, 1)) - np.arccos(np.clip(u0 @ f0, -1, 1))))
+    R2 = R2.as_matrix()  # elbow flexion
+    R3 = (R1 @ R2).T @ _frame(np.asarray(hand_dir, float), np.asarray(palm_dir, float)) @ _frame(h0, p0).T
+    q = Rotation.from_matrix(R3).as_quat()  # hand relative to forearm = twist about f0, then swing
+    tw = 2 * np.arctan2(q[:3] @ f0, q[3])
+    tw = (tw + np.pi) % (2 * np.pi) - np.pi
+    T = Rotation.from_rotvec(f0 * tw).as_matrix()
+    return [Rotation.from_matrix(R1).as_rotvec(), Rotation.from_matrix(R2).as_rotvec(), f0 * tw,
+            Rotation.from_matrix(T.T @ R3).as_rotvec()]
+
+
+def _pose_arms(body: BodyModel, left: list[np.ndarray], extra: dict | None = None) -> np.ndarray:
+    """[T, B, 3] rotations: ``left`` ([T, 3] or [3] per ``AKIMBO_BONES``) on the left arm, its
+    mirror image (x -> -x: axis-angle (x, y, z) -> (x, -y, -z)) on the right."""
+    names = body.bone_names
+    left = [np.atleast_2d(r) for r in left]
+    R = np.zeros((len(left[0]), len(names), 3))
+    for b, r in zip(AKIMBO_BONES, left):
+        R[:, names.index(f"{b}.L")] = r
+        R[:, names.index(f"{b}.R")] = r * [1, -1, -1]
+    for b, r in (extra or {}).items():
+        R[:, names.index(b)] = r
+    return R
+
+
+def _trunk_and_hands(body: BodyModel):
+    names = body.bone_names
+    arm = bone_vertex_mask(body, [n for n in names if n.startswith(
+        ("clavicle", "shoulder", "upperarm", "lowerarm", "wrist", "finger", "metacarpal"))])
+    hands = bone_vertex_mask(body, [n for n in names if n.startswith(("wrist", "finger", "metacarpal"))])
+    return ~arm, hands
+
+
+def hand_trunk_gaps(body: BodyModel, rotations: np.ndarray, translation: np.ndarray) -> dict[str, np.ndarray]:
+    """Per frame, surface distances [m] to the trunk (the body less arms, shoulders, clavicles) of
+    the hands (both ways: hand vertices to trunk triangles and trunk vertices to hand triangles)
+    and of the other arm bones' vertices (hands excluded): ``hand``, ``lowerarm``, ``upperarm``."""
+    from physavatar.geometry import MeshQuery
+
+    trunk, hands = _trunk_and_hands(body)
     F = np.asarray(body.faces)
+    Ft, Fh = F[np.all(trunk[F], 1)], F[np.all(hands[F], 1)]
+    parts = {k: bone_vertex_mask(body, [k]) & ~hands for k in ("lowerarm", "upperarm")}
+    out = {k: [] for k in ("hand", *parts)}
+    for V in body.pose(rotations, translation).vertices:
+        q = MeshQuery(V, Ft)
+        out["hand"].append(min(q.closest(V[hands], max_dist=0.1)[0].min(),
+                               MeshQuery(V, Fh).closest(V[trunk], max_dist=0.1)[0].min()))
+        for k, m in parts.items():
+            out[k].append(q.closest(V[m], max_dist=0.3)[0].min())
+    return {k: np.array(v) for k, v in out.items()}
 
-    def gap(az):
-        r = np.zeros((1, len(names), 3))
-        r[0, names.index("upperarm01.L")] = [0, 0.9, az]
-        V = body.pose(r, np.zeros((1, 3))).vertices[0]
-        return MeshQuery(V, F[np.all(hips[F], axis=1)]).closest(V[hand], max_dist=0.1)[0].min()
 
-    lo, hi = 0.3, 0.6  # the hand 29 mm and 1.7 mm from the hips
-    if not gap(hi) <= target <= gap(lo):
-        raise RuntimeError("no shoulder rotation brings the hand to the hips")
+def _hands_on_hips_pose(body: BodyModel, target: float = HANDS_ON_HIPS_GAP) -> list[np.ndarray]:
+    """The left arm's akimbo rotations (``AKIMBO_BONES``; the right's are the mirror image): the
+    elbow out to the side and bent, the hand pointing forward along the waist with the palm on it,
+    its wrist 13 cm above the root joint and 4 cm behind it; the wrist's lateral offset found by
+    bisection so that the hands' surface is ``target`` [m] from the trunk's."""
+    root = body.pose(*body.rest_pose()).joints[0][body.bone_names.index("root")]
+
+    def pose(dx):
+        return _akimbo_rotations(body, root + [dx, 0.04, 0.13])
+
+    def gap(dx):
+        return hand_trunk_gaps(body, _pose_arms(body, pose(dx)), np.zeros((1, 3)))["hand"][0]
+
+    lo, hi = 0.12, 0.20
+    if not gap(lo) <= target <= gap(hi):
+        raise RuntimeError("no wrist position brings the hand to the hips")
     for _ in range(12):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if gap(mid) > target else (lo, mid)
-    return np.array([0.0, 0.9, lo])
+        lo, hi = (lo, mid) if gap(mid) > target else (mid, hi)
+    return pose(hi)
 
 
 def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Motion]:
@@ -121,11 +212,10 @@ def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Mo
                          "lowerleg01.L": _x(1.3 * bend + 1.2 * tuck), "lowerleg01.R": _x(1.3 * bend + 1.2 * tuck),
                          "upperarm01.L": _y(-0.6 * tuck), "upperarm01.R": _y(0.6 * tuck)}, tr)
     # the hands brought to the hips in 0.4 s and pressed there (HANDS_ON_HIPS_GAP), with a small sway
-    a = _hands_on_hips_pose(body)
     e = _ramp(t, 0, 0.4)[:, None]
     sway = 0.05 * np.sin(2 * np.pi * 1.5 * t) * e[:, 0]
-    motion("hands-on-hips", {"upperarm01.L": a * e, "upperarm01.R": a * [1, -1, -1] * e,
-                             "spine03": _z(sway)}, np.zeros((n, 3)))
+    R = _pose_arms(body, [r * e for r in _hands_on_hips_pose(body)], {"spine03": _z(sway)})
+    motion("hands-on-hips", {b: R[:, i] for i, b in enumerate(names) if R[:, i].any()}, np.zeros((n, 3)))
     # sitting down in 0.8 s: the thighs fold up into the lap (hips flexed 85°, knees 90°)
     s = _ramp(t, 0.1, 0.9)
     tr = np.zeros((n, 3))
