@@ -109,11 +109,13 @@ def _akimbo_rotations(body: BodyModel, wrist: np.ndarray, swivel: float = -0.3, 
     R2 = Rotation.from_rotvec(n0 * (np.arccos(np.clip(u @ f, -1, 1)) - np.arccos(np.clip(u0 @ f0, -1, 1))))
     R2 = R2.as_matrix()  # elbow flexion
     R3 = (R1 @ R2).T @ _frame(np.asarray(hand_dir, float), np.asarray(palm_dir, float)) @ _frame(h0, p0).T
-    q = Rotation.from_matrix(R3).as_quat()  # hand relative to forearm = twist about f0, then swing
-    tw = 2 * np.arctan2(q[:3] @ f0, q[3])
+    t0 = W0 - J[names.index("lowerarm02.L")]  # the forearm's twist axis (lowerarm02 -> wrist)
+    t0 /= np.linalg.norm(t0)
+    q = Rotation.from_matrix(R3).as_quat()  # hand relative to forearm = twist about t0, then swing
+    tw = 2 * np.arctan2(q[:3] @ t0, q[3])
     tw = (tw + np.pi) % (2 * np.pi) - np.pi
-    T = Rotation.from_rotvec(f0 * tw).as_matrix()
-    return [Rotation.from_matrix(R1).as_rotvec(), Rotation.from_matrix(R2).as_rotvec(), f0 * tw,
+    T = Rotation.from_rotvec(t0 * tw).as_matrix()
+    return [Rotation.from_matrix(R1).as_rotvec(), Rotation.from_matrix(R2).as_rotvec(), t0 * tw,
             Rotation.from_matrix(T.T @ R3).as_rotvec()]
 
 
