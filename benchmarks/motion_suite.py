@@ -2,7 +2,7 @@
 
 The motions: the built-in ones, both CMU clips (``shared/data/motions/cmu_131_0{1,3}.bvh``,
 arm clearance applied as ``simulate`` does), and synthetic stress motions (a high jump, a spin
-at 2 turns/s, the hands pressed to the hips, a sit-down where the thighs fold into the lap).
+at 2 turns/s, the hands pressed to the hips (akimbo), a sit-down where the thighs fold into the lap).
 And two layered cases (``simulate --over``): a t-shirt over a skirt on the walk, a dress over a
 skirt (a petticoat) on the dance, simulated together with self-contact between the layers.
 Each runs through ``physavatar simulate``'s stage (stages.simulate.run: the built-in dress on
@@ -213,7 +213,7 @@ def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Mo
     motion("jump-high", {"upperleg01.L": _x(-0.7 * bend - 0.9 * tuck), "upperleg01.R": _x(-0.7 * bend - 0.9 * tuck),
                          "lowerleg01.L": _x(1.3 * bend + 1.2 * tuck), "lowerleg01.R": _x(1.3 * bend + 1.2 * tuck),
                          "upperarm01.L": _y(-0.6 * tuck), "upperarm01.R": _y(0.6 * tuck)}, tr)
-    # the hands brought to the hips in 0.4 s and pressed there (HANDS_ON_HIPS_GAP), with a small sway
+    # akimbo: the hands brought to the hips in 0.4 s and pressed there (HANDS_ON_HIPS_GAP), with a small sway
     e = _ramp(t, 0, 0.4)[:, None]
     sway = 0.05 * np.sin(2 * np.pi * 1.5 * t) * e[:, 0]
     R = _pose_arms(body, [r * e for r in _hands_on_hips_pose(body)], {"spine03": _z(sway)})
