@@ -73,6 +73,8 @@ class ClothSim:
             ones; they see the stacked positions [cloth; body] like every term.
     """
 
+    predict_acceleration = True  # Newton's start: x̃ + ĥ² aₜ (aₜ the last step's acceleration)
+
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
                  boundary_indices=(), extra_terms=()):
         if settings.newton_norm not in ("rms", "max") or settings.newton_window < 1:
@@ -297,7 +299,14 @@ class ClothSim:
         for t in self.active_terms(penalty=True):
             t.begin_step(state)
         self.step_state = state
-        return state, base + hh * vbase
+        x_pred = base + hh * vbase
+        last = self._last_step
+        if (self.predict_acceleration and last is not None and np.array_equal(last[0], x)
+                and np.array_equal(last[1], v)):
+            # the Newton start also extrapolates the last step's acceleration (only the start:
+            # x̃ of the inertia term is unchanged)
+            x_pred = x_pred + (hh * hh / h) * (v - last[3])
+        return state, x_pred
 
     def _start(self, state, x, x_pred, stats) -> _Solve:
         """Where Newton starts, and in which mode: the prescribed move swept with CCD; if it is
