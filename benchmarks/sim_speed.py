@@ -19,8 +19,9 @@ step, measured in the same process, so "step / factorisation" survives a loaded 
 
 ``--large``: a finer dress (``--large-edge``, default 9.3 mm: > 15k vertices) on Anny's full-
 resolution body (> 12k vertices), a few frames of the walk, new code only (the baseline took
-> 3 min a frame on this size; ``--large-baseline`` runs it too): frames/s and peak memory
-(resource.getrusage of the worker).
+> 3 min a frame on this size; ``--large-baseline`` runs it too), no untimed warm-up (the
+first frame includes the simulator's setup): frames/s and peak memory (resource.getrusage of
+the worker).
 
 Writes benchmarks/results/sim_speed.json (DESIGN.md "Benchmarks"): per code, frames/s, Newton
 iterations, factorisations and CG iterations per frame, the split of a frame's time, step /
@@ -112,7 +113,9 @@ def worker(scene_file: str, spec: dict):
     material = preset(spec["material"])
     fields = SimSettings.__dataclass_fields__
     settings = SimSettings(dt=1.0 / spec["fps"], **{k: v for k, v in spec["settings"].items() if k in fields})
-    simulate_on_body(part, bodies[:WARMUP_FRAMES], body_faces, material, spec["fps"], settings=settings)
+    if spec.get("warmup", WARMUP_FRAMES) > 1:
+        simulate_on_body(part, bodies[: spec.get("warmup", WARMUP_FRAMES)], body_faces, material, spec["fps"],
+                         settings=settings)
     _emit("ready")
     sys.stdin.readline()
     stats = []
@@ -331,7 +334,7 @@ def main():
             scene_file = str(Path(tmp) / "large.npz")
             np.savez(scene_file, **arrays)
             workers = [Worker(c, s, scene_file, {"frames": args.large_frames, "fps": fps, "material": material,
-                                                 "settings": new_settings if c == "new" else base})
+                                                 "settings": new_settings if c == "new" else base, "warmup": 0})
                        for c, s in codes_large]
             run_lockstep(workers, args.large_frames - 1, "large")
             figs = {w.name: figures(w) for w in workers}

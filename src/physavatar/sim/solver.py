@@ -440,13 +440,17 @@ class ClothSim:
         full step on a linearly converging tail is also tried longer (_expand_step)."""
         s = self.settings
         X = sv.X
+        tls = time.perf_counter()
+        # E at X before the CCD's segment build replaces the candidates: the barrier set at X
+        # is still the one the gradient used (no rebuild)
+        E0 = self._energy(X, sv.penalty)
+        stats.time["line_search"] += time.perf_counter() - tls
         tcd = time.perf_counter()
         X_try = X + step
         alpha = self.scene.collision_free_stepsize(X, X_try)
         self.scene.covers_last_point = True  # X + α step, α ≤ 1, lies on this segment
         stats.time["ccd"] += time.perf_counter() - tcd
         tls = time.perf_counter()
-        E0 = self._energy(X, sv.penalty)
         while True:
             X_new = X + alpha * step
             E1 = self._energy(X_new, sv.penalty)
