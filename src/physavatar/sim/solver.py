@@ -38,7 +38,7 @@ from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, Stiffnes
 from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
-from .linesearch import expand_step
+from .linesearch import backtrack, expand_step
 from .start import follow_body, warm_start
 from .terms import StepState
 
@@ -437,33 +437,15 @@ class ClothSim:
 
     def _line_search(self, sv: _Solve, step, residual, stats):
         """Backtracking from the collision-free step size (CCD) until E does not increase; a
-        full step on a linearly converging tail is also tried longer (_expand_step)."""
-        s = self.settings
-        X = sv.X
-        tls = time.perf_counter()
-        # E at X before the CCD's segment build replaces the candidates: the barrier set at X
-        # is still the one the gradient used (no rebuild)
-        E0 = self._energy(X, sv.penalty)
-        stats.time["line_search"] += time.perf_counter() - tls
-        tcd = time.perf_counter()
-        X_try = X + step
-        alpha = self.scene.collision_free_stepsize(X, X_try)
-        self.scene.covers_last_point = True  # X + α step, α ≤ 1, lies on this segment
-        stats.time["ccd"] += time.perf_counter() - tcd
-        tls = time.perf_counter()
-        while True:
-            X_new = X + alpha * step
-            E1 = self._energy(X_new, sv.penalty)
-            if E1 <= E0 or alpha < 1e-12:
-                break
-            alpha *= 0.5
-            stats.line_search_iterations += 1
-        if (s.step_expansion and not sv.penalty and alpha == 1.0
+        full step on a linearly converging tail is also tried longer (expand_step)."""
+        X_new, E1, alpha = backtrack(self.scene, lambda Y: self._energy(Y, sv.penalty), sv.X, step, stats)
+        if (self.settings.step_expansion and not sv.penalty and alpha == 1.0
                 and residual > 0.7 * sv.prev_residual):
-            X_new = expand_step(self.scene, lambda Y: self._energy(Y, False), X, step, X_new, E1, stats)
+            tls = time.perf_counter()
+            X_new = expand_step(self.scene, lambda Y: self._energy(Y, False), sv.X, step, X_new, E1, stats)
+            stats.time["line_search"] += time.perf_counter() - tls
         sv.prev_residual = residual
         sv.X = X_new
-        stats.time["line_search"] += time.perf_counter() - tls
 
     def _adapt_barrier_stiffness(self, sv: _Solve, stats):
         """ipctk's adaptive κ: grow it when contacts keep closing in."""
