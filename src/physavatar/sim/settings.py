@@ -106,7 +106,7 @@ class SimSettings:
     follow_retry: int = 3
     step_expansion: bool = True
     linear_rtol: float = 1e-6
-    newton_forcing: float = 1e-2
+    newton_forcing: float = 1e-3
     max_cg_iterations: int = 100
     max_newton_iterations: int = 100
     max_penalty_iterations: int = 40

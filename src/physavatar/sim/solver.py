@@ -43,6 +43,9 @@ from .start import follow_body, warm_start
 from .terms import StepState
 
 
+CUT_FORCING = 10.0  # newton_forcing × this after a CCD-cut step (docs/simulation.md "Session 14")
+
+
 @dataclasses.dataclass
 class _Solve:
     """The running state of one step's Newton solve (ClothSim.step)."""
@@ -56,6 +59,7 @@ class _Solve:
     prev_residual: float = np.inf
     below_count: int = 0  # consecutive directions below newton_tol ("rms")
     penalty_iters: int = 0
+    cut: bool = False  # the last step was cut by CCD (α < 1): the next direction may be looser
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
 
@@ -73,7 +77,7 @@ class ClothSim:
             ones; they see the stacked positions [cloth; body] like every term.
     """
 
-    predict_acceleration = True  # Newton's start: x̃ + ĥ² aₜ (aₜ the last step's acceleration)
+    predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
                  boundary_indices=(), extra_terms=()):
@@ -301,8 +305,8 @@ class ClothSim:
         self.step_state = state
         x_pred = base + hh * vbase
         last = self._last_step
-        if (self.predict_acceleration and last is not None and np.array_equal(last[0], x)
-                and np.array_equal(last[1], v)):
+        if (self.predict_acceleration and self.settings.integrator == "euler" and last is not None
+                and np.array_equal(last[0], x) and np.array_equal(last[1], v)):
             # the Newton start also extrapolates the last step's acceleration (only the start:
             # x̃ of the inertia term is unchanged)
             x_pred = x_pred + (hh * hh / h) * (v - last[3])
@@ -420,8 +424,10 @@ class ClothSim:
         # Penalty iterations solve their (larger) system by CG too, to 1e-10 (linear_solver_all)
         sv.linear_solver = self.linear_solver_all if penalty else self.linear_solver
         # inexact Newton: a loose direction while far from the solution (the stopping
-        # step is refined to 1e-10 below, so the solution is unchanged)
-        forcing = None if penalty else s.newton_forcing
+        # step is refined to 1e-10 below, so the solution is unchanged); 10× looser still
+        # after a step that CCD cut (contact discovery: this one will likely be cut too)
+        loose = sv.cut and s.integrator == "euler"  # BDF2: docs/simulation.md "Session 14"
+        forcing = None if penalty else s.newton_forcing * (CUT_FORCING if loose else 1.0)
         dx = -sv.linear_solver.solve(Hm, grad, assembler, forcing)
         sv.matrix = Hm
         stats.time["linear_solve"] += time.perf_counter() - tl
@@ -439,6 +445,7 @@ class ClothSim:
         """Backtracking from the collision-free step size (CCD) until E does not increase; a
         full step on a linearly converging tail is also tried longer (expand_step)."""
         X_new, E1, alpha = backtrack(self.scene, lambda Y: self._energy(Y, sv.penalty), sv.X, step, stats)
+        sv.cut = alpha < 1.0
         if (self.settings.step_expansion and not sv.penalty and alpha == 1.0
                 and residual > 0.7 * sv.prev_residual):
             tls = time.perf_counter()
