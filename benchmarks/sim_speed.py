@@ -309,6 +309,12 @@ def main():
                     "frames": frames, "steps": frames - 1, "fps": fps, "dt": 1.0 / fps, "material": material,
                     "garment_vertices": len(arrays["vertices"]), "garment_faces": len(arrays["faces"]),
                     "body_vertices": int(arrays["bodies"].shape[1]), "figures": figs}
+            # the workers time their factorisations one after the other, at different loads: the
+            # smallest of those times (the same cholespy call on same-sized matrices) is a common unit
+            common = min(f["factorization_s"] for f in figs.values())
+            for f in figs.values():
+                f["step_over_common_factorization"] = f["seconds_per_frame"] / common
+            case["common_factorization_s"] = common
             new = figs["new"]
             if "baseline" in figs:
                 b = figs["baseline"]
@@ -318,9 +324,9 @@ def main():
             result["checks"]["fps"] = {"value": new["fps"], "target": f">= {FPS_TARGET}", "unit": "frames/s",
                                        "pass": bool(new["fps"] >= FPS_TARGET)}
             result["checks"]["step_factorizations"] = {
-                "value": new["step_over_factorization"], "target": f"<= {FACT_TARGET}",
+                "value": new["step_over_common_factorization"], "target": f"<= {FACT_TARGET}",
                 "unit": "sparse factorisations of the full Newton matrix",
-                "pass": bool(new["step_over_factorization"] <= FACT_TARGET)}
+                "pass": bool(new["step_over_common_factorization"] <= FACT_TARGET)}
             bad = sum(len(f["frames_with_intersection_or_nan"]) for f in figs.values())
             result["checks"]["no_intersection_or_nan"] = {"value": bad, "target": "0 frames", "unit": "frames",
                                                           "pass": bad == 0}
