@@ -150,6 +150,36 @@ def test_inexact_newton_directions_change_the_path_not_the_solution():
     assert np.abs(loose - tight).max() < 1e-5
 
 
+def test_acceleration_predictor_changes_the_newton_start_not_the_solution(monkeypatch):
+    """Newton starts from x̃ + ĥ² aₜ (ClothSim.predict_acceleration): each step, from the same
+    state, ends where the step from x̃ = xₜ + ĥ vₜ ends, to the Newton tolerance (a cloth
+    swinging from two corners; with contact the step's potential can have several nearby
+    minima, and any change of the start, warm_start on or off too, may pick another)."""
+    n = 7
+    V, F = grid(n, 0.1)
+    pins = [0, n - 1]
+    m = Material(density=0.15, stretch_stiffness=20.0, bend_stiffness=1e-5, poisson=0.3)
+    sim = ClothSim(V, F, m, SimSettings(dt=0.02, newton_tol=1e-6, friction=0.0), pins)
+    x, v = V.copy(), np.zeros_like(V)
+    diffs, changed = [], False
+    for _ in range(10):
+        before = sim.get_state()
+        monkeypatch.setattr(ClothSim, "predict_acceleration", True)
+        x1, v1, st = sim.step(x, v, None, None, None, V[pins])
+        assert st.converged
+        after = sim.get_state()
+        sim.set_state(before)
+        monkeypatch.setattr(ClothSim, "predict_acceleration", False)
+        x2, _, st = sim.step(x, v, None, None, None, V[pins])
+        assert st.converged
+        diffs.append(np.abs(x1 - x2).max())
+        changed |= not np.array_equal(x1, x2)
+        sim.set_state(after)
+        x, v = x1, v1
+    assert changed  # the start did change
+    assert max(diffs) < 1e-6, diffs
+
+
 def test_segment_candidates_hold_the_barrier_set_of_every_point_on_the_segment():
     """The solver reuses the candidates of the line search's CCD segment for the barrier set
     at the accepted point (no rebuild): the set must equal one built around that point."""

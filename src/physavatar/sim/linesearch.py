@@ -5,6 +5,31 @@ from __future__ import annotations
 import time
 
 
+def backtrack(scene, energy, X, step, stats):
+    """(X_new, E(X_new), α): X + α·step with α the collision-free step size (CCD), halved
+    until E does not increase (or α < 1e-12). ``scene.covers_last_point`` is set: X_new lies
+    on the CCD's segment, whose candidates hold its barrier set."""
+    tls = time.perf_counter()
+    # E at X before the CCD's segment build replaces the candidates: the barrier set at X is
+    # still the one the gradient used (no rebuild)
+    E0 = energy(X)
+    stats.time["line_search"] += time.perf_counter() - tls
+    tcd = time.perf_counter()
+    alpha = scene.collision_free_stepsize(X, X + step)
+    scene.covers_last_point = True  # X + α step, α ≤ 1, lies on this segment
+    stats.time["ccd"] += time.perf_counter() - tcd
+    tls = time.perf_counter()
+    while True:
+        X_new = X + alpha * step
+        E1 = energy(X_new)
+        if E1 <= E0 or alpha < 1e-12:
+            break
+        alpha *= 0.5
+        stats.line_search_iterations += 1
+    stats.time["line_search"] += time.perf_counter() - tls
+    return X_new, E1, alpha
+
+
 def expand_step(scene, energy, X, step, X_new, E_new, stats, max_scale=64.0):
     """Try X + 2·step, 4·step, ... while the energy keeps decreasing; a move that CCD cuts is
     tried at its collision-free fraction and ends the search. Returns the best point.

@@ -38,9 +38,12 @@ from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, Stiffnes
 from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
-from .linesearch import expand_step
+from .linesearch import backtrack, expand_step
 from .start import follow_body, warm_start
 from .terms import StepState
+
+
+CUT_FORCING = 10.0  # newton_forcing × this after a CCD-cut step (docs/simulation.md "Session 14")
 
 
 @dataclasses.dataclass
@@ -56,6 +59,7 @@ class _Solve:
     prev_residual: float = np.inf
     below_count: int = 0  # consecutive directions below newton_tol ("rms")
     penalty_iters: int = 0
+    cut: bool = False  # the last step was cut by CCD (α < 1): the next direction may be looser
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
 
@@ -73,6 +77,8 @@ class ClothSim:
             ones; they see the stacked positions [cloth; body] like every term.
         contact_exclude: [P, 2] cloth vertex pairs left out of self-contact (ContactScene's ``exclude``).
     """
+
+    predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
                  boundary_indices=(), extra_terms=(), contact_exclude=None):
@@ -298,7 +304,14 @@ class ClothSim:
         for t in self.active_terms(penalty=True):
             t.begin_step(state)
         self.step_state = state
-        return state, base + hh * vbase
+        x_pred = base + hh * vbase
+        last = self._last_step
+        if (self.predict_acceleration and self.settings.integrator == "euler" and last is not None
+                and np.array_equal(last[0], x) and np.array_equal(last[1], v)):
+            # the Newton start also extrapolates the last step's acceleration (only the start:
+            # x̃ of the inertia term is unchanged)
+            x_pred = x_pred + (hh * hh / h) * (v - last[3])
+        return state, x_pred
 
     def _start(self, state, x, x_pred, stats) -> _Solve:
         """Where Newton starts, and in which mode: the prescribed move swept with CCD; if it is
@@ -412,8 +425,10 @@ class ClothSim:
         # Penalty iterations solve their (larger) system by CG too, to 1e-10 (linear_solver_all)
         sv.linear_solver = self.linear_solver_all if penalty else self.linear_solver
         # inexact Newton: a loose direction while far from the solution (the stopping
-        # step is refined to 1e-10 below, so the solution is unchanged)
-        forcing = None if penalty else s.newton_forcing
+        # step is refined to 1e-10 below, so the solution is unchanged); 10× looser still
+        # after a step that CCD cut (contact discovery: this one will likely be cut too)
+        loose = sv.cut and s.integrator == "euler"  # BDF2: docs/simulation.md "Session 14"
+        forcing = None if penalty else s.newton_forcing * (CUT_FORCING if loose else 1.0)
         dx = -sv.linear_solver.solve(Hm, grad, assembler, forcing)
         sv.matrix = Hm
         stats.time["linear_solve"] += time.perf_counter() - tl
@@ -429,29 +444,16 @@ class ClothSim:
 
     def _line_search(self, sv: _Solve, step, residual, stats):
         """Backtracking from the collision-free step size (CCD) until E does not increase; a
-        full step on a linearly converging tail is also tried longer (_expand_step)."""
-        s = self.settings
-        X = sv.X
-        tcd = time.perf_counter()
-        X_try = X + step
-        alpha = self.scene.collision_free_stepsize(X, X_try)
-        self.scene.covers_last_point = True  # X + α step, α ≤ 1, lies on this segment
-        stats.time["ccd"] += time.perf_counter() - tcd
-        tls = time.perf_counter()
-        E0 = self._energy(X, sv.penalty)
-        while True:
-            X_new = X + alpha * step
-            E1 = self._energy(X_new, sv.penalty)
-            if E1 <= E0 or alpha < 1e-12:
-                break
-            alpha *= 0.5
-            stats.line_search_iterations += 1
-        if (s.step_expansion and not sv.penalty and alpha == 1.0
+        full step on a linearly converging tail is also tried longer (expand_step)."""
+        X_new, E1, alpha = backtrack(self.scene, lambda Y: self._energy(Y, sv.penalty), sv.X, step, stats)
+        sv.cut = alpha < 1.0
+        if (self.settings.step_expansion and not sv.penalty and alpha == 1.0
                 and residual > 0.7 * sv.prev_residual):
-            X_new = expand_step(self.scene, lambda Y: self._energy(Y, False), X, step, X_new, E1, stats)
+            tls = time.perf_counter()
+            X_new = expand_step(self.scene, lambda Y: self._energy(Y, False), sv.X, step, X_new, E1, stats)
+            stats.time["line_search"] += time.perf_counter() - tls
         sv.prev_residual = residual
         sv.X = X_new
-        stats.time["line_search"] += time.perf_counter() - tls
 
     def _adapt_barrier_stiffness(self, sv: _Solve, stats):
         """ipctk's adaptive κ: grow it when contacts keep closing in."""
