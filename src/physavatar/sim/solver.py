@@ -42,7 +42,6 @@ from .linesearch import backtrack, expand_step
 from .start import follow_body, warm_start
 from .terms import StepState
 
-
 CUT_FORCING = 10.0  # newton_forcing × this after a CCD-cut step (docs/simulation.md "Session 14")
 
 
