@@ -50,6 +50,8 @@ class AppearanceConfig:
         project_views: at most this many (frame, camera) views for ``"project"`` (frames spread
             evenly over the sequence, every training camera).
         project_spp: samples per pixel of the irradiance renders of ``"project"``.
+        project_passes: 1, or more for iterative back-projection passes after the first
+            (``"project"``; each renders every projection view once more).
         prior_views: weight of each texel's prior (its face's colour, inpainted where unseen),
             in views (``"project"``).
     """
@@ -82,6 +84,7 @@ class AppearanceConfig:
     project_views: int = setting(48)
     project_spp: int = setting(16)
     prior_views: float = setting(0.5)
+    project_passes: int = setting(1)
 
     def __post_init__(self) -> None:
         if self.light not in LIGHT_MODES:
@@ -96,7 +99,8 @@ class AppearanceConfig:
                   ("lr_decay_every", self.lr_decay_every >= 1), ("frame_stride", self.frame_stride >= 1),
                   ("init_frame_stride", self.init_frame_stride >= 1), ("checkpoint_every", self.checkpoint_every >= 1),
                   ("ambient_init", self.ambient_init > 0), ("project_views", self.project_views >= 1),
-                  ("project_spp", self.project_spp >= 1), ("prior_views", self.prior_views >= 0)]
+                  ("project_spp", self.project_spp >= 1), ("prior_views", self.prior_views >= 0),
+                  ("project_passes", self.project_passes >= 1)]
         for name, ok in checks:
             if not ok:
                 raise PhysavatarError(None, f"appearance config: {name}={getattr(self, name)!r} is out of range")

@@ -23,7 +23,7 @@ from ...render import MeshSpec, SceneSpec, load_scene, mitsuba, srgb_to_linear
 from .config import AppearanceConfig
 from .data import AppearanceData, load_target
 from .project import Occlusion, Projection, TexelPoints, solve_texture
-from .texture import splat_face_colors
+from .texture import fill_empty, splat_face_colors
 
 VISIBILITY_FRAMES = 8  # frames over which face visibility is counted when tracked colours exist
 
@@ -102,6 +102,7 @@ def projected_texture(data: AppearanceData, cfg: AppearanceConfig, renderer, amb
     proj = Projection.empty(pts)
     white = np.ones((cfg.texture_size, cfg.texture_size, 3), np.float32)
     two = twosided_faces(t)
+    views = []  # (frame index, camera, image, allowed pixels, irradiance), kept for the later passes
     for ti in projection_views(len(data.frames), len(data.cameras), cfg.project_views):
         V = data.vertices[ti]
         renderer.set_vertices(V, tag=ti)
@@ -109,11 +110,38 @@ def projected_texture(data: AppearanceData, cfg: AppearanceConfig, renderer, amb
         for ci, cam in enumerate(data.cameras):
             image, mask = load_target(data.capture, cam, data.frames[ti], 1.0, cfg.erode_px)
             E = renderer.render(cam, white, ambient, key, spp=cfg.project_spp, seed=1000 + 97 * ti + ci)
-            proj.add_view(cam, V, t.faces, image, mask & (E.alpha > 0.99), E.rgb, occlusion=occ, twosided=two)
+            allowed = mask & (E.alpha > 0.99)
+            proj.add_view(cam, V, t.faces, image, allowed, E.rgb, occlusion=occ, twosided=two)
+            if cfg.project_passes > 1:
+                views.append((ti, cam, image, allowed, E.rgb))
             if advance is not None:
                 advance()
     tex, _ = solve_texture(proj, t.faces, prior_views=cfg.prior_views)
     face_views = np.bincount(pts.face, weights=proj.views, minlength=len(t.faces))
+    # Later passes: iterative back-projection. The render of the current texture is compared with
+    # each image and the residual, divided by the irradiance, is added back at the texels: this
+    # undoes the blur of the first pass (it reads the images at one point per texel, while a
+    # pixel averages its whole area and bilinear texture lookups blend four texels) and replaces
+    # the white-texture bounce light by the one of the current texture.
+    for p in range(1, cfg.project_passes):
+        corr = Projection.empty(pts)
+        last = None
+        for ti, cam, image, allowed, E in views:
+            V = data.vertices[ti]
+            renderer.set_vertices(V, tag=ti)
+            if last != ti:
+                occ, last = Occlusion(V, t.faces), ti
+            R = renderer.render(cam, tex, ambient, key, spp=cfg.project_spp, seed=5000 + 1000 * p + 97 * ti)
+            corr.add_view(cam, V, t.faces, image - R.rgb, allowed, E, occlusion=occ, twosided=two)
+            if advance is not None:
+                advance()
+        lam = cfg.prior_views * np.median(corr.den[corr.weight > 0] / corr.weight[corr.weight > 0][:, None], 0)
+        delta = np.zeros((cfg.texture_size ** 2, 3), np.float32)
+        delta[pts.index] = corr.num / (corr.den + lam)
+        filled = np.zeros(cfg.texture_size ** 2, bool)
+        filled[pts.index] = True
+        delta = fill_empty(delta.reshape(tex.shape), filled.reshape(tex.shape[:2]))
+        tex = np.clip(tex + delta, 0.0, 1.0).astype(np.float32)
     return tex, face_views
 
 
@@ -135,6 +163,7 @@ def initial_texture(data: AppearanceData, cfg: AppearanceConfig, out: Path, prog
                            "tracked_colors": data.face_colors is not None, "init": cfg.init,
                            **({"project_views": cfg.project_views, "project_spp": cfg.project_spp,
                                "prior_views": cfg.prior_views, "light": cfg.light,
+                              "project_passes": cfg.project_passes,
                                "ambient": None if ambient is None else [float(x) for x in ambient],
                                "key": None if key is None else [float(x) for x in key]}
                               if cfg.init == "project" else {})})
@@ -143,7 +172,8 @@ def initial_texture(data: AppearanceData, cfg: AppearanceConfig, out: Path, prog
         return a["face_uvs"], a["face_pixels"], np.load(out / "texture_init_linear.npy")
     face_uvs = t.face_uvs
     if cfg.init == "project":
-        n = len(projection_views(len(data.frames), len(data.cameras), cfg.project_views)) * len(data.cameras)
+        n = len(projection_views(len(data.frames), len(data.cameras), cfg.project_views)) * len(data.cameras) \
+            * cfg.project_passes
         with resolve(progress).task("appearance: projected texture", total=n) as task:
             tex0, face_pixels = projected_texture(data, cfg, renderer, ambient, key, advance=task.advance)
         np.save(out / ".texture_init_linear.tmp.npy", tex0)
