@@ -137,3 +137,14 @@ def test_an_occluded_texel_does_not_take_the_occluders_colour(size):
     # the strip's outline pixels mix red and green: they are dropped (depth edge), not averaged
     assert not seen[front & (np.abs(P[:, 0]) > 0.29)].any()
     assert np.allclose(flat[front], [0.7, 0.1, 0.1], atol=0.03), flat[front].mean(0)
+
+
+def test_small_captures_are_fitted_at_full_resolution():
+    from physavatar.stages.appearance.config import AppearanceConfig, fit_scale, quick_preset
+
+    q = quick_preset(AppearanceConfig())
+    assert q.scale == 0.5
+    assert fit_scale(q, 512, 512) == 0.5  # 256 px images: as asked
+    assert fit_scale(q, 256, 256) == 1.0  # never below min_size (256 px)
+    assert fit_scale(q, 384, 288) == pytest.approx(256 / 384)
+    assert fit_scale(AppearanceConfig(scale=1.0), 2048, 2048) == 1.0
