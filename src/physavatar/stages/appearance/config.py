@@ -53,8 +53,6 @@ class AppearanceConfig:
         min_size: the fit never renders images smaller than this (pixels, the larger side):
             ``scale`` is raised to ``min_size / size`` for small captures (a 256 px capture is
             fitted at full resolution; at half of it each texel gets a quarter of the pixels).
-        average_last: the texture returned is the mean of the last ``average_last`` fraction of
-            the Adam iterates (Polyak averaging; 0: the last iterate, as the paper).
         project_passes: 1, or more for iterative back-projection passes after the first
             (``"project"``; each renders every projection view once more).
         prior_views: weight of each texel's prior (its face's colour, inpainted where unseen),
@@ -90,7 +88,6 @@ class AppearanceConfig:
     project_spp: int = setting(16)
     prior_views: float = setting(0.5)
     project_passes: int = setting(1)
-    average_last: float = setting(0.5)
     min_size: int = setting(256)
 
     def __post_init__(self) -> None:
@@ -107,7 +104,7 @@ class AppearanceConfig:
                   ("init_frame_stride", self.init_frame_stride >= 1), ("checkpoint_every", self.checkpoint_every >= 1),
                   ("ambient_init", self.ambient_init > 0), ("project_views", self.project_views >= 1),
                   ("project_spp", self.project_spp >= 1), ("prior_views", self.prior_views >= 0),
-                  ("project_passes", self.project_passes >= 1), ("average_last", 0 <= self.average_last <= 1),
+                  ("project_passes", self.project_passes >= 1),
                   ("min_size", self.min_size >= 1)]
         for name, ok in checks:
             if not ok:

@@ -50,11 +50,6 @@ def _lr(cfg: AppearanceConfig, it: int, base: float) -> float:
     return base * cfg.lr_decay ** (it // cfg.lr_decay_every)
 
 
-def _mean_start(cfg: AppearanceConfig) -> int:
-    """The first step whose texture enters the returned mean (the last ``average_last`` of them)."""
-    return int(round(cfg.iterations * (1.0 - cfg.average_last))) if cfg.average_last > 0 else cfg.iterations + 1
-
-
 def _views(cfg: AppearanceConfig, it: int, n_frames: int, n_cams: int) -> list[tuple[int, int]]:
     """The (frame index, camera index) pairs of step ``it`` (A.4.3: random per step); seeded by
     (seed, it) so that the sequence does not depend on where a run was resumed."""
@@ -113,7 +108,7 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
 
     # 3. inverse rendering, resumable
     ckpt = out / "checkpoint.npz"
-    state = {"texture": tex0.astype(np.float64), "texture_mean": tex0.astype(np.float64), "n_mean": np.zeros(1)}
+    state = {"texture": tex0.astype(np.float64)}
     if amb0 is not None:
         state["ambient"] = amb0
     if key0 is not None:
@@ -165,13 +160,6 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
                     grads["key"] += gK / cfg.batch
             adam.step(state, grads, {k: _lr(cfg, it, lr_of[k]) for k in fitted_keys})
             state["texture"] = np.clip(state["texture"], 0.0, 1.0)  # A.4.3: legal colours
-            if it >= _mean_start(cfg):
-                if it == _mean_start(cfg):
-                    state["n_mean"][:] = 0
-                # Polyak averaging of the last iterates: each step's texture carries the noise of one
-                # 8-spp view, their mean keeps what the steps agree on
-                state["n_mean"] += 1
-                state["texture_mean"] += (state["texture"] - state["texture_mean"]) / state["n_mean"][0]
             for k in ("ambient", "key"):
                 if k in state:
                     state[k] = np.maximum(state[k], 0.0)
@@ -188,7 +176,7 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
     # per-iteration time from the log, so that a resumed run reports the same figure
     sec_it = float(np.mean([r["seconds"] for r in log])) if log else float("nan")
 
-    texture = (state["texture_mean"] if state["n_mean"][0] > 0 else state["texture"]).astype(np.float32)
+    texture = state["texture"].astype(np.float32)
     lights = with_light_values(lights0, state.get("ambient"), state.get("key"))
     np.save(out / ".texture_linear.tmp.npy", texture)
     (out / ".texture_linear.tmp.npy").replace(out / "texture_linear.npy")
