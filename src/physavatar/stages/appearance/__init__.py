@@ -15,10 +15,13 @@ modules, in the order of the steps:
 - :mod:`.texture`  1. UV atlas: the template's per-corner UVs, or an automatic ``xatlas`` unwrap
                    when it has none (the paper unwraps by hand in Blender); texel-to-face maps
                    and splatting;
-- :mod:`.initial`  2. initial texture T_0 (the paper's initialization): per-face colours averaged
-                   over frames, splatted into the atlas (each face's UV triangle gets its colour;
-                   empty texels are filled from the nearest filled one so bilinear lookups at
-                   chart borders stay on-chart);
+- :mod:`.initial`  2. initial texture T_0: projected (default; :mod:`.project`: each texel
+                   looked up in the views that see it, with visibility and occlusion-edge tests,
+                   shading divided out in closed form, unseen texels inpainted along the
+                   surface), or the paper's per-face colours averaged over frames, splatted into
+                   the atlas (``init="faces"``);
+- :mod:`.project`  the projection: texel surface points, ray-cast visibility, least squares,
+                   harmonic inpainting over the face graph;
 - :mod:`.scene`    the differentiable scene and the two lighting models:
 
                    - ``ambient`` (the paper): one ambient radiance L_a ∈ R³, initialised to 1.

@@ -10,6 +10,7 @@ from ...errors import PhysavatarError
 from ..base import option, setting, to_dict
 
 LIGHT_MODES = ("ambient", "studio")
+INIT_MODES = ("project", "faces")
 MESH_SOURCES = ("tracked", "gt")
 
 
@@ -43,6 +44,19 @@ class AppearanceConfig:
         init_frame_stride: every k-th frame for the initial per-face colours.
         checkpoint_every: steps between checkpoints (and log flushes).
         seed: (frame, camera) sampling and Monte Carlo seeds.
+        init: how T_0 is made: ``"project"`` (every texel looked up in the views that see it,
+            shading divided out in closed form, unseen texels inpainted along the surface;
+            :mod:`.project`) or ``"faces"`` (the paper: per-face colours averaged over frames).
+        project_views: at most this many (frame, camera) views for ``"project"`` (frames spread
+            evenly over the sequence, every training camera).
+        project_spp: samples per pixel of the irradiance renders of ``"project"``.
+        min_size: the fit never renders images smaller than this (pixels, the larger side):
+            ``scale`` is raised to ``min_size / size`` for small captures (a 256 px capture is
+            fitted at full resolution; at half of it each texel gets a quarter of the pixels).
+        project_passes: 1, or more for iterative back-projection passes after the first
+            (``"project"``; each renders every projection view once more).
+        prior_views: weight of each texel's prior (its face's colour, inpainted where unseen),
+            in views (``"project"``).
     """
 
     meshes: str = option("tracked", "tracked, or gt (ground_truth/meshes.npz of a synthetic capture)",
@@ -68,10 +82,19 @@ class AppearanceConfig:
     init_frame_stride: int = setting(1)
     checkpoint_every: int = setting(50, hash=False)
     seed: int = option(0, "")
+    init: str = option("project", "initial texture: project (texels looked up in the views that see them, shading "
+                       "divided out) or faces (the paper: per-face colours)", choices=INIT_MODES)
+    project_views: int = setting(48)
+    project_spp: int = setting(16)
+    prior_views: float = setting(0.5)
+    project_passes: int = setting(1)
+    min_size: int = setting(256)
 
     def __post_init__(self) -> None:
         if self.light not in LIGHT_MODES:
             raise PhysavatarError(None, f"light model {self.light!r} is not one of {', '.join(LIGHT_MODES)}")
+        if self.init not in INIT_MODES:
+            raise PhysavatarError(None, f"init {self.init!r} is not one of {', '.join(INIT_MODES)}")
         if self.meshes not in MESH_SOURCES:
             raise PhysavatarError(None, f"meshes must be 'tracked' or 'gt', got {self.meshes!r}")
         checks = [("iterations", self.iterations >= 0), ("lr", self.lr > 0), ("spp", self.spp >= 1),
@@ -79,7 +102,10 @@ class AppearanceConfig:
                   ("scale", 0 < self.scale <= 1), ("batch", self.batch >= 1), ("erode_px", self.erode_px >= 0),
                   ("lr_decay_every", self.lr_decay_every >= 1), ("frame_stride", self.frame_stride >= 1),
                   ("init_frame_stride", self.init_frame_stride >= 1), ("checkpoint_every", self.checkpoint_every >= 1),
-                  ("ambient_init", self.ambient_init > 0)]
+                  ("ambient_init", self.ambient_init > 0), ("project_views", self.project_views >= 1),
+                  ("project_spp", self.project_spp >= 1), ("prior_views", self.prior_views >= 0),
+                  ("project_passes", self.project_passes >= 1),
+                  ("min_size", self.min_size >= 1)]
         for name, ok in checks:
             if not ok:
                 raise PhysavatarError(None, f"appearance config: {name}={getattr(self, name)!r} is out of range")
@@ -89,6 +115,12 @@ class AppearanceConfig:
     def to_dict(self) -> dict:
         """JSON-ready fields (``cameras`` as a list); ``AppearanceConfig(**d)`` gives it back."""
         return to_dict(self)
+
+
+def fit_scale(config: AppearanceConfig, width: int, height: int) -> float:
+    """The image scale the fit renders at for a capture of ``width`` × ``height`` pixels:
+    ``config.scale``, raised so that the larger side is at least ``config.min_size`` (at most 1)."""
+    return float(min(1.0, max(config.scale, config.min_size / max(width, height, 1))))
 
 
 def quick_preset(config: AppearanceConfig) -> AppearanceConfig:

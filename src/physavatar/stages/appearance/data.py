@@ -45,7 +45,8 @@ def load_appearance_data(capture: str | Path | Capture, tracked: str | Path | No
     """Capture + mesh sequence: ``meshes="tracked"`` reads ``tracked/tracked.npz`` (vertices,
     face_colors, frames); ``"gt"`` reads ``ground_truth/meshes.npz`` (per-face colours then come
     from the tracked folder when given, else from the images). Both are read as a
-    :class:`~physavatar.data.tracked.TrackedSequence`."""
+    :class:`~physavatar.data.tracked.TrackedSequence`. ``cameras`` None: every camera but those
+    the tracking held out (``tracked/config.json``), which ``evaluate`` scores."""
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
     t = cap.template
     colors = None
@@ -78,6 +79,11 @@ def load_appearance_data(capture: str | Path | Capture, tracked: str | Path | No
     if t.face_uvs is None:
         t = replace(t, face_uvs=uv_atlas(t.vertices, t.faces, texture_size))
     cams = list(cap.cameras)
+    if cameras is None and tracked is not None:
+        # the cameras the tracking held out are scored by `evaluate`: the texture must not see them
+        held = set(tracking_holdout(tracked))
+        if held and len(held) < len(cams):
+            cams = [c for c in cams if c.name not in held]
     if cameras is not None:
         names = {c.name for c in cams}
         bad = [c for c in cameras if c not in names]
@@ -87,6 +93,17 @@ def load_appearance_data(capture: str | Path | Capture, tracked: str | Path | No
     return AppearanceData(cap, t, np.asarray(V, np.float64), frames,
                           None if colors is None else np.asarray(colors, np.float64),
                           meshes, cams)
+
+
+def tracking_holdout(tracked: str | Path) -> tuple[str, ...]:
+    """The cameras the tracking stage held out (its ``config.json``'s ``holdout``), () if none."""
+    from ...files import read_json
+
+    p = Path(tracked)
+    cfg = (p if p.is_dir() else p.parent) / "config.json"
+    if not cfg.is_file():
+        return ()
+    return tuple(read_json(cfg).get("holdout") or ())
 
 
 def _resize(a: np.ndarray, w: int, h: int) -> np.ndarray:

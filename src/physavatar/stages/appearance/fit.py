@@ -24,7 +24,7 @@ from ...render import contact_sheet, linear_to_srgb8
 from ...render.avatar import AvatarMeshes
 from ...render.lights import save_lights
 from ..base import to_dict
-from .config import AppearanceConfig
+from .config import AppearanceConfig, fit_scale
 from .data import AppearanceData, load_appearance_data, load_target
 from .initial import initial_texture
 from .outputs import plot_loss, read_log, write_log
@@ -85,6 +85,8 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
         data = load_appearance_data(capture, tracked, cfg.meshes, cfg.texture_size, cfg.cameras)
     elif data.source != cfg.meshes:
         cfg = replace(cfg, meshes=data.source)
+    # small captures are fitted at (up to) full resolution (config.min_size)
+    cfg = replace(cfg, scale=min(fit_scale(cfg, c.width, c.height) for c in data.cameras))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     prog = resolve(progress)
@@ -93,15 +95,16 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
     write_json_atomic(out / "config.json", {**to_dict(cfg), "tracked": None if tracked is None else str(tracked),
                                             "capture": str(data.capture.root)})
 
-    # 1-2. atlas and initial texture T_0 from per-face colours averaged over frames
-    face_uvs, face_pixels, tex0 = initial_texture(data, cfg, out, prog)
-
-    meshes_ = AvatarMeshes.build(t.vertices, t.faces, face_uvs, t.labels)
+    meshes_ = AvatarMeshes.build(t.vertices, t.faces, t.face_uvs, t.labels)
     lights0 = initial_lights(cfg, data.capture, lighting)
-    renderer = InverseRenderer(meshes_, data.vertices[0], tex0, lights0, cfg.max_depth)
+    white = np.ones((cfg.texture_size, cfg.texture_size, 3), np.float32)
+    renderer = InverseRenderer(meshes_, data.vertices[0], white, lights0, cfg.max_depth)
     amb0, key0 = light_values(lights0)
     if renderer.key_key is None:
         key0 = None
+
+    # 1-2. atlas and initial texture T_0 (projected, or per-face colours averaged over frames)
+    face_uvs, face_pixels, tex0 = initial_texture(data, cfg, out, prog, renderer=renderer, ambient=amb0, key=key0)
 
     # 3. inverse rendering, resumable
     ckpt = out / "checkpoint.npz"
@@ -125,13 +128,13 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
             log = read_log(out / "fit_log.csv")[:start]
             exposure = float(z["exposure"])
     if exposure is None:
-        if cfg.light == "studio":
+        if cfg.light == "studio" and cfg.init == "faces":
             # Known lights: T_0 holds shaded radiance, so bring it to the right overall level
             # (one global factor) before Adam's small steps have to climb there.
             exposure = exposure_scale(renderer, data, tex0, state.get("ambient"), state.get("key"), cfg)
             state["texture"] = np.clip(tex0 * exposure, 0.0, 1.0)
         else:
-            exposure = 1.0  # the paper: T_0 as is, L_a = 1
+            exposure = 1.0  # the paper: T_0 as is, L_a = 1; a projected T_0 is already albedo under the lights
     lr_of = {"texture": cfg.lr, "ambient": cfg.light_lr or cfg.lr, "key": cfg.light_lr or cfg.lr}
 
     with prog.task(f"appearance: inverse rendering ({cfg.light})", total=cfg.iterations) as task:

@@ -82,12 +82,24 @@ def texel_face_map(face_uvs: np.ndarray, size: int) -> np.ndarray:
     v 1). Centres on a shared edge go to one of the two faces; where UV triangles overlap (an
     atlas that mirrors halves onto the same texels) the later face wins.
     """
+    return texel_barycentrics(face_uvs, size)[0]
+
+
+def texel_barycentrics(face_uvs: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`texel_face_map` and the barycentric coordinates of each texel centre in its face.
+
+    Returns:
+        fmap [size, size] int64 (-1: no face); bary [size, size, 3] float64 weights of the face's
+        corners (0 where fmap is -1), so ``Σ_k bary[..., k] · X[faces[fmap, k]]`` is the surface
+        point of a texel for any per-vertex quantity X.
+    """
     size = int(size)
     uv = np.asarray(face_uvs, np.float64)
     # texel coordinates: x = u·size - ½, y = (1 - v)·size - ½, so the centre of (r, c) is (c, r)
     x = uv[..., 0] * size - 0.5
     y = (1.0 - uv[..., 1]) * size - 0.5
     out = -np.ones((size, size), np.int64)
+    bary = np.zeros((size, size, 3))
     x0 = np.clip(np.ceil(x.min(1)), 0, size - 1).astype(np.int64)
     x1 = np.clip(np.floor(x.max(1)), -1, size - 1).astype(np.int64)
     y0 = np.clip(np.ceil(y.min(1)), 0, size - 1).astype(np.int64)
@@ -102,7 +114,8 @@ def texel_face_map(face_uvs: np.ndarray, size: int) -> np.ndarray:
         l2 = ((bx - ax) * (cy - ay) - (cx - ax) * (by - ay)) / det
         inside = (l1 >= 0) & (l2 >= 0) & (l1 + l2 <= 1)
         out[cy[inside], cx[inside]] = f
-    return out
+        bary[cy[inside], cx[inside]] = np.stack([1 - l1[inside] - l2[inside], l1[inside], l2[inside]], -1)
+    return out, bary
 
 
 def fill_empty(texture: np.ndarray, filled: np.ndarray) -> np.ndarray:
