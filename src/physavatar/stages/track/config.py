@@ -166,6 +166,10 @@ class FlowConfig:
         correction_smoothness, correction_prior, correction_iso, correction_bend: the
             corrections' lift: membrane smoothness, pull toward the estimate, edge-length and
             bending terms.
+        silhouette: weight of the silhouette term in every correction
+            (:mod:`~physavatar.stages.track.silhouette`: the estimate's outline pulled onto each
+            training camera's mask outline at full resolution; 0: off). It sees what the flow
+            cannot where the texture is aliased or plain.
     """
 
     smoothness: float = setting(3.0)
@@ -178,6 +182,7 @@ class FlowConfig:
     correction_prior: float = setting(0.01)
     correction_iso: float = setting(10.0)
     correction_bend: float = setting(5.0)
+    silhouette: float = setting(0.0)
 
 
 @dataclass(frozen=True)
