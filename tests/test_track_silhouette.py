@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from physavatar.camera import Camera, intrinsics, look_at, ring_rig
+from physavatar.camera import Camera, intrinsics, ring_rig
 from physavatar.stages.track.flow import FlowPrediction, visible_vertices
 from physavatar.stages.track.silhouette import MaskOutline, silhouette_observation
 

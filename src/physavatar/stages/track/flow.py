@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...camera import Camera
-from .raster import (_in_front, projection_jacobian, rasterize, sample_bilinear,  # noqa: F401 (re-exported)
+from .raster import (_in_front, projection_jacobian, rasterize, sample_bilinear,
                      visible_vertices, zbuffer)
 from .silhouette import MaskOutline, silhouette_observation
 

@@ -37,12 +37,15 @@ from .raster import projection_jacobian, rasterize, sample_bilinear
 def signed_distance(inside: np.ndarray) -> np.ndarray:
     """[H, W] signed distance [px] of each pixel centre to the outline of the binary image
     ``inside`` [H, W] (negative inside), the outline taken halfway between pixel centres."""
-    from scipy.ndimage import distance_transform_edt
+    import cv2
 
     inside = np.asarray(inside, bool)
     if inside.all() or not inside.any():
         return np.full(inside.shape, -1e3 if inside.all() else 1e3)
-    return np.where(inside, 0.5 - distance_transform_edt(inside), distance_transform_edt(~inside) - 0.5)
+    # OpenCV's exact Euclidean distance transform (DIST_MASK_PRECISE), ~5x faster than scipy's
+    d_in = cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    d_out = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.where(inside, 0.5 - d_in, d_out - 0.5).astype(np.float64)
 
 
 def _crop_camera(camera: Camera, x0: int, y0: int, w: int, h: int, factor: int) -> Camera:
@@ -81,16 +84,19 @@ class SilhouetteObservation:
 
 class MaskOutline:
     """One camera's mask as a signed distance field [px] on a crop around it, ``supersample``
-    times finer than the image (module docstring); computed once per frame and camera.
+    times finer than the image (default: a grid of about 1024 px; module docstring); computed once
+    per frame and camera.
 
     Attributes:
         camera: the full-resolution camera. origin: (x0, y0) the crop's first pixel.
         size: (w, h) the crop in image pixels. sdf: [h f, w f, 1] the mask's signed distance [px].
     """
 
-    def __init__(self, camera: Camera, mask: np.ndarray, supersample: int = 4, margin: int = 14):
+    def __init__(self, camera: Camera, mask: np.ndarray, supersample: int | None = None, margin: int = 14):
         import cv2
 
+        if supersample is None:  # a fine grid of about 1024 px: a quarter pixel at 256 px, half at 512
+            supersample = int(np.clip(round(1024 / max(camera.width, camera.height)), 1, 4))
         self.camera, self.factor = camera, supersample
         m = np.asarray(mask, np.float32)
         H, W = m.shape

@@ -245,9 +245,10 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                         term.update(init)
             res = fit_frame(model, init, pyramid, cfg, first=(i == 0), iso=iso, normal=normal, solve=solve,
                             collision=collision, anchor=anchor)
+            # the chain's stages, kept for diagnosis: the start (prediction and corrections) and the fit
+            extra = {} if i == 0 else dict(start_vertices=np.asarray(init, np.float32), fit_vertices=res.vertices)
             res.vertices = starts.refine(i, res.vertices)
             dt = time.perf_counter() - t0
-            extra = {}
             if i == 0:
                 extra = dict(log_scales=model.log_scales.numpy(), opacity_logits=model.opacity_logits.numpy(),
                              edge_index=model.edge_index.numpy())
