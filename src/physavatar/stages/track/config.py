@@ -166,6 +166,10 @@ class FlowConfig:
         correction_smoothness, correction_prior, correction_iso, correction_bend: the
             corrections' lift: membrane smoothness, pull toward the estimate, edge-length and
             bending terms.
+        bend_huber: [m] change of a hinge's distance up to which the bending terms (``bend``,
+            ``correction_bend``) are quadratic; linear beyond (0: quadratic everywhere). A flared
+            skirt forms and opens folds the template does not have; a quadratic pull toward the
+            template's folds then moves the true shape by centimetres.
         silhouette: weight of the silhouette term in every correction
             (:mod:`~physavatar.stages.track.silhouette`: the estimate's outline pulled onto each
             training camera's mask outline at full resolution; 0: off). It sees what the flow
@@ -183,6 +187,7 @@ class FlowConfig:
     correction_iso: float = setting(10.0)
     correction_bend: float = setting(5.0)
     silhouette: float = setting(0.0)
+    bend_huber: float = setting(0.0)
 
 
 @dataclass(frozen=True)

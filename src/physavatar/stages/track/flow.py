@@ -110,6 +110,10 @@ class FlowPrediction:
             value. With the edge lengths held, that distance fixes the hinge's dihedral angle, so
             the term holds the template's folds (zero for the template and any rigid motion of it,
             as L_normal "rest") where the edge lengths alone let a fold slide along itself.
+        bend_huber: [m] the bending term is quadratic up to this change of a hinge's distance and
+            linear beyond (re-weighted each Gauss-Newton iteration; 0: quadratic everywhere), so
+            the template's folds are held against small slides but a fold the garment really forms
+            (a flared skirt swinging out) is not pulled back ever harder.
         collider_faces: [Fc, 3] faces (over the same vertices, none solved) the solved vertices stay
             outside of, by ``collision_margin`` [m], penalty ``collision_weight``, for vertices
             within ``contact_range`` [m] of it (module docstring, 4). None: no collider.
@@ -120,7 +124,7 @@ class FlowPrediction:
                  iterations: int = 3, preset: str = "medium", prior_weight: float = 0.0,
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
-                 bend_weight: float = 0.0):
+                 bend_weight: float = 0.0, bend_huber: float = 0.0):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -139,6 +143,7 @@ class FlowPrediction:
         self.prior_weight = prior_weight
         self.iso_weight = iso_weight
         self.bend_weight = bend_weight
+        self.bend_huber = bend_huber
         self._hinges = _hinge_pairs(smooth_faces, self.solve)
         self._rest_lengths = self._rest_hinges = None
         if rest is not None:
@@ -257,6 +262,11 @@ class FlowPrediction:
             if bend > 0 and len(self._hinges):
                 # the same on the distances across the interior edges (the hinges' dihedral angles)
                 D, r = self._length_jacobian(X, self._hinges, self._rest_hinges)
+                if self.bend_huber > 0:
+                    # Huber: a hinge whose distance has moved more than bend_huber from the rest's
+                    # (a fold that formed or opened) is pulled back with a bounded force
+                    sw = np.sqrt(np.minimum(1.0, self.bend_huber / np.maximum(np.abs(r), 1e-12)))
+                    D, r = sp.diags(sw) @ D, sw * r
                 M = M + bend * (D.T @ D)
                 rhs = rhs + bend * (D.T @ (D @ d_cur.ravel() - r))
             if contact is not None:
