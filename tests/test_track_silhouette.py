@@ -3,7 +3,8 @@
 - MaskOutline: the signed distance of an antialiased disc's mask, at points around its outline,
   against the analytic distance to the circle (sub-pixel, no bias);
 - silhouette observations of a sphere mesh shrunk by 4 % recover its radius in a lift with no
-  texture at all (only the masks of four cameras), where the flow has nothing to see.
+  texture at all (only the masks of four cameras), where the flow has nothing to see;
+- fit_scale: the finest fitting level of a small capture raised to ``min_px`` pixels.
 """
 
 from __future__ import annotations
@@ -79,3 +80,13 @@ def test_silhouettes_recover_a_shrunk_sphere_without_texture():
     ring = np.abs(V[:, 2]) < 0.3 * R  # near the cameras' plane: seen as outline by some camera
     assert abs(rad[ring].mean() - R) < 1.5e-3, rad[ring].mean() - R
     assert abs(np.linalg.norm(est, axis=1)[ring].mean() - R) > 7e-3
+
+
+def test_fit_scale_raises_the_finest_level_of_a_small_capture():
+    from physavatar.stages.track.config import FitConfig, fit_scale
+
+    cams = lambda w: [Camera("a", w, w // 2, intrinsics(w, w // 2, 40.0), np.eye(4))]
+    assert fit_scale(FitConfig(scale=0.25), cams(256)) == 0.25  # min_px 0: as given
+    assert fit_scale(FitConfig(scale=0.25, min_px=128), cams(256)) == 0.5  # 128 px at the finest level
+    assert fit_scale(FitConfig(scale=0.25, min_px=128), cams(512)) == 0.25  # large enough already
+    assert fit_scale(FitConfig(scale=0.25, min_px=128), cams(96)) == 1.0  # never above the images

@@ -18,6 +18,8 @@ class FitConfig:
 
     Attributes:
         scale: resolution factor of the finest pyramid level w.r.t. the capture's images.
+        min_px: the finest level's longer side in pixels at least (``scale`` raised for a small
+            capture, never above 1; 0: ``scale`` as given). See :func:`fit_scale`.
         levels: pyramid levels as fractions of ``scale``, coarse to fine.
         iters_first, iters: maximum iterations per level for frame 1 and for later frames.
         level_iters: maximum iterations of frames t > 1 per level (coarse to fine); None:
@@ -44,6 +46,7 @@ class FitConfig:
     """
 
     scale: float = option(0.25, "resolution factor of the finest level, in (0, 1]")
+    min_px: int = setting(0)
     levels: tuple[float, ...] = setting((0.5, 1.0))
     iters_first: int = option(150, "max iterations per pyramid level, frame 1")
     iters: int = option(15, "max iterations per pyramid level, later frames")
@@ -61,6 +64,15 @@ class FitConfig:
     uniform_quantile: float = setting(0.5)
     smoothing: float = setting(10.0)
     target_blur: float = setting(0.0)
+
+
+def fit_scale(fit: FitConfig, cameras) -> float:
+    """The finest level's resolution factor for ``cameras``: ``fit.scale``, raised so the largest
+    training image is at least ``fit.min_px`` pixels on its longer side there (at most 1)."""
+    if fit.min_px <= 0:
+        return fit.scale
+    size = max(max(c.width, c.height) for c in cameras)
+    return min(1.0, max(fit.scale, fit.min_px / size))
 
 
 @dataclass(frozen=True)
