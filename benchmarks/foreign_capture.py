@@ -10,7 +10,9 @@ runs `physavatar run` on each (pipeline.run, in process, `--quick` budgets unles
 writes benchmarks/results/foreign_capture.json:
 
 - tracking: garment / body mean and p95 vertex error per frame, and the garment's last-quarter
-  over first-quarter ratio (frames after the first);
+  over first-quarter ratio (frames after the first); per frame, the garment's error after each
+  stage of the chain (start, fit, final), at the hem and the waist, and hidden from every training
+  camera or seen (benchmarks/foreign_tracking.py, which also tracks the captures alone);
 - material fit: RMS residual of the fit on the tracked garment and of the "oracle" fit on the
   true meshes (the model gap to Newton without tracking error);
 - held-out motion: garment chamfer distance ×10³ of the estimated material, LBS, a random
@@ -172,6 +174,16 @@ def figures_for(cfg: ForeignConfig, capture: Path, run_dir: Path, record: dict) 
                            "garment_per_frame_mean_mm": g["per_frame_mean_mm"],
                            "garment_last_over_first_quarter": quarter_ratio(g["per_frame_mean_mm"]),
                            "body_mean_mm": tr["body"]["mean_mm"], "body_p95_mm": tr["body"]["p95_mm"]}
+        track_dir = run_dir / "track"
+        if (track_dir / "config.json").exists():  # stage by stage, hem / waist, hidden / seen
+            from foreign_tracking import tracking_figures
+            from physavatar.capture import load_capture
+
+            held = json.loads((track_dir / "config.json").read_text())["holdout"]
+            cap = load_capture(capture)
+            names = [c.name for c in cap.cameras if c.name not in held]
+            fig["tracking"]["breakdown_mm"] = tracking_figures(capture, track_dir, cap.frames[:len(g["per_frame_mean_mm"])],
+                                                               names)["per_frame_mm"]
     fits = {}
     for step in ("physics", "oracle"):
         f = run_dir / step / "material.json"

@@ -24,7 +24,9 @@ Outputs (:func:`run`; settings :class:`TrackConfig`, in groups ``fit``, ``loss``
     out/config.json            the exact TrackConfig, nested by group (holdout resolved to camera
                                names), and the capture's path
     out/frames/<frame>.npz     vertices [V, 3] float32, face_colors [F, 3] (linear RGB);
-                               the first frame also log_scales [F, 2], opacity_logits [F], edge_index [F]
+                               the first frame also log_scales [F, 2], opacity_logits [F], edge_index [F];
+                               later frames also start_vertices, fit_vertices [V, 3] (the frame's
+                               start and its fit before the final corrections, for diagnosis)
     out/meshes/<frame>.ply     the tracked mesh with per-vertex label and boundary
     out/track_log.csv          frame, iterations, final loss terms, seconds
     out/tracked.npz            vertices [T, V, 3], faces, labels, face_colors [T, F, 3], frames, ...

@@ -18,6 +18,8 @@ class FitConfig:
 
     Attributes:
         scale: resolution factor of the finest pyramid level w.r.t. the capture's images.
+        min_px: the finest level's longer side in pixels at least (``scale`` raised for a small
+            capture, never above 1; 0: ``scale`` as given). See :func:`fit_scale`.
         levels: pyramid levels as fractions of ``scale``, coarse to fine.
         iters_first, iters: maximum iterations per level for frame 1 and for later frames.
         level_iters: maximum iterations of frames t > 1 per level (coarse to fine); None:
@@ -44,6 +46,7 @@ class FitConfig:
     """
 
     scale: float = option(0.25, "resolution factor of the finest level, in (0, 1]")
+    min_px: int = setting(0)
     levels: tuple[float, ...] = setting((0.5, 1.0))
     iters_first: int = option(150, "max iterations per pyramid level, frame 1")
     iters: int = option(15, "max iterations per pyramid level, later frames")
@@ -61,6 +64,15 @@ class FitConfig:
     uniform_quantile: float = setting(0.5)
     smoothing: float = setting(10.0)
     target_blur: float = setting(0.0)
+
+
+def fit_scale(fit: FitConfig, cameras) -> float:
+    """The finest level's resolution factor for ``cameras``: ``fit.scale``, raised so the largest
+    training image is at least ``fit.min_px`` pixels on its longer side there (at most 1)."""
+    if fit.min_px <= 0:
+        return fit.scale
+    size = max(max(c.width, c.height) for c in cameras)
+    return min(1.0, max(fit.scale, fit.min_px / size))
 
 
 @dataclass(frozen=True)
@@ -166,6 +178,14 @@ class FlowConfig:
         correction_smoothness, correction_prior, correction_iso, correction_bend: the
             corrections' lift: membrane smoothness, pull toward the estimate, edge-length and
             bending terms.
+        bend_huber: [m] change of a hinge's distance up to which the bending terms (``bend``,
+            ``correction_bend``) are quadratic; linear beyond (0: quadratic everywhere). A flared
+            skirt forms and opens folds the template does not have; a quadratic pull toward the
+            template's folds then moves the true shape by centimetres.
+        silhouette: weight of the silhouette term in every correction
+            (:mod:`~physavatar.stages.track.silhouette`: the estimate's outline pulled onto each
+            training camera's mask outline at full resolution; 0: off). It sees what the flow
+            cannot where the texture is aliased or plain.
     """
 
     smoothness: float = setting(3.0)
@@ -178,6 +198,8 @@ class FlowConfig:
     correction_prior: float = setting(0.01)
     correction_iso: float = setting(10.0)
     correction_bend: float = setting(5.0)
+    silhouette: float = setting(0.0)
+    bend_huber: float = setting(0.0)
 
 
 @dataclass(frozen=True)

@@ -34,100 +34,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import scipy.sparse as sp
 
 from ...camera import Camera
-
-
-@numba.njit(cache=True)
-def _raster_kernel(uv, z, faces, H, W, depth, face_id, bary):
-    for f in range(faces.shape[0]):
-        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-        if z[a] <= 0.0 or z[b] <= 0.0 or z[c] <= 0.0:
-            continue
-        x0, y0 = uv[a, 0], uv[a, 1]
-        x1, y1 = uv[b, 0], uv[b, 1]
-        x2, y2 = uv[c, 0], uv[c, 1]
-        den = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
-        if abs(den) < 1e-12:
-            continue
-        umin = max(int(np.ceil(min(x0, x1, x2))), 0)
-        umax = min(int(np.floor(max(x0, x1, x2))), W - 1)
-        vmin = max(int(np.ceil(min(y0, y1, y2))), 0)
-        vmax = min(int(np.floor(max(y0, y1, y2))), H - 1)
-        for v in range(vmin, vmax + 1):
-            for u in range(umin, umax + 1):
-                l0 = ((y1 - y2) * (u - x2) + (x2 - x1) * (v - y2)) / den
-                l1 = ((y2 - y0) * (u - x2) + (x0 - x2) * (v - y2)) / den
-                l2 = 1.0 - l0 - l1
-                if l0 < 0.0 or l1 < 0.0 or l2 < 0.0:
-                    continue
-                # perspective-correct depth and barycentrics: attribute/z is affine in screen space
-                q0, q1, q2 = l0 / z[a], l1 / z[b], l2 / z[c]
-                s = q0 + q1 + q2
-                d = 1.0 / s
-                if d < depth[v, u]:
-                    depth[v, u] = d
-                    face_id[v, u] = f
-                    bary[v, u, 0] = q0 / s
-                    bary[v, u, 1] = q1 / s
-                    bary[v, u, 2] = q2 / s
-
-
-def rasterize(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest triangle through every pixel centre.
-
-    Args:
-        vertices: [V, 3] world points. faces: [F, 3]. camera: the view.
-    Returns:
-        depth: [H, W] camera-space z of the nearest triangle through the pixel centre (inf where
-        none); face: [H, W] int64 that triangle's index (-1 where none); bary: [H, W, 3] the
-        pixel centre's barycentric coordinates on that triangle, perspective-correct (the 3D
-        point is ``bary @ vertices[faces[face]]``). Triangles with a vertex behind the camera
-        are skipped.
-    """
-    uv, z = camera.project(np.asarray(vertices, np.float64))
-    depth = np.full((camera.height, camera.width), np.inf)
-    face = np.full((camera.height, camera.width), -1, np.int64)
-    bary = np.zeros((camera.height, camera.width, 3))
-    _raster_kernel(np.ascontiguousarray(uv), np.ascontiguousarray(z), np.ascontiguousarray(faces, dtype=np.int64),
-                   camera.height, camera.width, depth, face, bary)
-    return depth, face, bary
-
-
-def zbuffer(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """(depth [H, W], face [H, W]) of :func:`rasterize`."""
-    depth, face, _ = rasterize(vertices, faces, camera)
-    return depth, face
-
-
-def visible_vertices(vertices: np.ndarray, faces: np.ndarray, camera: Camera,
-                     depth_tolerance: float = 5e-3, depth: np.ndarray | None = None,
-                     face: np.ndarray | None = None) -> np.ndarray:
-    """[V] bool: vertices inside the image whose depth is within ``depth_tolerance`` [m] of the
-    nearest surface at their pixel, or whose pixel shows one of their own triangles (a vertex on
-    a steep slope: the pixel centre's depth differs from the vertex's by more than the tolerance).
-    ``depth``, ``face``: a :func:`zbuffer` of the same mesh (computed when not given)."""
-    if depth is None or face is None:
-        depth, face = zbuffer(vertices, faces, camera)
-    uv, z = camera.project(np.asarray(vertices, np.float64))
-    front, (v, u) = _in_front(uv, z, depth, depth_tolerance)
-    f = face[v, u]
-    own = (f >= 0) & (np.asarray(faces)[np.maximum(f, 0)] == np.arange(len(uv))[:, None]).any(1)
-    H, W = depth.shape
-    inside = (z > 0) & (uv[:, 0] > -0.5) & (uv[:, 0] < W - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < H - 0.5)
-    return inside & (front | own)
-
-
-def _in_front(uv: np.ndarray, z: np.ndarray, depth: np.ndarray, tolerance: float) -> tuple[np.ndarray, tuple]:
-    """([N] bool: points at pixels ``uv`` [N, 2] with depth ``z`` within ``tolerance`` of the
-    z-buffer ``depth`` at their nearest pixel, (row, column) of that pixel)."""
-    H, W = depth.shape
-    u = np.clip(np.rint(uv[:, 0]), 0, W - 1).astype(np.int64)
-    v = np.clip(np.rint(uv[:, 1]), 0, H - 1).astype(np.int64)
-    return z <= depth[v, u] + tolerance, (v, u)
+from .raster import (_in_front, projection_jacobian, rasterize, sample_bilinear,
+                     visible_vertices, zbuffer)
+from .silhouette import MaskOutline, silhouette_observation
 
 
 def to_gray8(image: np.ndarray) -> np.ndarray:
@@ -156,36 +69,6 @@ def optical_flow(image0: np.ndarray, image1: np.ndarray, preset: str = "medium")
     return dis.calc(a, b, None).astype(np.float64)
 
 
-def sample_bilinear(field: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """[N, C] ``field`` [H, W, C] at pixel positions ``uv`` [N, 2] (x, y; clamped to the image)."""
-    H, W = field.shape[:2]
-    x = np.clip(uv[:, 0], 0.0, W - 1.000001)
-    y = np.clip(uv[:, 1], 0.0, H - 1.000001)
-    x0 = np.floor(x).astype(np.int64)
-    y0 = np.floor(y).astype(np.int64)
-    fx = (x - x0)[:, None]
-    fy = (y - y0)[:, None]
-    x1 = np.minimum(x0 + 1, W - 1)
-    y1 = np.minimum(y0 + 1, H - 1)
-    return (field[y0, x0] * (1 - fx) * (1 - fy) + field[y0, x1] * fx * (1 - fy)
-            + field[y1, x0] * (1 - fx) * fy + field[y1, x1] * fx * fy)
-
-
-def projection_jacobian(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Projections uv [N, 2], depths z [N] and d(uv)/d(point) [N, 2, 3] of world ``points``."""
-    pc = camera.world_to_camera(points)
-    z = pc[:, 2]
-    fx, fy = camera.K[0, 0], camera.K[1, 1]
-    Jc = np.zeros((len(points), 2, 3))
-    Jc[:, 0, 0] = fx / z
-    Jc[:, 0, 1] = camera.K[0, 1] / z
-    Jc[:, 0, 2] = -(fx * pc[:, 0] + camera.K[0, 1] * pc[:, 1]) / z**2
-    Jc[:, 1, 1] = fy / z
-    Jc[:, 1, 2] = -fy * pc[:, 1] / z**2
-    uv = camera.project(points)[0]
-    return uv, z, Jc @ camera.w2c[:3, :3]
-
-
 @dataclass
 class FlowObservation:
     """Where camera ``camera`` sees vertex ``vertex`` [N] in the next frame: pixel ``target`` [N, 2]."""
@@ -193,6 +76,19 @@ class FlowObservation:
     camera: Camera
     vertex: np.ndarray
     target: np.ndarray
+
+    def normal_equations(self, X: np.ndarray, huber_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(vertex [N], JᵀJ [N, 3, 3], Jᵀr [N, 3]) of the Huber-weighted reprojection errors at
+        ``X`` [V, 3], in metres at the vertex (pixels times depth over focal length)."""
+        uv, z, J = projection_jacobian(self.camera, X[self.vertex])
+        r = uv - self.target
+        nr = np.linalg.norm(r, axis=1)
+        w = np.where(nr < huber_px, 1.0, huber_px / np.maximum(nr, 1e-12))
+        s = (z / self.camera.K[0, 0])[:, None]  # pixels -> metres at the vertex
+        Jm = J * s[:, :, None]
+        rm = r * s
+        return (self.vertex, np.einsum("nki,nkj->nij", Jm, Jm) * w[:, None, None],
+                np.einsum("nki,nk->ni", Jm, rm) * w[:, None])
 
 
 class FlowPrediction:
@@ -214,6 +110,10 @@ class FlowPrediction:
             value. With the edge lengths held, that distance fixes the hinge's dihedral angle, so
             the term holds the template's folds (zero for the template and any rigid motion of it,
             as L_normal "rest") where the edge lengths alone let a fold slide along itself.
+        bend_huber: [m] the bending term is quadratic up to this change of a hinge's distance and
+            linear beyond (re-weighted each Gauss-Newton iteration; 0: quadratic everywhere), so
+            the template's folds are held against small slides but a fold the garment really forms
+            (a flared skirt swinging out) is not pulled back ever harder.
         collider_faces: [Fc, 3] faces (over the same vertices, none solved) the solved vertices stay
             outside of, by ``collision_margin`` [m], penalty ``collision_weight``, for vertices
             within ``contact_range`` [m] of it (module docstring, 4). None: no collider.
@@ -224,7 +124,7 @@ class FlowPrediction:
                  iterations: int = 3, preset: str = "medium", prior_weight: float = 0.0,
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
-                 bend_weight: float = 0.0):
+                 bend_weight: float = 0.0, bend_huber: float = 0.0):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -243,6 +143,7 @@ class FlowPrediction:
         self.prior_weight = prior_weight
         self.iso_weight = iso_weight
         self.bend_weight = bend_weight
+        self.bend_huber = bend_huber
         self._hinges = _hinge_pairs(smooth_faces, self.solve)
         self._rest_lengths = self._rest_hinges = None
         if rest is not None:
@@ -282,20 +183,31 @@ class FlowPrediction:
     def correct(self, vertices: np.ndarray, cameras: list[Camera], images: list[np.ndarray],
                 reference: ReferenceAppearance, iterations: int = 2, smoothness: float = 1.0,
                 prior_weight: float = 0.1, preset: str = "fine", iso_weight: float | None = None,
-                bend_weight: float | None = None) -> np.ndarray:
+                bend_weight: float | None = None, masks: list[np.ndarray] | None = None,
+                silhouette_weight: float = 0.0) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
         frame t's images by model-based flow (module docstring): each iteration renders the mesh
         as the reference frame saw it (:class:`ReferenceAppearance`), measures the flow from that
         synthetic view to the real one per camera, and lifts it (``smoothness`` and
         ``prior_weight`` toward the estimate). Unlike frame-to-frame flow, the error does not
-        accumulate: the texture is always the reference frame's."""
+        accumulate: the texture is always the reference frame's.
+
+        ``masks`` (frame t's masks of ``cameras``, full resolution) with ``silhouette_weight`` > 0
+        add each camera's :class:`~.silhouette.SilhouetteObservation`: the estimate's outline
+        pulled onto the mask's, which sees what an aliased or plain texture does not."""
         X = np.asarray(vertices, np.float64).copy()
         grey = [to_gray8(im) for im in images]
+        outlines = ([MaskOutline(cam, m) for cam, m in zip(cameras, masks)]
+                    if masks is not None and silhouette_weight > 0 else None)
         for _ in range(iterations):
-            obs = []
-            for cam, g1 in zip(cameras, grey):
+            obs: list = []
+            for k, (cam, g1) in enumerate(zip(cameras, grey)):
                 synth, valid, depth, face = reference.render(X, cam, fill=g1)
                 obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset))
+                if outlines is not None:
+                    seen = visible_vertices(X, self.faces, cam, self.depth_tolerance, depth, face)
+                    obs.append(silhouette_observation(X, self.faces, self.solve, outlines[k], seen,
+                                                      weight=silhouette_weight))
             X = self.lift(X, obs, smoothness=smoothness, prior_weight=prior_weight, iso_weight=iso_weight,
                           bend_weight=bend_weight)
         return X
@@ -330,16 +242,8 @@ class FlowPrediction:
             for o in observations:
                 if len(o.vertex) == 0:
                     continue
-                uv, z, J = projection_jacobian(o.camera, X[o.vertex])
-                r = uv - o.target
-                nr = np.linalg.norm(r, axis=1)
-                w = np.where(nr < self.huber_px, 1.0, self.huber_px / np.maximum(nr, 1e-12))
-                s = (z / o.camera.K[0, 0])[:, None]  # pixels -> metres at the vertex
-                Jm = J * s[:, :, None]
-                rm = r * s
-                JtJ = np.einsum("nki,nkj->nij", Jm, Jm) * w[:, None, None]
-                Jtr = np.einsum("nki,nk->ni", Jm, rm) * w[:, None]
-                p = self.pos[o.vertex]
+                vertex, JtJ, Jtr = o.normal_equations(X, self.huber_px)
+                p = self.pos[vertex]
                 for i in range(3):
                     b[:, i] -= np.bincount(p, Jtr[:, i], n)
                     for j in range(3):
@@ -358,6 +262,11 @@ class FlowPrediction:
             if bend > 0 and len(self._hinges):
                 # the same on the distances across the interior edges (the hinges' dihedral angles)
                 D, r = self._length_jacobian(X, self._hinges, self._rest_hinges)
+                if self.bend_huber > 0:
+                    # Huber: a hinge whose distance has moved more than bend_huber from the rest's
+                    # (a fold that formed or opened) is pulled back with a bounded force
+                    sw = np.sqrt(np.minimum(1.0, self.bend_huber / np.maximum(np.abs(r), 1e-12)))
+                    D, r = sp.diags(sw) @ D, sw * r
                 M = M + bend * (D.T @ D)
                 rhs = rhs + bend * (D.T @ (D @ d_cur.ravel() - r))
             if contact is not None:
@@ -443,21 +352,24 @@ class FlowStart:
                           if corrections > 0 or final_corrections > 0 else None)
 
     def __call__(self, previous: np.ndarray, previous_grey: list[np.ndarray], grey: list[np.ndarray],
-                 start: np.ndarray) -> np.ndarray:
+                 start: np.ndarray, masks: list[np.ndarray] | None = None) -> np.ndarray:
         """[V, 3] float64 start of frame t. previous: [V, 3] tracked frame t-1; previous_grey,
         grey: :func:`to_gray8` views of frames t-1 and t; start: [V, 3] the other vertices' start
-        (and the prior of the solved ones)."""
+        (and the prior of the solved ones); masks: frame t's masks for the corrections'
+        silhouette term (``correction["silhouette_weight"]``)."""
         X = self.flow(previous, self.cameras, previous_grey, grey, start=start)
         if self.corrections > 0:
-            X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections, **self.correction)
+            X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections, masks=masks,
+                                  **self.correction)
         return X
 
-    def refine(self, vertices: np.ndarray, grey: list[np.ndarray]) -> np.ndarray:
+    def refine(self, vertices: np.ndarray, grey: list[np.ndarray], masks: list[np.ndarray] | None = None) -> np.ndarray:
         """[V, 3] float64: ``final_corrections`` corrections of the solved vertices of frame t's
-        fitted ``vertices`` [V, 3] against its views ``grey`` (:func:`to_gray8`)."""
+        fitted ``vertices`` [V, 3] against its views ``grey`` (:func:`to_gray8`) and ``masks``."""
         if self.final_corrections == 0:
             return np.asarray(vertices, np.float64)
-        return self.flow.correct(vertices, self.cameras, grey, self.reference, self.final_corrections, **self.correction)
+        return self.flow.correct(vertices, self.cameras, grey, self.reference, self.final_corrections, masks=masks,
+                                 **self.correction)
 
 
 class ReferenceAppearance:

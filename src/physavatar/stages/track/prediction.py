@@ -228,10 +228,11 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
     body_faces = t.faces[(~t.garment_mask[t.faces]).all(1)]
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.smoothness, rest=t.vertices,
                           iso_weight=cfg.iso, collider_faces=body_faces, collision_weight=cfg.collision,
-                          bend_weight=cfg.bend)
+                          bend_weight=cfg.bend, bend_huber=cfg.bend_huber)
     return FlowStart(lift, train, first_vertices, first_grey, cfg.corrections, cfg.final_corrections,
                      dict(smoothness=cfg.correction_smoothness, prior_weight=cfg.correction_prior,
-                          iso_weight=cfg.correction_iso, bend_weight=cfg.correction_bend))
+                          iso_weight=cfg.correction_iso, bend_weight=cfg.correction_bend,
+                          silhouette_weight=cfg.silhouette))
 
 
 
@@ -262,11 +263,15 @@ class FrameStarts:
         self.use_flow = self.mixed and p.garment == "flow" and free
         self.flow: FlowStart | None = None  # built at frame 2: frame 1 may come from a resumed run
         self._grey: dict[int, list[np.ndarray]] = {}  # frame -> training views' luma
+        self._masks: dict[int, list[np.ndarray]] = {}  # frame -> training views' masks (silhouette term)
 
     def observe(self, frame: int, images: list[np.ndarray]) -> None:
-        """The training views of ``frame`` (full-resolution sRGB), kept as grey for the flow."""
+        """The training views of ``frame`` (full-resolution sRGB), kept as grey for the flow, and
+        their masks for the corrections' silhouette term."""
         if self.use_flow:
             self._grey[frame] = [to_gray8(im) for im in images]
+            if self.cfg.flow.silhouette > 0 and self.cap.has_masks and frame != self.frames[0]:
+                self._masks[frame] = [self.cap.mask(c.name, frame) for c in self.train]
 
     def start(self, i: int, tracked: list[np.ndarray]) -> np.ndarray:
         """[V, 3] float32 start of ``frames[i]`` (i >= 1) from ``tracked``, the fitted frames before it."""
@@ -280,7 +285,8 @@ class FrameStarts:
                 if self.flow is None:
                     first = self._grey.get(self.frames[0]) or grey_views(self.cap, self.frames[0], self.train)
                     self.flow = flow_start(self.cfg.flow, self.template, self.train, tracked[0], first, self.skinned)
-                init = self.flow(tracked[-1], self._grey.pop(prev), self._grey[f], init).astype(np.float32)
+                init = self.flow(tracked[-1], self._grey.pop(prev), self._grey[f], init,
+                                 self._masks.get(f)).astype(np.float32)
             if self.physics is not None and i >= 2:
                 x = self.physics(tracked[-2], tracked[-1], self.skin.skin(i - 1), self.skin.skin(i), p.velocity,
                                  self.smooth)
@@ -296,5 +302,6 @@ class FrameStarts:
     def refine(self, i: int, vertices: np.ndarray) -> np.ndarray:
         """``frames[i]``'s fitted ``vertices`` after ``flow.final_corrections`` flow corrections."""
         if self.flow is not None and i > 0 and self.cfg.flow.final_corrections > 0:
-            return self.flow.refine(vertices, self._grey[self.frames[i]]).astype(np.float32)
+            f = self.frames[i]
+            return self.flow.refine(vertices, self._grey[f], self._masks.pop(f, None)).astype(np.float32)
         return vertices

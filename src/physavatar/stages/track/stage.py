@@ -18,7 +18,7 @@ from ...errors import PhysavatarError
 from ...files import PlyMesh, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
 from ...progress import resolve
 from ..base import to_dict
-from .config import TrackConfig
+from .config import TrackConfig, fit_scale
 from .fit import fit_frame, smoothing_solver
 from .gaussians import MeshGaussians
 from .losses import AnchorLoss, CollisionLoss, IsometryLoss, NormalLoss
@@ -77,8 +77,9 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
 
         if pred.material not in PRESETS:
             raise PhysavatarError(None, f"prediction_material must be one of {sorted(PRESETS)}, got {pred.material!r}")
+    scale = fit_scale(fit, train)
     for c in train:
-        if min(round(c.width * fit.scale * min(fit.levels)), round(c.height * fit.scale * min(fit.levels))) < 11:
+        if min(round(c.width * scale * min(fit.levels)), round(c.height * scale * min(fit.levels))) < 11:
             raise PhysavatarError(None, f"option --scale: camera {c.name} would be smaller than 11 px "
                                         "at the coarsest level (SSIM's window); use a larger --scale")
     return train, capture.frames[:n]
@@ -197,7 +198,7 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
     iso = IsometryLoss(t.vertices, t.faces) if cfg.loss.iso_weight > 0 else None
     normal = (NormalLoss(t.faces, t.vertices if cfg.loss.normal_mode == "rest" else None)
               if cfg.loss.normal_weight > 0 else None)
-    factors = [cfg.fit.scale * lv for lv in cfg.fit.levels]
+    factors = [fit_scale(cfg.fit, train) * lv for lv in cfg.fit.levels]
     solve = smoothing_solver(len(t.vertices), t.faces, cfg.fit.smoothing) if cfg.fit.smoothing > 0 else None
     log_path = out / "track_log.csv"
     log = _read_log(log_path)
@@ -245,9 +246,10 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                         term.update(init)
             res = fit_frame(model, init, pyramid, cfg, first=(i == 0), iso=iso, normal=normal, solve=solve,
                             collision=collision, anchor=anchor)
+            # the chain's stages, kept for diagnosis: the start (prediction and corrections) and the fit
+            extra = {} if i == 0 else dict(start_vertices=np.asarray(init, np.float32), fit_vertices=res.vertices)
             res.vertices = starts.refine(i, res.vertices)
             dt = time.perf_counter() - t0
-            extra = {}
             if i == 0:
                 extra = dict(log_scales=model.log_scales.numpy(), opacity_logits=model.opacity_logits.numpy(),
                              edge_index=model.edge_index.numpy())
