@@ -174,13 +174,27 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
             steps["body"] = "fitted (Anny, every frame)"
         seconds["body"] = time.time() - t
 
+        # -- the hull refined against the images and the body
+        V_hull, on_body = None, None
+        if mesh_source == "visual hull" and (cfg.refine.photo or cfg.refine.body_prior):
+            t = time.time()
+            V_hull = V
+            V, info = _refine(raw, cfg, V, F, body, masks_of(first), prog)
+            on_body = info.pop("_on_body", None)
+            numbers["refine"] = info
+            steps["mesh"] += "; refined: " + " and ".join(
+                [w for w, on in (("photo-consistency", cfg.refine.photo), ("body where unseen", cfg.refine.body_prior))
+                 if on])
+            seconds["refine"] = time.time() - t
+
         # -- segmentation, boundary, UVs, template
         if labelled:
             link_file(given_template, tmp / "template" / "mesh.ply", True)
             for k in ("segmentation", "boundary", "uv"):
                 steps[k] = "given"
         else:
-            _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog)
+            _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog,
+                      V_hull, on_body)
 
         if (src / "ground_truth").is_dir():
             t = time.time()
@@ -209,7 +223,22 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
     return out
 
 
-def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog):
+def _refine(raw, cfg: PrepareConfig, V, F, body, masks, prog):
+    from ...capture import _read_png
+    from .refine import refine_hull
+
+    model, posed = pose_body(body, [0])
+    images = {c.name: _read_png(raw.image_path(c.name, raw.frames[0]), "RGB") for c in raw.cameras} \
+        if cfg.refine.photo else {}
+    with prog.task("prepare: refining the hull", total=1) as task:
+        V, info = refine_hull(V, F, raw.cameras, images, {k: v.astype(np.float64) for k, v in masks.items()},
+                              posed[0], np.asarray(model.faces, np.int64), cfg.refine)
+        task.advance()
+    return V, info
+
+
+def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog,
+                      V_hull, on_body):
     """Segmentation, garment pieces, boundary and UVs; writes template/mesh.ply."""
     from .boundary import boundary_from_points, boundary_points, find_boundary
     from .segment import garment_pieces, segment, transfer_labels, user_labels
@@ -243,11 +272,15 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
             seg = replace(seg, margin=max(seg.margin, foot), softness=max(seg.softness, foot / 3))
             numbers["segmentation_margin"] = round(seg.margin, 4)
         with prog.task("prepare: segmentation", total=1) as task:
-            labels, info = segment(V, F, BV, BF, raw.cameras, images, seg, cfg.mesh.edge_length)
+            labels, info = segment(V if V_hull is None else V_hull, F, BV, BF, raw.cameras, images, seg,
+                                   cfg.mesh.edge_length)
             task.advance(garment=info["garment_vertices"])
         numbers["segmentation"] = {k: v for k, v in info.items() if not isinstance(v, np.ndarray)}
         numbers["_distance"] = info["signed_distance"]
         bridge = info["bridge_mask"]
+        if on_body is not None:
+            labels = np.where(on_body, LABEL_BODY, labels)
+            bridge = bridge | on_body
         steps["segmentation"] = "automatic: distance to the body + colour, graph cut"
     if not (labels > LABEL_BODY).any():
         raise PhysavatarError(src, "no garment found on the first-frame mesh (every vertex is within the garment "
@@ -255,6 +288,13 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     # the garments are cut out without the hull's bridges: cloth ends at its hem
     cut = np.where(bridge, LABEL_BODY, labels) if bridge is not None else labels
     pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece)
+    # the boundary's contact test is set for the hull too (the refined surface of a strap or a
+    # bodice lies on the body all along): the same pieces at their hull positions
+    contact_pieces = pieces
+    if V_hull is not None:
+        hp = garment_pieces(V_hull, F, cut, BV, BF, min_share=cfg.segment.min_piece)
+        if [(g, f.shape) for g, _, f in hp] == [(g, f.shape) for g, _, f in pieces]:
+            contact_pieces = hp
     if not pieces:
         raise PhysavatarError(src, "the garment region of the first-frame mesh has no usable surface piece")
     from ...files import save_npz_atomic
@@ -267,14 +307,14 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     info_b = {}
     override = boundary_points(cfg.boundary.file) if cfg.boundary.file is not None else None
     with prog.task("prepare: boundary", total=len(pieces)) as task:
-        for g, Vg, Fg in pieces:
+        for (g, Vg, Fg), (_, Vc, _) in zip(pieces, contact_pieces):
             if override is not None:
                 b = boundary_from_points(Vg, override, cfg.mesh.edge_length)
                 if not b.any():
                     raise PhysavatarError(cfg.boundary.file, f"no vertex of garment {g} is within "
                                           f"{cfg.mesh.edge_length} m of the boundary points")
             else:
-                b, info_b[str(g)] = find_boundary(Vg, Fg, posed, BF, raw.cameras,
+                b, info_b[str(g)] = find_boundary(Vc, Fg, posed, BF, raw.cameras,
                                                   lambda i: masks_of(raw.frames[sample[i]]), sample, cfg.boundary)
             bnd.append(b)
             task.advance(garment=g, boundary=int(b.sum()))
