@@ -90,6 +90,8 @@ class SegmentConfig:
     margin: float = option(0.008, "vertices farther than this outside the fitted body are garment [m]",
                            flag="--garment-margin", check=_positive)
     softness: float = setting(0.004)  # [m] width of the distance term's transition
+    refined_margin: float = setting(0.005)  # [m] the margin on a refined hull (refine.py), which has no slack
+    refined_softness: float = setting(0.002)  # [m] and its transition
     distance_cap: float = setting(3.0)  # the distance term's log-odds are capped at this
     bridge_normal: float = setting(-0.8)  # unseen vertices facing further down than this are body (hull bridges)
     colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term

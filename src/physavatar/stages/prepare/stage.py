@@ -238,8 +238,13 @@ def _refine(raw, cfg: PrepareConfig, V, F, body, masks, prog):
 
 
 def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog,
-                      V_hull, on_body):
-    """Segmentation, garment pieces, boundary and UVs; writes template/mesh.ply."""
+              V_hull=None, on_body=None):
+    """Segmentation, garment pieces, boundary and UVs; writes template/mesh.ply. When the hull
+    was refined (``V_hull``: the same vertices before), the segmentation's margin is the refined
+    surface's (``refined_margin``) and the boundary's contact test looks at the hull positions
+    (a refined strap lies on the body all along, the contact test is set for the hull); the
+    vertices the refinement drew onto the body (``on_body``, unseen) are body and, like the hull's
+    bridges, not cut into a garment."""
     from .boundary import boundary_from_points, boundary_points, find_boundary
     from .segment import garment_pieces, segment, transfer_labels, user_labels
     from .uv import atlas
@@ -269,11 +274,12 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
             from .mesh import pixel_footprint
 
             foot = pixel_footprint(raw.cameras, V.mean(0))
-            seg = replace(seg, margin=max(seg.margin, foot), softness=max(seg.softness, foot / 3))
+            # a refined surface is not the hull's slack above a tight garment: a smaller margin
+            margin, soft = (seg.margin, seg.softness) if V_hull is None else (seg.refined_margin, seg.refined_softness)
+            seg = replace(seg, margin=max(margin, foot), softness=max(soft, foot / 3))
             numbers["segmentation_margin"] = round(seg.margin, 4)
         with prog.task("prepare: segmentation", total=1) as task:
-            labels, info = segment(V if V_hull is None else V_hull, F, BV, BF, raw.cameras, images, seg,
-                                   cfg.mesh.edge_length)
+            labels, info = segment(V, F, BV, BF, raw.cameras, images, seg, cfg.mesh.edge_length)
             task.advance(garment=info["garment_vertices"])
         numbers["segmentation"] = {k: v for k, v in info.items() if not isinstance(v, np.ndarray)}
         numbers["_distance"] = info["signed_distance"]
