@@ -169,7 +169,12 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
             body = _load_body(tmp, len(raw.frames), _Problems(strict=True))
             steps["body"] = "given"
         else:
-            body, numbers["body"] = _fit_body(src, tmp, None if labelled else V, None if labelled else F, cfg, prog)
+            # the clothed surface guides the fit only when it is a measured one (an imported mesh):
+            # a visual hull says no more than the silhouettes the fit already has (inside every mask
+            # is inside the hull), and its slack pulls the body outward (tiny capture, first frame:
+            # 49 mm vertex error with it, 8.5 mm without)
+            clothed = not labelled and mesh_source != "visual hull"
+            body, numbers["body"] = _fit_body(src, tmp, V if clothed else None, F if clothed else None, cfg, prog)
             body.save(tmp / "body.npz")
             steps["body"] = "fitted (Anny, every frame)"
         seconds["body"] = time.time() - t
