@@ -92,6 +92,7 @@ class SegmentConfig:
     softness: float = setting(0.004)  # [m] width of the distance term's transition
     refined_margin: float = setting(0.005)  # [m] the margin on a refined hull (refine.py), which has no slack
     refined_softness: float = setting(0.002)  # [m] and its transition
+    refined_footprint: float = setting(1.0)  # and at least this many pixel footprints
     distance_cap: float = setting(3.0)  # the distance term's log-odds are capped at this
     bridge_normal: float = setting(-0.8)  # unseen vertices facing further down than this are body (hull bridges)
     colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term

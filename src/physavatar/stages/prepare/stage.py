@@ -280,8 +280,11 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
 
             foot = pixel_footprint(raw.cameras, V.mean(0))
             # a refined surface is not the hull's slack above a tight garment: a smaller margin
-            margin, soft = (seg.margin, seg.softness) if V_hull is None else (seg.refined_margin, seg.refined_softness)
-            seg = replace(seg, margin=max(margin, foot), softness=max(soft, foot / 3))
+            if V_hull is None:
+                seg = replace(seg, margin=max(seg.margin, foot), softness=max(seg.softness, foot / 3))
+            else:
+                f = seg.refined_footprint * foot
+                seg = replace(seg, margin=max(seg.refined_margin, f), softness=max(seg.refined_softness, f / 3))
             numbers["segmentation_margin"] = round(seg.margin, 4)
         with prog.task("prepare: segmentation", total=1) as task:
             labels, info = segment(V, F, BV, BF, raw.cameras, images, seg, cfg.mesh.edge_length)
