@@ -51,6 +51,7 @@ class MeshConfig:
     remesh_iterations: int = setting(10)
     view_share: float = setting(1.0)  # share of the cameras that must see a voxel (1: their common volume)
     smooth: int = setting(3)  # Taubin smoothing passes on the marching-cubes surface (voxel staircase)
+    clothing_footprint: float = setting(0.01)  # [m] a hull from coarser pixels does not guide the body fit
 
 
 @dataclass(frozen=True)
