@@ -1,6 +1,7 @@
 """``physavatar prepare`` round trip on synthetic captures (issue 23).
 
     python benchmarks/prepare_accuracy.py [--presets tiny,demo] [--demo PATH] [--work DIR] [--keep]
+        [--given-body] [--run] [--cases no_template,no_template_no_masks]
 
 For each synthetic capture (the tiny preset is built with ``physavatar synth``; the demo one is
 taken from ``--demo`` or built when missing), two cases are prepared from a copy of the capture
@@ -15,7 +16,12 @@ the same with the ``masks`` removed as well. Measured against the capture's trut
   the label of the nearest true surface point, target >= 97 %;
 * boundary: mean distance of the chosen boundary vertices to the true ones, target <= 2 cm
   (and the true ones' distance to the chosen: coverage);
-* the Anny body's vertex error per frame when it was fitted (target <= 15 mm mean).
+* the Anny body's vertex error per frame when it was fitted (target <= 15 mm mean);
+* with ``--run``: ``physavatar run --quick`` on the original capture and on the prepared one
+  (template removed, body fitted, masks given): tracking error (garment vertices, mm) within
+  1.5x and the held-out garment Chamfer of the estimated material within 1.25x of the
+  original's (both measured against each capture's own ground truth: the prepared capture's
+  ``ground_truth/meshes.npz`` is re-expressed on its template).
 
 Writes benchmarks/results/prepare_accuracy.json with a ``checks`` dict.
 """
@@ -105,6 +111,36 @@ def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
     return out
 
 
+def run_pipeline(capture: Path, out: Path) -> dict:
+    """``physavatar run --quick`` (a subprocess, resumed when ``out`` exists); the numbers compared."""
+    import subprocess
+
+    t = time.time()
+    env = dict(os.environ, PYTHONPATH=str(HERE.parent / "src"))
+    subprocess.run([sys.executable, "-m", "physavatar", "run", str(capture), str(out), "--quick"], check=True, env=env,
+                   stdout=subprocess.DEVNULL)
+    m = json.loads((out / "evaluate" / "metrics.json").read_text())
+    return {"tracking_garment_mm": m["tracking"]["garment"]["mean_mm"],
+            "tracking_body_mm": m["tracking"]["body"]["mean_mm"],
+            "heldout_garment_chamfer_x1e3": m["rows"]["estimated material"]["garment"]["chamfer_x1e3"],
+            "heldout_garment_fscore_1cm": m["rows"]["estimated material"]["garment"]["fscore@1cm"],
+            "wall_seconds": time.time() - t}
+
+
+def compare_runs(preset: str, original: Path, prepared: Path, work: Path, results: dict, checks: dict) -> None:
+    """Run both captures and check the prepared one's numbers against the original's."""
+    a = run_pipeline(original, work / "runs" / preset / "original")
+    b = run_pipeline(prepared, work / "runs" / preset / "prepared")
+    ratio_t = b["tracking_garment_mm"] / a["tracking_garment_mm"]
+    ratio_c = b["heldout_garment_chamfer_x1e3"] / a["heldout_garment_chamfer_x1e3"]
+    results[f"{preset}/run"] = {"original": a, "prepared": b, "tracking_ratio": ratio_t, "chamfer_ratio": ratio_c}
+    print(f"{preset}/run", json.dumps(results[f"{preset}/run"], default=float))
+    checks[f"{preset}/run/tracking_ratio"] = {"value": ratio_t, "target": "<= 1.5", "unit": "prepared / original",
+                                              "pass": bool(ratio_t <= 1.5)}
+    checks[f"{preset}/run/heldout_chamfer_ratio"] = {"value": ratio_c, "target": "<= 1.25", "unit": "prepared / original",
+                                                     "pass": bool(ratio_c <= 1.25)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--presets", default="tiny,demo")
@@ -114,6 +150,10 @@ def main() -> int:
     ap.add_argument("--keep", action="store_true")
     ap.add_argument("--given-body", action="store_true",
                     help="keep the capture's body.npz (skip the body fit: the other steps alone, in minutes)")
+    ap.add_argument("--run", action="store_true",
+                    help="also `physavatar run --quick` the original and the prepared capture (no_template case) and compare")
+    ap.add_argument("--cases", default="no_template,no_template_no_masks")
+    ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_accuracy.json")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="prepare_bench_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -129,6 +169,8 @@ def main() -> int:
             if not (cap / "capture.json").is_file():
                 synthesize(cap, PRESETS[preset], progress=False)
         for case, keep_masks in (("no_template", True), ("no_template_no_masks", False)):
+            if case not in args.cases.split(","):
+                continue
             name = f"{preset}/{case}"
             src = work / "inputs" / preset / case
             dst = work / "prepared" / preset / case
@@ -156,14 +198,16 @@ def main() -> int:
             if "body" in r:
                 checks[f"{name}/body_mean_mm"] = {"value": r["body"]["mean_mm"], "target": "<= 15", "unit": "mm",
                                                   "pass": bool(r["body"]["mean_mm"] <= 15)}
+            if args.run and case == "no_template":
+                compare_runs(preset, cap, dst, work, results, checks)
     result = {"benchmark": "prepare_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                           "load_average_start": list(load_start), "load_average_end": list(os.getloadavg())},
               "config": to_dict(PrepareConfig()), "body_fit": fit, "cases": results, "checks": checks}
     for k, c in checks.items():
         print(f"{k:48s} {c['value']:.4f} (target {c['target']}) {'PASS' if c['pass'] else 'FAIL'}")
-    (HERE / "results").mkdir(exist_ok=True)
-    (HERE / "results" / "prepare_accuracy.json").write_text(json.dumps(result, indent=2, default=float) + "\n")
+    args.results.parent.mkdir(parents=True, exist_ok=True)
+    args.results.write_text(json.dumps(result, indent=2, default=float) + "\n")
     if not args.keep and args.work is None:
         shutil.rmtree(work, ignore_errors=True)
     return 0

@@ -199,6 +199,15 @@ def test_prepared_tiny_round_trip(prepared_tiny, tiny_capture):
     gt = load_npz(prepared_tiny / "ground_truth" / "meshes.npz")
     assert gt["vertices"].shape[1] == len(t.vertices)
     assert np.abs(gt["vertices"][0][t.labels == 0] - t.vertices[t.labels == 0]).max() < 1e-4
+    # and so do the held-out motion's: the body copied, the garment on the true garment surface
+    held = load_npz(prepared_tiny / "ground_truth" / "heldout" / "meshes.npz")
+    orig = load_npz(tiny_capture / "ground_truth" / "heldout" / "meshes.npz")
+    assert held["vertices"].shape == (len(orig["vertices"]), len(t.vertices), 3)
+    assert np.abs(held["vertices"][:, t.labels == 0] - orig["vertices"][:, orig["labels"] == 0]).max() < 1e-5
+    og = (orig["labels"][orig["faces"]] > 0).all(1)
+    d = surface_distance(held["vertices"][-1][t.labels > 0].astype(np.float64), orig["vertices"][-1].astype(np.float64),
+                         orig["faces"][og])
+    assert d.max() < 1e-4, d.max()
     info = json.loads((prepared_tiny / "prepare.json").read_text())
     assert info["steps"]["masks"] == "given" and info["steps"]["body"] == "given"
 

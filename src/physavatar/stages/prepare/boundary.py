@@ -60,10 +60,40 @@ def find_boundary(vertices: np.ndarray, faces: np.ndarray, body_frames: np.ndarr
                   cameras: list, masks_of: callable, frame_index: list[int], cfg: BoundaryConfig
                   ) -> tuple[np.ndarray, dict]:
     """[n] bool boundary of one garment piece (``vertices``, ``faces``), and the numbers behind it.
+    Each connected part of the piece gets its own holds; a part other than the largest with no
+    vertex in contact that follows the body is a fragment the segmentation cut off (it would fall
+    away under gravity in the simulation): ``info["_unheld"]`` [n] marks its vertices, to be
+    dropped.
 
     ``body_frames``: [S, Nb, 3] the body at the sampled frames (first = the template's frame);
     ``masks_of(i)``: {camera: [H, W]} masks of sampled frame ``i``.
     """
+    from scipy.sparse.csgraph import connected_components
+
+    k, lab = connected_components(adjacency(faces, len(vertices)), directed=False)
+    if k <= 1:
+        return _find_boundary(vertices, faces, body_frames, body_faces, cameras, masks_of, cfg)
+    out = np.zeros(len(vertices), bool)
+    unheld = np.zeros(len(vertices), bool)
+    largest = int(np.argmax(np.bincount(lab, minlength=k)))
+    infos = []
+    for c in range(k):
+        ids = np.flatnonzero(lab == c)
+        fsel = (lab[faces] == c).all(1)
+        remap = np.full(len(vertices), -1)
+        remap[ids] = np.arange(len(ids))
+        b, info = _find_boundary(vertices[ids], remap[faces[fsel]], body_frames, body_faces, cameras, masks_of, cfg)
+        if c != largest and "fallback" in info:
+            unheld[ids] = True
+            continue
+        out[ids] = b
+        infos.append(info)
+    total = {key: sum(i.get(key, 0) for i in infos) for key in ("contact", "follows", "candidates", "boundary",
+                                                                 "regions_kept", "regions")}
+    return out, total | {"parts": k, "dropped_vertices": int(unheld.sum()), "_unheld": unheld}
+
+
+def _find_boundary(vertices, faces, body_frames, body_faces, cameras, masks_of, cfg: BoundaryConfig):
     worst, (d, _, _, _) = carried_support(vertices, body_frames, body_faces, cameras, masks_of)
     contact = d < cfg.contact
     follows = worst >= cfg.inside

@@ -51,6 +51,34 @@ class MeshConfig:
     remesh_iterations: int = setting(10)
     view_share: float = setting(1.0)  # share of the cameras that must see a voxel (1: their common volume)
     smooth: int = setting(3)  # Taubin smoothing passes on the marching-cubes surface (voxel staircase)
+    clothing_footprint: float = setting(0.01)  # [m] a hull from coarser pixels does not guide the body fit
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """The visual hull refined by photo-consistency and the fitted body (refine.py)."""
+
+    photo: bool = option(True, "move the hull onto the most photo-consistent surface along its normals",
+                         flag="--refine-photo/--no-refine-photo")
+    body_prior: bool = option(True, "draw hull parts no camera sees onto the fitted body",
+                              flag="--refine-body/--no-refine-body")
+    search_in: float = setting(0.04)  # [m] how far inside the hull the surface is searched
+    search_out: float = setting(0.004)  # [m] and outside (the hull's own discretisation)
+    step_px: float = setting(0.5)  # search step in pixel footprints
+    patch: int = setting(5)  # patch of patch x patch samples on the tangent plane
+    patch_px: float = setting(1.5)  # sample spacing in pixel footprints
+    cameras: int = setting(4)  # the best-facing cameras of each vertex
+    min_cos: float = setting(0.3)  # cameras seeing the surface more obliquely are not used
+    min_contrast: float = setting(0.02)  # patches flatter than this (grey std, 0..1) carry no evidence
+    min_score: float = setting(0.7)  # the best NCC must reach this
+    min_peak: float = setting(0.15)  # and exceed the vertex's median NCC by this
+    w_photo: float = setting(3.0)
+    unseen_cos: float = setting(0.1)  # a vertex no camera sees (z-buffer) at a cosine above this is unseen
+    w_body: float = setting(10.0)
+    w_hull: float = setting(0.05)  # seen vertices without photo evidence keep to the hull this much
+    body_margin: float = setting(0.0)  # [m] unseen parts land this far outside the body
+    smoothness: float = setting(0.3)  # Laplacian weight of the displacement field
+    chunk: int = setting(256)  # vertices per vectorised block
 
 
 @dataclass(frozen=True)
@@ -63,6 +91,9 @@ class SegmentConfig:
     margin: float = option(0.008, "vertices farther than this outside the fitted body are garment [m]",
                            flag="--garment-margin", check=_positive)
     softness: float = setting(0.004)  # [m] width of the distance term's transition
+    refined_margin: float = setting(0.005)  # [m] the margin on a refined hull (refine.py), which has no slack
+    refined_softness: float = setting(0.002)  # [m] and its transition
+    refined_footprint: float = setting(1.0)  # and at least this many pixel footprints
     distance_cap: float = setting(3.0)  # the distance term's log-odds are capped at this
     bridge_normal: float = setting(-0.8)  # unseen vertices facing further down than this are body (hull bridges)
     colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term
@@ -95,6 +126,7 @@ class PrepareConfig:
 
     masks: MaskConfig = field(default_factory=MaskConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
     body: BodyFitConfig = field(default_factory=BodyFitConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     boundary: BoundaryConfig = field(default_factory=BoundaryConfig)

@@ -139,8 +139,11 @@ def graph_cut(cost_fg: np.ndarray, cost_bg: np.ndarray, edges: np.ndarray, weigh
 # -- labelling ------------------------------------------------------------------------------------
 
 def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray,
-            cameras: list, images: dict[str, np.ndarray], cfg: SegmentConfig, spacing: float) -> tuple[np.ndarray, dict]:
-    """[V] labels (0 body, 1.. garment) of the first-frame mesh, and the numbers behind them."""
+            cameras: list, images: dict[str, np.ndarray], cfg: SegmentConfig, spacing: float,
+            colour_vertices: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """[V] labels (0 body, 1.. garment) of the first-frame mesh, and the numbers behind them.
+    ``colour_vertices``: the same vertices where the images are sampled (a refined surface's),
+    when not ``vertices``."""
     from ...geometry.closest import MeshQuery
 
     sd, _, _ = MeshQuery(body_vertices, body_faces, spacing=0.02).signed_distance(vertices)
@@ -148,7 +151,8 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
     # log p(garment) / p(body) from the distance, capped: near the body (a strap, a tight top) or
     # where the hull bulges out between limbs, the colour must be able to overrule it
     logit = np.clip(z, -cfg.distance_cap, cfg.distance_cap)
-    colour, seen = vertex_colours(vertices, faces, cameras, images, spacing)
+    colour, seen = vertex_colours(vertices if colour_vertices is None else colour_vertices, faces, cameras, images,
+                                  spacing)
     g_seed, b_seed = (z > 2) & (seen > 0), (z < -2) & (seen > 0)
     info = {"distance_garment": int((z > 0).sum()), "colour_used": False}
     if cfg.colour_weight > 0 and g_seed.sum() >= 20 and b_seed.sum() >= 20:

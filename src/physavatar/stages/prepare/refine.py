@@ -1,0 +1,202 @@
+"""Refining the visual hull against the images and the fitted body.
+
+A visual hull is the largest shape consistent with the silhouettes: it is right where a camera
+sees the surface edge-on (the rims) and too large in every concavity (between an arm and the
+hip, under the arms, between the legs under a skirt). Two kinds of evidence move it inward:
+
+* **Photo-consistency** (multi-view stereo along the normal): for each hull vertex seen by at
+  least two cameras at a useful angle, candidate positions along its normal (inward up to
+  ``search_in``, outward ``search_out``) are scored by the mean pairwise normalised
+  cross-correlation (NCC) of small patches of the tangent plane projected into those cameras;
+  the best candidate counts where its score is high and clearly above the vertex's median
+  score. This is the plane-sweep photo-consistency of multi-view stereo (e.g. Furukawa &
+  Ponce's PMVS; Goesele et al.), restricted to the normal line because the hull is close.
+* **The body prior** where no camera sees the surface: hull vertices that face away from every
+  camera (the underside that closes the hull between a hem and the legs) are drawn to the
+  fitted body's surface, which is the true surface under clothing there (as body-model priors
+  fill unseen regions in ICON / ECON).
+
+Both give each vertex a target and a confidence; a smooth displacement field (the mesh's graph
+Laplacian as the regulariser, one sparse solve, scipy) spreads them to the vertices without
+evidence, and the result never leaves the hull (a vertex that would leave any mask is moved
+back).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ...geometry.mesh import vertex_normals
+from .config import RefineConfig
+from .segment import visible
+
+
+def _grey(img: np.ndarray) -> np.ndarray:
+    a = np.asarray(img, np.float32)
+    if a.ndim == 3:
+        a = a[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32)
+    return a / (255.0 if a.max() > 1.5 else 1.0)
+
+
+def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    h, w = img.shape
+    u = np.clip(u, 0, w - 1.001)
+    v = np.clip(v, 0, h - 1.001)
+    u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    a, b = u - u0, v - v0
+    return ((1 - a) * (1 - b) * img[v0, u0] + a * (1 - b) * img[v0, u0 + 1]
+            + (1 - a) * b * img[v0 + 1, u0] + a * b * img[v0 + 1, u0 + 1])
+
+
+def _tangents(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.where(np.abs(n[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    t1 = np.cross(n, a)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return t1, np.cross(n, t1)
+
+
+def view_cosines(V: np.ndarray, N: np.ndarray, cameras: list, spacing: float) -> np.ndarray:
+    """[C, V] cosine between each vertex's normal and its ray to each camera where the camera
+    sees it (facing and not hidden: a point z-buffer), else 0."""
+    out = np.zeros((len(cameras), len(V)))
+    for i, c in enumerate(cameras):
+        vis, _ = visible(V, N, c, spacing)
+        to_cam = c.center[None] - V
+        cos = (N * to_cam).sum(1) / np.linalg.norm(to_cam, axis=1)
+        out[i] = np.where(vis, np.clip(cos, 0.0, 1.0), 0.0)
+    return out
+
+
+def photo_depths(V: np.ndarray, N: np.ndarray, cameras: list, images: dict[str, np.ndarray], cfg: RefineConfig,
+                 view_cos: np.ndarray, footprint: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(offset along -N [V] m, score [V], cameras used [V]) of the most photo-consistent position
+    of each vertex on its normal line; score -1 where fewer than two cameras see it well
+    (``view_cos`` [C, V] from :func:`view_cosines`)."""
+    nV, nC = len(V), len(cameras)
+    cosw = np.where(view_cos > cfg.min_cos, view_cos, 0.0)
+    # the best-facing cameras of each vertex
+    k = min(cfg.cameras, nC)
+    order = np.argsort(-cosw, axis=0)[:k]  # [k, V]
+    wsel = np.take_along_axis(cosw, order, 0)  # [k, V]
+    used = (wsel > 0).sum(0)
+    offsets = np.arange(-cfg.search_out, cfg.search_in + 1e-9, cfg.step_px * footprint)
+    h = cfg.patch_px * footprint
+    g = np.arange(cfg.patch) - (cfg.patch - 1) / 2
+    ga, gb = [x.ravel() * h for x in np.meshgrid(g, g, indexing="ij")]  # [P]
+    t1, t2 = _tangents(N)
+    greys = [_grey(images[c.name]) for c in cameras]
+    best = np.zeros(nV)
+    score = np.full(nV, -1.0)
+    ok_v = np.flatnonzero(used >= 2)
+    nO, P = len(offsets), len(ga)
+    for s in range(0, len(ok_v), cfg.chunk):
+        ids = ok_v[s:s + cfg.chunk]
+        # [n, O, P, 3] patch points
+        base = V[ids, None, :] - offsets[None, :, None] * N[ids, None, :]
+        pts = base[:, :, None, :] + ga[None, None, :, None] * t1[ids, None, None] + gb[None, None, :, None] * t2[ids, None, None]
+        samples = np.zeros((k, len(ids), nO, P), np.float32)
+        for j in range(k):
+            cam_of = order[j, ids]
+            for ci in np.unique(cam_of[wsel[j, ids] > 0]):
+                m = (cam_of == ci) & (wsel[j, ids] > 0)
+                uv, _ = cameras[ci].project(pts[m].reshape(-1, 3))
+                samples[j, m] = _bilinear(greys[ci], uv[:, 0], uv[:, 1]).reshape(-1, nO, P)
+        x = samples - samples.mean(-1, keepdims=True)
+        sd = np.sqrt((x ** 2).mean(-1, keepdims=True))
+        textured = sd > cfg.min_contrast
+        x = np.where(textured, x / np.maximum(sd, 1e-6), 0.0)
+        w = (wsel[:, ids] > 0).astype(np.float32)[:, :, None] * textured[..., 0]  # [k, n, O]
+        num = np.zeros((len(ids), nO), np.float32)
+        den = np.zeros((len(ids), nO), np.float32)
+        for a in range(k):
+            for b in range(a + 1, k):
+                ww = w[a] * w[b]
+                num += ww * (x[a] * x[b]).mean(-1)
+                den += ww
+        ncc = np.where(den > 0, num / np.maximum(den, 1e-9), -1.0)
+        j = np.argmax(ncc, 1)
+        top = ncc[np.arange(len(ids)), j]
+        med = np.median(ncc, 1)
+        good = (top >= cfg.min_score) & (top - med >= cfg.min_peak)
+        best[ids] = np.where(good, offsets[j], 0.0)
+        score[ids] = np.where(good, top, -1.0)
+    return best, score, used
+
+
+def _laplacian(F: np.ndarray, n: int):
+    from scipy import sparse
+
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    e = np.unique(np.sort(e, 1), axis=0)
+    A = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    A = (A + A.T).tocsr()
+    A.data[:] = 1.0
+    return sparse.diags(np.asarray(A.sum(1)).ravel()) - A
+
+
+def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, np.ndarray],
+                masks: dict[str, np.ndarray], body_vertices: np.ndarray | None, body_faces: np.ndarray | None,
+                cfg: RefineConfig) -> tuple[np.ndarray, dict]:
+    """The hull's vertices moved by photo-consistency and the body prior (see the module doc);
+    (vertices [V, 3], numbers for the report; ``_on_body`` [V] bool: the vertices drawn onto the body)."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    from .mesh import occupancy, pixel_footprint
+
+    V = np.asarray(V, np.float64)
+    N = vertex_normals(V, F)
+    edge = float(np.median(np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1)))
+    fp = pixel_footprint(cameras, V.mean(0))
+    target = V.copy()
+    conf = np.zeros(len(V))
+    info: dict = {"pixel_mm": round(fp * 1000, 2)}
+    view_cos = view_cosines(V, N, cameras, 0.5 * edge)
+    seen = (view_cos > cfg.unseen_cos).any(0)
+    if cfg.photo and images:
+        d, s, used = photo_depths(V, N, cameras, images, cfg, view_cos, fp)
+        has = s > 0
+        d = np.clip(d, 0.0, None)  # the hull contains the surface: inward only
+        target[has] = V[has] - d[has, None] * N[has]
+        conf[has] = cfg.w_photo * s[has]
+        info["photo"] = {"vertices_with_evidence": int(has.sum()), "seen_by_two": int((used >= 2).sum()),
+                         "moved_mean_mm": round(float(d[has].mean() * 1000), 2) if has.any() else 0.0}
+    unseen = np.zeros(len(V), bool)
+    if cfg.body_prior and body_vertices is not None:
+        from ...geometry.closest import MeshQuery
+
+        unseen = ~seen & (conf == 0)
+        info["_on_body"] = unseen
+        if unseen.any():
+            q = MeshQuery(body_vertices, body_faces, spacing=0.02)
+            _, qp, qn = q.signed_distance(V[unseen])
+            tgt = qp + cfg.body_margin * qn
+            target[unseen] = tgt
+            conf[unseen] = cfg.w_body
+            info["body_prior"] = {"unseen_vertices": int(unseen.sum()),
+                                  "moved_mean_mm": round(float(np.linalg.norm(tgt - V[unseen], axis=1).mean() * 1000), 1)}
+    # the hull itself, weakly, where a camera sees it and nothing else speaks
+    hull_anchor = (conf == 0) & seen
+    conf[hull_anchor] = cfg.w_hull
+    if not (conf > 0).any():
+        return V, info | {"moved": 0}
+    L = _laplacian(F, len(V))
+    A = (sparse.diags(conf) + cfg.smoothness * L).tocsc()
+    A = A + sparse.identity(len(V)) * 1e-6
+    disp = spsolve(A, conf[:, None] * (target - V))
+    disp = np.asarray(disp).reshape(len(V), 3)
+    out = V + disp
+    # never outside the hull: halve the displacement of vertices that leave any mask
+    occ0 = occupancy(V, cameras, masks, 1.0)
+    for _ in range(4):
+        occ = occupancy(out, cameras, masks, 1.0)
+        bad = occ < np.minimum(occ0, 0.5) - 0.05
+        if not bad.any():
+            break
+        disp[bad] *= 0.5
+        out = V + disp
+    moved = np.linalg.norm(disp, axis=1)
+    info["moved"] = int((moved > 0.5 * fp).sum())
+    info["moved_mean_mm"] = round(float(moved.mean() * 1000), 2)
+    info["moved_max_mm"] = round(float(moved.max() * 1000), 1)
+    return out, info
