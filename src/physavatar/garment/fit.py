@@ -27,6 +27,7 @@ from ..geometry import MeshQuery, vertex_normals
 
 ARM_RAISES = (0.0, 30.0)  # degrees: candidate raises of the upper arms while aligning
 ARM_RAISES_GROW = (0.0, 20.0, 35.0, 50.0)  # and while growing: the one a sleeve holds best
+ANCHOR_SCALE = 0.05  # m: an opening this far off its body axis (neck, spine) costs as much as the whole closeness
 
 
 @dataclass
@@ -203,8 +204,10 @@ def align_with_openings(vertices, body, faces, seams=None, *, samples: int = 800
     body's x axis (two turns: front and back); the neck opening's centre is put at the base of
     the neck (neck01 joint), or the middle of the leg openings under the root joint, and the height
     scanned (2 cm steps, ±14 cm) with the limbs posed through the openings at each height; the best
-    translation refined by Nelder–Mead (scipy) on the closeness cost (_cost) on the posed body,
-    the pose solved again there. Graded up as :func:`align_garment`."""
+    translation refined by Nelder–Mead (scipy) on the closeness cost (_cost) on the posed body plus
+    the distance of the neck opening's centre from the neck's axis (or of the waist's from the
+    spine's, horizontally and along it) over ``ANCHOR_SCALE``: the neck passes through the neck
+    opening, however loose the garment; the pose solved again there. Graded up as :func:`align_garment`."""
     from scipy.optimize import minimize
 
     from .openings import find_openings, lateral_axis, limb_pose
@@ -244,23 +247,34 @@ def align_with_openings(vertices, body, faces, seams=None, *, samples: int = 800
                 anchor[2] = (R @ (waist[0].centre - c0))[2]
                 target[2] = J0[names.index("spine03"), 2] if "spine03" in names else target[2] + 0.1
         t_base = target - anchor
+        if neck:  # the neck passes through the neck opening: its centre near the neck's axis
+            seg = (J0[names.index("neck01")] - [0.0, 0.0, 0.06], J0[names.index("head")])
+        else:  # the waist's centre above the middle of the leg openings, over the spine
+            seg = (J0[names.index("root")] - [0.0, 0.0, 0.2], J0[names.index("root")] + [0.0, 0.0, 0.4])
+        a, d = seg[0], seg[1] - seg[0]
+
+        def cost(x, surf, P, Bz, anchor=anchor, a=a, d=d):
+            q = anchor + x
+            off = np.linalg.norm(q - _closest_on_segments(q[None], a[None], d[None])[0])
+            return _cost(surf, P + x, Bz) + off / ANCHOR_SCALE
+
         trials = []
         for dz in np.arange(-0.14, 0.141, 0.02):
             t = t_base + np.array([0.0, 0.0, dz])
             rots, aims, B, surf, Bz = posed(R, t)
-            trials.append((_cost(surf, P + t, Bz), dz))
+            trials.append((cost(t, surf, P, Bz), dz))
         trials.sort()
         t = t_base + np.array([0.0, 0.0, trials[0][1]])
         for _ in range(2):  # refine on the posed body, then pose again where it went
             rots, aims, B, surf, Bz = posed(R, t)
-            res = minimize(lambda x, surf=surf, P=P, Bz=Bz: _cost(surf, P + x, Bz), t, method="Nelder-Mead",
+            res = minimize(cost, t, args=(surf, P, Bz), method="Nelder-Mead",
                            options={"initial_simplex": t + np.vstack([np.zeros(3), 0.02 * np.eye(3)]),
                                     "xatol": 1e-3, "fatol": 1e-4, "maxfev": 120})
             t = res.x.copy()
         rots, aims, B, surf, Bz = posed(R, t)
-        cost = _cost(surf, P + t, Bz)
-        if best is None or cost < best[0]:
-            best = (cost, yaw, t, rots, aims, B)
+        c = cost(t, surf, P, Bz)
+        if best is None or c < best[0]:
+            best = (c, yaw, t, rots, aims, B)
     cost, yaw, t, rots, aims, B = best
     placed = (V - c0) @ _rot_z(yaw).T + t
     placed, sd, grade = _graded(placed, MeshQuery(B, body.faces), grades, max_depth)
