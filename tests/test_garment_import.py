@@ -263,3 +263,113 @@ def test_simulate_a_garment_file_on_a_motion(tmp_path):
     assert np.allclose(z["rest_vertices"], g.rest, atol=1e-6)
     assert max(seam_gaps(x, g.seams).max() for x in z["vertices"]) < 2e-3
     assert len(z["boundary"]) and world[:, 2].max() - g.vertices[z["boundary"], 2].min() < 0.3 * 0.3 + 1e-6
+
+
+# -- fitting a garment with sleeves: the limbs posed through its openings ----------------------
+
+
+def tube_shirt(shoulder_l, shoulder_r, theta_deg, spacing=0.012, sleeve=0.3, r_arm=0.08, r_torso=0.22, bottom=0.85):
+    """A shirt (marching cubes, scikit-image, of a solid torso with a sloped top and two sleeve
+    cylinders, then the caps cut open): sleeves from the shoulder points going out and down by
+    ``theta_deg`` below horizontal, open at the neck, the hem and the cuffs. (V, F, d_l, d_r)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+    from skimage.measure import marching_cubes
+
+    top = shoulder_l[2] + 0.12
+    d_l = np.array([np.cos(np.radians(theta_deg)), 0.0, -np.sin(np.radians(theta_deg))])
+    d_r = d_l * [-1, 1, 1]
+    lo, hi = np.array([-0.75, -0.3, bottom - 0.1]), np.array([0.75, 0.3, top + 0.1])
+    X = np.stack(np.meshgrid(*[np.arange(a, b, spacing) for a, b in zip(lo, hi)], indexing="ij"), -1)
+    roof = top - 0.35 * np.abs(X[..., 0])
+    f = np.maximum(np.hypot(X[..., 0], X[..., 1]) - r_torso, np.maximum(X[..., 2] - roof, bottom - X[..., 2]))
+    for J, d in ((shoulder_l, d_l), (shoulder_r, d_r)):
+        t = (X - J) @ d
+        rr = np.linalg.norm(X - J - t[..., None] * d, axis=-1)
+        f = np.minimum(f, np.maximum(rr - r_arm, np.maximum(t - sleeve, -t)))
+    V, F, _, _ = marching_cubes(f, 0.0, spacing=(spacing,) * 3)
+    V += lo
+    C = V[F].mean(1)
+    eps = 0.6 * spacing
+    cut = ((C[:, 2] > top - 0.35 * 0.09 - eps) & (np.hypot(C[:, 0], C[:, 1]) < 0.09)) | (C[:, 2] < bottom + eps)
+    for J, d in ((shoulder_l, d_l), (shoulder_r, d_r)):
+        cut |= (C - J) @ d > sleeve - eps
+    F = F[~cut][:, ::-1]
+    A = sp.coo_matrix((np.ones(3 * len(F)), (F.ravel(), F[:, [1, 2, 0]].ravel())), shape=(len(V), len(V)))
+    lab = connected_components(A, directed=False)[1]
+    F = F[lab[F[:, 0]] == np.bincount(lab[F[:, 0]]).argmax()]  # the shirt, not crumbs of a cut cap
+    return V, F, d_l, d_r
+
+
+@pytest.fixture(scope="module")
+def collider_body():
+    from physavatar.body import BodyModel
+
+    return BodyModel(topology="collider")
+
+
+def _shoulders(body):
+    n = list(body.bone_names)
+    return body.rest_joints[n.index("upperarm01.L")], body.rest_joints[n.index("upperarm01.R")]
+
+
+@pytest.mark.parametrize("theta", [20.0, -25.0])
+def test_sleeve_openings_give_the_arm_pose(collider_body, theta):
+    """The openings of a synthetic shirt are found and named, and the solved pose puts each upper
+    arm along its sleeve's known axis (and the forearm in line: the elbow straightened)."""
+    from physavatar.garment.openings import find_openings, lateral_axis, limb_pose
+
+    body = collider_body
+    V, F, d_l, d_r = tube_shirt(*_shoulders(body), theta)
+    ops = find_openings(V, F)
+    assert sorted(o.kind for o in ops) == ["arm", "arm", "hem", "neck"]
+    assert abs(abs(lateral_axis(ops)[0]) - 1.0) < 1e-3
+    rots, aims = limb_pose(body, ops)
+    J = body.pose(rots[None], np.zeros((1, 3))).joints[0]
+    n = list(body.bone_names)
+    for side, d in (("L", d_l), ("R", d_r)):
+        s = J[n.index(f"upperarm01.{side}")]
+        for end in ("lowerarm01", "wrist"):
+            u = J[n.index(f"{end}.{side}")] - s
+            assert np.degrees(np.arccos(np.clip(u @ d / np.linalg.norm(u), -1, 1))) < 2.0, (side, end)
+        assert aims[f"upperarm01.{side}"]["towards"] == "centre"
+    assert not np.any(rots[[n.index("upperleg01.L"), n.index("upperleg01.R")]])  # no leg openings
+
+
+def test_a_shirt_whose_sleeves_point_up_fits_with_the_arms_posed_through_them(collider_body, tmp_path):
+    """A coarse shirt with sleeves 25° above horizontal, placed on Anny's shoulders: with the arm
+    raises alone (up to 50° from the A-pose) the arms cross the sleeves' walls however thin the
+    body is shrunk; posed through the openings, the body clears the shirt shrunk to 0.8 of its
+    girth, grows inside it, turns its arms back down, and the shirt ends clear of the rest body
+    (ipctk), its strain small and its cuffs around the arms."""
+    from physavatar.garment.fit import Alignment, _start_girth, arms_raised
+    from physavatar.garment.openings import find_openings, limb_pose
+    from physavatar.garment_sim import fit_on_body, rest_strain
+    from physavatar.geometry import MeshQuery
+
+    body = collider_body
+    V, F, _, _ = tube_shirt(*_shoulders(body), -25.0, spacing=0.04)
+    write_obj(tmp_path / "shirt.obj", V, F)
+    gm = load_garment(tmp_path / "shirt.obj")  # (drops marching cubes' slivers)
+    V, F = gm.vertices, gm.faces
+    rots, aims = limb_pose(body, find_openings(V, F))
+    B = body.pose(rots[None], np.zeros((1, 3))).vertices[0]
+    al = Alignment(V, 0.0, np.zeros(3), 0.0, B, 0.0, 0.0, 0.0, 1.0, F, rots, aims)
+    alpha, left = _start_girth(body, V, F, rots, 1e-3, 0.3)
+    assert alpha >= 0.8 and left == 0
+    for raise_deg in (0.0, 20.0, 35.0, 50.0):  # (a shrunk arm still crosses the sleeve's wall)
+        assert _start_girth(body, V, F, arms_raised(body, raise_deg)[0], 1e-3, 0.3)[1] > 0
+    mat = preset("cotton")
+    part, rep = fit_on_body(gm, body, mat, SimSettings(integrator=mat.integrator), frames=3, pose_frames=3,
+                            hold=1, alignment=al)
+    x = part.vertices
+    scene = ContactScene(x, F, body.rest_vertices, body.faces, 1e-3)
+    assert not scene.has_intersections(np.vstack([x, body.rest_vertices]))
+    assert rep["strain_mean"] < 0.05
+    n = list(body.bone_names)
+    for o in (o for o in find_openings(x, F) if o.kind == "arm"):  # each cuff around its (rest) upper arm
+        side = "L" if o.centre[0] > 0 else "R"
+        a, e = body.rest_joints[n.index(f"upperarm01.{side}")], body.rest_joints[n.index(f"lowerarm01.{side}")]
+        t = np.clip((o.centre - a) @ (e - a) / ((e - a) @ (e - a)), 0, 1)
+        assert np.linalg.norm(o.centre - (a + t * (e - a))) < o.radius
+    assert MeshQuery(body.rest_vertices, body.faces).signed_distance(x, max_dist=0.1)[0].min() > 0

@@ -120,15 +120,16 @@ FIT_REPAIR_LIMIT = 0.08  # m: the fit's start repair works against the shrunk bo
 
 
 def fit_on_body(garment, body, material: Material, settings: SimSettings | None = None, frames: int = 20,
-                hold: int = 10, fps: float = 25.0, repair_limit: float = 0.03, progress=False, pose_frames: int = 15):
+                hold: int = 10, fps: float = 25.0, repair_limit: float = 0.03, progress=False, pose_frames: int = 15,
+                alignment=None):
     """Fit a garment made for another body (a garment.files.GarmentMesh) onto ``body``'s rest
     pose: align it (garment.fit.align_with_openings: limbs posed through its sleeves or trouser
     legs, else garment.fit.align_garment), repair the start against the shrunk body, simulate it
     without gravity, seams stitched, while the body grows to full size (garment.fit.growing_bodies)
     and then, over ``pose_frames``, turns its limbs back to the rest pose (or lowers its arms while
     growing), then ``hold`` frames under gravity hanging from where it rests
-    (garment.boundary.auto_boundary). Returns (GarmentPart on the rest body, with that boundary;
-    report dict)."""
+    (garment.boundary.auto_boundary). ``alignment``: a garment.fit.Alignment already made (the
+    search skipped). Returns (GarmentPart on the rest body, with that boundary; report dict)."""
     from .errors import PhysavatarError
     from .garment.boundary import auto_boundary
     from .garment.fit import align_garment, align_with_openings, growing_bodies
@@ -141,7 +142,7 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     settings = dataclasses.replace(settings, newton_tol=max(settings.newton_tol, FIT_NEWTON_TOL),
                                    max_newton_iterations=min(settings.max_newton_iterations, FIT_NEWTON_ITERATIONS),
                                    damping_mass=max(settings.damping_mass, FIT_DAMPING))
-    al = align_with_openings(garment.vertices, body, garment.faces, garment.seams)
+    al = alignment or align_with_openings(garment.vertices, body, garment.faces, garment.seams)
     if al is None:  # no sleeves or trouser legs
         al = align_garment(garment.vertices, body, faces=garment.faces)
     rest = garment.rest * al.grade

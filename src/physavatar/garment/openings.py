@@ -7,11 +7,12 @@ it, the body's limbs must run along the garment's sleeves and legs (garment.fit)
 
 :func:`find_openings` finds the open boundary loops of the sewn garment (panels welded along
 their seams: an edge of one triangle only) and names them by where they are on the garment
-(z up): the highest is the ``neck`` when the garment has arm openings, else the ``waist``; two
-loops side by side in the lower half are ``leg`` openings (trouser cuffs), one is the ``hem``;
-two loops side by side in the upper half are ``arm`` openings (sleeve cuffs or armholes). The
-side-by-side pair gives the garment's lateral axis (left-right), which the alignment turns onto
-the body's x axis.
+(z up). A loop around the garment's vertical axis (its centre closer to the axis than its
+radius) is central: the highest is the ``neck`` when the garment has arm openings, else the
+``waist``, the lowest in the lower half the ``hem``. The other loops are at the sides: two in the
+upper half of the garment's height are ``arm`` openings (sleeve cuffs, whether the sleeves point
+down or up, or armholes), two in the lower half ``leg`` openings (trouser cuffs). The pair gives
+the garment's lateral axis (left-right), which the alignment turns onto the body's x axis.
 
 :func:`limb_pose` gives the pose rotations that put each arm and leg of the body through its
 opening: the arm, its elbow straightened, rotated about the shoulder joint so that it points
@@ -112,19 +113,23 @@ def find_openings(vertices, faces, seams=None, min_loop: int = 6) -> list[Openin
     if not real:
         return ops
     zlo, zhi = V[:, 2].min(), V[:, 2].max()
-    top = max(real, key=lambda o: o.centre[2])
-    rest = [o for o in real if o is not top]
-    lower = [o for o in rest if o.centre[2] < zlo + 0.5 * (zhi - zlo)]
-    upper = [o for o in rest if all(o is not q for q in lower)]
+    mid = V[:, :2].mean(0)
+    central = [o for o in real if np.linalg.norm(o.centre[:2] - mid) < o.radius]  # around the garment's axis
+    side = [o for o in real if all(o is not q for q in central)]
+    upper = [o for o in side if o.centre[2] >= zlo + 0.5 * (zhi - zlo)]
+    lower = [o for o in side if all(o is not q for q in upper)]
     if len(upper) == 2:
         for o in upper:
             o.kind = "arm"
     if len(lower) == 2:
         for o in lower:
             o.kind = "leg"
-    elif len(lower) == 1:
-        lower[0].kind = "hem"
-    top.kind = "neck" if len(upper) == 2 else "waist"
+    if central:
+        top = max(central, key=lambda o: o.centre[2])
+        top.kind = "neck" if len(upper) == 2 else "waist"
+        low = [o for o in central if o is not top and o.centre[2] < zlo + 0.5 * (zhi - zlo)]
+        if low and len(lower) != 2:
+            min(low, key=lambda o: o.centre[2]).kind = "hem"
     return ops
 
 
