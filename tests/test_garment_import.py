@@ -218,15 +218,10 @@ def test_bad_garments_give_one_line(tmp_path):
     assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
 
 
-def test_simulate_a_garment_file_on_a_motion(tmp_path):
-    """`simulate --garment FILE --motion M` (--no-fit: the file is already on Anny's rest pose):
-    a skirt of two half-panels (separate vertices at the side seams, a rest-shape file) around
-    the hips; the seams stay shut, the boundary is chosen at the top, every frame is clean."""
-    import json
-
-    from physavatar.body import BodyModel
-
-    B = BodyModel(topology="collider").rest_vertices
+def two_panel_skirt(tmp_path, B):
+    """A skirt of two half-panels (separate vertices at the side seams) around the hips of the body
+    B [Nb, 3] (rest pose), 6 mm outside it, written as s-w.obj with a rest-shape file s-m.obj (2 %
+    smaller, the second panel laid apart); returns its world vertices."""
     torso = B[np.abs(B[:, 0]) < 0.22]  # not the hands
     c = torso[(torso[:, 2] > 0.85) & (torso[:, 2] < 1.05), :2].mean(0)
     V, _ = frustum(1.0, 1.0, 1.05, 0.75, n_around=24, n_down=6)
@@ -252,6 +247,18 @@ def test_simulate_a_garment_file_on_a_motion(tmp_path):
     rest = world * 0.98  # 2 % smaller: the world is stretched by 1/0.98; the second panel laid apart
     rest[len(halves[0][0]):, 0] += 2.0
     write_obj(tmp_path / "s-m.obj", rest, faces)
+    return world
+
+
+def test_simulate_a_garment_file_on_a_motion(tmp_path):
+    """`simulate --garment FILE --motion M` (--no-fit: the file is already on Anny's rest pose):
+    a skirt of two half-panels (separate vertices at the side seams, a rest-shape file) around
+    the hips; the seams stay shut, the boundary is chosen at the top, every frame is clean."""
+    import json
+
+    from physavatar.body import BodyModel
+
+    world = two_panel_skirt(tmp_path, BodyModel(topology="collider").rest_vertices)
     r = runner.invoke(app, ["simulate", "--garment", str(tmp_path / "s-w.obj"), "--motion", "walk", "--no-fit",
                             "--duration", "0.12", "--out", str(tmp_path / "o"), "--no-preview"])
     assert r.exit_code == 0, r.output
@@ -263,6 +270,51 @@ def test_simulate_a_garment_file_on_a_motion(tmp_path):
     assert np.allclose(z["rest_vertices"], g.rest, atol=1e-6)
     assert max(seam_gaps(x, g.seams).max() for x in z["vertices"]) < 2e-3
     assert len(z["boundary"]) and world[:, 2].max() - g.vertices[z["boundary"], 2].min() < 0.3 * 0.3 + 1e-6
+    assert np.array_equal(z["seams"], g.seams)  # the seams are stored: a reader can sew it again
+    from physavatar.data.garment_sequence import GarmentSequence
+    from physavatar.stages.simulate import garment_file
+
+    part, _ = garment_file(tmp_path / "o" / "garment_sequence.npz")
+    assert np.array_equal(GarmentSequence.load(tmp_path / "o").seams, g.seams) and np.array_equal(part.seams, g.seams)
+
+
+def test_animate_an_avatar_in_a_garment_file(tiny_capture, tmp_path):
+    """`animate --garment FILE`: the tiny avatar wears a two-panel skirt file instead of its own
+    garment (--no-fit: the file is on Anny's rest pose in the avatar's shape); the sequence holds
+    the avatar's body and the skirt, free of garment–body intersections, its seams shut."""
+    import json
+
+    from physavatar.body import BodyModel
+    from physavatar.capture import load_capture
+    from physavatar.data.animated import AnimatedSequence
+    from physavatar.geometry import count_intersections
+    from physavatar.stages.animate import AnimateConfig, run
+    from physavatar.stages.avatar import build_avatar
+
+    cap = load_capture(tiny_capture)
+    av = build_avatar(tiny_capture, tmp_path / "avatar", material=tiny_capture / "ground_truth" / "material.json")
+    body = BodyModel(av.shape, topology="collider")
+    two_panel_skirt(tmp_path, body.rest_vertices)
+    g = load_garment(tmp_path / "s-w.obj")
+    cfg = AnimateConfig(motion="walk", duration=0.12, warmup=0.12, garment=str(tmp_path / "s-w.obj"), fit=False)
+    r = run(tmp_path / "avatar", out=tmp_path / "anim", config=cfg)
+    seq = AnimatedSequence.load(tmp_path / "anim")
+    nb = int((cap.template.labels == 0).sum())
+    assert seq.vertices.shape[1] == nb + len(g.vertices) and (seq.labels[nb:] > 0).all() and (seq.labels[:nb] == 0).all()
+    assert seq.face_uvs is None or len(seq.face_uvs) == len(seq.faces)
+    meta = json.loads((tmp_path / "anim" / "sequence.json").read_text())
+    assert meta["garment_import"]["seam_pairs"] == len(g.seams)
+    assert r.stats["warmup_frames"] == 0  # walk starts in the zero pose the garment is on (not the capture's)
+    gf = seq.faces[(seq.faces >= nb).all(1)] - nb
+    assert np.array_equal(np.sort(gf, axis=1), np.sort(g.faces, axis=1))
+    from physavatar.body.load import load_motion
+
+    m = load_motion("walk", av.fps, 0.12)
+    posed = body.pose(m.rotations, m.root_translation).vertices
+    for t in range(len(seq.vertices)):
+        x = seq.vertices[t, nb:]
+        assert count_intersections(x, g.faces, posed[t], body.faces) == 0
+        assert seam_gaps(x, g.seams).max() < 2e-3
 
 
 # -- fitting a garment with sleeves: the limbs posed through its openings ----------------------
