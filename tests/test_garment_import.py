@@ -425,3 +425,25 @@ def test_a_shirt_whose_sleeves_point_up_fits_with_the_arms_posed_through_them(co
         t = np.clip((o.centre - a) @ (e - a) / ((e - a) @ (e - a)), 0, 1)
         assert np.linalg.norm(o.centre - (a + t * (e - a))) < o.radius
     assert MeshQuery(body.rest_vertices, body.faces).signed_distance(x, max_dist=0.1)[0].min() > 0
+
+
+def test_start_repair_untangles_a_slight_self_intersection():
+    """Two parallel panels 4 mm apart, one vertex of the upper one poked 3 mm through the lower:
+    the cloth crosses itself (ipctk's edge–triangle test); the repair pulls the vertex back over
+    the lower panel and nothing else moves far; a far body changes nothing else."""
+    from physavatar.sim.start import self_crossings, untangle
+
+    Va, Fa = panel(0.0, 0.2, 0.2, 8)
+    Vb, Fb = panel(0.0, 0.2, 0.2, 8, y=0.004)
+    V = np.vstack([Va, Vb])
+    F = np.vstack([Fa, Fb + len(Va)])
+    poked = len(Va) + 4 * 9 + 4  # the middle of the upper panel
+    V[poked, 1] = -0.003
+    assert len(self_crossings(V, F)) > 0
+    x, rep = untangle(V, F)
+    assert rep["self_crossings_before"] > 0 and rep["self_crossings_after"] == 0 and len(self_crossings(x, F)) == 0
+    assert x[poked, 1] > 0 and np.abs(x[: len(Va)] - Va).max() < 0.004  # back over the lower panel
+    B, BF = cylinder_body(0.05, 0.1)
+    xr, rep = repair_start(V, F, B + [5.0, 0, 0], BF, 1e-3)
+    assert rep["self_crossings"]["before"] > 0 and rep["self_crossings"]["after"] == 0
+    assert np.allclose(xr, x)
