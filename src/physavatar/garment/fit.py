@@ -293,24 +293,29 @@ def _closest_on_segments(P, a, d):
 
 
 def _axis_points(body, joints, V):
-    """Per body vertex of V [Nb, 3] (posed with joints [B, 3]), the point it shrinks towards: on
-    its main bone's axis (head to the mean of its children's heads) for a limb, on the spine line
-    (root, spine, neck, head joints) for the trunk, whose clavicle and shoulder axes run just under
-    the skin of the chest."""
+    """Per body vertex of V [Nb, 3] (posed with joints [B, 3]), the point it shrinks towards: the
+    skinning-weighted mean of its bones' targets, the closest point on a limb bone's axis (head
+    to the mean of its children's heads), on the spine line (root, spine, neck, head joints) for
+    a trunk bone, whose clavicle and shoulder axes run just under the skin of the chest. Blended
+    as skinning blends (not each vertex to its main bone), a vertex where trunk and limb meet
+    goes between their axes, and the shrunk body does not fold there."""
     names = list(body.bone_names)
-    bone = np.argmax(body.skinning_weights, axis=1)
+    W = np.asarray(body.skinning_weights)
     parents = np.asarray(body.parents)
     end = joints.copy()
     for j in range(len(joints)):
         kids = np.flatnonzero(parents == j)
         if len(kids):
             end[j] = joints[kids].mean(0)
-    q = _closest_on_segments(V, joints[bone], end[bone] - joints[bone])
-    trunk = np.array([names[j].startswith(TRUNK) for j in bone])
-    chain = np.array([joints[names.index(n)] for n in CHAIN if n in names])
-    chain = np.vstack([chain, chain[-1] + [0.0, 0.0, 0.2]])  # through the head
-    if trunk.any():
-        Vt = V[trunk]
+    trunk = np.array([n.startswith(TRUNK) for n in names])
+    q = np.zeros_like(V)
+    wsum = np.zeros(len(V))
+    wt = W[:, trunk].sum(1)
+    sel = np.flatnonzero(wt > 1e-4)
+    if len(sel):
+        chain = np.array([joints[names.index(n)] for n in CHAIN if n in names])
+        chain = np.vstack([chain, chain[-1] + [0.0, 0.0, 0.2]])  # through the head
+        Vt = V[sel]
         best = np.full(len(Vt), np.inf)
         qt = np.zeros_like(Vt)
         for k in range(len(chain) - 1):
@@ -318,8 +323,16 @@ def _axis_points(body, joints, V):
             dist = np.linalg.norm(Vt - c, axis=1)
             better = dist < best
             best[better], qt[better] = dist[better], c[better]
-        q[trunk] = qt
-    return q
+        q[sel] += wt[sel, None] * qt
+        wsum[sel] += wt[sel]
+    for b in np.flatnonzero(~trunk):
+        sel = np.flatnonzero(W[:, b] > 1e-4)
+        if len(sel):
+            n = len(sel)
+            c = _closest_on_segments(V[sel], np.broadcast_to(joints[b], (n, 3)), np.broadcast_to(end[b] - joints[b], (n, 3)))
+            q[sel] += W[sel, b, None] * c
+            wsum[sel] += W[sel, b]
+    return q / np.maximum(wsum, 1e-12)[:, None]
 
 
 def _shrunk(V, q, alpha):
