@@ -224,6 +224,8 @@ def align_with_openings(vertices, body, faces, seams=None, *, samples: int = 800
     c0 = 0.5 * (V.min(0) + V.max(0))
     neck = [o for o in ops if o.kind == "neck"]
     legs = [o for o in ops if o.kind == "leg"]
+    if not neck and len(legs) != 2:  # arm openings but no neck to place them by
+        return None
     yaw0 = -np.degrees(np.arctan2(L[1], L[0]))
 
     def posed(R, t):  # the body posed through the openings of the garment placed at R (x - c0) + t
@@ -278,7 +280,7 @@ def align_with_openings(vertices, body, faces, seams=None, *, samples: int = 800
     cost, yaw, t, rots, aims, B = best
     placed = (V - c0) @ _rot_z(yaw).T + t
     placed, sd, grade = _graded(placed, MeshQuery(B, body.faces), grades, max_depth)
-    return Alignment(placed, float(yaw % 360.0), t - c0 @ _rot_z(yaw).T, 0.0, B, float(max(0.0, -sd.min())), cost,
+    return Alignment(placed, float(yaw % 360.0), t - c0 @ _rot_z(yaw).T, 0.0, B, float(max(0.0, -sd.min())), float(cost),
                      float(np.mean(np.abs(sd) < 0.02)), grade, faces, rots, aims)
 
 
