@@ -159,19 +159,22 @@ def main():
 
 
 def _draw(ax, meshes, view, box):
-    """Painter's algorithm (faces far to near, Lambert-shaded) of meshes [(V, F, rgb)] seen from
-    the front (view 0: from -y) or the side (1: from +x), in the box (centre [3], half-size)."""
+    """Painter's algorithm (faces far to near, Lambert-shaded) of meshes [(V, F, rgb, cloth)] seen
+    from the front (view 0: from -y) or the side (1: from +x), in the box (centre [3], half-size).
+    A body triangle is sorted by its farthest corner, a cloth triangle by its centre 5 mm nearer:
+    the collider's triangles are large, the cloth lies a millimetre or two on them."""
     from matplotlib.collections import PolyCollection
 
     ua, va, da, sgn = [(0, 2, 1, 1.0), (1, 2, 0, -1.0)][view]
     light = np.array([0.3, -0.6, 0.75]) / np.linalg.norm([0.3, -0.6, 0.75])
     polys, depth, cols = [], [], []
-    for V, F, col in meshes:
+    for V, F, col, cloth in meshes:
         tri = V[F]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
         polys.append(tri[:, :, [ua, va]])
-        depth.append(sgn * tri[:, :, da].min(1))  # (nearest corner: cloth on the skin stays in front)
+        d = sgn * tri[:, :, da]
+        depth.append(d.mean(1) - 0.005 if cloth else d.max(1))
         cols.append(np.clip(np.asarray(col)[None] * (0.35 + 0.65 * np.abs(n @ light)[:, None]), 0, 1))
     P, D, C = np.concatenate(polys), np.concatenate(depth), np.concatenate(cols)
     o = np.argsort(-D)
@@ -197,7 +200,8 @@ def _frames(bodies, body_faces, X, faces, title, bad=()):
     for f in range(len(X)):
         for k, ax in enumerate(axes):
             ax.clear()
-            _draw(ax, [(bodies[f], body_faces, (0.80, 0.66, 0.55)), (X[f], faces, (0.30, 0.50, 0.85))], k, box)
+            _draw(ax, [(bodies[f], body_faces, (0.80, 0.66, 0.55), False), (X[f], faces, (0.30, 0.50, 0.85), True)],
+                  k, box)
         fig.suptitle(f"{title}  frame {f}" + ("  CROSSES" if f in bad else ""), fontsize=8)
         fig.canvas.draw()
         out.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
