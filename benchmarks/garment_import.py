@@ -58,7 +58,7 @@ def main():
     from physavatar.body import BodyModel
     from physavatar.body.load import load_motion, with_arm_clearance
     from physavatar.errors import PhysavatarError
-    from physavatar.garment.boundary import auto_boundary
+    from physavatar.garment.boundary import arm_vertices, auto_boundary
     from physavatar.garment.files import load_garment
     from physavatar.garment_sim import GarmentPart, fit_on_body, rest_strain, simulate_on_body
     from physavatar.sim import SimSettings, preset
@@ -106,7 +106,8 @@ def main():
         if args.previews:
             preview(Path(args.previews) / f"{name}_fit.png", body.rest_vertices, body.faces, fitted.vertices,
                     fitted.faces, f"{name} fitted on Anny's rest pose")
-        fitted.boundary, brep = auto_boundary(fitted.vertices, fitted.faces, body.rest_vertices, body.faces)
+        fitted.boundary, brep = auto_boundary(fitted.vertices, fitted.faces, body.rest_vertices, body.faces,
+                                              avoid=arm_vertices(body))
         area = ClothTopology.build(fitted.rest_shape, fitted.faces).face_area
         entry = {"vertices": len(gm.vertices), "faces": len(gm.faces), "panels": len(np.unique(gm.panels())),
                  "seam_pairs": len(gm.seams), "rest_source": gm.rest_source, "fit": fit,

@@ -184,6 +184,19 @@ def test_auto_boundary_of_a_skirt_is_its_waistband():
     waist = np.flatnonzero(V[:, 2] > 0.899)
     assert set(waist) <= set(ids)  # the whole waist ring
     assert V[ids, 2].min() > 0.85 and len(ids) <= 3 * len(waist)  # and only a band under it
+    side = B[:, 0] > 0.0  # say the +x half of the body were an arm: nothing hangs from there
+    ids2, _ = auto_boundary(V, F, B, BF, avoid=side)
+    assert set(ids2) < set(ids) and V[ids2, 0].max() < 0.02 and len(ids2) > 0.3 * len(ids)
+
+
+def test_arm_vertices_are_the_arms(collider_body):
+    from physavatar.garment.boundary import arm_vertices
+
+    body = collider_body
+    arm = arm_vertices(body)
+    B = body.rest_vertices
+    hands = np.abs(B[:, 0]) > 0.35  # the A-pose arms reach out past the hips
+    assert arm[hands].all() and not arm[np.abs(B[:, 0]) < 0.1].any()
 
 
 def test_start_repair_pushes_a_crossing_cloth_out_to_dhat_and_refuses_beyond_the_limit():

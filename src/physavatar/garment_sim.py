@@ -131,7 +131,7 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     (garment.boundary.auto_boundary). ``alignment``: a garment.fit.Alignment already made (the
     search skipped). Returns (GarmentPart on the rest body, with that boundary; report dict)."""
     from .errors import PhysavatarError
-    from .garment.boundary import auto_boundary
+    from .garment.boundary import arm_vertices, auto_boundary
     from .garment.fit import align_garment, align_with_openings, growing_bodies
     from .sim.start import repair_start
     from .sim.stitch import seam_gaps
@@ -161,7 +161,7 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     moving = len(bodies) - hold - 1
     X = simulate_on_body(part, bodies[: moving + 1], body.faces, material, fps, settings=grow, progress=progress)
     part = dataclasses.replace(part, vertices=X[-1])
-    part.boundary, _ = auto_boundary(part.vertices, part.faces, bodies[moving], body.faces)
+    part.boundary, _ = auto_boundary(part.vertices, part.faces, bodies[moving], body.faces, avoid=arm_vertices(body))
     if hold:
         X = simulate_on_body(part, bodies[moving:], body.faces, material, fps, settings=settings, progress=progress)
     x = X[-1]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..garment.boundary import auto_boundary
+from ..garment.boundary import arm_vertices, auto_boundary
 from ..garment.files import load_garment
 from ..garment_sim import GarmentPart, fit_on_body
 
@@ -24,7 +24,8 @@ def file_on_body(path: Path, body, mat, sim_settings, *, up=None, scale="1", res
     if fit:
         part, imported["fit"] = fit_on_body(gm, body, mat, sim_settings, frames=fit_frames, hold=fit_hold,
                                             repair_limit=repair_limit, progress=progress)
-    part.boundary, imported["boundary"] = choose_boundary(gm, part.vertices, body.rest_vertices, body.faces, boundary)
+    part.boundary, imported["boundary"] = choose_boundary(gm, part.vertices, body.rest_vertices, body.faces, boundary,
+                                                          avoid=arm_vertices(body))
     return part, imported
 
 
@@ -35,10 +36,11 @@ def garment_part(gm, path: Path):
                   "seam_pairs": len(gm.seams), "repairs": gm.repairs}
 
 
-def choose_boundary(gm, vertices, body_vertices, body_faces, boundary: str = "auto"):
-    """(boundary ids, report): the file's flags, the automatic choice, or none (``boundary``: auto|none)."""
+def choose_boundary(gm, vertices, body_vertices, body_faces, boundary: str = "auto", avoid=None):
+    """(boundary ids, report): the file's flags, the automatic choice (not on ``avoid``: the arms
+    of an Anny body, garment.boundary), or none (``boundary``: auto|none)."""
     if boundary == "none":
         return np.zeros(0, np.int64), {"rule": "none: held by contact and friction alone", "vertices": 0}
     if gm.boundary is not None and len(gm.boundary):
         return gm.boundary, {"rule": "the file's boundary flags", "vertices": len(gm.boundary)}
-    return auto_boundary(vertices, gm.faces, body_vertices, body_faces)
+    return auto_boundary(vertices, gm.faces, body_vertices, body_faces, avoid=avoid)
