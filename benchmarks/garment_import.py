@@ -115,6 +115,7 @@ def main():
         print(f"{name}: {len(gm.vertices)} vertices, {len(gm.seams)} seam pairs; fitted in {fit_s:.0f} s "
               f"(grade {fit['alignment']['grade']}, strain {fit['strain_mean'] * 100:.2f} %), "
               f"{brep['vertices']} boundary vertices", flush=True)
+        garments[name] = entry
         for mname in args.motions:
             spec = str(data / "motions" / mname) if mname.endswith(".bvh") else mname
             try:
@@ -150,6 +151,7 @@ def main():
                                     bodies=bodies.astype(np.float32), faces=fitted.faces, body_faces=body.faces)
             if args.previews:
                 video(Path(args.previews) / f"{tag}.mp4", bodies, body.faces, X, fitted.faces, tag, fps, bad)
+            write(args, garments, all_ok, load0, material, settings, fps, seconds, warmup)  # after every clip
             all_ok["finite_and_intersection_free"] &= not bad
             all_ok["strain_first_frame"] &= strain_first < 0.05
             all_ok["seams_closed"] &= bool(gaps.max() < 0.002)
