@@ -184,6 +184,19 @@ def test_auto_boundary_of_a_skirt_is_its_waistband():
     waist = np.flatnonzero(V[:, 2] > 0.899)
     assert set(waist) <= set(ids)  # the whole waist ring
     assert V[ids, 2].min() > 0.85 and len(ids) <= 3 * len(waist)  # and only a band under it
+    side = B[:, 0] > 0.0  # say the +x half of the body were an arm: nothing hangs from there
+    ids2, _ = auto_boundary(V, F, B, BF, avoid=side)
+    assert set(ids2) < set(ids) and V[ids2, 0].max() < 0.02 and len(ids2) > 0.3 * len(ids)
+
+
+def test_arm_vertices_are_the_arms(collider_body):
+    from physavatar.garment.boundary import arm_vertices
+
+    body = collider_body
+    arm = arm_vertices(body)
+    B = body.rest_vertices
+    hands = np.abs(B[:, 0]) > 0.35  # the A-pose arms reach out past the hips
+    assert arm[hands].all() and not arm[np.abs(B[:, 0]) < 0.1].any()
 
 
 def test_start_repair_pushes_a_crossing_cloth_out_to_dhat_and_refuses_beyond_the_limit():
@@ -218,15 +231,10 @@ def test_bad_garments_give_one_line(tmp_path):
     assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
 
 
-def test_simulate_a_garment_file_on_a_motion(tmp_path):
-    """`simulate --garment FILE --motion M` (--no-fit: the file is already on Anny's rest pose):
-    a skirt of two half-panels (separate vertices at the side seams, a rest-shape file) around
-    the hips; the seams stay shut, the boundary is chosen at the top, every frame is clean."""
-    import json
-
-    from physavatar.body import BodyModel
-
-    B = BodyModel(topology="collider").rest_vertices
+def two_panel_skirt(tmp_path, B):
+    """A skirt of two half-panels (separate vertices at the side seams) around the hips of the body
+    B [Nb, 3] (rest pose), 6 mm outside it, written as s-w.obj with a rest-shape file s-m.obj (2 %
+    smaller, the second panel laid apart); returns its world vertices."""
     torso = B[np.abs(B[:, 0]) < 0.22]  # not the hands
     c = torso[(torso[:, 2] > 0.85) & (torso[:, 2] < 1.05), :2].mean(0)
     V, _ = frustum(1.0, 1.0, 1.05, 0.75, n_around=24, n_down=6)
@@ -252,6 +260,18 @@ def test_simulate_a_garment_file_on_a_motion(tmp_path):
     rest = world * 0.98  # 2 % smaller: the world is stretched by 1/0.98; the second panel laid apart
     rest[len(halves[0][0]):, 0] += 2.0
     write_obj(tmp_path / "s-m.obj", rest, faces)
+    return world
+
+
+def test_simulate_a_garment_file_on_a_motion(tmp_path):
+    """`simulate --garment FILE --motion M` (--no-fit: the file is already on Anny's rest pose):
+    a skirt of two half-panels (separate vertices at the side seams, a rest-shape file) around
+    the hips; the seams stay shut, the boundary is chosen at the top, every frame is clean."""
+    import json
+
+    from physavatar.body import BodyModel
+
+    world = two_panel_skirt(tmp_path, BodyModel(topology="collider").rest_vertices)
     r = runner.invoke(app, ["simulate", "--garment", str(tmp_path / "s-w.obj"), "--motion", "walk", "--no-fit",
                             "--duration", "0.12", "--out", str(tmp_path / "o"), "--no-preview"])
     assert r.exit_code == 0, r.output
@@ -263,3 +283,180 @@ def test_simulate_a_garment_file_on_a_motion(tmp_path):
     assert np.allclose(z["rest_vertices"], g.rest, atol=1e-6)
     assert max(seam_gaps(x, g.seams).max() for x in z["vertices"]) < 2e-3
     assert len(z["boundary"]) and world[:, 2].max() - g.vertices[z["boundary"], 2].min() < 0.3 * 0.3 + 1e-6
+    assert np.array_equal(z["seams"], g.seams)  # the seams are stored: a reader can sew it again
+    from physavatar.data.garment_sequence import GarmentSequence
+    from physavatar.stages.simulate import garment_file
+
+    part, _ = garment_file(tmp_path / "o" / "garment_sequence.npz")
+    assert np.array_equal(GarmentSequence.load(tmp_path / "o").seams, g.seams) and np.array_equal(part.seams, g.seams)
+
+
+def test_animate_an_avatar_in_a_garment_file(tiny_capture, tmp_path):
+    """`animate --garment FILE`: the tiny avatar wears a two-panel skirt file instead of its own
+    garment (--no-fit: the file is on Anny's rest pose in the avatar's shape); the sequence holds
+    the avatar's body and the skirt, free of garment–body intersections, its seams shut."""
+    import json
+
+    from physavatar.body import BodyModel
+    from physavatar.capture import load_capture
+    from physavatar.data.animated import AnimatedSequence
+    from physavatar.geometry import count_intersections
+    from physavatar.stages.animate import AnimateConfig, run
+    from physavatar.stages.avatar import build_avatar
+
+    cap = load_capture(tiny_capture)
+    av = build_avatar(tiny_capture, tmp_path / "avatar", material=tiny_capture / "ground_truth" / "material.json")
+    body = BodyModel(av.shape, topology="collider")
+    two_panel_skirt(tmp_path, body.rest_vertices)
+    g = load_garment(tmp_path / "s-w.obj")
+    cfg = AnimateConfig(motion="walk", duration=0.12, warmup=0.12, garment=str(tmp_path / "s-w.obj"), fit=False)
+    r = run(tmp_path / "avatar", out=tmp_path / "anim", config=cfg)
+    seq = AnimatedSequence.load(tmp_path / "anim")
+    nb = int((cap.template.labels == 0).sum())
+    assert seq.vertices.shape[1] == nb + len(g.vertices) and (seq.labels[nb:] > 0).all() and (seq.labels[:nb] == 0).all()
+    assert seq.face_uvs is None or len(seq.face_uvs) == len(seq.faces)
+    meta = json.loads((tmp_path / "anim" / "sequence.json").read_text())
+    assert meta["garment_import"]["seam_pairs"] == len(g.seams)
+    assert r.stats["warmup_frames"] == 0  # walk starts in the zero pose the garment is on (not the capture's)
+    gf = seq.faces[(seq.faces >= nb).all(1)] - nb
+    assert np.array_equal(np.sort(gf, axis=1), np.sort(g.faces, axis=1))
+    from physavatar.body.load import load_motion
+
+    m = load_motion("walk", av.fps, 0.12)
+    posed = body.pose(m.rotations, m.root_translation).vertices
+    for t in range(len(seq.vertices)):
+        x = seq.vertices[t, nb:]
+        assert count_intersections(x, g.faces, posed[t], body.faces) == 0
+        assert seam_gaps(x, g.seams).max() < 2e-3
+
+
+# -- fitting a garment with sleeves: the limbs posed through its openings ----------------------
+
+
+def tube_shirt(shoulder_l, shoulder_r, theta_deg, spacing=0.012, sleeve=0.3, r_arm=0.08, r_torso=0.22, bottom=0.85):
+    """A shirt (marching cubes, scikit-image, of a solid torso with a sloped top and two sleeve
+    cylinders, then the caps cut open): sleeves from the shoulder points going out and down by
+    ``theta_deg`` below horizontal, open at the neck, the hem and the cuffs. (V, F, d_l, d_r)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+    from skimage.measure import marching_cubes
+
+    top = shoulder_l[2] + 0.12
+    d_l = np.array([np.cos(np.radians(theta_deg)), 0.0, -np.sin(np.radians(theta_deg))])
+    d_r = d_l * [-1, 1, 1]
+    lo, hi = np.array([-0.75, -0.3, bottom - 0.1]), np.array([0.75, 0.3, top + 0.1])
+    X = np.stack(np.meshgrid(*[np.arange(a, b, spacing) for a, b in zip(lo, hi)], indexing="ij"), -1)
+    roof = top - 0.35 * np.abs(X[..., 0])
+    f = np.maximum(np.hypot(X[..., 0], X[..., 1]) - r_torso, np.maximum(X[..., 2] - roof, bottom - X[..., 2]))
+    for J, d in ((shoulder_l, d_l), (shoulder_r, d_r)):
+        t = (X - J) @ d
+        rr = np.linalg.norm(X - J - t[..., None] * d, axis=-1)
+        f = np.minimum(f, np.maximum(rr - r_arm, np.maximum(t - sleeve, -t)))
+    V, F, _, _ = marching_cubes(f, 0.0, spacing=(spacing,) * 3)
+    V += lo
+    C = V[F].mean(1)
+    eps = 0.6 * spacing
+    cut = ((C[:, 2] > top - 0.35 * 0.09 - eps) & (np.hypot(C[:, 0], C[:, 1]) < 0.09)) | (C[:, 2] < bottom + eps)
+    for J, d in ((shoulder_l, d_l), (shoulder_r, d_r)):
+        cut |= (C - J) @ d > sleeve - eps
+    F = F[~cut][:, ::-1]
+    A = sp.coo_matrix((np.ones(3 * len(F)), (F.ravel(), F[:, [1, 2, 0]].ravel())), shape=(len(V), len(V)))
+    lab = connected_components(A, directed=False)[1]
+    F = F[lab[F[:, 0]] == np.bincount(lab[F[:, 0]]).argmax()]  # the shirt, not crumbs of a cut cap
+    return V, F, d_l, d_r
+
+
+@pytest.fixture(scope="module")
+def collider_body():
+    from physavatar.body import BodyModel
+
+    return BodyModel(topology="collider")
+
+
+def _shoulders(body):
+    n = list(body.bone_names)
+    return body.rest_joints[n.index("upperarm01.L")], body.rest_joints[n.index("upperarm01.R")]
+
+
+@pytest.mark.parametrize("theta", [20.0, -25.0])
+def test_sleeve_openings_give_the_arm_pose(collider_body, theta):
+    """The openings of a synthetic shirt are found and named, and the solved pose puts each upper
+    arm along its sleeve's known axis (and the forearm in line: the elbow straightened)."""
+    from physavatar.garment.openings import find_openings, lateral_axis, limb_pose
+
+    body = collider_body
+    V, F, d_l, d_r = tube_shirt(*_shoulders(body), theta)
+    ops = find_openings(V, F)
+    assert sorted(o.kind for o in ops) == ["arm", "arm", "hem", "neck"]
+    assert abs(abs(lateral_axis(ops)[0]) - 1.0) < 1e-3
+    rots, aims = limb_pose(body, ops)
+    J = body.pose(rots[None], np.zeros((1, 3))).joints[0]
+    n = list(body.bone_names)
+    for side, d in (("L", d_l), ("R", d_r)):
+        s = J[n.index(f"upperarm01.{side}")]
+        for end in ("lowerarm01", "wrist"):
+            u = J[n.index(f"{end}.{side}")] - s
+            assert np.degrees(np.arccos(np.clip(u @ d / np.linalg.norm(u), -1, 1))) < 2.0, (side, end)
+        assert aims[f"upperarm01.{side}"]["towards"] == "centre"
+    assert not np.any(rots[[n.index("upperleg01.L"), n.index("upperleg01.R")]])  # no leg openings
+
+
+def test_a_shirt_whose_sleeves_point_up_fits_with_the_arms_posed_through_them(collider_body, tmp_path):
+    """A coarse shirt with sleeves 25° above horizontal, placed on Anny's shoulders: with the arm
+    raises alone (up to 50° from the A-pose) the arms cross the sleeves' walls however thin the
+    body is shrunk; posed through the openings, the body clears the shirt shrunk to 0.8 of its
+    girth, grows inside it, turns its arms back down, and the shirt ends clear of the rest body
+    (ipctk), its strain small and its cuffs around the arms."""
+    from physavatar.garment.fit import Alignment, _start_girth, arms_raised
+    from physavatar.garment.openings import find_openings, limb_pose
+    from physavatar.garment_sim import fit_on_body, rest_strain
+    from physavatar.geometry import MeshQuery
+
+    body = collider_body
+    V, F, _, _ = tube_shirt(*_shoulders(body), -25.0, spacing=0.04)
+    write_obj(tmp_path / "shirt.obj", V, F)
+    gm = load_garment(tmp_path / "shirt.obj")  # (drops marching cubes' slivers)
+    V, F = gm.vertices, gm.faces
+    rots, aims = limb_pose(body, find_openings(V, F))
+    B = body.pose(rots[None], np.zeros((1, 3))).vertices[0]
+    al = Alignment(V, 0.0, np.zeros(3), 0.0, B, 0.0, 0.0, 0.0, 1.0, F, rots, aims)
+    alpha, left = _start_girth(body, V, F, rots, 1e-3, 0.3)
+    assert alpha >= 0.8 and left == 0
+    for raise_deg in (0.0, 20.0, 35.0, 50.0):  # (a shrunk arm still crosses the sleeve's wall)
+        assert _start_girth(body, V, F, arms_raised(body, raise_deg)[0], 1e-3, 0.3)[1] > 0
+    mat = preset("cotton")
+    part, rep = fit_on_body(gm, body, mat, SimSettings(integrator=mat.integrator), frames=3, pose_frames=3,
+                            hold=1, alignment=al)
+    x = part.vertices
+    scene = ContactScene(x, F, body.rest_vertices, body.faces, 1e-3)
+    assert not scene.has_intersections(np.vstack([x, body.rest_vertices]))
+    assert rep["strain_mean"] < 0.05
+    n = list(body.bone_names)
+    for o in (o for o in find_openings(x, F) if o.kind == "arm"):  # each cuff around its (rest) upper arm
+        side = "L" if o.centre[0] > 0 else "R"
+        a, e = body.rest_joints[n.index(f"upperarm01.{side}")], body.rest_joints[n.index(f"lowerarm01.{side}")]
+        t = np.clip((o.centre - a) @ (e - a) / ((e - a) @ (e - a)), 0, 1)
+        assert np.linalg.norm(o.centre - (a + t * (e - a))) < o.radius
+    assert MeshQuery(body.rest_vertices, body.faces).signed_distance(x, max_dist=0.1)[0].min() > 0
+
+
+def test_start_repair_untangles_a_slight_self_intersection():
+    """Two parallel panels 4 mm apart, one vertex of the upper one poked 3 mm through the lower:
+    the cloth crosses itself (ipctk's edge–triangle test); the repair pulls the vertex back over
+    the lower panel and nothing else moves far; a far body changes nothing else."""
+    from physavatar.sim.start import self_crossings, untangle
+
+    Va, Fa = panel(0.0, 0.2, 0.2, 8)
+    Vb, Fb = panel(0.0, 0.2, 0.2, 8, y=0.004)
+    V = np.vstack([Va, Vb])
+    F = np.vstack([Fa, Fb + len(Va)])
+    poked = len(Va) + 4 * 9 + 4  # the middle of the upper panel
+    V[poked, 1] = -0.003
+    assert len(self_crossings(V, F)) > 0
+    x, rep = untangle(V, F)
+    assert rep["self_crossings_before"] > 0 and rep["self_crossings_after"] == 0 and len(self_crossings(x, F)) == 0
+    assert x[poked, 1] > 0 and np.abs(x[: len(Va)] - Va).max() < 0.004  # back over the lower panel
+    B, BF = cylinder_body(0.05, 0.1)
+    xr, rep = repair_start(V, F, B + [5.0, 0, 0], BF, 1e-3)
+    assert rep["self_crossings"]["before"] > 0 and rep["self_crossings"]["after"] == 0
+    assert np.allclose(xr, x)

@@ -254,16 +254,19 @@ FIT_REPAIR_LIMIT = 0.08  # m: the fit's start repair works against the shrunk bo
 
 
 def fit_on_body(garment, body, material: Material, settings: SimSettings | None = None, frames: int = 20,
-                hold: int = 10, fps: float = 25.0, repair_limit: float = 0.03, progress=False):
+                hold: int = 10, fps: float = 25.0, repair_limit: float = 0.03, progress=False, pose_frames: int = 15,
+                alignment=None):
     """Fit a garment made for another body (a garment.files.GarmentMesh) onto ``body``'s rest
-    pose: align it (garment.fit.align_garment), repair the start against the shrunk body,
-    simulate it without gravity, seams stitched, while the body grows to full size and lowers
-    its arms (garment.fit.growing_bodies), then ``hold`` frames under gravity hanging from where
-    it rests (garment.boundary.auto_boundary). Returns (GarmentPart on the rest body, with that
-    boundary; report dict)."""
+    pose: align it (garment.fit.align_with_openings: limbs posed through its sleeves or trouser
+    legs, else garment.fit.align_garment), repair the start against the shrunk body, simulate it
+    without gravity, seams stitched, while the body grows to full size (garment.fit.growing_bodies)
+    and then, over ``pose_frames``, turns its limbs back to the rest pose (or lowers its arms while
+    growing), then ``hold`` frames under gravity hanging from where it rests
+    (garment.boundary.auto_boundary). ``alignment``: a garment.fit.Alignment already made (the
+    search skipped). Returns (GarmentPart on the rest body, with that boundary; report dict)."""
     from .errors import PhysavatarError
-    from .garment.boundary import auto_boundary
-    from .garment.fit import align_garment, growing_bodies
+    from .garment.boundary import arm_vertices, auto_boundary
+    from .garment.fit import align_garment, align_with_openings, growing_bodies
     from .sim.start import repair_start
     from .sim.stitch import seam_gaps
 
@@ -273,10 +276,12 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     settings = dataclasses.replace(settings, newton_tol=max(settings.newton_tol, FIT_NEWTON_TOL),
                                    max_newton_iterations=min(settings.max_newton_iterations, FIT_NEWTON_ITERATIONS),
                                    damping_mass=max(settings.damping_mass, FIT_DAMPING))
-    al = align_garment(garment.vertices, body, faces=garment.faces)
+    al = alignment or align_with_openings(garment.vertices, body, garment.faces, garment.seams)
+    if al is None:  # no sleeves or trouser legs
+        al = align_garment(garment.vertices, body, faces=garment.faces)
     rest = garment.rest * al.grade
     try:
-        bodies, alpha0 = growing_bodies(body, al, frames, hold, dhat=settings.dhat)
+        bodies, alpha0 = growing_bodies(body, al, frames, hold, dhat=settings.dhat, pose_frames=pose_frames)
         # (a no-op unless the shrunk body's clearance check missed a contact)
         x0, repair = repair_start(al.vertices, garment.faces, bodies[0], body.faces, settings.dhat,
                                   max(repair_limit, FIT_REPAIR_LIMIT),
@@ -287,18 +292,19 @@ def fit_on_body(garment, body, material: Material, settings: SimSettings | None 
     # growing without gravity (the body pushes the garment out; nothing makes it slide down the
     # shrunk body), then settling under gravity hanging from where it rests (auto boundary)
     grow = dataclasses.replace(settings, gravity=(0.0, 0.0, 0.0))
-    X = simulate_on_body(part, bodies[: frames + 1], body.faces, material, fps, settings=grow, progress=progress)
+    moving = len(bodies) - hold - 1
+    X = simulate_on_body(part, bodies[: moving + 1], body.faces, material, fps, settings=grow, progress=progress)
     part = dataclasses.replace(part, vertices=X[-1])
-    part.boundary, _ = auto_boundary(part.vertices, part.faces, bodies[frames], body.faces)
+    part.boundary, _ = auto_boundary(part.vertices, part.faces, bodies[moving], body.faces, avoid=arm_vertices(body))
     if hold:
-        X = simulate_on_body(part, bodies[frames:], body.faces, material, fps, settings=settings, progress=progress)
+        X = simulate_on_body(part, bodies[moving:], body.faces, material, fps, settings=settings, progress=progress)
     x = X[-1]
     if not np.all(np.isfinite(x)):
         raise PhysavatarError(garment.path, "fitting onto the body: the settling simulation diverged")
     strain = rest_strain(x, rest, garment.faces)
     gaps = seam_gaps(x, garment.seams)
     report = {"alignment": al.report(), "start_girth": round(alpha0, 3), "start_repair": repair,
-              "frames": int(frames + hold), "boundary_while_settling": len(part.boundary),
+              "frames": int(moving + hold), "boundary_while_settling": len(part.boundary),
               "strain_mean": float(strain.mean()), "strain_p95": float(np.percentile(strain, 95)),
               "seam_gap_max_m": float(gaps.max()) if len(gaps) else 0.0}
     fitted = GarmentPart(np.arange(len(x)), x, garment.faces, part.boundary, rest, garment.seams)

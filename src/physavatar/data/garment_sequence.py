@@ -10,9 +10,11 @@
     body_faces      [Fb, 3]
     fps             float64             default 25
     rest_vertices   [N, 3] float32      the stress-free shape (default: frame 0)
+    seams           [S, 2] int64        vertex pairs sewn together (optional: a garment sewn
+                                        from panels, garment.files; held by sim.stitch)
 
 fit-physics fits to it, ``simulate --collider`` takes its body and ``simulate --garment`` its rest
-shape and boundary.
+shape, boundary and seams.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ class GarmentSequence:
     fps: float = 25.0
     rest_vertices: np.ndarray | None = None
     path: Path | None = None
+    seams: np.ndarray | None = None
 
     def __post_init__(self):
         if self.rest_vertices is None and np.ndim(self.vertices) == 3 and len(self.vertices):
@@ -95,7 +98,8 @@ class GarmentSequence:
         if "body_vertices" in z:
             body = pos(z["body_vertices"])
             body_faces = np.asarray(z["body_faces"], np.int64) if "body_faces" in z else None
-        seq = cls(V, F, b, body, body_faces, float(z["fps"]) if "fps" in z else 25.0, rest, path=path)
+        seams = np.asarray(z["seams"], np.int64).reshape(-1, 2) if "seams" in z else None
+        seq = cls(V, F, b, body, body_faces, float(z["fps"]) if "fps" in z else 25.0, rest, path=path, seams=seams)
         seq.validate(finite=finite)
         return seq
 
@@ -128,6 +132,10 @@ class GarmentSequence:
                 raise PhysavatarError(path, "body_vertices contain non-finite values")
         if not self.fps > 0:
             raise PhysavatarError(path, f"fps must be positive, got {self.fps}")
+        if self.seams is not None:
+            sm = np.asarray(self.seams)
+            if sm.ndim != 2 or sm.shape[1] != 2 or (len(sm) and (sm.min() < 0 or sm.max() >= n)):
+                raise PhysavatarError(path, f"seams must be [S, 2] pairs of the {n} garment vertices, got {sm.shape}")
 
     def save(self, path: str | Path) -> Path:
         """Write atomically (positions float32, boundary as ids); frames that are not finite are
@@ -138,6 +146,8 @@ class GarmentSequence:
         if self.body_vertices is not None:
             arrays |= {"body_vertices": np.asarray(self.body_vertices, np.float32), "body_faces": self.body_faces}
         arrays |= {"fps": np.float64(self.fps), "rest_vertices": np.asarray(self.rest_vertices, np.float32)}
+        if self.seams is not None and len(self.seams):
+            arrays["seams"] = np.asarray(self.seams, np.int64)
         save_npz_atomic(path, **arrays)
         return path
 

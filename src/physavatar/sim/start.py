@@ -160,7 +160,9 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
     vertex's normal, and lets each moved vertex's unmoved neighbours follow halfway (so no
     spike is made), until ipctk finds no intersection and its minimum distance (vertex–triangle
     and edge–edge) is at least d̂. The vertices of a seam (``seams`` [S, 2] pairs) move together
-    (by their mean move), so a repair opens no seam.
+    (by their mean move), so a repair opens no seam. Slight self-intersections of the cloth are
+    undone first (:func:`untangle`); the report's ``self_crossings`` gives the crossing
+    edge–triangle pairs before and after (a real tangle is left: self-contact is then off).
 
     Args:
         x: [N, 3] cloth start; faces: [F, 3]; body_vertices: [Nb, 3]; body_faces: [Fb, 3].
@@ -197,6 +199,7 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
         _, group = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
                                                       shape=(n, n)), directed=False)
         count = np.bincount(group, minlength=n).astype(float)
+    x, tangle = untangle(x, F, seams, limit=limit)  # slight self-intersections first
     rounds, dist = 0, 0.0
     for rounds in range(iters + 1):
         X = np.vstack([x, B])
@@ -246,9 +249,99 @@ def repair_start(x, faces, body_vertices, body_faces, dhat: float, limit: float 
     moved = move > 0
     report = {"moved_vertices": int(moved.sum()), "max_move": float(move.max()),
               "mean_move": float(move[moved].mean()) if moved.any() else 0.0, "rounds": int(rounds),
-              "min_distance": float(dist), "limit": float(limit)}
+              "min_distance": float(dist), "limit": float(limit),
+              "self_crossings": {"before": tangle["self_crossings_before"],
+                                 "after": tangle["self_crossings_after"] if not tangle["self_crossings_before"]
+                                 else len(self_crossings(x, F, seams))}}
     return x, report
 
 
 def _longest_edge(x, F):
     return float(np.linalg.norm(x[F] - x[F[:, [1, 2, 0]]], axis=2).max())
+
+
+def self_crossings(x, faces, seams=None) -> np.ndarray:
+    """[K, 2] (edge, triangle) pairs of a cloth that cross each other (ipctk's exact
+    edge–triangle test on the pairs whose bounding spheres overlap); an edge and a triangle that
+    share a vertex, or a sewn point (``seams`` [S, 2]: the panels meet there), are not a crossing.
+    Edges are :func:`physavatar.geometry.mesh_edges`' order."""
+    import ipctk
+    from scipy.spatial import cKDTree
+
+    from ..geometry import mesh_edges
+
+    x = np.asarray(x, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    E = mesh_edges(F)
+    pid = _sewn_ids(len(x), seams)
+    a, b = x[E[:, 0]], x[E[:, 1]]
+    mid, r_e = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=1)
+    tri = x[F]
+    cen = tri.mean(1)
+    r_t = np.linalg.norm(tri - cen[:, None], axis=2).max(1)
+    lists = cKDTree(cen).query_ball_point(mid, r_e + r_t.max())
+    out = []
+    PF, PE = pid[F], pid[E]
+    for i, cand in enumerate(lists):
+        if not cand:
+            continue
+        cand = np.asarray(cand)
+        cand = cand[(np.linalg.norm(cen[cand] - mid[i], axis=1) <= r_e[i] + r_t[cand])
+                    & ~np.isin(PF[cand], PE[i]).any(1)]
+        out += [(i, t) for t in cand if ipctk.is_edge_intersecting_triangle(a[i], b[i], *tri[t])]
+    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+
+def _sewn_ids(n, seams):
+    if seams is None or not len(seams):
+        return np.arange(n)
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    s = np.asarray(seams, dtype=np.int64).reshape(-1, 2)
+    return connected_components(sp.coo_matrix((np.ones(len(s)), (s[:, 0], s[:, 1])), shape=(n, n)), directed=False)[1]
+
+
+def untangle(x, faces, seams=None, rounds: int = 30, limit: float = REPAIR_LIMIT):
+    """Undo slight self-intersections of a cloth (a fold poking through its neighbour layer, a
+    corner of a drape through the next panel): while :func:`self_crossings` finds crossing pairs,
+    the vertices of the crossing edges and triangles and their neighbours move halfway to the mean
+    of their neighbours (a local Laplacian smoothing: a vertex poked through another layer is
+    pulled back to its own), a sewn point as one. Returns (x, report: crossings before and after,
+    rounds, moved vertices, largest move [m]); a crossing that would need a move beyond ``limit``
+    (a real tangle) is left (after > 0) and the cloth kept as it was."""
+    from ..geometry import adjacency, mesh_edges
+
+    x0 = np.asarray(x, dtype=np.float64)
+    x = x0.copy()
+    F = np.asarray(faces, dtype=np.int64)
+    E = mesh_edges(F)
+    n = len(x)
+    pid = _sewn_ids(n, seams)
+    A = adjacency(F, n)
+    deg = np.maximum(np.asarray(A.sum(1)).ravel(), 1.0)
+    count = np.bincount(pid, minlength=n).astype(float)
+    pairs = self_crossings(x, F, seams)
+    before = len(pairs)
+    r = 0
+    for r in range(1, rounds + 1):
+        if not len(pairs):
+            r -= 1
+            break
+        hit = np.zeros(n, bool)
+        hit[E[pairs[:, 0]].ravel()] = True
+        hit[F[pairs[:, 1]].ravel()] = True
+        region = hit | (A @ hit.astype(float) > 0)
+        region = np.isin(pid, pid[region])  # a sewn point moves as one
+        step = np.where(region[:, None], 0.5 * ((A @ x) / deg[:, None] - x), 0.0)
+        mean = np.zeros((n, 3))
+        np.add.at(mean, pid, step)
+        x = x + mean[pid] / count[pid][:, None]
+        if np.linalg.norm(x - x0, axis=1).max() > limit:
+            x = x0
+            pairs = self_crossings(x, F, seams)
+            break
+        pairs = self_crossings(x, F, seams)
+    move = np.linalg.norm(x - x0, axis=1)
+    return x, {"self_crossings_before": int(before), "self_crossings_after": int(len(pairs)), "rounds": int(r),
+               "moved_vertices": int((move > 0).sum()), "max_move": float(move.max()) if n else 0.0}

@@ -37,14 +37,18 @@ def transition(r0: np.ndarray, t0: np.ndarray, r1: np.ndarray, t1: np.ndarray, n
     return matrix_to_axis_angle(R), (1 - s)[:, None] * t0 + s[:, None] * t1
 
 
-def _warmup(avatar: Avatar, motion: Motion, bone_names, warmup_s: float) -> tuple[Motion, Motion, int]:
-    """(motion, rest pose) for ``bone_names`` at the avatar's fps, and the warm-up frame count."""
+def _warmup(avatar: Avatar, motion: Motion, bone_names, warmup_s: float,
+            zero_start: bool = False) -> tuple[Motion, Motion, int]:
+    """(motion, rest pose) for ``bone_names`` at the avatar's fps, and the warm-up frame count:
+    from the rest pose, or from the zero pose with ``zero_start`` (a garment fitted there)."""
     fps = avatar.fps
     m = motion.resample(fps).for_bones(bone_names)
     rest = Motion("rest", fps, avatar.bone_names, avatar.rest_rotations[None], avatar.rest_translation[None])
     rest = rest.for_bones(bone_names)
-    d_rot = np.abs(axis_angle_to_matrix(m.rotations[0]) - axis_angle_to_matrix(rest.rotations[0])).max()
-    d_tr = np.abs(m.root_translation[0] - rest.root_translation[0]).max()
+    r0 = np.zeros_like(rest.rotations[0]) if zero_start else rest.rotations[0]
+    t0 = np.zeros(3) if zero_start else rest.root_translation[0]
+    d_rot = np.abs(axis_angle_to_matrix(m.rotations[0]) - axis_angle_to_matrix(r0)).max()
+    d_tr = np.abs(m.root_translation[0] - t0).max()
     n_warm = 0 if (d_rot < 1e-6 and d_tr < 1e-6) else max(2, int(round(warmup_s * fps)))
     return m, rest, n_warm
 
@@ -57,19 +61,24 @@ def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> i
 
 def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
             progress=True, report=None, max_substeps: int = 16,
-            out: Path | None = None) -> tuple[AnimatedSequence, dict]:
+            out: Path | None = None, garment=None) -> tuple[AnimatedSequence, dict]:
     """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats).
     ``progress``: see :mod:`physavatar.progress`; ``report``: called with 1 after every simulated
     frame instead (:mod:`physavatar.parallel`). ``max_substeps``: implicit steps a frame may be
     split into where the body moves fast (sim.simulate.substep_count). ``out``: write each
     simulated frame as it is finished into out/frames/ and resume an interrupted run of the same
-    avatar, motion and settings from there (data.sim_frames; the caller removes it)."""
+    avatar, motion and settings from there (data.sim_frames; the caller removes it). ``garment``: a
+    GarmentPart on the zero pose of Anny in the avatar's shape (collider topology; a garment file
+    fitted there, stages.garment_file) worn instead of the avatar's own: the warm-up starts from
+    that pose, and the sequence holds the avatar's body and that garment."""
     fps = avatar.fps
     body = BodyModel(avatar.shape, topology="collider")
-    m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s)
+    m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s, zero_start=garment is not None)
     rots, trs = m.rotations, m.root_translation
     if n_warm:
-        wr, wt = transition(rest.rotations[0], rest.root_translation[0], m.rotations[0], m.root_translation[0], n_warm)
+        r0, t0 = (np.zeros_like(rots[0]), np.zeros(3)) if garment is not None else (rest.rotations[0],
+                                                                                      rest.root_translation[0])
+        wr, wt = transition(r0, t0, m.rotations[0], m.root_translation[0], n_warm)
         rots = np.concatenate([wr, rots])
         trs = np.concatenate([wt, trs])
     posed = body.pose(rots, trs)
@@ -80,7 +89,9 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     # Skinning relative to the capture's frame-1 pose, which the template is in.
     T_rel = posed.bone_transforms @ np.linalg.inv(posed0.bone_transforms[0])[None]
     Vb = linear_blend_skinning(t.vertices[body_ids], avatar.body_weights, T_rel)
-    if count_intersections(part.vertices, part.faces, posed0.vertices[0], body.faces):
+    if garment is not None:
+        part = garment
+    if count_intersections(part.vertices, part.faces, posed.vertices[0], body.faces):
         raise PhysavatarError(avatar.root / "template.ply",
                               "the garment intersects Anny's collider body in the frame-1 pose; "
                               "the garment must start outside the collider to be simulated")
@@ -104,9 +115,14 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
                               on_frame=store.write, **options)
         Xg, reports = store.positions(part.vertices)
     secs = time.time() - t0
-    V = np.empty((len(rots), len(t.vertices), 3))
-    V[:, body_ids] = Vb
-    V[:, part.vertex_ids] = Xg
+    if garment is None:
+        V = np.empty((len(rots), len(t.vertices), 3))
+        V[:, body_ids] = Vb
+        V[:, part.vertex_ids] = Xg
+        faces, labels, face_uvs = t.faces, t.labels, t.face_uvs
+    else:
+        V = np.concatenate([Vb, Xg], axis=1)
+        faces, labels, face_uvs = _with_garment(t, body_ids, part)
     V = V[n_warm:]
     stats = {"frames": int(len(V)), "warmup_frames": n_warm, "simulation_s": round(secs, 2),
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
@@ -114,7 +130,26 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
              "self_contact": bool(settings is not None and settings.self_contact),
              "frames_with_lag": [f - n_warm for f, r in enumerate(reports, start=1) if r["lagged"] and f >= n_warm],
              "substeps_per_frame": [r["substeps"] for f, r in enumerate(reports, start=1) if f >= n_warm]}
-    return AnimatedSequence(V, t.faces, t.labels, t.face_uvs, fps, avatar.root), stats
+    return AnimatedSequence(V, faces, labels, face_uvs, fps, avatar.root), stats
+
+
+def _with_garment(t, body_ids, part):
+    """(faces, labels, face uvs) of the avatar's body (template order) followed by ``part``: the
+    garment takes the avatar garment's label and the texture at the median of its uvs (one colour;
+    the avatar's texture has no pattern for it)."""
+    gmask = t.labels > 0
+    remap = -np.ones(len(t.vertices), np.int64)
+    remap[body_ids] = np.arange(len(body_ids))
+    body_face = ~gmask[t.faces].any(1)
+    faces = np.vstack([remap[t.faces[body_face]], np.asarray(part.faces) + len(body_ids)])
+    label = int(t.labels[gmask].min()) if gmask.any() else 1
+    labels = np.r_[t.labels[body_ids], np.full(len(part.vertices), label)].astype(t.labels.dtype)
+    face_uvs = None
+    if t.face_uvs is not None:
+        g = t.face_uvs[~body_face].reshape(-1, 2)
+        uv = np.median(g, axis=0) if len(g) else np.full(2, 0.5)
+        face_uvs = np.concatenate([t.face_uvs[body_face], np.broadcast_to(uv, (len(part.faces), 3, 2))])
+    return faces, labels, face_uvs
 
 
 def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, **kw) -> np.ndarray:
@@ -143,6 +178,21 @@ class AnimateConfig:
                                check=lambda v: None if v >= 1 else "must be at least 1")
     self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
                                       "triangles)")
+    garment: str = option("", "a garment file (OBJ, PLY, glTF, npz) worn instead of the avatar's own: fitted onto "
+                              "the avatar's body, simulated with the avatar's material (as simulate --garment)")
+    up: str | None = option(None, "with --garment: the file's up axis: x, y, z, -x, -y, -z (default z; y for glTF)",
+                            choices=("x", "y", "z", "-x", "-y", "-z"))
+    scale: str = option("1", "with --garment: the file's scale: a factor or its unit (m, cm, mm, in)")
+    rest: str | None = option(None, "with --garment: its rest shape: a file with the same triangles, 'uv' or "
+                                    "'world' (default: NAME-m.obj beside NAME-w.obj, else material uv, else the world "
+                                    "shape)")
+    boundary: str = option("auto", "with --garment: its attached vertices: auto (the file's flags, else where it "
+                                   "rests on the body) or none (held by contact and friction alone)",
+                           choices=("auto", "none"))
+    fit: bool = option(True, "with --garment: fit it onto the avatar's body (off: it is already on Anny's rest pose "
+                             "in the avatar's shape)")
+    repair_limit: float = option(0.03, "with --garment: largest move [m] the start repair may make",
+                                 flag="--repair-limit", check=_nonnegative)
 
 
 def pipeline_config(motion: str, eval_frames: int | None) -> AnimateConfig:
@@ -155,6 +205,28 @@ class AnimateResult:
     sequence: AnimatedSequence
     stats: dict
     clearance: dict | None
+
+
+def _file_garment(av: Avatar, config: AnimateConfig, settings: SimSettings, progress):
+    """(GarmentPart, import report) of ``config.garment`` on the avatar's body (Anny in its shape,
+    collider topology, zero pose): read, fitted, its boundary chosen, its start repaired."""
+    from ..garment.files import FORMATS
+    from ..sim.start import repair_start
+    from .garment_file import file_on_body
+
+    path = Path(config.garment)
+    if not path.exists() or path.suffix.lower() not in FORMATS:
+        raise PhysavatarError(path, f"option --garment: not a garment file ({', '.join(FORMATS)})")
+    body = BodyModel(av.shape, topology="collider")
+    part, imported = file_on_body(path, body, av.material, settings, up=config.up, scale=config.scale,
+                                  rest=config.rest, boundary=config.boundary, fit=config.fit,
+                                  repair_limit=config.repair_limit, progress=progress)
+    try:
+        x, imported["start_repair"] = repair_start(part.vertices, part.faces, body.rest_vertices, body.faces,
+                                                   settings.dhat, config.repair_limit, seams=part.seams)
+    except PhysavatarError as e:
+        raise PhysavatarError(path, f"{e.problem} (--repair-limit)") from None
+    return replace(part, vertices=x), imported
 
 
 def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> AnimateResult:
@@ -172,9 +244,10 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
     if config.max_frames:
         m = m.slice(0, config.max_frames)
     settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)
+    garment, imported = _file_garment(av, config, settings, progress) if config.garment else (None, None)
     seq, stats = animate(av, m, warmup_s=config.warmup, settings=settings, progress=progress,
-                         max_substeps=config.max_substeps, out=out)
+                         max_substeps=config.max_substeps, out=out, garment=garment)
     seq.save(Path(out), {"command": "animate", "motion_spec": config.motion, "config": to_dict(config),
-                         "arm_clearance": info, **stats})
+                         "arm_clearance": info, "garment_import": imported, **stats})
     FrameStore(out, "", 0).remove()  # the sequence is written: the per-frame record is no longer needed
     return AnimateResult(seq, stats, info)

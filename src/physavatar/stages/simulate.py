@@ -47,15 +47,15 @@ from ..data.sim_frames import FrameStore, fingerprint
 from ..errors import PhysavatarError
 from ..files import PlyMesh, load_npz, write_json_atomic, write_ply
 from ..garment import GARMENTS, make_garment
-from ..garment.boundary import auto_boundary
 from ..garment.files import FORMATS, load_garment
-from ..garment_sim import GarmentPart, fit_on_body, layered, simulate_on_body, split_layers, split_template
+from ..garment_sim import GarmentPart, layered, simulate_on_body, split_layers, split_template
 from ..sim import SimSettings
 from ..sim.contact import ContactScene
 from ..sim.simulate import self_contact_possible, self_intersecting_frames
 from ..sim.start import repair_start
 from .animate import transition
 from .base import option, setting, to_dict
+from .garment_file import choose_boundary, file_on_body, garment_part
 
 INTEGRATORS = ("euler", "bdf2")
 log = logging.getLogger("physavatar.progress")
@@ -210,7 +210,8 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     bad = [f for f in range(len(X))
            if not np.all(np.isfinite(X[f])) or scene.has_intersections(np.vstack([X[f], bodies[f]]))]
     self_bad = self_intersecting_frames(X, part.faces, exclude)
-    GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.rest_shape).save(out / GARMENT_SEQUENCE)
+    GarmentSequence(X, part.faces, part.boundary, bodies, body_faces, fps, part.rest_shape,
+                    seams=part.seams).save(out / GARMENT_SEQUENCE)
     mat.save(out / "material.json")
     write_json_atomic(out / "config.json", {
         "command": "simulate", "capture": _text(capture), "garment": _text(garment), "motion": _text(motion),
@@ -349,30 +350,10 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
 
 def _file_on_body(path: Path, cfg: SimulateConfig, body, mat, sim_settings, progress):
     """A garment file on Anny's rest pose: fitted (garment_sim.fit_on_body) unless --fit off;
-    its boundary from the file or chosen automatically (or none)."""
-    gm = load_garment(path, up=cfg.up, scale=cfg.scale, rest=cfg.rest)
-    part, imported = _garment_part(gm, path)
-    if cfg.fit:
-        part, imported["fit"] = fit_on_body(gm, body, mat, sim_settings, frames=cfg.fit_frames, hold=cfg.fit_hold,
-                                            repair_limit=cfg.repair_limit, progress=progress)
-    part.boundary, imported["boundary"] = _boundary(gm, part.vertices, body.rest_vertices, body.faces, cfg)
-    return part, imported
-
-
-def _garment_part(gm, path: Path):
-    """(GarmentPart as the file places it, without boundary; the import report) of a loaded garment file."""
-    part = GarmentPart(np.arange(len(gm.vertices)), gm.vertices, gm.faces, np.zeros(0, np.int64), gm.rest, gm.seams)
-    return part, {"file": str(path), "rest_source": gm.rest_source, "vertices": len(gm.vertices),
-                  "seam_pairs": len(gm.seams), "repairs": gm.repairs}
-
-
-def _boundary(gm, vertices, body_vertices, body_faces, cfg):
-    """(boundary ids, report): the file's flags, the automatic choice, or none (--boundary)."""
-    if cfg.boundary == "none":
-        return np.zeros(0, np.int64), {"rule": "none: held by contact and friction alone", "vertices": 0}
-    if gm.boundary is not None and len(gm.boundary):
-        return gm.boundary, {"rule": "the file's boundary flags", "vertices": len(gm.boundary)}
-    return auto_boundary(vertices, gm.faces, body_vertices, body_faces)
+    its boundary from the file or chosen automatically (or none) (stages.garment_file)."""
+    return file_on_body(path, body, mat, sim_settings, up=cfg.up, scale=cfg.scale, rest=cfg.rest,
+                        boundary=cfg.boundary, fit=cfg.fit, fit_frames=cfg.fit_frames, fit_hold=cfg.fit_hold,
+                        repair_limit=cfg.repair_limit, progress=progress)
 
 
 def _repaired_start(part, body_vertices, body_faces, sim_settings, cfg, source):
@@ -404,12 +385,12 @@ def garment_file(path: Path, cfg: SimulateConfig | None = None, body_vertices=No
         if "vertices" in z and np.ndim(z["vertices"]) == 3:
             # a garment sequence (simulate's garment_sequence.npz, another simulator's): its rest shape
             d = GarmentSequence.from_arrays(z, path)
-            part = GarmentPart(np.arange(len(d.rest_vertices)), d.rest_vertices, d.faces, d.boundary)
+            part = GarmentPart(np.arange(len(d.rest_vertices)), d.rest_vertices, d.faces, d.boundary, seams=d.seams)
             return part, {"file": str(path), "rest_source": "garment sequence", "boundary": {"vertices": len(d.boundary)}}
     gm = load_garment(path, up=cfg.up, scale=cfg.scale, rest=cfg.rest)
-    part, imported = _garment_part(gm, path)
+    part, imported = garment_part(gm, path)
     if body_vertices is not None:
-        part.boundary, imported["boundary"] = _boundary(gm, gm.vertices, body_vertices, body_faces, cfg)
+        part.boundary, imported["boundary"] = choose_boundary(gm, gm.vertices, body_vertices, body_faces, cfg.boundary)
     elif gm.boundary is not None:
         part.boundary = gm.boundary
     return part, imported
