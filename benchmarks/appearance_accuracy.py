@@ -74,7 +74,8 @@ def main() -> int:
     cap = load_capture(args.capture)
     iters = args.iterations or (120 if args.quick else 600)
     eval_spp = 32 if args.quick else 128
-    held_frames = list(range(0, 48, 16 if args.quick else 8))
+    n_held = len(np.load(args.capture / "ground_truth" / "heldout" / "meshes.npz")["vertices"])
+    held_frames = list(range(0, n_held, 16 if args.quick else 8))  # the held-out motion's own length
     modes = [m for m in args.modes.split(",") if m]
 
     base = dict(iterations=iters, texture_size=args.texture_size, scale=1.0, spp=8, final_spp=eval_spp,
