@@ -43,7 +43,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import numpy as np
-from _common import cpu_name
+from _common import cpu_name, quarter_ratio
 from foreign.capture import ForeignConfig, build
 
 # The reduced cases (default: fits ~30 min on 2 idle cores) and the full set.
@@ -65,15 +65,6 @@ FULL_CASES = [
     ForeignConfig(name="skirt-plain-256", garment="flared-skirt", texture="plain", size=256, cameras=12,
                   frames=40, heldout_frames=32, spp=16),
 ]
-
-
-def quarter_ratio(per_frame: list[float]) -> float:
-    """Mean of the last quarter over the first quarter of the frames after the first."""
-    e = np.asarray(per_frame[1:], float)
-    if len(e) < 4:
-        return float("nan")
-    q = max(1, len(e) // 4)
-    return float(e[-q:].mean() / max(e[:q].mean(), 1e-9))
 
 
 def _sample(tex: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -266,7 +257,6 @@ def main(argv=None) -> int:
     for cfg in cases:
         t0 = time.time()
         cap = build(work / cfg.name / "capture", cfg, say=lambda s: print(s, flush=True))
-        t_build = time.time() - t0
         run_dir = work / cfg.name / "run"
         rc = RunConfig(quick=not args.full)
         from physavatar.errors import PhysavatarError

@@ -32,16 +32,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import numpy as np
-from _common import cpu_name
-
-
-def quarter_ratio(per_frame: list[float]) -> float:
-    """Mean of the last quarter over the first quarter of the frames after the first."""
-    e = np.asarray(per_frame[1:], float)
-    if len(e) < 4:
-        return float("nan")
-    q = max(1, len(e) // 4)
-    return float(e[-q:].mean() / max(e[:q].mean(), 1e-9))
+from _common import cpu_name, quarter_ratio
 
 
 def seen_by_any(vertices: np.ndarray, faces: np.ndarray, cameras) -> np.ndarray:

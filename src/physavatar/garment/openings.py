@@ -146,17 +146,12 @@ def lateral_axis(openings) -> np.ndarray | None:
 
 
 def rotation_between(a, b) -> np.ndarray:
-    """[3] axis-angle of the smallest rotation taking direction a to direction b."""
-    a = np.asarray(a, float) / np.linalg.norm(a)
-    b = np.asarray(b, float) / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    s, c = np.linalg.norm(axis), float(np.dot(a, b))
-    if s < 1e-12:
-        if c > 0:
-            return np.zeros(3)
-        perp = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        return np.pi * perp / np.linalg.norm(perp)
-    return axis / s * np.arctan2(s, c)
+    """[3] axis-angle of the smallest rotation taking direction a to direction b
+    (body.retarget.rotation_between, as axis-angle)."""
+    from ..body.model import matrix_to_axis_angle
+    from ..body.retarget import rotation_between as matrix_between
+
+    return matrix_to_axis_angle(matrix_between(np.asarray(a, float), np.asarray(b, float)))
 
 
 def limb_pose(body, openings, joints=None) -> tuple[np.ndarray, dict]:
