@@ -144,7 +144,7 @@ def compare_runs(preset: str, original: Path, prepared: Path, work: Path, result
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--presets", default="tiny,demo")
-    ap.add_argument("--demo", type=Path, default=Path("/work/main/demo_out/capture"),
+    ap.add_argument("--demo", type=Path, default=HERE.parent / "demo_out" / "capture",
                     help="an existing demo capture (built with physavatar synth when missing)")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--keep", action="store_true")
