@@ -6,7 +6,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from physavatar.sim.assembly import Assembler, NewtonLinearSolver, pcg
+from physavatar.sim.assembly import Assembler, NewtonLinearSolver, pcg, unique_int
 from physavatar.sim.energies import Bending, Membrane
 from physavatar.sim.terms import Diagonal
 from physavatar.sim.mesh import ClothTopology
@@ -143,3 +143,11 @@ def test_cg_solver_matches_direct_solve(cloth):
     assert np.allclose(NewtonLinearSolver(max_cg=0).solve(H, b, asm), ref, rtol=1e-8, atol=1e-12)
     xs, its, ok = pcg(H, b, lambda r: r / H.diagonal(), 1e-8, 1000)
     assert ok and np.allclose(xs, ref, rtol=1e-6, atol=1e-9)
+
+
+def test_unique_int_is_np_unique():
+    """The Assembler's pattern keys are made unique by sorting (faster than numpy 2.4's hashing)."""
+    rng = np.random.default_rng(3)
+    for a in (rng.integers(-50, 10**9, 20_000), rng.integers(0, 30, (40, 7)), np.zeros(0, np.int64)):
+        out = unique_int(a)
+        assert out.dtype == a.dtype and np.array_equal(out, np.unique(a))
