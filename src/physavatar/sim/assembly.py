@@ -294,14 +294,15 @@ class NewtonLinearSolver:
     iterates match a direct solve) in a few tens of iterations (docs/simulation.md "The
     step"). The factor is also reused across the Newton iterations of a step while CG
     converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`); after a
-    solve that needed more than ``refresh_cg`` iterations it is recomputed from the next H,
+    solve that needed more than ``refresh_cg`` iterations (20: a factorisation costs ~30–60 CG
+    iterations of CPU time; docs/simulation.md "Session 15") it is recomputed from the next H,
     and when CG fails within ``max_cg`` (the state or contacts changed a lot) it is recomputed
     from the current H at once.
 
     ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
     """
 
-    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 40):
+    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 20):
         self.rtol = float(rtol)
         self.max_cg = int(max_cg)
         self.refresh_cg = int(refresh_cg)
