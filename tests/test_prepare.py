@@ -32,7 +32,7 @@ from physavatar.stages.prepare.mesh import (
     remesh,
     surface_distance,
 )
-from physavatar.stages.prepare.segment import graph_cut, transfer_labels
+from physavatar.stages.prepare.segment import garment_pieces, graph_cut, join_parts, transfer_labels
 from physavatar.stages.prepare.uv import atlas
 
 # Small budgets: the tiny capture is 96 px wide (2.3 cm per pixel at the body).
@@ -68,6 +68,47 @@ def test_graph_cut_is_the_minimum_labelling():
     best = min(energy(np.array(bits, bool)) for bits in itertools.product([0, 1], repeat=n))
     got = graph_cut(cf, cb, edges, w)
     assert energy(got) == pytest.approx(best, abs=5e-3 * n)
+
+
+def _grid(nx: int, ny: int, h: float = 0.01):
+    """A flat triangulated grid of nx x ny vertices (spacing h) in the plane z = 1."""
+    x, y = np.meshgrid(np.arange(nx) * h, np.arange(ny) * h, indexing="ij")
+    V = np.stack([x.ravel(), y.ravel(), np.ones(nx * ny)], 1)
+    idx = np.arange(nx * ny).reshape(nx, ny)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return V, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def test_a_strap_broken_at_one_vertex_is_cut_out_whole():
+    """A garment panel (rows 0-9) with a strap two vertices wide (rows 10-19) that the
+    segmentation broke at one vertex of each of its columns' rows: join_parts adds the vertices that
+    touch both parts (and only those), and the cut garment reaches the strap's top as one piece;
+    a notch in the panel's own outline (touching one part only) is left as it is."""
+    nx, ny = 20, 20
+    V, F = _grid(nx, ny)
+    i, j = np.divmod(np.arange(nx * ny), ny)
+    garment = (i < 10) | ((i >= 10) & (j >= 8) & (j <= 9))
+    broken = garment & ~((i == 12) & (j >= 8) & (j <= 9))  # the strap cut across at row 12
+    notch = (i == 9) & (j == 3)
+    broken &= ~notch
+    joined = join_parts(broken, F)
+    added = np.flatnonzero(joined & ~broken)
+    assert set(added.tolist()) <= set(np.flatnonzero((i == 12) & (j >= 7) & (j <= 10)).tolist())
+    assert (joined[(i == 12) & (j >= 8) & (j <= 9)]).all()
+    assert not joined[notch].any()
+    from scipy.sparse.csgraph import connected_components
+    import trimesh
+
+    from physavatar.geometry.mesh import adjacency
+
+    assert connected_components(adjacency(F, len(V))[broken][:, broken], directed=False)[0] == 2
+    labels = broken.astype(np.int64)
+    body = trimesh.creation.icosphere(2, radius=0.1)  # a body far below: nothing is pushed
+    pieces = garment_pieces(V, F, labels, body.vertices - [0, 0, 2.0], np.asarray(body.faces), min_share=0.05)
+    assert len(pieces) == 1
+    g, Vg, Fg = pieces[0]
+    assert np.isclose(Vg[:, 0].max(), 0.19)  # the strap's top row is in the garment
+    assert np.allclose(Vg[:, 2], 1.0)
 
 
 def test_remesh_reaches_target_edge_on_a_sphere():
