@@ -198,6 +198,73 @@ def test_masks_with_a_background_plate(tiny_capture, tmp_path):
     assert np.mean([mask_iou(m, cap.mask(c.name, f)) for m, f in zip(ms, cap.frames)]) > 0.88
 
 
+def test_masks_in_a_cluttered_room_are_not_erased(tmp_path):
+    """A room, not a backdrop: the background is a patchwork of six colours (the border shows them
+    all), a person-sized block of another colour moves across it. The border rule (a pixel near a
+    border colour is background) would take the block for background at the threshold such a
+    varied border gives (3x its scatter): it is not used, and the temporal median finds the block."""
+    from physavatar.capture import save_png
+
+    rng = np.random.default_rng(0)
+    H, W = 64, 48
+    palette = np.array([[0.2, 0.3, 0.6], [0.5, 0.5, 0.5], [0.8, 0.75, 0.7], [0.1, 0.1, 0.1], [0.6, 0.2, 0.2],
+                        [0.3, 0.6, 0.3]])
+    tiles = rng.integers(0, len(palette), (H // 4, W // 4))
+    room = palette[np.kron(tiles, np.ones((4, 4), int))] + rng.normal(0, 0.04, (H, W, 3))
+    paths, truth = [], []
+    for t in range(9):
+        im = room.copy()
+        m = np.zeros((H, W), bool)
+        m[20:50, 4 + 4 * t:14 + 4 * t] = True
+        im[m] = [0.85, 0.6, 0.5]  # skin: within 0.15 of the wall colour [0.8, 0.75, 0.7]
+        p = tmp_path / f"{t:06d}.png"
+        save_png(p, np.clip(im, 0, 1))
+        paths.append(p)
+        truth.append(m)
+    ms, info = camera_masks(paths, MaskConfig())
+    assert info["background"] == "temporal median"
+    iou = np.mean([mask_iou(m, tm) for m, tm in zip(ms, truth)])
+    assert iou > 0.8, iou
+    # the border rule alone (allowed at any threshold) erases the person
+    ms_b, info_b = camera_masks(paths, MaskConfig(border_max_threshold=1.0))
+    assert info_b["background"] == "border colours"
+    assert np.mean([mask_iou(m, tm) for m, tm in zip(ms_b, truth)]) < 0.5
+
+
+def test_mask_method_resolution(tmp_path, monkeypatch):
+    """auto: differencing when every camera has a plate, else MediaPipe's segmentation when it is
+    installed, else differencing; --mask-method mediapipe without it is one clear error."""
+    from types import SimpleNamespace
+
+    from physavatar.capture import save_png
+    from physavatar.stages.prepare import keypoints
+    from physavatar.stages.prepare.masks import mask_method
+
+    cams = [SimpleNamespace(name="a"), SimpleNamespace(name="b")]
+    monkeypatch.setattr(keypoints, "mediapipe_available", lambda: None)
+    assert mask_method(tmp_path, cams, MaskConfig()) == "mediapipe"
+    for c in cams:
+        save_png(tmp_path / "background" / f"{c.name}.png", np.zeros((4, 4, 3)))
+    assert mask_method(tmp_path, cams, MaskConfig()) == "difference"
+    assert mask_method(tmp_path, cams, MaskConfig(method="mediapipe")) == "mediapipe"
+    monkeypatch.setattr(keypoints, "mediapipe_available", lambda: "mediapipe is not installed")
+    (tmp_path / "background" / "b.png").unlink()
+    assert mask_method(tmp_path, cams, MaskConfig()) == "difference"
+    with pytest.raises(PhysavatarError, match="mediapipe is not installed"):
+        mask_method(tmp_path, cams, MaskConfig(method="mediapipe"))
+
+
+@pytest.mark.skipif(not __import__("importlib").util.find_spec("mediapipe"), reason="the keypoints extra (mediapipe)")
+def test_mediapipe_masks_on_the_tiny_capture(tiny_capture):
+    """MediaPipe's person segmentation against the rendered alpha (96 px: a loose bound)."""
+    from physavatar.stages.prepare.masks import segmentation_masks
+
+    cap = load_capture(tiny_capture)
+    c = cap.cameras[0]
+    ms, info = segmentation_masks([cap.image_path(c.name, f) for f in cap.frames[:2]], MaskConfig())
+    assert np.mean([mask_iou(m, cap.mask(c.name, f)) for m, f in zip(ms, cap.frames)]) > 0.5
+
+
 # -- the round trip ------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
