@@ -101,7 +101,6 @@ class SegmentConfig:
     refined_softness: float = setting(0.002)  # [m] and its transition
     refined_footprint: float = setting(1.0)  # and at least this many pixel footprints
     distance_cap: float = setting(3.0)  # the distance term's log-odds are capped at this
-    unsure_cap: float = setting(3.0)  # and at this (garment side) where a refined hull found no photo evidence
     bridge_normal: float = setting(-0.8)  # unseen vertices facing further down than this are body (hull bridges)
     colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term
     smoothness: float = option(1.5, "graph-cut smoothness between neighbouring vertices", flag="--segment-smoothness",

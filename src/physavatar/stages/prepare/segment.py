@@ -140,13 +140,10 @@ def graph_cut(cost_fg: np.ndarray, cost_bg: np.ndarray, edges: np.ndarray, weigh
 
 def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray,
             cameras: list, images: dict[str, np.ndarray], cfg: SegmentConfig, spacing: float,
-            colour_vertices: np.ndarray | None = None, evidence: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+            colour_vertices: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """[V] labels (0 body, 1.. garment) of the first-frame mesh, and the numbers behind them.
     ``colour_vertices``: the same vertices where the images are sampled (a refined surface's),
-    when not ``vertices``. ``evidence`` [V] bool: on a refined hull, the vertices placed by
-    photo-consistency (refine.py); the others that a camera sees still sit where the hull put
-    them, above any hollow (skin between two straps), so their distance is trusted less
-    (``unsure_cap``) and only placed vertices teach the garment's colours."""
+    when not ``vertices``."""
     from ...geometry.closest import MeshQuery
 
     sd, _, _ = MeshQuery(body_vertices, body_faces, spacing=0.02).signed_distance(vertices)
@@ -156,19 +153,14 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
     logit = np.clip(z, -cfg.distance_cap, cfg.distance_cap)
     colour, seen = vertex_colours(vertices if colour_vertices is None else colour_vertices, faces, cameras, images,
                                   spacing)
-    teach = seen > 0
-    if evidence is not None:
-        unsure = (seen > 0) & ~evidence
-        logit = np.where(unsure, np.clip(z, -cfg.distance_cap, cfg.unsure_cap), logit)
-        teach = teach & evidence
-    g_seed, b_seed = (z > 2) & teach, (z < -2) & (seen > 0)
+    g_seed, b_seed = (z > 2) & (seen > 0), (z < -2) & (seen > 0)
     info = {"distance_garment": int((z > 0).sum()), "colour_used": False}
     if cfg.colour_weight > 0 and g_seed.sum() >= 20 and b_seed.sum() >= 20:
         base = logit
         for _ in range(2):  # the colour models from the distance's seeds, then from their own result
             llr = np.clip(_mixture_loglik(colour, g_seed) - _mixture_loglik(colour, b_seed), -6, 6)
             logit = base + cfg.colour_weight * np.where(seen > 0, llr, 0.0)
-            g_seed, b_seed = (logit > 2) & teach, (logit < -2) & (seen > 0)
+            g_seed, b_seed = (logit > 2) & (seen > 0), (logit < -2) & (seen > 0)
             if g_seed.sum() < 20 or b_seed.sum() < 20:
                 break
         info["colour_used"] = True
