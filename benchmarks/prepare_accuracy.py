@@ -191,7 +191,7 @@ def pose2sim_case(src: Path, work: Path, prepared: Path | None, results: dict, c
     r = {"steps": rep["steps"], "seconds": rep["seconds"], "frames": len(load_capture(prepared).frames),
          "fit_report": {k: body.get(k) for k in ("inside_masks", "keypoints_px", "detector", "shape", "jitter")},
          "body_in_masks_native": body_in_masks(prepared), "wall_seconds": time.time() - t}
-    r["frames_per_second"] = r["frames"] / max(sum(rep["seconds"].values()), 1e-9)
+    r["frames_per_second"] = r["frames"] / max(rep["seconds"].get("total", sum(rep["seconds"].values())), 1e-9)
     results["pose2sim"] = r
     print("pose2sim", json.dumps({k: v for k, v in r.items() if k != "steps"}, default=float))
     share = r["body_in_masks_native"]
