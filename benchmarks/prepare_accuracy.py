@@ -1,7 +1,7 @@
 """``physavatar prepare`` round trip on synthetic captures (issue 23).
 
     python benchmarks/prepare_accuracy.py [--presets tiny,demo] [--demo PATH] [--work DIR] [--keep]
-        [--given-body] [--run] [--cases no_template,no_template_no_masks]
+        [--given-body] [--run] [--cases no_template,no_template_no_masks] [--pose2sim DIR]
 
 For each synthetic capture (the tiny preset is built with ``physavatar synth``; the demo one is
 taken from ``--demo`` or built when missing), two cases are prepared from a copy of the capture
@@ -22,6 +22,10 @@ the same with the ``masks`` removed as well. Measured against the capture's trut
   1.5x and the held-out garment Chamfer of the estimated material within 1.25x of the
   original's (both measured against each capture's own ground truth: the prepared capture's
   ``ground_truth/meshes.npz`` is re-expressed on its template).
+
+* with ``--pose2sim DIR``: ``physavatar import`` + ``prepare`` of the real Pose2Sim clip: the
+  share of the fitted body's vertices that project into each camera's mask (target >= 0.95),
+  the fit's own report (keypoints in px, the share at the fit's working resolution), seconds.
 
 Writes benchmarks/results/prepare_accuracy.json with a ``checks`` dict.
 """
@@ -141,6 +145,61 @@ def compare_runs(preset: str, original: Path, prepared: Path, work: Path, result
                                                      "pass": bool(ratio_c <= 1.25)}
 
 
+def body_in_masks(prepared: Path) -> dict:
+    """Share of the prepared body's vertices that project into each camera's mask at the images'
+    own resolution (nearest pixel), every frame; and how far the others are outside (px)."""
+    import cv2
+
+    from physavatar.stages.prepare.posing import pose_body
+
+    cap = load_capture(prepared)
+    _, V = pose_body(cap.body)
+    per_cam, dist = {}, []
+    for c in cap.cameras:
+        shares = []
+        for t, f in enumerate(cap.frames):
+            m = (cap.mask(c.name, f) > 0.5).astype(np.uint8)
+            dt = cv2.distanceTransform(1 - m, cv2.DIST_L2, 5)
+            uv, z = c.project(V[t])
+            x = np.clip(np.round(uv[:, 0]).astype(int), 0, c.width - 1)
+            y = np.clip(np.round(uv[:, 1]).astype(int), 0, c.height - 1)
+            d = dt[y, x]
+            shares.append(float((d == 0).mean()))
+            dist.append(d)
+        per_cam[c.name] = float(np.mean(shares))
+    d = np.concatenate(dist)
+    return {"mean": float(np.mean(list(per_cam.values()))), "per_camera": per_cam,
+            "within_2px": float((d <= 2).mean()), "outside_median_px": float(np.median(d[d > 0])) if (d > 0).any() else 0.0}
+
+
+def pose2sim_case(src: Path, work: Path, prepared: Path | None, results: dict, checks: dict) -> None:
+    """``physavatar import`` (every 5th frame, half size) + ``prepare`` on the real Pose2Sim clip
+    (or the evaluation alone of ``prepared``): the fitted body against the masks and keypoints."""
+    import subprocess
+
+    env = dict(os.environ, PYTHONPATH=str(HERE.parent / "src"))
+    t = time.time()
+    if prepared is None:
+        cap, prepared = work / "pose2sim" / "capture", work / "pose2sim" / "prepared"
+        shutil.rmtree(work / "pose2sim", ignore_errors=True)
+        subprocess.run([sys.executable, "-m", "physavatar", "import", str(src), str(cap), "--every", "5",
+                        "--resolution", "0.5"], check=True, env=env, stdout=subprocess.DEVNULL)
+        subprocess.run([sys.executable, "-m", "physavatar", "prepare", str(cap), str(prepared)], check=True, env=env,
+                       stdout=subprocess.DEVNULL)
+    rep = json.loads((prepared / "prepare.json").read_text())
+    body = rep["numbers"].get("body", {})
+    r = {"steps": rep["steps"], "seconds": rep["seconds"], "frames": len(load_capture(prepared).frames),
+         "fit_report": {k: body.get(k) for k in ("inside_masks", "keypoints_px", "detector", "shape", "jitter")},
+         "body_in_masks_native": body_in_masks(prepared), "wall_seconds": time.time() - t}
+    r["frames_per_second"] = r["frames"] / max(rep["seconds"].get("total", sum(rep["seconds"].values())), 1e-9)
+    results["pose2sim"] = r
+    print("pose2sim", json.dumps({k: v for k, v in r.items() if k != "steps"}, default=float))
+    share = r["body_in_masks_native"]
+    checks["pose2sim/body_in_masks"] = {"value": min(share["per_camera"].values()), "target": ">= 0.95",
+                                        "unit": "share of the body's vertices in the mask, worst camera",
+                                        "pass": bool(min(share["per_camera"].values()) >= 0.95)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--presets", default="tiny,demo")
@@ -153,6 +212,11 @@ def main() -> int:
     ap.add_argument("--run", action="store_true",
                     help="also `physavatar run --quick` the original and the prepared capture (no_template case) and compare")
     ap.add_argument("--cases", default="no_template,no_template_no_masks")
+    ap.add_argument("--pose2sim", type=Path, default=None,
+                    help="also import + prepare the real Pose2Sim clip at this path (../shared/data/pose2sim); "
+                         "with --presets none, only it")
+    ap.add_argument("--pose2sim-prepared", type=Path, default=None,
+                    help="evaluate this already prepared Pose2Sim capture instead of preparing it")
     ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_accuracy.json")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="prepare_bench_"))
@@ -160,7 +224,7 @@ def main() -> int:
     load_start = os.getloadavg()
     fit = not args.given_body
     results, checks = {}, {}
-    for preset in args.presets.split(","):
+    for preset in [p for p in args.presets.split(",") if p and p != "none"]:
         cap = args.demo if preset == "demo" else work / preset
         if not (cap / "capture.json").is_file():
             from physavatar.synth import PRESETS, synthesize
@@ -200,6 +264,8 @@ def main() -> int:
                                                   "pass": bool(r["body"]["mean_mm"] <= 15)}
             if args.run and case == "no_template":
                 compare_runs(preset, cap, dst, work, results, checks)
+    if args.pose2sim is not None or args.pose2sim_prepared is not None:
+        pose2sim_case(args.pose2sim, work, args.pose2sim_prepared, results, checks)
     result = {"benchmark": "prepare_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                           "load_average_start": list(load_start), "load_average_end": list(os.getloadavg())},

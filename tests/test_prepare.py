@@ -32,7 +32,7 @@ from physavatar.stages.prepare.mesh import (
     remesh,
     surface_distance,
 )
-from physavatar.stages.prepare.segment import graph_cut, transfer_labels
+from physavatar.stages.prepare.segment import garment_pieces, graph_cut, join_parts, transfer_labels
 from physavatar.stages.prepare.uv import atlas
 
 # Small budgets: the tiny capture is 96 px wide (2.3 cm per pixel at the body).
@@ -68,6 +68,47 @@ def test_graph_cut_is_the_minimum_labelling():
     best = min(energy(np.array(bits, bool)) for bits in itertools.product([0, 1], repeat=n))
     got = graph_cut(cf, cb, edges, w)
     assert energy(got) == pytest.approx(best, abs=5e-3 * n)
+
+
+def _grid(nx: int, ny: int, h: float = 0.01):
+    """A flat triangulated grid of nx x ny vertices (spacing h) in the plane z = 1."""
+    x, y = np.meshgrid(np.arange(nx) * h, np.arange(ny) * h, indexing="ij")
+    V = np.stack([x.ravel(), y.ravel(), np.ones(nx * ny)], 1)
+    idx = np.arange(nx * ny).reshape(nx, ny)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return V, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def test_a_strap_broken_at_one_vertex_is_cut_out_whole():
+    """A garment panel (rows 0-9) with a strap two vertices wide (rows 10-19) that the
+    segmentation broke at one vertex of each of its columns' rows: join_parts adds the vertices that
+    touch both parts (and only those), and the cut garment reaches the strap's top as one piece;
+    a notch in the panel's own outline (touching one part only) is left as it is."""
+    nx, ny = 20, 20
+    V, F = _grid(nx, ny)
+    i, j = np.divmod(np.arange(nx * ny), ny)
+    garment = (i < 10) | ((i >= 10) & (j >= 8) & (j <= 9))
+    broken = garment & ~((i == 12) & (j >= 8) & (j <= 9))  # the strap cut across at row 12
+    notch = (i == 9) & (j == 3)
+    broken &= ~notch
+    joined = join_parts(broken, F)
+    added = np.flatnonzero(joined & ~broken)
+    assert set(added.tolist()) <= set(np.flatnonzero((i == 12) & (j >= 7) & (j <= 10)).tolist())
+    assert (joined[(i == 12) & (j >= 8) & (j <= 9)]).all()
+    assert not joined[notch].any()
+    from scipy.sparse.csgraph import connected_components
+    import trimesh
+
+    from physavatar.geometry.mesh import adjacency
+
+    assert connected_components(adjacency(F, len(V))[broken][:, broken], directed=False)[0] == 2
+    labels = broken.astype(np.int64)
+    body = trimesh.creation.icosphere(2, radius=0.1)  # a body far below: nothing is pushed
+    pieces = garment_pieces(V, F, labels, body.vertices - [0, 0, 2.0], np.asarray(body.faces), min_share=0.05)
+    assert len(pieces) == 1
+    g, Vg, Fg = pieces[0]
+    assert np.isclose(Vg[:, 0].max(), 0.19)  # the strap's top row is in the garment
+    assert np.allclose(Vg[:, 2], 1.0)
 
 
 def test_remesh_reaches_target_edge_on_a_sphere():
@@ -155,6 +196,73 @@ def test_masks_with_a_background_plate(tiny_capture, tmp_path):
     ms, info = camera_masks([cap.image_path(c.name, f) for f in cap.frames[:3]], MaskConfig(), plate)
     assert info["background"] == "plate"
     assert np.mean([mask_iou(m, cap.mask(c.name, f)) for m, f in zip(ms, cap.frames)]) > 0.88
+
+
+def test_masks_in_a_cluttered_room_are_not_erased(tmp_path):
+    """A room, not a backdrop: the background is a patchwork of six colours (the border shows them
+    all), a person-sized block of another colour moves across it. The border rule (a pixel near a
+    border colour is background) would take the block for background at the threshold such a
+    varied border gives (3x its scatter): it is not used, and the temporal median finds the block."""
+    from physavatar.capture import save_png
+
+    rng = np.random.default_rng(0)
+    H, W = 64, 48
+    palette = np.array([[0.2, 0.3, 0.6], [0.5, 0.5, 0.5], [0.8, 0.75, 0.7], [0.1, 0.1, 0.1], [0.6, 0.2, 0.2],
+                        [0.3, 0.6, 0.3]])
+    tiles = rng.integers(0, len(palette), (H // 4, W // 4))
+    room = palette[np.kron(tiles, np.ones((4, 4), int))] + rng.normal(0, 0.04, (H, W, 3))
+    paths, truth = [], []
+    for t in range(9):
+        im = room.copy()
+        m = np.zeros((H, W), bool)
+        m[20:50, 4 + 4 * t:14 + 4 * t] = True
+        im[m] = [0.85, 0.6, 0.5]  # skin: within 0.15 of the wall colour [0.8, 0.75, 0.7]
+        p = tmp_path / f"{t:06d}.png"
+        save_png(p, np.clip(im, 0, 1))
+        paths.append(p)
+        truth.append(m)
+    ms, info = camera_masks(paths, MaskConfig())
+    assert info["background"] == "temporal median"
+    iou = np.mean([mask_iou(m, tm) for m, tm in zip(ms, truth)])
+    assert iou > 0.8, iou
+    # the border rule alone (allowed at any threshold) erases the person
+    ms_b, info_b = camera_masks(paths, MaskConfig(border_max_threshold=1.0))
+    assert info_b["background"] == "border colours"
+    assert np.mean([mask_iou(m, tm) for m, tm in zip(ms_b, truth)]) < 0.5
+
+
+def test_mask_method_resolution(tmp_path, monkeypatch):
+    """auto: differencing when every camera has a plate, else MediaPipe's segmentation when it is
+    installed, else differencing; --mask-method mediapipe without it is one clear error."""
+    from types import SimpleNamespace
+
+    from physavatar.capture import save_png
+    from physavatar.stages.prepare import keypoints
+    from physavatar.stages.prepare.masks import mask_method
+
+    cams = [SimpleNamespace(name="a"), SimpleNamespace(name="b")]
+    monkeypatch.setattr(keypoints, "mediapipe_available", lambda: None)
+    assert mask_method(tmp_path, cams, MaskConfig()) == "mediapipe"
+    for c in cams:
+        save_png(tmp_path / "background" / f"{c.name}.png", np.zeros((4, 4, 3)))
+    assert mask_method(tmp_path, cams, MaskConfig()) == "difference"
+    assert mask_method(tmp_path, cams, MaskConfig(method="mediapipe")) == "mediapipe"
+    monkeypatch.setattr(keypoints, "mediapipe_available", lambda: "mediapipe is not installed")
+    (tmp_path / "background" / "b.png").unlink()
+    assert mask_method(tmp_path, cams, MaskConfig()) == "difference"
+    with pytest.raises(PhysavatarError, match="mediapipe is not installed"):
+        mask_method(tmp_path, cams, MaskConfig(method="mediapipe"))
+
+
+@pytest.mark.skipif(not __import__("importlib").util.find_spec("mediapipe"), reason="the keypoints extra (mediapipe)")
+def test_mediapipe_masks_on_the_tiny_capture(tiny_capture):
+    """MediaPipe's person segmentation against the rendered alpha (96 px: a loose bound)."""
+    from physavatar.stages.prepare.masks import segmentation_masks
+
+    cap = load_capture(tiny_capture)
+    c = cap.cameras[0]
+    ms, info = segmentation_masks([cap.image_path(c.name, f) for f in cap.frames[:2]], MaskConfig())
+    assert np.mean([mask_iou(m, cap.mask(c.name, f)) for m, f in zip(ms, cap.frames)]) > 0.5
 
 
 # -- the round trip ------------------------------------------------------------------------------

@@ -544,6 +544,8 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
     obs = _Observations(root, cfg, prog)
     meta = read_json(root / "capture.json")
     fps = float(meta.get("fps", 25.0))
+    if len(obs.frames) >= 2:  # frames kept every n-th (import --every n): n source frames apart
+        fps /= max(float(np.median(np.diff(np.asarray(obs.frames, np.float64)))), 1.0)
     clothing = None
     if template_vertices is not None:
         tv = np.asarray(template_vertices, dtype=np.float64)

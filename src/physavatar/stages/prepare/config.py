@@ -28,6 +28,11 @@ def _path_or_none(text: str) -> Path | None:
 class MaskConfig:
     """Foreground masks when the capture has none (stages/prepare/masks.py)."""
 
+    method: str = option("auto", "how masks are computed: difference (background differencing), mediapipe (its person "
+                         "segmentation, the keypoints extra), auto (difference with a background plate, else "
+                         "mediapipe when installed, else difference)", flag="--mask-method",
+                         choices=("auto", "difference", "mediapipe"))
+    segmentation_threshold: float = setting(0.5)  # MediaPipe's person probability counted as foreground
     threshold: float = option(0.0, "colour difference to the background counted as foreground (0..1; 0 = chosen per "
                               "camera: Otsu's method, or 3x the border colours' scatter)", flag="--mask-threshold",
                               check=lambda v: None if 0 <= v < 1 else "must be in [0, 1)")
@@ -37,6 +42,7 @@ class MaskConfig:
     min_area: float = setting(0.002)  # connected regions smaller than this share of the image are dropped
     refine: int = setting(2)  # background re-estimations without the frames' foreground
     border_share: float = setting(0.6)  # median image share explained by border colours to use them too
+    border_max_threshold: float = setting(0.15)  # a border this varied is no backdrop (a room): not used
 
 
 @dataclass(frozen=True)

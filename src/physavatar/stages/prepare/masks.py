@@ -122,7 +122,7 @@ def camera_masks(images: list[Path], cfg: MaskConfig, plate: Path | None = None)
         d_bg = _colour_distance(bg, centres)
         # the border's own scatter about its colours is the background's noise
         t_b = cfg.threshold or max(3.0 * spread, cfg.min_threshold)
-        if (d_bg < t_b).mean() >= cfg.border_share:
+        if t_b <= cfg.border_max_threshold and (d_bg < t_b).mean() >= cfg.border_share:
             border = (centres, t_b)
             rounds = 0  # the border colours decide: the median is not refined
     for r in range(rounds + 1):
@@ -187,17 +187,59 @@ def _colour_distance(img: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return d
 
 
+def segmentation_masks(images: list[Path], cfg: MaskConfig) -> tuple[list[np.ndarray], dict]:
+    """Masks of one camera's frames from MediaPipe's person segmentation (the Pose solution's
+    segmentation output, whose model ships inside the wheel: nothing is downloaded), its
+    probability above ``segmentation_threshold``, cleaned like the differencing's masks."""
+    import mediapipe as mp
+
+    out = []
+    with mp.solutions.pose.Pose(static_image_mode=True, model_complexity=1, enable_segmentation=True,
+                                min_detection_confidence=0.3) as pose:
+        for p in images:
+            im = _read_rgb(p)
+            if im.dtype != np.uint8:
+                im = (np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8)
+            prob = pose.process(np.ascontiguousarray(im[..., :3])).segmentation_mask
+            if prob is None:
+                prob = np.zeros(im.shape[:2])
+            out.append(clean_mask(np.asarray(prob) > cfg.segmentation_threshold, cfg))
+    return out, {"background": "mediapipe person segmentation", "threshold": cfg.segmentation_threshold}
+
+
+def mask_method(root: Path, cameras: list, cfg: MaskConfig) -> str:
+    """``difference`` or ``mediapipe`` for the capture at ``root`` (``cfg.method`` resolved: auto is
+    difference when every camera has a background plate, else mediapipe when it is installed)."""
+    if cfg.method != "auto":
+        if cfg.method == "mediapipe":
+            from .keypoints import mediapipe_available
+
+            why = mediapipe_available()
+            if why is not None:
+                raise PhysavatarError(Path(root), f"--mask-method mediapipe: {why}")
+        return cfg.method
+    if all(plate_path(root, c.name) is not None for c in cameras):
+        return "difference"
+    from .keypoints import mediapipe_available
+
+    return "mediapipe" if mediapipe_available() is None else "difference"
+
+
 def estimate_masks(root: Path, cameras: list, frames: list[int], cfg: MaskConfig, progress=None
                    ) -> tuple[dict[str, list[np.ndarray]], dict]:
     """Masks of every camera and frame of the capture at ``root``: {camera: [T × [H, W] bool]}, and
     per camera what was used (background source, threshold)."""
     from ...progress import resolve
 
+    method = mask_method(root, cameras, cfg)
     out, info = {}, {}
     with resolve(progress).task("prepare: masks", total=len(cameras)) as task:
         for c in cameras:
             paths = [Path(root) / "images" / c.name / f"{frame_name(f)}.png" for f in frames]
-            out[c.name], info[c.name] = camera_masks(paths, cfg, plate_path(root, c.name))
+            if method == "mediapipe":
+                out[c.name], info[c.name] = segmentation_masks(paths, cfg)
+            else:
+                out[c.name], info[c.name] = camera_masks(paths, cfg, plate_path(root, c.name))
             task.advance(camera=c.name, threshold=info[c.name]["threshold"])
     return out, info
 

@@ -297,18 +297,24 @@ def user_labels(path: Path, vertices: np.ndarray, source: tuple[np.ndarray, np.n
 # -- the garments as separate pieces -------------------------------------------------------------
 
 def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, body_vertices: np.ndarray,
-                   body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05
-                   ) -> list[tuple[int, np.ndarray, np.ndarray]]:
+                   body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05,
+                   exclude: np.ndarray | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """[(label, vertices [n, 3], faces [m, 3])] one open surface per garment label: the faces
-    whose corners all carry it, without bow-tie vertices or small pieces, every vertex at least
-    ``clearance`` outside the body (moved along the body's normal when not)."""
+    at least two of whose corners carry it (a strap one or two vertices wide stays joined; a
+    vertex of another label between two separate parts of it joins them, :func:`join_parts`) and
+    none of which is in ``exclude`` [n] (a hull's bridges: cloth ends at its hem), without bow-tie
+    vertices or small pieces, every vertex at least ``clearance`` outside the body (moved along
+    the body's normal when not)."""
     from ...capture import check_template_mesh
     from ...geometry.closest import MeshQuery
 
     q = MeshQuery(body_vertices, body_faces, spacing=0.02)
     out = []
     for g in sorted(set(labels.tolist()) - {LABEL_BODY}):
-        keep = (labels[faces] == g).all(1)
+        lab_g = join_parts(labels == g, faces, exclude)
+        keep = lab_g[faces].sum(1) >= 2
+        if exclude is not None:
+            keep &= ~exclude[faces].any(1)
         for _ in range(10):  # faces at a vertex joining separate fans go, until none is left
             ids, F = _face_submesh(faces, keep)
             V = vertices[ids]
@@ -334,6 +340,36 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
         if problems:
             continue
         out.append((g, V, F))
+    return out
+
+
+def join_parts(mask: np.ndarray, faces: np.ndarray, exclude: np.ndarray | None = None, passes: int = 3) -> np.ndarray:
+    """[n] bool ``mask`` with the vertices outside it (and outside ``exclude``) that touch two of
+    its separate connected parts added, ``passes`` times: a strap the segmentation broke at one
+    vertex (its colour mixed with the skin beside it at the mesh's resolution) is one piece again,
+    while a part's own outline, which touches only that part, is left as it is."""
+    from scipy.sparse.csgraph import connected_components
+
+    A = adjacency(faces, len(mask)).tocsr()
+    out = mask.copy()
+    for _ in range(passes):
+        k, lab = connected_components(A[out][:, out], directed=False)
+        if k < 2:
+            break
+        comp = np.full(len(out), -1)
+        comp[out] = lab
+        E = mesh_edges(faces)
+        ce = np.concatenate([comp[E[:, 1]], comp[E[:, 0]]])
+        ve = np.concatenate([E[:, 0], E[:, 1]])
+        sel = (ce >= 0) & ~out[ve]
+        if exclude is not None:
+            sel &= ~exclude[ve]
+        pairs = np.unique(np.stack([ve[sel], ce[sel]], 1), axis=0)
+        touching = np.bincount(pairs[:, 0], minlength=len(out))
+        joins = touching >= 2
+        if not joins.any():
+            break
+        out |= joins
     return out
 
 

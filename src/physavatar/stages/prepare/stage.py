@@ -121,7 +121,8 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
                     save_png(tmp / "masks" / c.name / f"{frame_name(f)}.png", m.astype(np.uint8) * 255)
             numbers["masks"] = {k: {"background": v["background"], "threshold": v["threshold"]} for k, v in info.items()}
             kinds = sorted({v["background"] for v in info.values()})
-            steps["masks"] = "computed: background differencing (" + ", ".join(kinds) + ")"
+            steps["masks"] = ("computed: " + ", ".join(kinds) if kinds == ["mediapipe person segmentation"] else
+                              "computed: background differencing (" + ", ".join(kinds) + ")")
         seconds["masks"] = time.time() - t
 
         def masks_of(frame: int) -> dict[str, np.ndarray]:
@@ -301,6 +302,11 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
         numbers["_distance"] = info["signed_distance"]
         bridge = info["bridge_mask"]
         if on_body is not None:
+            # the hull's underside (a hem to the legs) is body; an unseen top (a strap over the
+            # shoulder, which the cameras see only edge-on) keeps the segmentation's label
+            from ...geometry.mesh import vertex_normals
+
+            on_body = on_body & (vertex_normals(V if V_hull is None else V_hull, F)[:, 2] < 0)
             labels = np.where(on_body, LABEL_BODY, labels)
             bridge = bridge | on_body
         steps["segmentation"] = "automatic: distance to the body + colour, graph cut"
@@ -309,19 +315,20 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
                               "margin of the body): give --labels, or a smaller --garment-margin")
     # the garments are cut out without the hull's bridges: cloth ends at its hem
     cut = np.where(bridge, LABEL_BODY, labels) if bridge is not None else labels
-    pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece)
+    pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge)
     # the boundary's contact test is set for the hull too (the refined surface of a strap or a
     # bodice lies on the body all along): the same pieces at their hull positions
     contact_pieces = pieces
     if V_hull is not None:
-        hp = garment_pieces(V_hull, F, cut, BV, BF, min_share=cfg.segment.min_piece)
+        hp = garment_pieces(V_hull, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge)
         if [(g, f.shape) for g, _, f in hp] == [(g, f.shape) for g, _, f in pieces]:
             contact_pieces = hp
     if not pieces:
         raise PhysavatarError(src, "the garment region of the first-frame mesh has no usable surface piece")
     from ...files import save_npz_atomic
 
-    save_npz_atomic(tmp / "prepare" / "first_frame_mesh.npz", vertices=V, faces=F, labels=labels)
+    save_npz_atomic(tmp / "prepare" / "first_frame_mesh.npz", vertices=V, faces=F, labels=labels,
+                    bridge=bridge if bridge is not None else np.zeros(len(V), bool))
     seconds["segmentation"] = time.time() - t
 
     t = time.time()
