@@ -57,13 +57,13 @@ QUICK_CASES = [
 ]
 FULL_CASES = [
     ForeignConfig(name="skirt-plaid-256", garment="flared-skirt", texture="plaid", size=256, cameras=8,
-                  frames=40, heldout_frames=32, spp=16),
+                  frames=40, heldout_frames=32, spp=128),
     ForeignConfig(name="skirt-plaid-512", garment="flared-skirt", texture="plaid", size=512, cameras=8,
-                  frames=40, heldout_frames=32, spp=16),
+                  frames=40, heldout_frames=32, spp=128),
     ForeignConfig(name="top-print-512", garment="fitted-top", texture="print", size=512, cameras=10,
-                  frames=40, heldout_frames=32, spp=16),
+                  frames=40, heldout_frames=32, spp=128),
     ForeignConfig(name="skirt-plain-256", garment="flared-skirt", texture="plain", size=256, cameras=12,
-                  frames=40, heldout_frames=32, spp=16),
+                  frames=40, heldout_frames=32, spp=128),
 ]
 
 
