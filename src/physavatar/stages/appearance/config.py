@@ -51,9 +51,6 @@ class AppearanceConfig:
         project_views: at most this many (frame, camera) views for ``"project"`` (frames spread
             evenly over the sequence, every training camera).
         project_spp: samples per pixel of the irradiance renders of ``"project"``.
-        average_last: the fitted texture is the mean of the iterates over this last fraction of
-            the steps (Polyak averaging: the Monte Carlo noise of the 8-spp gradients, which Adam's
-            per-texel normalisation turns into grain, averages out); 0: the last iterate.
         env_lobes, env_views, env_spp: the ``env`` light: lobes of its basis (besides the
             constant map), training views its fit uses (frames spread over the sequence, cameras
             in turn) and samples per pixel of its basis renders.
@@ -97,7 +94,6 @@ class AppearanceConfig:
     prior_views: float = setting(0.5)
     project_passes: int = setting(1)
     min_size: int = setting(256)
-    average_last: float = setting(0.0)
     env_lobes: int = setting(12)
     env_views: int = setting(12)
     env_spp: int = setting(8)
@@ -118,7 +114,6 @@ class AppearanceConfig:
                   ("project_spp", self.project_spp >= 1), ("prior_views", self.prior_views >= 0),
                   ("project_passes", self.project_passes >= 1),
                   ("min_size", self.min_size >= 1), ("env_lobes", self.env_lobes >= 0),
-                  ("average_last", 0 <= self.average_last <= 1),
                   ("env_views", self.env_views >= 1), ("env_spp", self.env_spp >= 1)]
         for name, ok in checks:
             if not ok:

@@ -119,10 +119,6 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
     # 3. inverse rendering, resumable
     ckpt = out / "checkpoint.npz"
     state = {"texture": tex0.astype(np.float64)}
-    if cfg.average_last > 0:  # Polyak averaging of the last iterates
-        state["average"] = np.zeros_like(state["texture"])
-        state["n_average"] = np.zeros(1)
-    average_from = int(round(cfg.iterations * (1.0 - cfg.average_last)))
     if amb0 is not None:
         state["ambient"] = amb0
     if key0 is not None:
@@ -174,9 +170,6 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
                     grads["key"] += gK / cfg.batch
             adam.step(state, grads, {k: _lr(cfg, it, lr_of[k]) for k in fitted_keys})
             state["texture"] = np.clip(state["texture"], 0.0, 1.0)  # A.4.3: legal colours
-            if "average" in state and it >= average_from:
-                state["average"] += state["texture"]
-                state["n_average"] += 1
             for k in ("ambient", "key"):
                 if k in state:
                     state[k] = np.maximum(state[k], 0.0)
@@ -194,8 +187,6 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
     sec_it = float(np.mean([r["seconds"] for r in log])) if log else float("nan")
 
     texture = state["texture"].astype(np.float32)
-    if "average" in state and state["n_average"][0] > 0:
-        texture = (state["average"] / state["n_average"][0]).astype(np.float32)
     lights = with_light_values(lights0, state.get("ambient"), state.get("key"))
     np.save(out / ".texture_linear.tmp.npy", texture)
     (out / ".texture_linear.tmp.npy").replace(out / "texture_linear.npy")
