@@ -301,17 +301,22 @@ def named_lights(name: str, center, *, fitted: list | str | os.PathLike | None =
 
 # -- lights as JSON ------------------------------------------------------------------------------
 
+MAX_INLINE_ENVMAP = 32 * 64 * 3
 _LIGHT_TYPES = {cls.__name__: cls for cls in (Ambient, EnvMap, PointLight, AreaLight, SunLight)}
 
 
 def light_to_json(light: Light) -> dict:
     """``{"type": class name, field: value, ...}`` with tuples as lists. An environment map is
-    written by its file path; one held as an array cannot be written."""
+    written by its file path, or, held as a small array (a fitted map, at most
+    ``MAX_INLINE_ENVMAP`` values), as nested lists [H][W][3]."""
     d = {"type": type(light).__name__}
     for f in fields(light):
         v = getattr(light, f.name)
         if isinstance(v, np.ndarray):
-            raise ValueError(f"light {light.name!r}: an array environment map cannot be written to JSON")
+            if v.size > MAX_INLINE_ENVMAP:
+                raise ValueError(f"light {light.name!r}: an array environment map of {v.size} values is too large "
+                                 f"for JSON (at most {MAX_INLINE_ENVMAP}); save it as .exr and give its path")
+            v = np.asarray(v, np.float64).round(6).tolist()
         if isinstance(v, os.PathLike):
             v = str(v)
         elif isinstance(v, (tuple, list)):
@@ -337,6 +342,12 @@ def load_lights(path: str | os.PathLike) -> list[Light]:
         if kind not in _LIGHT_TYPES:
             raise PhysavatarError(path, f"unsupported light type {kind!r}")
         kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in l.items() if k != "type"}
+        if kind == "EnvMap" and isinstance(l.get("image"), list):  # an inline map [H][W][3]
+            img = np.asarray(l["image"], np.float32)
+            if img.ndim != 3 or img.shape[2] != 3 or not np.isfinite(img).all() or (img < 0).any():
+                raise PhysavatarError(path, f"light EnvMap: image must be [H][W][3] finite non-negative values, "
+                                            f"got shape {img.shape}")
+            kw["image"] = img
         try:
             out.append(_LIGHT_TYPES[kind](**kw))
         except TypeError as e:

@@ -30,6 +30,8 @@ modules, in the order of the steps:
                      intensities fitted. Ambient light alone cannot produce directional shading,
                      so under a key light the ``ambient`` fit bakes the key's shading into the
                      texture; ``studio`` can factor it out;
+- :mod:`.envlight` the ``env`` light model: a smooth environment map (a constant plus 12 lobes)
+                   fitted with the albedo by alternating least squares before the projection;
 - :mod:`.fit`      3. inverse rendering (A.4): each step renders one random (frame, camera) (or a
                    small batch) with the ``prb`` path tracer, the loss is the mean squared error in
                    linear RGB inside the foreground mask eroded by 2 px, Adam with lr 0.01 halved

@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 from ...errors import PhysavatarError
 from ..base import option, setting, to_dict
 
-LIGHT_MODES = ("ambient", "studio")
+LIGHT_MODES = ("ambient", "studio", "env")
 INIT_MODES = ("project", "faces")
 MESH_SOURCES = ("tracked", "gt")
 
@@ -26,8 +26,9 @@ class AppearanceConfig:
     Attributes:
         meshes: ``"tracked"`` (the tracking output's meshes and Gaussian colours) or ``"gt"``
             (``ground_truth/meshes.npz`` of a synthetic capture).
-        light: ``"ambient"`` (the paper: texture + global ambient L_a) or ``"studio"`` (texture +
-            ambient + the known key light's intensity).
+        light: ``"ambient"`` (the paper: texture + global ambient L_a), ``"studio"`` (texture +
+            ambient + the known key light's intensity) or ``"env"`` (texture + a smooth
+            environment map fitted in closed form before the projection, :mod:`.envlight`).
         iterations: Adam steps (A.4: 2000). Not part of the resume check, so a run can be extended.
         lr, lr_decay, lr_decay_every: Adam learning rate, halved every 500 steps (A.4).
         spp: samples per pixel while fitting (A.4: 8); final_spp for the preview renders (128).
@@ -50,6 +51,9 @@ class AppearanceConfig:
         project_views: at most this many (frame, camera) views for ``"project"`` (frames spread
             evenly over the sequence, every training camera).
         project_spp: samples per pixel of the irradiance renders of ``"project"``.
+        env_lobes, env_views, env_spp: the ``env`` light: lobes of its basis (besides the
+            constant map), training views its fit uses (frames spread over the sequence, cameras
+            in turn) and samples per pixel of its basis renders.
         min_size: the fit never renders images smaller than this (pixels, the larger side):
             ``scale`` is raised to ``min_size / size`` for small captures (a 256 px capture is
             fitted at full resolution; at half of it each texel gets a quarter of the pixels).
@@ -61,7 +65,8 @@ class AppearanceConfig:
 
     meshes: str = option("tracked", "tracked, or gt (ground_truth/meshes.npz of a synthetic capture)",
                          choices=MESH_SOURCES)
-    light: str = option("ambient", "ambient (the paper: texture + L_a) or studio (+ the known key light's intensity)")
+    light: str = option("ambient", "ambient (the paper: texture + L_a), studio (+ the known key light's intensity) or "
+                        "env (+ a smooth environment map fitted with the texture)")
     iterations: int = option(2000, "Adam steps (paper: 2000)", hash=False)
     lr: float = option(0.01, "Adam learning rate, halved every --decay-every steps")
     lr_decay: float = setting(0.5)
@@ -89,6 +94,9 @@ class AppearanceConfig:
     prior_views: float = setting(0.5)
     project_passes: int = setting(1)
     min_size: int = setting(256)
+    env_lobes: int = setting(12)
+    env_views: int = setting(12)
+    env_spp: int = setting(8)
 
     def __post_init__(self) -> None:
         if self.light not in LIGHT_MODES:
@@ -105,7 +113,8 @@ class AppearanceConfig:
                   ("ambient_init", self.ambient_init > 0), ("project_views", self.project_views >= 1),
                   ("project_spp", self.project_spp >= 1), ("prior_views", self.prior_views >= 0),
                   ("project_passes", self.project_passes >= 1),
-                  ("min_size", self.min_size >= 1)]
+                  ("min_size", self.min_size >= 1), ("env_lobes", self.env_lobes >= 0),
+                  ("env_views", self.env_views >= 1), ("env_spp", self.env_spp >= 1)]
         for name, ok in checks:
             if not ok:
                 raise PhysavatarError(None, f"appearance config: {name}={getattr(self, name)!r} is out of range")

@@ -102,9 +102,19 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
     amb0, key0 = light_values(lights0)
     if renderer.key_key is None:
         key0 = None
+    light_key = None
+    if cfg.light == "env":  # the environment map, fitted in closed form with the albedo (.envlight)
+        from ...render import EnvMap
+        from .envlight import fitted_env_light
+        from .project import TexelPoints
+
+        env, _ = fitted_env_light(data, cfg, out, renderer, TexelPoints.of(t.face_uvs, cfg.texture_size), prog)
+        lights0 = [EnvMap(env, name=lights0[0].name)]
+        light_key = np.round(env.mean((0, 1)), 6).tolist() + [float(np.round(env.std(), 6))]
 
     # 1-2. atlas and initial texture T_0 (projected, or per-face colours averaged over frames)
-    face_uvs, face_pixels, tex0 = initial_texture(data, cfg, out, prog, renderer=renderer, ambient=amb0, key=key0)
+    face_uvs, face_pixels, tex0 = initial_texture(data, cfg, out, prog, renderer=renderer, ambient=amb0, key=key0,
+                                                  light_key=light_key)
 
     # 3. inverse rendering, resumable
     ckpt = out / "checkpoint.npz"

@@ -146,10 +146,11 @@ def projected_texture(data: AppearanceData, cfg: AppearanceConfig, renderer, amb
 
 
 def initial_texture(data: AppearanceData, cfg: AppearanceConfig, out: Path, progress=None, renderer=None,
-                    ambient=None, key=None):
+                    ambient=None, key=None, light_key=None):
     """Steps 1-2 of the fit: the atlas and T_0, read back from ``out`` (``atlas.npz``,
     ``texture_init_linear.npy``) when they were made with the same settings, else computed and
-    written there. ``init="project"`` needs the fit's ``renderer`` and its initial lights.
+    written there. ``init="project"`` needs the fit's ``renderer`` and its initial lights
+    (``light_key``: anything else that identifies them, e.g. a fitted environment map).
 
     Returns:
         face_uvs [F, 3, 2], face_pixels [F] (training pixels that saw each face), T_0 [size,
@@ -165,7 +166,8 @@ def initial_texture(data: AppearanceData, cfg: AppearanceConfig, out: Path, prog
                                "prior_views": cfg.prior_views, "light": cfg.light,
                               "project_passes": cfg.project_passes,
                                "ambient": None if ambient is None else [float(x) for x in ambient],
-                               "key": None if key is None else [float(x) for x in key]}
+                               "key": None if key is None else [float(x) for x in key],
+                               **({"light_key": light_key} if light_key is not None else {})}
                               if cfg.init == "project" else {})})
     a = load_npz(atlas_path) if atlas_path.is_file() else {}
     if str(a.get("init_key", "")) == init_key and (out / "texture_init_linear.npy").is_file():

@@ -147,20 +147,15 @@ class Projection:
         n = len(points.index)
         return Projection(points, np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n), np.zeros(n, np.int64))
 
-    def add_view(self, cam: Camera, vertices: np.ndarray, faces: np.ndarray, image: np.ndarray, mask: np.ndarray,
-                 irradiance: np.ndarray, *, occlusion: Occlusion | None = None, twosided: np.ndarray | None = None,
-                 min_cos: float = 0.1, edge_tol: float = 0.02) -> np.ndarray:
-        """Add one view: ``image`` [H, W, 3] linear, ``mask`` [H, W] bool (pixels allowed),
-        ``irradiance`` [H, W, 3] (the white-texture render, the silhouette's outside 0), on the
-        mesh ``vertices``; ``twosided`` [F] bool faces seen from both sides (garments).
-        A sample is dropped when one of the four pixels its bilinear lookup reads sees a surface
-        at another depth than the texel's (an occlusion edge: the pixel mixes two surfaces, e.g.
-        an arm's outline over the chest): more than ``edge_tol`` (m) plus the depth change that
-        two pixels of the texel's own slope span.
-        Returns the [N] bool texels this view saw."""
+    def observe(self, cam: Camera, vertices: np.ndarray, faces: np.ndarray, mask: np.ndarray, *,
+                occlusion: Occlusion | None = None, twosided: np.ndarray | None = None, min_cos: float = 0.1,
+                edge_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which texels view ``cam`` sees on the mesh ``vertices``, and where (the tests of
+        :meth:`add_view`). Returns (idx [n] covered-texel indices, xy [n, 2] pixel positions,
+        w [n] foreshortening weights |cos θ|)."""
         pts = self.points.positions(vertices, faces)
         xy, z = cam.project(pts)
-        H, W = image.shape[:2]
+        H, W = mask.shape[:2]
         ok = (z > 1e-6) & (xy[:, 0] >= 0) & (xy[:, 0] <= W - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= H - 1)
         n = face_normals(vertices, faces)[self.points.face]
         view = cam.center[None, :] - pts
@@ -178,13 +173,30 @@ class Projection:
             slope = 2.0 * z[idx] / cam.K[0, 0] / np.maximum(cos[idx], 0.2)
             ok[idx] = _depth_agrees(occ.depth(cam), xy[idx], z[idx], edge_tol + slope)
             idx = np.flatnonzero(ok)
-        I = bilinear(image, xy[idx])
-        E = bilinear(irradiance, xy[idx])
-        w = cos[idx][:, None]
+        return idx, xy[idx], cos[idx]
+
+    def add_view(self, cam: Camera, vertices: np.ndarray, faces: np.ndarray, image: np.ndarray, mask: np.ndarray,
+                 irradiance: np.ndarray, *, occlusion: Occlusion | None = None, twosided: np.ndarray | None = None,
+                 min_cos: float = 0.1, edge_tol: float = 0.02) -> np.ndarray:
+        """Add one view: ``image`` [H, W, 3] linear, ``mask`` [H, W] bool (pixels allowed),
+        ``irradiance`` [H, W, 3] (the white-texture render, the silhouette's outside 0), on the
+        mesh ``vertices``; ``twosided`` [F] bool faces seen from both sides (garments).
+        A sample is dropped when one of the four pixels its bilinear lookup reads sees a surface
+        at another depth than the texel's (an occlusion edge: the pixel mixes two surfaces, e.g.
+        an arm's outline over the chest): more than ``edge_tol`` (m) plus the depth change that
+        two pixels of the texel's own slope span.
+        Returns the [N] bool texels this view saw."""
+        idx, xy, cos = self.observe(cam, vertices, faces, mask, occlusion=occlusion, twosided=twosided,
+                                    min_cos=min_cos, edge_tol=edge_tol)
+        I = bilinear(image, xy)
+        E = bilinear(irradiance, xy)
+        w = cos[:, None]
         self.num[idx] += w * I * E
         self.den[idx] += w * E * E
         self.weight[idx] += w[:, 0]
         self.views[idx] += 1
+        ok = np.zeros(len(self.points.index), bool)
+        ok[idx] = True
         return ok
 
 

@@ -14,6 +14,7 @@ from ...errors import PhysavatarError
 from ...render import (
     Ambient,
     AreaLight,
+    EnvMap,
     PointLight,
     RenderResult,
     SceneSpec,
@@ -33,6 +34,10 @@ def initial_lights(cfg: AppearanceConfig, capture: Capture, lighting: str | Path
     ``studio`` the known studio lights (``lighting`` or ``ground_truth/lighting.json``)."""
     if cfg.light == "ambient":
         return [Ambient((cfg.ambient_init,) * 3)]
+    if cfg.light == "env":  # a uniform map: the ambient start; fitted by .envlight
+        from .envlight import ENV_SHAPE
+
+        return [EnvMap(np.full(ENV_SHAPE + (3,), cfg.ambient_init, np.float32))]
     path = Path(lighting) if lighting is not None else (capture.root / "ground_truth" / "lighting.json")
     if not path.is_file():
         raise PhysavatarError(path, "light model 'studio' needs the studio's lights (a lighting.json; pass --lighting)")
@@ -74,6 +79,17 @@ class InverseRenderer:
             self.params[f"{n}.vertex_positions"] = self.mi.Float(v)
         self.params.update()
         self._frame_vertices_id = tag
+
+    def set_envmap(self, image: np.ndarray) -> None:
+        """Replace the scene's environment map by ``image`` [H, W, 3] (linear radiance, the map's
+        own shape; Mitsuba keeps it with one wrapped column on either side)."""
+        name = next((l.name for l in self.lights if isinstance(l, EnvMap)), None)
+        if name is None:
+            raise ValueError("the scene has no environment map")
+        img = np.asarray(image, np.float32)
+        padded = np.concatenate([img[:, -1:], img, img[:, :1]], 1)
+        self.params[f"{name}.data"] = self.mi.TensorXf(np.ascontiguousarray(padded))
+        self.params.update()
 
     def sensor(self, cam: Camera, spp: int):
         key = (cam.name, cam.width, spp)
