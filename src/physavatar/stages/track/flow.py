@@ -44,10 +44,11 @@ from .silhouette import MaskOutline, silhouette_observation
 
 
 def to_gray8(image: np.ndarray) -> np.ndarray:
-    """[H, W] uint8 luma of an sRGB image [H, W, 3] in [0, 1] (a [H, W] uint8 image is returned as is)."""
+    """[H, W] uint8 luma of an sRGB image [H, W, 3] in [0, 1] or uint8 (a [H, W] uint8 image is
+    returned as is)."""
     if image.dtype == np.uint8 and image.ndim == 2:
         return image
-    a = np.asarray(image, np.float64)
+    a = np.asarray(image, np.float64) / (255.0 if image.dtype == np.uint8 else 1.0)
     if a.ndim == 3:
         a = a[..., :3] @ np.array([0.299, 0.587, 0.114])
     return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8)
@@ -67,6 +68,63 @@ def optical_flow(image0: np.ndarray, image1: np.ndarray, preset: str = "medium")
         # error of a swinging hem at ~5x the time
         dis.setFinestScale(0)
     return dis.calc(a, b, None).astype(np.float64)
+
+
+def to_rgb8(image: np.ndarray) -> np.ndarray:
+    """[H, W, 3] uint8 of an sRGB image [H, W, 3] in [0, 1] (uint8 images are returned as they are)."""
+    if image.dtype == np.uint8:
+        return image
+    return np.clip(np.rint(np.asarray(image, np.float64)[..., :3] * 255.0), 0, 255).astype(np.uint8)
+
+
+def opponent_channels(a: np.ndarray, b: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The colour-opponent channels R - G and (R + G)/2 - B of two sRGB uint8 images [H, W, 3], as
+    uint8 pairs, each stretched by one gain for both images (its 1st to 99th percentile over both
+    to 0..255). A plaid whose bands differ in hue more than in luma keeps its pattern there."""
+    out = []
+    fa, fb = a.astype(np.float32), b.astype(np.float32)
+    for ca, cb in ((fa[..., 0] - fa[..., 1], fb[..., 0] - fb[..., 1]),
+                   (0.5 * (fa[..., 0] + fa[..., 1]) - fa[..., 2], 0.5 * (fb[..., 0] + fb[..., 1]) - fb[..., 2])):
+        lo, hi = np.percentile(np.concatenate([ca.ravel(), cb.ravel()]), [1, 99])
+        g = 255.0 / max(hi - lo, 1.0)
+        out.append(tuple(np.clip(np.rint((c - lo) * g), 0, 255).astype(np.uint8) for c in (ca, cb)))
+    return out
+
+
+def image_channels(a: np.ndarray, b: np.ndarray, channels: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The pairs of uint8 images the flow runs on for two views ``a``, ``b`` ([H, W] grey uint8 or
+    [H, W, 3] sRGB): "luma" the grey pair; "colour" the grey pair and :func:`opponent_channels`
+    (both views must be colour)."""
+    pairs = [(to_gray8(a), to_gray8(b))]
+    if channels == "colour":
+        if a.ndim != 3 or b.ndim != 3:
+            raise ValueError("colour corrections need colour views")
+        pairs += opponent_channels(to_rgb8(a), to_rgb8(b))
+    elif channels != "luma":
+        raise ValueError(f"channels must be 'luma' or 'colour', got {channels!r}")
+    return pairs
+
+
+def scaled_flow(image0: np.ndarray, image1: np.ndarray, preset: str, factor: int) -> np.ndarray:
+    """:func:`optical_flow` of two uint8 images computed at 1/``factor`` of their size (area
+    average) and brought back to full-resolution pixels (bilinear, times ``factor``). At half size
+    a texture aliased at two pixels averages out, and what is left (colour patches, shading,
+    outlines) locks the flow on errors of several full-resolution pixels."""
+    if factor <= 1:
+        return optical_flow(image0, image1, preset)
+    import cv2
+
+    H, W = image0.shape[:2]
+    size = (max(8, round(W / factor)), max(8, round(H / factor)))
+    a = cv2.resize(image0, size, interpolation=cv2.INTER_AREA)
+    b = cv2.resize(image1, size, interpolation=cv2.INTER_AREA)
+    f = optical_flow(a, b, preset)
+    sx, sy = W / size[0], H / size[1]
+    # pixel centres: x_full = (x_small + 0.5) * s - 0.5
+    up = cv2.resize(f.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    up[..., 0] *= sx
+    up[..., 1] *= sy
+    return up
 
 
 @dataclass
@@ -166,25 +224,33 @@ class FlowPrediction:
         return obs
 
     def _observation(self, vertices: np.ndarray, cam: Camera, g0: np.ndarray, g1: np.ndarray, depth: np.ndarray,
-                     face: np.ndarray, valid: np.ndarray | None, preset: str) -> FlowObservation:
-        fw = optical_flow(g0, g1, preset)
-        bw = optical_flow(g1, g0, preset)
+                     face: np.ndarray, valid: np.ndarray | None, preset: str, channels: str = "luma",
+                     factor: int = 1) -> FlowObservation:
+        """The flow observations of the seen solved vertices from view ``g0`` to ``g1`` (grey uint8,
+        or sRGB for ``channels="colour"``: one set of observations per channel, each checked
+        forward-backward on its own), the flow computed at 1/``factor`` size (:func:`scaled_flow`)."""
         seen = visible_vertices(vertices, self.faces, cam, self.depth_tolerance, depth, face) & self.solve
         idx = np.flatnonzero(seen)
         uv = cam.project(vertices[idx])[0]
         if valid is not None:  # the synthetic view must hold texture around the vertex
             ok = sample_bilinear(valid[..., None].astype(np.float64), uv)[:, 0] > 0.999
             idx, uv = idx[ok], uv[ok]
-        f = sample_bilinear(fw, uv)
-        back = sample_bilinear(bw, uv + f)
-        ok = np.linalg.norm(f + back, axis=1) < self.consistency_px
-        return FlowObservation(cam, idx[ok], uv[ok] + f[ok])
+        vs, ts = [], []
+        for a, b in image_channels(g0, g1, channels):
+            fw = scaled_flow(a, b, preset, factor)
+            bw = scaled_flow(b, a, preset, factor)
+            f = sample_bilinear(fw, uv)
+            back = sample_bilinear(bw, uv + f)
+            ok = np.linalg.norm(f + back, axis=1) < self.consistency_px * factor
+            vs.append(idx[ok])
+            ts.append(uv[ok] + f[ok])
+        return FlowObservation(cam, np.concatenate(vs), np.concatenate(ts))
 
     def correct(self, vertices: np.ndarray, cameras: list[Camera], images: list[np.ndarray],
                 reference: ReferenceAppearance, iterations: int = 2, smoothness: float = 1.0,
                 prior_weight: float = 0.1, preset: str = "fine", iso_weight: float | None = None,
                 bend_weight: float | None = None, masks: list[np.ndarray] | None = None,
-                silhouette_weight: float = 0.0) -> np.ndarray:
+                silhouette_weight: float = 0.0, channels: str = "luma", coarse: int = 0) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
         frame t's images by model-based flow (module docstring): each iteration renders the mesh
         as the reference frame saw it (:class:`ReferenceAppearance`), measures the flow from that
@@ -194,34 +260,43 @@ class FlowPrediction:
 
         ``masks`` (frame t's masks of ``cameras``, full resolution) with ``silhouette_weight`` > 0
         add each camera's :class:`~.silhouette.SilhouetteObservation`: the estimate's outline
-        pulled onto the mask's, which sees what an aliased or plain texture does not."""
+        pulled onto the mask's, which sees what an aliased or plain texture does not.
+
+        ``channels="colour"`` (colour ``images`` and reference) measures the flow on the luma and
+        the two colour-opponent channels (:func:`image_channels`). ``coarse`` > 0 runs that many
+        extra iterations first with the flow at half size (:func:`scaled_flow`): coarse to fine, so
+        an error of several pixels, which the full-size flow of an aliased texture misses, is
+        corrected before the fine iterations."""
         X = np.asarray(vertices, np.float64).copy()
-        grey = [to_gray8(im) for im in images]
+        views = [im if channels == "colour" else to_gray8(im) for im in images]
         outlines = ([MaskOutline(cam, m) for cam, m in zip(cameras, masks)]
                     if masks is not None and silhouette_weight > 0 else None)
-        for _ in range(iterations):
+        for it in range(coarse + iterations):
+            factor = 2 if it < coarse else 1
             obs: list = []
-            for k, (cam, g1) in enumerate(zip(cameras, grey)):
+            for k, (cam, g1) in enumerate(zip(cameras, views)):
                 synth, valid, depth, face = reference.render(X, cam, fill=g1)
-                obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset))
+                obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset, channels, factor))
                 if outlines is not None:
                     seen = visible_vertices(X, self.faces, cam, self.depth_tolerance, depth, face)
                     obs.append(silhouette_observation(X, self.faces, self.solve, outlines[k], seen,
                                                       weight=silhouette_weight))
             X = self.lift(X, obs, smoothness=smoothness, prior_weight=prior_weight, iso_weight=iso_weight,
-                          bend_weight=bend_weight)
+                          bend_weight=bend_weight, huber_px=self.huber_px * factor)
         return X
 
     def lift(self, vertices: np.ndarray, observations: list[FlowObservation], start: np.ndarray | None = None,
              smoothness: float | None = None, prior_weight: float | None = None,
-             iso_weight: float | None = None, bend_weight: float | None = None) -> np.ndarray:
+             iso_weight: float | None = None, bend_weight: float | None = None,
+             huber_px: float | None = None) -> np.ndarray:
         """[V, 3] the vertices moved by the observations (module docstring, step 3).
 
         vertices: [V, 3] where the observations were made (frame t-1, or the current estimate of
         frame t for :meth:`correct`). start: [V, 3] where the vertices that are not solved go
         (e.g. skinned to frame t), and the solved ones' start and prior (default: ``vertices``).
-        smoothness, prior_weight, iso_weight, bend_weight: override the instance's.
+        smoothness, prior_weight, iso_weight, bend_weight, huber_px: override the instance's.
         """
+        huber = self.huber_px if huber_px is None else huber_px
         lam = self.smoothness if smoothness is None else smoothness
         prior = self.prior_weight if prior_weight is None else prior_weight
         iso = (self.iso_weight if iso_weight is None else iso_weight) if self._rest_lengths is not None else 0.0
@@ -242,7 +317,7 @@ class FlowPrediction:
             for o in observations:
                 if len(o.vertex) == 0:
                     continue
-                vertex, JtJ, Jtr = o.normal_equations(X, self.huber_px)
+                vertex, JtJ, Jtr = o.normal_equations(X, huber)
                 p = self.pos[vertex]
                 for i in range(3):
                     b[:, i] -= np.bincount(p, Jtr[:, i], n)
@@ -344,11 +419,13 @@ class FlowStart:
 
     def __init__(self, flow: FlowPrediction, cameras: list[Camera], reference_vertices: np.ndarray,
                  reference_images: list[np.ndarray], corrections: int = 2, final_corrections: int = 0,
-                 correction: dict | None = None):
+                 correction: dict | None = None, coarse: int = 0):
         self.flow, self.cameras, self.corrections = flow, list(cameras), corrections
+        self.coarse = coarse  # half-size corrections before the first full-size one (not in refine)
         self.final_corrections = final_corrections
         self.correction = dict(correction or {})
-        self.reference = (ReferenceAppearance(reference_vertices, flow.faces, cameras, reference_images)
+        colour = self.correction.get("channels", "luma") == "colour"
+        self.reference = (ReferenceAppearance(reference_vertices, flow.faces, cameras, reference_images, colour=colour)
                           if corrections > 0 or final_corrections > 0 else None)
 
     def __call__(self, previous: np.ndarray, previous_grey: list[np.ndarray], grey: list[np.ndarray],
@@ -360,7 +437,7 @@ class FlowStart:
         X = self.flow(previous, self.cameras, previous_grey, grey, start=start)
         if self.corrections > 0:
             X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections, masks=masks,
-                                  **self.correction)
+                                  coarse=self.coarse, **self.correction)
         return X
 
     def refine(self, vertices: np.ndarray, grey: list[np.ndarray], masks: list[np.ndarray] | None = None) -> np.ndarray:
@@ -387,14 +464,16 @@ class ReferenceAppearance:
         vertices: [V, 3] the reference mesh (the first tracked frame). faces: [F, 3].
         cameras, images: the reference frame's views (sRGB [H, W, 3] in [0, 1]).
         depth_tolerance: [m] a surface point counts as seen by its camera within this depth.
+        colour: keep the reference views in colour (sRGB; for ``channels="colour"`` corrections)
+            rather than as luma.
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera], images: list[np.ndarray],
-                 depth_tolerance: float = 5e-3):
+                 depth_tolerance: float = 5e-3, colour: bool = False):
         self.vertices = np.asarray(vertices, np.float64)
         self.faces = np.asarray(faces, np.int64)
         self.cameras = list(cameras)
-        self.grey = [to_gray8(im).astype(np.float64)[..., None] for im in images]
+        self.grey = [(to_rgb8(im) if colour else to_gray8(im)[..., None]).astype(np.float64) for im in images]
         self.depth_tolerance = depth_tolerance
         self.depth = []
         score = np.zeros((len(self.cameras), len(self.faces)))
@@ -406,19 +485,23 @@ class ReferenceAppearance:
 
     def render(self, vertices: np.ndarray, camera: Camera, fill: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(grey [H, W] uint8, valid [H, W] bool, depth [H, W], face [H, W]) of the mesh at
-        ``vertices`` in ``camera``: reference texture where a face covers the pixel and its source
-        camera saw the point; ``fill`` ([H, W] uint8, default 0) elsewhere; depth and face of
-        :func:`rasterize`."""
+        """(view [H, W] uint8 (grey reference) or [H, W, 3] (colour reference), valid [H, W] bool,
+        depth [H, W], face [H, W]) of the mesh at ``vertices`` in ``camera``: reference texture
+        where a face covers the pixel and its source camera saw the point; ``fill`` (a view of the
+        same kind, default 0) elsewhere; depth and face of :func:`rasterize`."""
         depth, face, bary = rasterize(vertices, self.faces, camera)
-        out = np.zeros((camera.height, camera.width)) if fill is None else np.asarray(fill, np.float64).copy()
+        C = self.grey[0].shape[-1]
+        if fill is None:
+            out = np.zeros((camera.height, camera.width, C))
+        else:
+            fill = to_gray8(fill) if C == 1 else (to_rgb8(fill) if np.ndim(fill) == 3 else np.repeat(fill[..., None], 3, -1))
+            out = np.asarray(fill, np.float64).reshape(camera.height, camera.width, C).copy()
         valid = np.zeros((camera.height, camera.width), bool)
         pix = np.flatnonzero(face.ravel() >= 0)
         f = face.ravel()[pix]
         src = self.source[f]
         P = np.einsum("nk,nkd->nd", bary.reshape(-1, 3)[pix], self.vertices[self.faces[f]])
-        flat = out.ravel()
-        vflat = valid.ravel()
+        flat = out.reshape(-1, C)
         for k, cam in enumerate(self.cameras):
             sel = np.flatnonzero(src == k)
             if len(sel) == 0:
@@ -428,9 +511,10 @@ class ReferenceAppearance:
             inside = (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
             seen = inside & _in_front(uv, z, self.depth[k], self.depth_tolerance)[0]
             sel, uv = sel[seen], uv[seen]
-            flat[pix[sel]] = sample_bilinear(self.grey[k], uv)[:, 0]
-            vflat[pix[sel]] = True
-        return np.clip(np.rint(out), 0, 255).astype(np.uint8), valid, depth, face
+            flat[pix[sel]] = sample_bilinear(self.grey[k], uv)
+            valid.ravel()[pix[sel]] = True
+        out = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+        return (out[..., 0] if C == 1 else out), valid, depth, face
 
 
 def _edge_difference(faces: np.ndarray, solve: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
