@@ -195,6 +195,8 @@ class FlowConfig:
             pattern is in its hues more than in its brightness keeps it.
         coarse: corrections per frame (before the fit) run first with the flow at half size,
             coarse to fine, for errors of several pixels an aliased texture hides.
+        bend_reference: what the bending terms hold: "rest" (the template's hinge distances) or
+            "start" (those of the mesh each lift starts from: the previous frame, the estimate).
     """
 
     smoothness: float = setting(3.0)
@@ -212,6 +214,7 @@ class FlowConfig:
     prior: float = setting(0.0)
     channels: str = setting("luma")
     coarse: int = setting(0)
+    bend_reference: str = setting("rest")
 
 
 @dataclass(frozen=True)

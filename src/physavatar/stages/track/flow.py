@@ -172,6 +172,10 @@ class FlowPrediction:
             linear beyond (re-weighted each Gauss-Newton iteration; 0: quadratic everywhere), so
             the template's folds are held against small slides but a fold the garment really forms
             (a flared skirt swinging out) is not pulled back ever harder.
+        bend_reference: what the bending term holds: "rest" the template's hinges, "start" those
+            of the mesh each lift starts from (the previous frame for the prediction, the estimate
+            for a correction): the garment's shape may change from the template's (a skirt that
+            flares out bends without stretching) but not within one lift.
         collider_faces: [Fc, 3] faces (over the same vertices, none solved) the solved vertices stay
             outside of, by ``collision_margin`` [m], penalty ``collision_weight``, for vertices
             within ``contact_range`` [m] of it (module docstring, 4). None: no collider.
@@ -182,7 +186,7 @@ class FlowPrediction:
                  iterations: int = 3, preset: str = "medium", prior_weight: float = 0.0,
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
-                 bend_weight: float = 0.0, bend_huber: float = 0.0):
+                 bend_weight: float = 0.0, bend_huber: float = 0.0, bend_reference: str = "rest"):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -202,6 +206,9 @@ class FlowPrediction:
         self.iso_weight = iso_weight
         self.bend_weight = bend_weight
         self.bend_huber = bend_huber
+        if bend_reference not in ("rest", "start"):
+            raise ValueError(f"bend_reference must be 'rest' or 'start', got {bend_reference!r}")
+        self.bend_reference = bend_reference
         self._hinges = _hinge_pairs(smooth_faces, self.solve)
         self._rest_lengths = self._rest_hinges = None
         if rest is not None:
@@ -310,6 +317,9 @@ class FlowPrediction:
         rows = (np.arange(n)[:, None, None] * 3 + np.arange(3)[None, :, None]).repeat(3, 2)
         cols = (np.arange(n)[:, None, None] * 3 + np.arange(3)[None, None, :]).repeat(3, 1)
         contact = self._contacts(X0, X)
+        rest_hinges = self._rest_hinges
+        if self.bend_reference == "start" and bend > 0:
+            rest_hinges = np.linalg.norm(X0[self._hinges[:, 0]] - X0[self._hinges[:, 1]], axis=1)
         active = np.zeros(n, bool)
         for _ in range(self.iterations):
             A = np.zeros((n, 3, 3))
@@ -336,7 +346,7 @@ class FlowPrediction:
                 rhs = rhs + iso * (D.T @ (D @ d_cur.ravel() - r))
             if bend > 0 and len(self._hinges):
                 # the same on the distances across the interior edges (the hinges' dihedral angles)
-                D, r = self._length_jacobian(X, self._hinges, self._rest_hinges)
+                D, r = self._length_jacobian(X, self._hinges, rest_hinges)
                 if self.bend_huber > 0:
                     # Huber: a hinge whose distance has moved more than bend_huber from the rest's
                     # (a fold that formed or opened) is pulled back with a bounded force
