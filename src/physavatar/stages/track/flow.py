@@ -40,91 +40,9 @@ import scipy.sparse as sp
 from ...camera import Camera
 from .raster import (_in_front, projection_jacobian, rasterize, sample_bilinear,
                      visible_vertices, zbuffer)
+from .channels import (image_channels, opponent_channels, optical_flow, patterned_opponents,  # noqa: F401
+                       scaled_flow, to_gray8, to_rgb8)
 from .silhouette import MaskOutline, silhouette_observation
-
-
-def to_gray8(image: np.ndarray) -> np.ndarray:
-    """[H, W] uint8 luma of an sRGB image [H, W, 3] in [0, 1] or uint8 (a [H, W] uint8 image is
-    returned as is)."""
-    if image.dtype == np.uint8 and image.ndim == 2:
-        return image
-    a = np.asarray(image, np.float64) / (255.0 if image.dtype == np.uint8 else 1.0)
-    if a.ndim == 3:
-        a = a[..., :3] @ np.array([0.299, 0.587, 0.114])
-    return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8)
-
-
-def optical_flow(image0: np.ndarray, image1: np.ndarray, preset: str = "medium") -> np.ndarray:
-    """[H, W, 2] dense flow (pixels, x then y) from ``image0`` to ``image1`` ([H, W, 3] sRGB in
-    [0, 1] or [H, W] uint8), by OpenCV's DIS optical flow: image0[y, x] ~ image1[y + f_y, x + f_x]."""
-    import cv2
-
-    presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-               "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, "fine": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
-    a, b = to_gray8(image0), to_gray8(image1)
-    dis = cv2.DISOpticalFlow_create(presets[preset])
-    if preset == "fine":
-        # "medium" searches down to half resolution; the finest level roughly halves the flow
-        # error of a swinging hem at ~5x the time
-        dis.setFinestScale(0)
-    return dis.calc(a, b, None).astype(np.float64)
-
-
-def to_rgb8(image: np.ndarray) -> np.ndarray:
-    """[H, W, 3] uint8 of an sRGB image [H, W, 3] in [0, 1] (uint8 images are returned as they are)."""
-    if image.dtype == np.uint8:
-        return image
-    return np.clip(np.rint(np.asarray(image, np.float64)[..., :3] * 255.0), 0, 255).astype(np.uint8)
-
-
-def opponent_channels(a: np.ndarray, b: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The colour-opponent channels R - G and (R + G)/2 - B of two sRGB uint8 images [H, W, 3], as
-    uint8 pairs, each stretched by one gain for both images (its 1st to 99th percentile over both
-    to 0..255). A plaid whose bands differ in hue more than in luma keeps its pattern there."""
-    out = []
-    fa, fb = a.astype(np.float32), b.astype(np.float32)
-    for ca, cb in ((fa[..., 0] - fa[..., 1], fb[..., 0] - fb[..., 1]),
-                   (0.5 * (fa[..., 0] + fa[..., 1]) - fa[..., 2], 0.5 * (fb[..., 0] + fb[..., 1]) - fb[..., 2])):
-        lo, hi = np.percentile(np.concatenate([ca.ravel(), cb.ravel()]), [1, 99])
-        g = 255.0 / max(hi - lo, 1.0)
-        out.append(tuple(np.clip(np.rint((c - lo) * g), 0, 255).astype(np.uint8) for c in (ca, cb)))
-    return out
-
-
-def image_channels(a: np.ndarray, b: np.ndarray, channels: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The pairs of uint8 images the flow runs on for two views ``a``, ``b`` ([H, W] grey uint8 or
-    [H, W, 3] sRGB): "luma" the grey pair; "colour" the grey pair and :func:`opponent_channels`
-    (both views must be colour)."""
-    pairs = [(to_gray8(a), to_gray8(b))]
-    if channels == "colour":
-        if a.ndim != 3 or b.ndim != 3:
-            raise ValueError("colour corrections need colour views")
-        pairs += opponent_channels(to_rgb8(a), to_rgb8(b))
-    elif channels != "luma":
-        raise ValueError(f"channels must be 'luma' or 'colour', got {channels!r}")
-    return pairs
-
-
-def scaled_flow(image0: np.ndarray, image1: np.ndarray, preset: str, factor: int) -> np.ndarray:
-    """:func:`optical_flow` of two uint8 images computed at 1/``factor`` of their size (area
-    average) and brought back to full-resolution pixels (bilinear, times ``factor``). At half size
-    a texture aliased at two pixels averages out, and what is left (colour patches, shading,
-    outlines) locks the flow on errors of several full-resolution pixels."""
-    if factor <= 1:
-        return optical_flow(image0, image1, preset)
-    import cv2
-
-    H, W = image0.shape[:2]
-    size = (max(8, round(W / factor)), max(8, round(H / factor)))
-    a = cv2.resize(image0, size, interpolation=cv2.INTER_AREA)
-    b = cv2.resize(image1, size, interpolation=cv2.INTER_AREA)
-    f = optical_flow(a, b, preset)
-    sx, sy = W / size[0], H / size[1]
-    # pixel centres: x_full = (x_small + 0.5) * s - 0.5
-    up = cv2.resize(f.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR).astype(np.float64)
-    up[..., 0] *= sx
-    up[..., 1] *= sy
-    return up
 
 
 @dataclass
@@ -232,7 +150,7 @@ class FlowPrediction:
 
     def _observation(self, vertices: np.ndarray, cam: Camera, g0: np.ndarray, g1: np.ndarray, depth: np.ndarray,
                      face: np.ndarray, valid: np.ndarray | None, preset: str, channels: str = "luma",
-                     factor: int = 1) -> FlowObservation:
+                     factor: int = 1, opponent: tuple[bool, bool] = (True, True)) -> FlowObservation:
         """The flow observations of the seen solved vertices from view ``g0`` to ``g1`` (grey uint8,
         or sRGB for ``channels="colour"``: one set of observations per channel, each checked
         forward-backward on its own), the flow computed at 1/``factor`` size (:func:`scaled_flow`)."""
@@ -243,7 +161,7 @@ class FlowPrediction:
             ok = sample_bilinear(valid[..., None].astype(np.float64), uv)[:, 0] > 0.999
             idx, uv = idx[ok], uv[ok]
         vs, ts = [], []
-        for a, b in image_channels(g0, g1, channels):
+        for a, b in image_channels(g0, g1, channels, opponent):
             fw = scaled_flow(a, b, preset, factor)
             bw = scaled_flow(b, a, preset, factor)
             f = sample_bilinear(fw, uv)
@@ -257,7 +175,8 @@ class FlowPrediction:
                 reference: ReferenceAppearance, iterations: int = 2, smoothness: float = 1.0,
                 prior_weight: float = 0.1, preset: str = "fine", iso_weight: float | None = None,
                 bend_weight: float | None = None, masks: list[np.ndarray] | None = None,
-                silhouette_weight: float = 0.0, channels: str = "luma", coarse: int = 0) -> np.ndarray:
+                silhouette_weight: float = 0.0, channels: str = "luma", coarse: int = 0,
+                opponent: tuple[bool, bool] = (True, True)) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
         frame t's images by model-based flow (module docstring): each iteration renders the mesh
         as the reference frame saw it (:class:`ReferenceAppearance`), measures the flow from that
@@ -270,7 +189,8 @@ class FlowPrediction:
         pulled onto the mask's, which sees what an aliased or plain texture does not.
 
         ``channels="colour"`` (colour ``images`` and reference) measures the flow on the luma and
-        the two colour-opponent channels (:func:`image_channels`). ``coarse`` > 0 runs that many
+        the colour-opponent channels that ``opponent`` keeps (:func:`image_channels`,
+        :func:`patterned_opponents`). ``coarse`` > 0 runs that many
         extra iterations first with the flow at half size (:func:`scaled_flow`): coarse to fine, so
         an error of several pixels, which the full-size flow of an aliased texture misses, is
         corrected before the fine iterations."""
@@ -283,7 +203,8 @@ class FlowPrediction:
             obs: list = []
             for k, (cam, g1) in enumerate(zip(cameras, views)):
                 synth, valid, depth, face = reference.render(X, cam, fill=g1)
-                obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset, channels, factor))
+                obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset, channels, factor,
+                                               opponent))
                 if outlines is not None:
                     seen = visible_vertices(X, self.faces, cam, self.depth_tolerance, depth, face)
                     obs.append(silhouette_observation(X, self.faces, self.solve, outlines[k], seen,
@@ -435,6 +356,9 @@ class FlowStart:
         self.final_corrections = final_corrections
         self.correction = dict(correction or {})
         colour = self.correction.get("channels", "luma") == "colour"
+        if colour:  # only the opponent channels in which the garment shows a pattern
+            self.correction["opponent"] = patterned_opponents(reference_vertices, flow.faces, flow.solve, cameras,
+                                                              reference_images)
         self.reference = (ReferenceAppearance(reference_vertices, flow.faces, cameras, reference_images, colour=colour)
                           if corrections > 0 or final_corrections > 0 else None)
 
