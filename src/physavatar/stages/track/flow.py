@@ -356,9 +356,10 @@ class FlowStart:
         self.final_corrections = final_corrections
         self.correction = dict(correction or {})
         colour = self.correction.get("channels", "luma") == "colour"
-        if colour:  # only the opponent channels in which the garment shows a pattern
-            self.correction["opponent"] = patterned_opponents(reference_vertices, flow.faces, flow.solve, cameras,
-                                                              reference_images)
+        if colour:  # only the opponent channels in which the garment shows a pattern (none: the luma alone)
+            opponent = patterned_opponents(reference_vertices, flow.faces, flow.solve, cameras, reference_images)
+            colour = any(opponent)
+            self.correction.update(opponent=opponent, channels="colour" if colour else "luma")
         self.reference = (ReferenceAppearance(reference_vertices, flow.faces, cameras, reference_images, colour=colour)
                           if corrections > 0 or final_corrections > 0 else None)
 
