@@ -89,7 +89,7 @@ def test_bending_toward_the_start_keeps_a_fold_the_garment_formed():
         idx = np.intersect1d(np.flatnonzero(visible_vertices(truth, F, cam)), left)
         obs.append(FlowObservation(cam, idx, cam.project(truth[idx])[0]))
     solve = np.ones(len(V0), bool)
-    kw = dict(smoothness=0.0, iterations=15, rest=V0, iso_weight=10.0, bend_weight=10.0)
+    kw = {"smoothness": 0.0, "iterations": 15, "rest": V0, "iso_weight": 10.0, "bend_weight": 10.0}
     to_rest = FlowPrediction(F, solve, F, **kw).lift(start, obs)
     to_start = FlowPrediction(F, solve, F, bend_reference="start", **kw).lift(start, obs)
     e_rest = np.linalg.norm(to_rest - truth, axis=1).max()

@@ -38,10 +38,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...camera import Camera
-from .raster import (_in_front, projection_jacobian, rasterize, sample_bilinear,
-                     visible_vertices, zbuffer)
 from .channels import (image_channels, opponent_channels, optical_flow, patterned_opponents,  # noqa: F401
                        scaled_flow, to_gray8, to_rgb8)
+from .raster import _in_front, projection_jacobian, rasterize, sample_bilinear, visible_vertices, zbuffer
 from .silhouette import MaskOutline, silhouette_observation
 
 

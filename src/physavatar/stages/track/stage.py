@@ -71,8 +71,8 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"garment_prediction must be 'velocity', 'physics' or 'flow', got {pred.garment!r}")
     numeric = [f.name for f in fields(flow) if f.name not in ("channels", "bend_reference")]
     if min(getattr(flow, k) for k in numeric) < 0:
-        raise PhysavatarError(None, "the flow.* settings must be >= 0, got "
-                                    + ", ".join(f"flow.{k}={getattr(flow, k)}" for k in numeric))
+        raise PhysavatarError(None, "the flow_* settings must be >= 0, got "
+                                    + ", ".join(f"flow_{k}={getattr(flow, k)}" for k in numeric))
     if flow.channels not in ("luma", "colour"):
         raise PhysavatarError(None, f"flow.channels must be 'luma' or 'colour', got {flow.channels!r}")
     if flow.bend_reference not in ("rest", "start"):
