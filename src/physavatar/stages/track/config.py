@@ -190,10 +190,10 @@ class FlowConfig:
             momentum: x_{t-1} + S(x_{t-1} - x_{t-2})) in the flow lift of frame t-1 -> t (0: the
             observations and the regularisers alone decide; a vertex that no flow sees then
             moves only with its neighbours).
-        channels: what the corrections' flow runs on: "luma" (grey; default) or "colour" (the
-            luma and those colour-opponent channels in which the first frame's garment shows a
-            pattern, each its own observations; none: the luma alone): a texture whose pattern is
-            in its hues more than in its brightness keeps it.
+        channels: what the corrections' flow runs on: "luma" (grey) or "colour" (default since
+            session 15: the luma and those colour-opponent channels in which the first frame's
+            garment shows a pattern, each its own observations; none: the luma alone): a texture
+            whose pattern is in its hues more than in its brightness keeps it.
         coarse: corrections per frame (before the fit) run first with the flow at half size,
             coarse to fine, for errors of several pixels an aliased texture hides.
         bend_reference: what the bending terms hold: "rest" (the template's hinge distances) or
@@ -213,7 +213,7 @@ class FlowConfig:
     silhouette: float = setting(0.0)
     bend_huber: float = setting(0.0)
     prior: float = setting(0.0)
-    channels: str = setting("luma")
+    channels: str = setting("colour")
     coarse: int = setting(0)
     bend_reference: str = setting("rest")
 
