@@ -1,6 +1,7 @@
 """Tracking accuracy (PhysAvatar Sec. 3.1) on the demo capture, plus the paper's Fig. 10 ablation.
 
     python benchmarks/tracking_accuracy.py [--capture /tmp/demo_capture] [--quick] [--frames N] [--work DIR]
+        [--set dotted.field=JSON ...]
 
 Builds the demo capture with ``physavatar synth`` if it is missing. Per frame: mean and 95th
 percentile vertex error (mm) against ground_truth/meshes.npz, garment and body separately, and
@@ -67,10 +68,15 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=None, help="frames of the main run (default: all; quick: 6)")
     ap.add_argument("--ablation-frames", type=int, default=None, help="frames of each ablation run (default 12; quick 4)")
     ap.add_argument("--work", type=Path, default=None, help="keep and resume the tracking runs here (default: a temporary folder)")
+    ap.add_argument("--set", action="append", default=[],
+                    help="override a TrackConfig field of every run: dotted.name=JSON, e.g. flow.channels='\"colour\"'")
     args = ap.parse_args(argv)
     if not (args.capture / "capture.json").is_file():
         subprocess.run([sys.executable, "-m", "physavatar", "synth", str(args.capture), "--preset", "demo"], check=True)
     cfg = TrackConfig()
+    for item in args.set:
+        k, v = item.split("=", 1)
+        cfg = set_path(cfg, k, json.loads(v))
     n = args.frames or (12 if args.quick else None)
     n_abl = args.ablation_frames or (6 if args.quick else 12)
     resume = args.work is not None

@@ -186,6 +186,18 @@ class FlowConfig:
             (:mod:`~physavatar.stages.track.silhouette`: the estimate's outline pulled onto each
             training camera's mask outline at full resolution; 0: off). It sees what the flow
             cannot where the texture is aliased or plain.
+        prior: weight of the prediction's pull toward the constant-velocity start (the garment's
+            momentum: x_{t-1} + S(x_{t-1} - x_{t-2})) in the flow lift of frame t-1 -> t (0: the
+            observations and the regularisers alone decide; a vertex that no flow sees then
+            moves only with its neighbours).
+        channels: what the corrections' flow runs on: "luma" (grey) or "colour" (default since
+            session 15: the luma and those colour-opponent channels in which the first frame's
+            garment shows a pattern, each its own observations; none: the luma alone): a texture
+            whose pattern is in its hues more than in its brightness keeps it.
+        coarse: corrections per frame (before the fit) run first with the flow at half size,
+            coarse to fine, for errors of several pixels an aliased texture hides.
+        bend_reference: what the bending terms hold: "rest" (the template's hinge distances) or
+            "start" (those of the mesh each lift starts from: the previous frame, the estimate).
     """
 
     smoothness: float = setting(3.0)
@@ -200,6 +212,10 @@ class FlowConfig:
     correction_bend: float = setting(5.0)
     silhouette: float = setting(0.0)
     bend_huber: float = setting(0.0)
+    prior: float = setting(0.0)
+    channels: str = setting("colour")
+    coarse: int = setting(0)
+    bend_reference: str = setting("rest")
 
 
 @dataclass(frozen=True)

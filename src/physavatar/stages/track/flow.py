@@ -38,35 +38,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ...camera import Camera
-from .raster import (_in_front, projection_jacobian, rasterize, sample_bilinear,
-                     visible_vertices, zbuffer)
+from .channels import (image_channels, opponent_channels, optical_flow, patterned_opponents,  # noqa: F401
+                       scaled_flow, to_gray8, to_rgb8)
+from .raster import _in_front, projection_jacobian, rasterize, sample_bilinear, visible_vertices, zbuffer
 from .silhouette import MaskOutline, silhouette_observation
-
-
-def to_gray8(image: np.ndarray) -> np.ndarray:
-    """[H, W] uint8 luma of an sRGB image [H, W, 3] in [0, 1] (a [H, W] uint8 image is returned as is)."""
-    if image.dtype == np.uint8 and image.ndim == 2:
-        return image
-    a = np.asarray(image, np.float64)
-    if a.ndim == 3:
-        a = a[..., :3] @ np.array([0.299, 0.587, 0.114])
-    return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8)
-
-
-def optical_flow(image0: np.ndarray, image1: np.ndarray, preset: str = "medium") -> np.ndarray:
-    """[H, W, 2] dense flow (pixels, x then y) from ``image0`` to ``image1`` ([H, W, 3] sRGB in
-    [0, 1] or [H, W] uint8), by OpenCV's DIS optical flow: image0[y, x] ~ image1[y + f_y, x + f_x]."""
-    import cv2
-
-    presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-               "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, "fine": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
-    a, b = to_gray8(image0), to_gray8(image1)
-    dis = cv2.DISOpticalFlow_create(presets[preset])
-    if preset == "fine":
-        # "medium" searches down to half resolution; the finest level roughly halves the flow
-        # error of a swinging hem at ~5x the time
-        dis.setFinestScale(0)
-    return dis.calc(a, b, None).astype(np.float64)
 
 
 @dataclass
@@ -114,6 +89,10 @@ class FlowPrediction:
             linear beyond (re-weighted each Gauss-Newton iteration; 0: quadratic everywhere), so
             the template's folds are held against small slides but a fold the garment really forms
             (a flared skirt swinging out) is not pulled back ever harder.
+        bend_reference: what the bending term holds: "rest" the template's hinges, "start" those
+            of the mesh each lift starts from (the previous frame for the prediction, the estimate
+            for a correction): the garment's shape may change from the template's (a skirt that
+            flares out bends without stretching) but not within one lift.
         collider_faces: [Fc, 3] faces (over the same vertices, none solved) the solved vertices stay
             outside of, by ``collision_margin`` [m], penalty ``collision_weight``, for vertices
             within ``contact_range`` [m] of it (module docstring, 4). None: no collider.
@@ -124,7 +103,7 @@ class FlowPrediction:
                  iterations: int = 3, preset: str = "medium", prior_weight: float = 0.0,
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
-                 bend_weight: float = 0.0, bend_huber: float = 0.0):
+                 bend_weight: float = 0.0, bend_huber: float = 0.0, bend_reference: str = "rest"):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -144,6 +123,9 @@ class FlowPrediction:
         self.iso_weight = iso_weight
         self.bend_weight = bend_weight
         self.bend_huber = bend_huber
+        if bend_reference not in ("rest", "start"):
+            raise ValueError(f"bend_reference must be 'rest' or 'start', got {bend_reference!r}")
+        self.bend_reference = bend_reference
         self._hinges = _hinge_pairs(smooth_faces, self.solve)
         self._rest_lengths = self._rest_hinges = None
         if rest is not None:
@@ -166,25 +148,34 @@ class FlowPrediction:
         return obs
 
     def _observation(self, vertices: np.ndarray, cam: Camera, g0: np.ndarray, g1: np.ndarray, depth: np.ndarray,
-                     face: np.ndarray, valid: np.ndarray | None, preset: str) -> FlowObservation:
-        fw = optical_flow(g0, g1, preset)
-        bw = optical_flow(g1, g0, preset)
+                     face: np.ndarray, valid: np.ndarray | None, preset: str, channels: str = "luma",
+                     factor: int = 1, opponent: tuple[bool, bool] = (True, True)) -> FlowObservation:
+        """The flow observations of the seen solved vertices from view ``g0`` to ``g1`` (grey uint8,
+        or sRGB for ``channels="colour"``: one set of observations per channel, each checked
+        forward-backward on its own), the flow computed at 1/``factor`` size (:func:`scaled_flow`)."""
         seen = visible_vertices(vertices, self.faces, cam, self.depth_tolerance, depth, face) & self.solve
         idx = np.flatnonzero(seen)
         uv = cam.project(vertices[idx])[0]
         if valid is not None:  # the synthetic view must hold texture around the vertex
             ok = sample_bilinear(valid[..., None].astype(np.float64), uv)[:, 0] > 0.999
             idx, uv = idx[ok], uv[ok]
-        f = sample_bilinear(fw, uv)
-        back = sample_bilinear(bw, uv + f)
-        ok = np.linalg.norm(f + back, axis=1) < self.consistency_px
-        return FlowObservation(cam, idx[ok], uv[ok] + f[ok])
+        vs, ts = [], []
+        for a, b in image_channels(g0, g1, channels, opponent):
+            fw = scaled_flow(a, b, preset, factor)
+            bw = scaled_flow(b, a, preset, factor)
+            f = sample_bilinear(fw, uv)
+            back = sample_bilinear(bw, uv + f)
+            ok = np.linalg.norm(f + back, axis=1) < self.consistency_px * factor
+            vs.append(idx[ok])
+            ts.append(uv[ok] + f[ok])
+        return FlowObservation(cam, np.concatenate(vs), np.concatenate(ts))
 
     def correct(self, vertices: np.ndarray, cameras: list[Camera], images: list[np.ndarray],
                 reference: ReferenceAppearance, iterations: int = 2, smoothness: float = 1.0,
                 prior_weight: float = 0.1, preset: str = "fine", iso_weight: float | None = None,
                 bend_weight: float | None = None, masks: list[np.ndarray] | None = None,
-                silhouette_weight: float = 0.0) -> np.ndarray:
+                silhouette_weight: float = 0.0, channels: str = "luma", coarse: int = 0,
+                opponent: tuple[bool, bool] = (True, True)) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
         frame t's images by model-based flow (module docstring): each iteration renders the mesh
         as the reference frame saw it (:class:`ReferenceAppearance`), measures the flow from that
@@ -194,34 +185,45 @@ class FlowPrediction:
 
         ``masks`` (frame t's masks of ``cameras``, full resolution) with ``silhouette_weight`` > 0
         add each camera's :class:`~.silhouette.SilhouetteObservation`: the estimate's outline
-        pulled onto the mask's, which sees what an aliased or plain texture does not."""
+        pulled onto the mask's, which sees what an aliased or plain texture does not.
+
+        ``channels="colour"`` (colour ``images`` and reference) measures the flow on the luma and
+        the colour-opponent channels that ``opponent`` keeps (:func:`image_channels`,
+        :func:`patterned_opponents`). ``coarse`` > 0 runs that many
+        extra iterations first with the flow at half size (:func:`scaled_flow`): coarse to fine, so
+        an error of several pixels, which the full-size flow of an aliased texture misses, is
+        corrected before the fine iterations."""
         X = np.asarray(vertices, np.float64).copy()
-        grey = [to_gray8(im) for im in images]
+        views = [im if channels == "colour" else to_gray8(im) for im in images]
         outlines = ([MaskOutline(cam, m) for cam, m in zip(cameras, masks)]
                     if masks is not None and silhouette_weight > 0 else None)
-        for _ in range(iterations):
+        for it in range(coarse + iterations):
+            factor = 2 if it < coarse else 1
             obs: list = []
-            for k, (cam, g1) in enumerate(zip(cameras, grey)):
+            for k, (cam, g1) in enumerate(zip(cameras, views)):
                 synth, valid, depth, face = reference.render(X, cam, fill=g1)
-                obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset))
+                obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset, channels, factor,
+                                               opponent))
                 if outlines is not None:
                     seen = visible_vertices(X, self.faces, cam, self.depth_tolerance, depth, face)
                     obs.append(silhouette_observation(X, self.faces, self.solve, outlines[k], seen,
                                                       weight=silhouette_weight))
             X = self.lift(X, obs, smoothness=smoothness, prior_weight=prior_weight, iso_weight=iso_weight,
-                          bend_weight=bend_weight)
+                          bend_weight=bend_weight, huber_px=self.huber_px * factor)
         return X
 
     def lift(self, vertices: np.ndarray, observations: list[FlowObservation], start: np.ndarray | None = None,
              smoothness: float | None = None, prior_weight: float | None = None,
-             iso_weight: float | None = None, bend_weight: float | None = None) -> np.ndarray:
+             iso_weight: float | None = None, bend_weight: float | None = None,
+             huber_px: float | None = None) -> np.ndarray:
         """[V, 3] the vertices moved by the observations (module docstring, step 3).
 
         vertices: [V, 3] where the observations were made (frame t-1, or the current estimate of
         frame t for :meth:`correct`). start: [V, 3] where the vertices that are not solved go
         (e.g. skinned to frame t), and the solved ones' start and prior (default: ``vertices``).
-        smoothness, prior_weight, iso_weight, bend_weight: override the instance's.
+        smoothness, prior_weight, iso_weight, bend_weight, huber_px: override the instance's.
         """
+        huber = self.huber_px if huber_px is None else huber_px
         lam = self.smoothness if smoothness is None else smoothness
         prior = self.prior_weight if prior_weight is None else prior_weight
         iso = (self.iso_weight if iso_weight is None else iso_weight) if self._rest_lengths is not None else 0.0
@@ -235,6 +237,9 @@ class FlowPrediction:
         rows = (np.arange(n)[:, None, None] * 3 + np.arange(3)[None, :, None]).repeat(3, 2)
         cols = (np.arange(n)[:, None, None] * 3 + np.arange(3)[None, None, :]).repeat(3, 1)
         contact = self._contacts(X0, X)
+        rest_hinges = self._rest_hinges
+        if self.bend_reference == "start" and bend > 0:
+            rest_hinges = np.linalg.norm(X0[self._hinges[:, 0]] - X0[self._hinges[:, 1]], axis=1)
         active = np.zeros(n, bool)
         for _ in range(self.iterations):
             A = np.zeros((n, 3, 3))
@@ -242,7 +247,7 @@ class FlowPrediction:
             for o in observations:
                 if len(o.vertex) == 0:
                     continue
-                vertex, JtJ, Jtr = o.normal_equations(X, self.huber_px)
+                vertex, JtJ, Jtr = o.normal_equations(X, huber)
                 p = self.pos[vertex]
                 for i in range(3):
                     b[:, i] -= np.bincount(p, Jtr[:, i], n)
@@ -261,7 +266,7 @@ class FlowPrediction:
                 rhs = rhs + iso * (D.T @ (D @ d_cur.ravel() - r))
             if bend > 0 and len(self._hinges):
                 # the same on the distances across the interior edges (the hinges' dihedral angles)
-                D, r = self._length_jacobian(X, self._hinges, self._rest_hinges)
+                D, r = self._length_jacobian(X, self._hinges, rest_hinges)
                 if self.bend_huber > 0:
                     # Huber: a hinge whose distance has moved more than bend_huber from the rest's
                     # (a fold that formed or opened) is pulled back with a bounded force
@@ -344,11 +349,17 @@ class FlowStart:
 
     def __init__(self, flow: FlowPrediction, cameras: list[Camera], reference_vertices: np.ndarray,
                  reference_images: list[np.ndarray], corrections: int = 2, final_corrections: int = 0,
-                 correction: dict | None = None):
+                 correction: dict | None = None, coarse: int = 0):
         self.flow, self.cameras, self.corrections = flow, list(cameras), corrections
+        self.coarse = coarse  # half-size corrections before the first full-size one (not in refine)
         self.final_corrections = final_corrections
         self.correction = dict(correction or {})
-        self.reference = (ReferenceAppearance(reference_vertices, flow.faces, cameras, reference_images)
+        colour = self.correction.get("channels", "luma") == "colour"
+        if colour:  # only the opponent channels in which the garment shows a pattern (none: the luma alone)
+            opponent = patterned_opponents(reference_vertices, flow.faces, flow.solve, cameras, reference_images)
+            colour = any(opponent)
+            self.correction.update(opponent=opponent, channels="colour" if colour else "luma")
+        self.reference = (ReferenceAppearance(reference_vertices, flow.faces, cameras, reference_images, colour=colour)
                           if corrections > 0 or final_corrections > 0 else None)
 
     def __call__(self, previous: np.ndarray, previous_grey: list[np.ndarray], grey: list[np.ndarray],
@@ -360,7 +371,7 @@ class FlowStart:
         X = self.flow(previous, self.cameras, previous_grey, grey, start=start)
         if self.corrections > 0:
             X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections, masks=masks,
-                                  **self.correction)
+                                  coarse=self.coarse, **self.correction)
         return X
 
     def refine(self, vertices: np.ndarray, grey: list[np.ndarray], masks: list[np.ndarray] | None = None) -> np.ndarray:
@@ -387,14 +398,16 @@ class ReferenceAppearance:
         vertices: [V, 3] the reference mesh (the first tracked frame). faces: [F, 3].
         cameras, images: the reference frame's views (sRGB [H, W, 3] in [0, 1]).
         depth_tolerance: [m] a surface point counts as seen by its camera within this depth.
+        colour: keep the reference views in colour (sRGB; for ``channels="colour"`` corrections)
+            rather than as luma.
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera], images: list[np.ndarray],
-                 depth_tolerance: float = 5e-3):
+                 depth_tolerance: float = 5e-3, colour: bool = False):
         self.vertices = np.asarray(vertices, np.float64)
         self.faces = np.asarray(faces, np.int64)
         self.cameras = list(cameras)
-        self.grey = [to_gray8(im).astype(np.float64)[..., None] for im in images]
+        self.grey = [(to_rgb8(im) if colour else to_gray8(im)[..., None]).astype(np.float64) for im in images]
         self.depth_tolerance = depth_tolerance
         self.depth = []
         score = np.zeros((len(self.cameras), len(self.faces)))
@@ -406,19 +419,23 @@ class ReferenceAppearance:
 
     def render(self, vertices: np.ndarray, camera: Camera, fill: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(grey [H, W] uint8, valid [H, W] bool, depth [H, W], face [H, W]) of the mesh at
-        ``vertices`` in ``camera``: reference texture where a face covers the pixel and its source
-        camera saw the point; ``fill`` ([H, W] uint8, default 0) elsewhere; depth and face of
-        :func:`rasterize`."""
+        """(view [H, W] uint8 (grey reference) or [H, W, 3] (colour reference), valid [H, W] bool,
+        depth [H, W], face [H, W]) of the mesh at ``vertices`` in ``camera``: reference texture
+        where a face covers the pixel and its source camera saw the point; ``fill`` (a view of the
+        same kind, default 0) elsewhere; depth and face of :func:`rasterize`."""
         depth, face, bary = rasterize(vertices, self.faces, camera)
-        out = np.zeros((camera.height, camera.width)) if fill is None else np.asarray(fill, np.float64).copy()
+        C = self.grey[0].shape[-1]
+        if fill is None:
+            out = np.zeros((camera.height, camera.width, C))
+        else:
+            fill = to_gray8(fill) if C == 1 else (to_rgb8(fill) if np.ndim(fill) == 3 else np.repeat(fill[..., None], 3, -1))
+            out = np.asarray(fill, np.float64).reshape(camera.height, camera.width, C).copy()
         valid = np.zeros((camera.height, camera.width), bool)
         pix = np.flatnonzero(face.ravel() >= 0)
         f = face.ravel()[pix]
         src = self.source[f]
         P = np.einsum("nk,nkd->nd", bary.reshape(-1, 3)[pix], self.vertices[self.faces[f]])
-        flat = out.ravel()
-        vflat = valid.ravel()
+        flat = out.reshape(-1, C)
         for k, cam in enumerate(self.cameras):
             sel = np.flatnonzero(src == k)
             if len(sel) == 0:
@@ -428,9 +445,10 @@ class ReferenceAppearance:
             inside = (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
             seen = inside & _in_front(uv, z, self.depth[k], self.depth_tolerance)[0]
             sel, uv = sel[seen], uv[seen]
-            flat[pix[sel]] = sample_bilinear(self.grey[k], uv)[:, 0]
-            vflat[pix[sel]] = True
-        return np.clip(np.rint(out), 0, 255).astype(np.uint8), valid, depth, face
+            flat[pix[sel]] = sample_bilinear(self.grey[k], uv)
+            valid.ravel()[pix[sel]] = True
+        out = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+        return (out[..., 0] if C == 1 else out), valid, depth, face
 
 
 def _edge_difference(faces: np.ndarray, solve: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:

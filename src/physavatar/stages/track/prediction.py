@@ -18,8 +18,8 @@ from ...camera import Camera
 from ...capture import Capture
 from .config import FlowConfig, PredictionConfig, TrackConfig
 from .fit import smoothing_solver
-from .flow import FlowPrediction, FlowStart, to_gray8
-from .views import grey_views
+from .flow import FlowPrediction, FlowStart, to_gray8, to_rgb8
+from .views import flow_views
 
 
 class TemplateSkinning:
@@ -228,11 +228,12 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
     body_faces = t.faces[(~t.garment_mask[t.faces]).all(1)]
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.smoothness, rest=t.vertices,
                           iso_weight=cfg.iso, collider_faces=body_faces, collision_weight=cfg.collision,
-                          bend_weight=cfg.bend, bend_huber=cfg.bend_huber)
+                          bend_weight=cfg.bend, bend_huber=cfg.bend_huber, prior_weight=cfg.prior,
+                          bend_reference=cfg.bend_reference)
     return FlowStart(lift, train, first_vertices, first_grey, cfg.corrections, cfg.final_corrections,
                      dict(smoothness=cfg.correction_smoothness, prior_weight=cfg.correction_prior,
                           iso_weight=cfg.correction_iso, bend_weight=cfg.correction_bend,
-                          silhouette_weight=cfg.silhouette))
+                          silhouette_weight=cfg.silhouette, channels=cfg.channels), cfg.coarse)
 
 
 
@@ -262,14 +263,15 @@ class FrameStarts:
         self.physics = physics_predictor(cap, p) if self.mixed and p.garment == "physics" and free else None
         self.use_flow = self.mixed and p.garment == "flow" and free
         self.flow: FlowStart | None = None  # built at frame 2: frame 1 may come from a resumed run
-        self._grey: dict[int, list[np.ndarray]] = {}  # frame -> training views' luma
+        self._grey: dict[int, list[np.ndarray]] = {}  # frame -> training views' luma (sRGB: colour flow)
         self._masks: dict[int, list[np.ndarray]] = {}  # frame -> training views' masks (silhouette term)
 
     def observe(self, frame: int, images: list[np.ndarray]) -> None:
         """The training views of ``frame`` (full-resolution sRGB), kept as grey for the flow, and
         their masks for the corrections' silhouette term."""
         if self.use_flow:
-            self._grey[frame] = [to_gray8(im) for im in images]
+            convert = to_rgb8 if self.cfg.flow.channels == "colour" else to_gray8
+            self._grey[frame] = [convert(im) for im in images]
             if self.cfg.flow.silhouette > 0 and self.cap.has_masks and frame != self.frames[0]:
                 self._masks[frame] = [self.cap.mask(c.name, frame) for c in self.train]
 
@@ -281,9 +283,10 @@ class FrameStarts:
             if self.use_flow:
                 prev, f = self.frames[i - 1], self.frames[i]
                 if prev not in self._grey:  # resumed: frame t-1 came from disk
-                    self._grey[prev] = grey_views(self.cap, prev, self.train)
+                    self._grey[prev] = flow_views(self.cap, prev, self.train, self.cfg.flow.channels)
                 if self.flow is None:
-                    first = self._grey.get(self.frames[0]) or grey_views(self.cap, self.frames[0], self.train)
+                    first = (self._grey.get(self.frames[0])
+                             or flow_views(self.cap, self.frames[0], self.train, self.cfg.flow.channels))
                     self.flow = flow_start(self.cfg.flow, self.template, self.train, tracked[0], first, self.skinned)
                 init = self.flow(tracked[-1], self._grey.pop(prev), self._grey[f], init,
                                  self._masks.get(f)).astype(np.float32)

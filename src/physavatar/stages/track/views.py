@@ -13,7 +13,7 @@ from PIL import Image
 from ...camera import Camera
 from ...capture import Capture
 from ...render.image import srgb_to_linear
-from .flow import to_gray8
+from .flow import to_gray8, to_rgb8
 
 
 @dataclass
@@ -84,4 +84,12 @@ def initial_colors(vertices: np.ndarray, faces: np.ndarray, views: list[View]) -
 def grey_views(capture: Capture, frame: int, cameras: list[Camera]) -> list[np.ndarray]:
     """The cameras' full-resolution images of ``frame`` as grey uint8 (:func:`~.flow.to_gray8`)."""
     return [to_gray8(capture.image(c.name, frame)) for c in cameras]
+
+
+def flow_views(capture: Capture, frame: int, cameras: list[Camera], channels: str = "luma") -> list[np.ndarray]:
+    """The views the flow start keeps: :func:`grey_views`, or sRGB uint8 [H, W, 3] for
+    ``channels="colour"``."""
+    if channels != "colour":
+        return grey_views(capture, frame, cameras)
+    return [to_rgb8(capture.image(c.name, frame)) for c in cameras]
 
