@@ -282,6 +282,12 @@ def test_resume_recomputes_only_missing_frame(body_capture, tracked):
     assert track(root, out, FAST, progress=False).computed == []
     with pytest.raises(PhysavatarError, match="level_iters"):
         track(root, out, replace(FAST, fit=replace(FAST.fit, level_iters=(3, 2))), progress=False)
+    # ... but not when the default changed since: a folder that does not record flow.channels
+    # was tracked on grey, and today's default (colour) must not be mixed into it
+    del cfg["flow"]["channels"]
+    (out / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(PhysavatarError, match="flow.channels"):
+        track(root, out, FAST, progress=False)
 
 
 def test_cli_bad_input_exits_2(body_capture, tmp_path):

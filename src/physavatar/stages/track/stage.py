@@ -131,11 +131,17 @@ def _unhashed(config, prefix: str = "") -> set[str]:
     return out
 
 
+# settings whose default changed after config.json began to record them: a run folder that does
+# not record one ran with this value (flow.channels: grey until session 15)
+UNRECORDED = {"flow.channels": "luma"}
+
+
 def _check_resume(out: Path, saved: dict, wanted: dict) -> None:
     """Refuse to resume a run folder whose config.json (``saved``) differs from ``wanted`` in
     anything but the fields that do not change outputs (``n_frames``: a run can be extended). A
-    setting missing from ``saved`` (written before it existed) ran with its default."""
-    defaults = _flat(to_dict(TrackConfig()))
+    setting missing from ``saved`` (written before it existed) ran with its default, or with the
+    value it had then where the default has changed since (:data:`UNRECORDED`)."""
+    defaults = {**_flat(to_dict(TrackConfig())), **UNRECORDED}
     old = _flat(saved)
     old = {**{k: v for k, v in defaults.items() if k not in old}, **old}
     new = _flat(wanted)
