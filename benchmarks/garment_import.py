@@ -59,8 +59,9 @@ def main():
     from physavatar.body.load import load_motion, with_arm_clearance
     from physavatar.errors import PhysavatarError
     from physavatar.garment.boundary import arm_vertices, auto_boundary
+    from physavatar.garment import attachment_positions, keep_clear, make_attachment
     from physavatar.garment.files import load_garment
-    from physavatar.garment_sim import GarmentPart, fit_on_body, rest_strain, simulate_on_body
+    from physavatar.garment_sim import BOUNDARY_CLEARANCE, GarmentPart, fit_on_body, rest_strain, simulate_on_body
     from physavatar.sim import SimSettings, preset
     from physavatar.sim.contact import ContactScene
     from physavatar.sim.mesh import ClothTopology
@@ -131,6 +132,10 @@ def main():
             wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
             rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
             bodies = body.pose(rots, trs).vertices
+            # what simulate_on_body does to the boundary's targets (garment.keep_clear), reported
+            att = make_attachment(fitted.vertices[fitted.boundary], fitted.boundary, bodies[0], body.faces, "sequence")
+            _, lifted = keep_clear(att, attachment_positions(att, bodies), fitted.faces, bodies, body.faces,
+                                   BOUNDARY_CLEARANCE * settings.dhat)
             t0 = time.time()
             X = simulate_on_body(fitted, bodies, body.faces, material, fps, settings=settings)
             secs = time.time() - t0
@@ -143,7 +148,10 @@ def main():
             res = {"frames": len(X), "warmup_frames": n_warm, "seconds_per_frame": round(secs / (len(X) - 1), 2),
                    "bad_frames": bad, "seam_gap_max_mm": round(float(gaps.max()) * 1000, 4),
                    "strain_first_frame_mean": round(strain_first, 4),
-                   "strain_first_frame_p95": round(float(np.percentile(s0, 95)), 4)}
+                   "strain_first_frame_p95": round(float(np.percentile(s0, 95)), 4),
+                   "boundary_lift": {"floor_mm": round(1e3 * lifted["floor_m"], 4), "frames": lifted["frames_lifted"],
+                                     "max_mm": round(1e3 * lifted["max_lift_m"], 4),
+                                     "failed_frames": lifted["failed_frames"]}}
             entry["motions"][mname] = res
             tag = f"{name}_{Path(mname).stem}"
             if args.cache:

@@ -9,11 +9,12 @@ Used by synthetic captures (ground-truth garment motion), ``physavatar simulate`
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
-from .garment import attachment_positions, make_attachment
+from .garment import attachment_positions, keep_clear, make_attachment
 from .sim import Material, SimSettings, simulate
 
 
@@ -60,6 +61,7 @@ class GarmentPart:
         return seam_exclusions(self.faces, self.seams, len(self.vertices))
 
 
+BOUNDARY_CLEARANCE = 0.5  # × d̂: how close the boundary's own primitives may be carried to the body (keep_clear)
 LAYER_GAP = 0.004  # m: the least start distance between a garment and the garments (and body) under it
 
 
@@ -219,6 +221,13 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
     if len(part.boundary):
         att = make_attachment(part.vertices[part.boundary], part.boundary, body_sequence[0], body_faces, "sequence")
         targets = attachment_positions(att, body_sequence)
+        # the boundary's own edges must not be carried through a bending body (garment.keep_clear)
+        dhat = (settings or SimSettings()).dhat
+        targets, lifted = keep_clear(att, targets, part.faces, body_sequence, body_faces, BOUNDARY_CLEARANCE * dhat)
+        if lifted["frames_lifted"]:
+            logging.getLogger("physavatar.progress").info(
+                "boundary targets lifted off the body in %d frames (at most %.2f mm; floor %.3f mm)",
+                lifted["frames_lifted"], 1e3 * lifted["max_lift_m"], 1e3 * lifted["floor_m"])
     return simulate(part.rest_shape, part.faces, material, body_sequence, body_faces,
                     boundary_indices=part.boundary, boundary_targets=targets, fps=fps, substeps=substeps,
                     settings=settings, progress=progress, callback=callback, x0=part.vertices,
