@@ -61,7 +61,8 @@ def main():
     from physavatar.garment.boundary import arm_vertices, auto_boundary
     from physavatar.garment import attachment_positions, keep_clear, make_attachment
     from physavatar.garment.files import load_garment
-    from physavatar.garment_sim import BOUNDARY_CLEARANCE, GarmentPart, fit_on_body, rest_strain, simulate_on_body
+    from physavatar.garment_sim import (BOUNDARY_CLEARANCE, GarmentPart, fit_on_body, rest_strain, sewn_points,
+                                       simulate_on_body)
     from physavatar.sim import SimSettings, preset
     from physavatar.sim.contact import ContactScene
     from physavatar.sim.mesh import ClothTopology
@@ -133,7 +134,8 @@ def main():
             rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
             bodies = body.pose(rots, trs).vertices
             # what simulate_on_body does to the boundary's targets (garment.keep_clear), reported
-            att = make_attachment(fitted.vertices[fitted.boundary], fitted.boundary, bodies[0], body.faces, "sequence")
+            att = make_attachment(sewn_points(fitted.vertices, fitted.boundary, fitted.seams), fitted.boundary, bodies[0],
+                                  body.faces, "sequence")
             _, lifted = keep_clear(att, attachment_positions(att, bodies), fitted.faces, bodies, body.faces,
                                    BOUNDARY_CLEARANCE * settings.dhat)
             t0 = time.time()
@@ -246,8 +248,11 @@ def write(args, garments, all_ok, load0, material, settings, fps, seconds, warmu
     load1 = os.getloadavg()
     out = Path(args.out)
     if args.keep and out.exists():
-        garments = {**{k: v for k, v in json.loads(out.read_text()).get("figures", {}).items() if k not in garments},
-                    **garments}
+        old = json.loads(out.read_text()).get("figures", {})
+        # a garment run again keeps the motions of the earlier run that this one did not measure
+        garments = {**{k: v for k, v in old.items() if k not in garments},
+                    **{k: {**v, "motions": {**old.get(k, {}).get("motions", {}), **v.get("motions", {})}}
+                       if "motions" in v else v for k, v in garments.items()}}
         all_ok = {"finite_and_intersection_free": all(not m.get("bad_frames", [1]) for g in garments.values()
                                                       for m in g.get("motions", {}).values())
                   and all("fit_error" not in g for g in garments.values()),

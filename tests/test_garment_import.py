@@ -510,3 +510,24 @@ def test_boundary_targets_are_kept_clear_of_a_bending_body():
     scene = ContactScene(cloth, F, bodies[0], BF, 1e-3)
     bad = [t for t in range(len(X)) if not np.isfinite(X[t]).all() or scene.has_intersections(np.vstack([X[t], bodies[t]]))]
     assert not bad
+
+
+def test_sewn_boundary_vertices_ride_one_body_point():
+    """Two boundary vertices sewn together at a body edge (the dress's armhole seam on the
+    shoulder), attached each to its own closest triangle, are carried apart as the faces fold:
+    o above the ridge, along each face's normal, they part by 2 o sin θ and no stitch can pull
+    them back (both prescribed). garment_sim.sewn_points attaches them at one point."""
+    from physavatar.garment import attachment_positions, make_attachment
+    from physavatar.garment_sim import sewn_points
+
+    bodies, BF, _, _, _, th = folding_roof()
+    o = 0.002
+    V = np.array([[0.0, -1e-6, o], [0.0, 1e-6, o], [0.01, 0.01, o]])  # a seam pair astride the ridge, one more
+    bnd, seams = np.array([0, 1, 2]), np.array([[0, 1]])
+    apart = attachment_positions(make_attachment(V[bnd], bnd, bodies[0], BF, "s"), bodies)
+    np.testing.assert_allclose(np.linalg.norm(apart[:, 0] - apart[:, 1], axis=1), 2 * o * np.sin(th), atol=1e-5)
+    pts = sewn_points(V, bnd, seams)
+    np.testing.assert_allclose(pts, [[0, 0, o], [0, 0, o], V[2]], atol=1e-15)
+    one = attachment_positions(make_attachment(pts, bnd, bodies[0], BF, "s"), bodies)
+    np.testing.assert_array_equal(one[:, 0], one[:, 1])
+    np.testing.assert_array_equal(one[:, 2], apart[:, 2])
