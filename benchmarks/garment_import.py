@@ -59,8 +59,10 @@ def main():
     from physavatar.body.load import load_motion, with_arm_clearance
     from physavatar.errors import PhysavatarError
     from physavatar.garment.boundary import arm_vertices, auto_boundary
+    from physavatar.garment import attachment_positions, keep_clear, make_attachment
     from physavatar.garment.files import load_garment
-    from physavatar.garment_sim import GarmentPart, fit_on_body, rest_strain, simulate_on_body
+    from physavatar.garment_sim import (BOUNDARY_CLEARANCE, GarmentPart, fit_on_body, rest_strain, sewn_points,
+                                       simulate_on_body)
     from physavatar.sim import SimSettings, preset
     from physavatar.sim.contact import ContactScene
     from physavatar.sim.mesh import ClothTopology
@@ -131,6 +133,11 @@ def main():
             wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
             rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
             bodies = body.pose(rots, trs).vertices
+            # what simulate_on_body does to the boundary's targets (garment.keep_clear), reported
+            att = make_attachment(sewn_points(fitted.vertices, fitted.boundary, fitted.seams), fitted.boundary, bodies[0],
+                                  body.faces, "sequence")
+            _, lifted = keep_clear(att, attachment_positions(att, bodies), fitted.faces, bodies, body.faces,
+                                   BOUNDARY_CLEARANCE * settings.dhat)
             t0 = time.time()
             X = simulate_on_body(fitted, bodies, body.faces, material, fps, settings=settings)
             secs = time.time() - t0
@@ -143,7 +150,10 @@ def main():
             res = {"frames": len(X), "warmup_frames": n_warm, "seconds_per_frame": round(secs / (len(X) - 1), 2),
                    "bad_frames": bad, "seam_gap_max_mm": round(float(gaps.max()) * 1000, 4),
                    "strain_first_frame_mean": round(strain_first, 4),
-                   "strain_first_frame_p95": round(float(np.percentile(s0, 95)), 4)}
+                   "strain_first_frame_p95": round(float(np.percentile(s0, 95)), 4),
+                   "boundary_lift": {"floor_mm": round(1e3 * lifted["floor_m"], 4), "frames": lifted["frames_lifted"],
+                                     "max_mm": round(1e3 * lifted["max_lift_m"], 4),
+                                     "failed_frames": lifted["failed_frames"]}}
             entry["motions"][mname] = res
             tag = f"{name}_{Path(mname).stem}"
             if args.cache:
@@ -238,8 +248,11 @@ def write(args, garments, all_ok, load0, material, settings, fps, seconds, warmu
     load1 = os.getloadavg()
     out = Path(args.out)
     if args.keep and out.exists():
-        garments = {**{k: v for k, v in json.loads(out.read_text()).get("figures", {}).items() if k not in garments},
-                    **garments}
+        old = json.loads(out.read_text()).get("figures", {})
+        # a garment run again keeps the motions of the earlier run that this one did not measure
+        garments = {**{k: v for k, v in old.items() if k not in garments},
+                    **{k: {**v, "motions": {**old.get(k, {}).get("motions", {}), **v.get("motions", {})}}
+                       if "motions" in v else v for k, v in garments.items()}}
         all_ok = {"finite_and_intersection_free": all(not m.get("bad_frames", [1]) for g in garments.values()
                                                       for m in g.get("motions", {}).values())
                   and all("fit_error" not in g for g in garments.values()),

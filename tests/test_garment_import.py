@@ -2,6 +2,7 @@
 term (physavatar.sim.stitch), the automatic boundary (garment.boundary) and the start repair
 (sim.start.repair_start), against analytic expectations and finite differences."""
 
+import ipctk
 import numpy as np
 import pytest
 import trimesh
@@ -460,3 +461,73 @@ def test_start_repair_untangles_a_slight_self_intersection():
     xr, rep = repair_start(V, F, B + [5.0, 0, 0], BF, 1e-3)
     assert rep["self_crossings"]["before"] > 0 and rep["self_crossings"]["after"] == 0
     assert np.allclose(xr, x)
+
+
+def folding_roof(frames=11, theta_max=25.0, w=0.03, a=0.005, o=0.001):
+    """A body that bends at an edge (a shoulder as the arm swings, in miniature): two 6 × 3 cm
+    faces meeting at a ridge along x, folding down by θ = 0 … ``theta_max`` degrees each, and a
+    3 × 2-vertex cloth patch ``o`` above it whose middle column is an edge across the ridge
+    (its ends ``a`` from the ridge). Returns (bodies [T, 6, 3], body faces, cloth [6, 3],
+    cloth faces, boundary = the middle column, θ [T] in radians)."""
+    th = np.radians(np.linspace(0.0, theta_max, frames))
+    bodies = np.stack([np.array([[x, s * w * np.cos(t), -abs(s) * w * np.sin(t)] for s in (-1, 0, 1) for x in (-0.03, 0.03)])
+                       for t in th])
+    BF = np.array([[0, 1, 3], [0, 3, 2], [2, 3, 5], [2, 5, 4]])  # normals +z
+    cloth = np.array([[x, y, o] for y in (-a, a) for x in (-a, 0.0, a)])
+    F = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4]])
+    return bodies, BF, cloth, F, np.array([1, 4]), th
+
+
+def test_boundary_targets_are_kept_clear_of_a_bending_body():
+    """Each boundary vertex rides its own body triangle; the straight edge between two of them
+    sinks through the ridge once o cos θ < a sin θ (θ > 11.3° here): the prescribed motion
+    itself crosses the body (the Berkeley t-shirt's left shoulder on walk and dance). keep_clear
+    lifts the targets to the floor (the start distance, below 0.5 mm) at every frame and leaves
+    frame 0 and the clear frames as they were."""
+    from physavatar.garment import attachment_positions, keep_clear, make_attachment
+    from physavatar.garment_sim import GarmentPart, simulate_on_body
+
+    bodies, BF, cloth, F, bnd, th = folding_roof()
+    att = make_attachment(cloth[bnd], bnd, bodies[0], BF, "sequence")
+    raw = attachment_positions(att, bodies)
+    mid = 0.5 * (raw[:, 0] + raw[:, 1])
+    np.testing.assert_allclose(mid[:, 2], 0.001 * np.cos(th) - 0.005 * np.sin(th), atol=1e-12)  # analytic
+    lifted, rep = keep_clear(att, raw, F, bodies, BF, 0.5e-3)
+    crossing = np.flatnonzero(mid[:, 2] < 0)
+    assert len(crossing) >= 5  # the scene does cross without the lift
+    np.testing.assert_array_equal(lifted[0], raw[0])
+    assert rep["floor_m"] == 0.5e-3 and not rep["failed_frames"]
+    for t in range(len(th)):
+        gap = np.sqrt(ipctk.edge_edge_distance(lifted[t, 0], lifted[t, 1], bodies[t, 2], bodies[t, 3]))
+        if 0.001 * np.cos(th[t]) - 0.005 * np.sin(th[t]) >= 0.5e-3:  # clear of the floor: untouched
+            np.testing.assert_array_equal(lifted[t], raw[t])
+        else:
+            assert 0.5e-3 * (1 - 1e-6) <= gap < 1.0e-3, (t, gap)
+    # and the simulation (both cloth columns beside the boundary free) is clean at every frame
+    part = GarmentPart(np.arange(6), cloth, F, bnd)
+    mat = preset("cotton")
+    X = simulate_on_body(part, bodies, BF, mat, 25.0, settings=SimSettings(integrator=mat.integrator, gravity=(0, 0, 0)))
+    scene = ContactScene(cloth, F, bodies[0], BF, 1e-3)
+    bad = [t for t in range(len(X)) if not np.isfinite(X[t]).all() or scene.has_intersections(np.vstack([X[t], bodies[t]]))]
+    assert not bad
+
+
+def test_sewn_boundary_vertices_ride_one_body_point():
+    """Two boundary vertices sewn together at a body edge (the dress's armhole seam on the
+    shoulder), attached each to its own closest triangle, are carried apart as the faces fold:
+    o above the ridge, along each face's normal, they part by 2 o sin θ and no stitch can pull
+    them back (both prescribed). garment_sim.sewn_points attaches them at one point."""
+    from physavatar.garment import attachment_positions, make_attachment
+    from physavatar.garment_sim import sewn_points
+
+    bodies, BF, _, _, _, th = folding_roof()
+    o = 0.002
+    V = np.array([[0.0, -1e-6, o], [0.0, 1e-6, o], [0.01, 0.01, o]])  # a seam pair astride the ridge, one more
+    bnd, seams = np.array([0, 1, 2]), np.array([[0, 1]])
+    apart = attachment_positions(make_attachment(V[bnd], bnd, bodies[0], BF, "s"), bodies)
+    np.testing.assert_allclose(np.linalg.norm(apart[:, 0] - apart[:, 1], axis=1), 2 * o * np.sin(th), atol=1e-5)
+    pts = sewn_points(V, bnd, seams)
+    np.testing.assert_allclose(pts, [[0, 0, o], [0, 0, o], V[2]], atol=1e-15)
+    one = attachment_positions(make_attachment(pts, bnd, bodies[0], BF, "s"), bodies)
+    np.testing.assert_array_equal(one[:, 0], one[:, 1])
+    np.testing.assert_array_equal(one[:, 2], apart[:, 2])

@@ -1,7 +1,7 @@
 """Simulation-ready garment templates: sewing patterns fitted to an Anny body (docs/garments.md)."""
 
 from .garment import (GARMENTS, MIN_CLEARANCE, Attachment, Garment, attachment_positions, combine_template,
-                      garment_skinning_weights, make_attachment, make_garment)
+                      garment_skinning_weights, keep_clear, make_attachment, make_garment)
 
 __all__ = ["GARMENTS", "MIN_CLEARANCE", "Attachment", "Garment", "attachment_positions", "combine_template",
-           "garment_skinning_weights", "make_attachment", "make_garment"]
+           "garment_skinning_weights", "keep_clear", "make_attachment", "make_garment"]
