@@ -74,6 +74,11 @@ def test_bad_inputs_exit_2(tmp_path):
     r = runner.invoke(app, ["simulate", "--garment", "skirt", "--motion", "walk", "--integrator", "rk4",
                             "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "--integrator" in r.output and "Traceback" not in r.output
+    for cmd in (["simulate", "--garment", "skirt", "--motion", "walk"], ["animate", str(tmp_path / "avatar")]):
+        # the garment-file options are declared once (stages.garment_file.GarmentFileOptions): same checks
+        r = runner.invoke(app, [*cmd, "--repair-limit", "-0.01", "--out", str(tmp_path / "o")])
+        assert r.exit_code == 2 and "--repair-limit" in r.output and ">= 0" in r.output, r.output
+    assert not (tmp_path / "o").exists()
 
 
 def test_motion_starting_away_from_rest_is_reached_by_a_warmup(tmp_path):

@@ -25,6 +25,7 @@ from ..garment_sim import simulate_on_body, split_template
 from ..sim import SimSettings
 from ..sim.simulate import self_contact_possible
 from .base import option, to_dict
+from .garment_file import GarmentFileOptions, nonnegative
 
 
 def transition(r0: np.ndarray, t0: np.ndarray, r1: np.ndarray, t1: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -160,39 +161,22 @@ def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, *
     return animate(av, motion, progress=False, report=report, **kw)[0].vertices
 
 
-def _nonnegative(v):
-    return None if v >= 0 else "must be >= 0"
-
-
 @dataclass(frozen=True)
-class AnimateConfig:
+class AnimateConfig(GarmentFileOptions):
     motion: str = option("", "built-in name, .bvh or .npz", check=lambda v: None if v else "give a motion")
     duration: float = option(4.0, "seconds (built-in motions)", check=lambda v: None if v > 0 else "must be positive")
     warmup: float = option(1.0, "seconds of transition from the capture pose to the motion's first pose",
-                           check=_nonnegative)
+                           check=nonnegative)
     max_frames: int | None = option(None, "at most this many frames",
                                     check=lambda v: None if v >= 1 else "must be at least 1")
     arm_clearance: float = option(0.03, "with motion capture (.bvh, AMASS .npz): raise the arms where a hand comes closer than this [m] "
-                                  "to the hips/trunk, so the garment is not pinched (0 = off)", check=_nonnegative)
+                                  "to the hips/trunk, so the garment is not pinched (0 = off)", check=nonnegative)
     max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
                                check=lambda v: None if v >= 1 else "must be at least 1")
     self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
                                       "triangles)")
     garment: str = option("", "a garment file (OBJ, PLY, glTF, npz) worn instead of the avatar's own: fitted onto "
                               "the avatar's body, simulated with the avatar's material (as simulate --garment)")
-    up: str | None = option(None, "with --garment: the file's up axis: x, y, z, -x, -y, -z (default z; y for glTF)",
-                            choices=("x", "y", "z", "-x", "-y", "-z"))
-    scale: str = option("1", "with --garment: the file's scale: a factor or its unit (m, cm, mm, in)")
-    rest: str | None = option(None, "with --garment: its rest shape: a file with the same triangles, 'uv' or "
-                                    "'world' (default: NAME-m.obj beside NAME-w.obj, else material uv, else the world "
-                                    "shape)")
-    boundary: str = option("auto", "with --garment: its attached vertices: auto (the file's flags, else where it "
-                                   "rests on the body) or none (held by contact and friction alone)",
-                           choices=("auto", "none"))
-    fit: bool = option(True, "with --garment: fit it onto the avatar's body (off: it is already on Anny's rest pose "
-                             "in the avatar's shape)")
-    repair_limit: float = option(0.03, "with --garment: largest move [m] the start repair may make",
-                                 flag="--repair-limit", check=_nonnegative)
 
 
 def pipeline_config(motion: str, eval_frames: int | None) -> AnimateConfig:
@@ -211,22 +195,16 @@ def _file_garment(av: Avatar, config: AnimateConfig, settings: SimSettings, prog
     """(GarmentPart, import report) of ``config.garment`` on the avatar's body (Anny in its shape,
     collider topology, zero pose): read, fitted, its boundary chosen, its start repaired."""
     from ..garment.files import FORMATS
-    from ..sim.start import repair_start
-    from .garment_file import file_on_body
+    from .garment_file import file_on_body, repaired_start
 
     path = Path(config.garment)
     if not path.exists() or path.suffix.lower() not in FORMATS:
         raise PhysavatarError(path, f"option --garment: not a garment file ({', '.join(FORMATS)})")
     body = BodyModel(av.shape, topology="collider")
-    part, imported = file_on_body(path, body, av.material, settings, up=config.up, scale=config.scale,
-                                  rest=config.rest, boundary=config.boundary, fit=config.fit,
-                                  repair_limit=config.repair_limit, progress=progress)
-    try:
-        x, imported["start_repair"] = repair_start(part.vertices, part.faces, body.rest_vertices, body.faces,
-                                                   settings.dhat, config.repair_limit, seams=part.seams)
-    except PhysavatarError as e:
-        raise PhysavatarError(path, f"{e.problem} (--repair-limit)") from None
-    return replace(part, vertices=x), imported
+    part, imported = file_on_body(path, body, av.material, settings, progress=progress, **config.placement())
+    part, imported["start_repair"] = repaired_start(part, body.rest_vertices, body.faces, settings.dhat,
+                                                    config.repair_limit, path)
+    return part, imported
 
 
 def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> AnimateResult:

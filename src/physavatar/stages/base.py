@@ -84,7 +84,9 @@ def _hints(cls) -> dict:
 def options(cls, prefix: str = "") -> Iterator[OptionSpec]:
     """The command-line options of config class ``cls``, nested groups flattened."""
     hints = _hints(cls)
-    for f in fields(cls):
+    own = vars(cls).get("__annotations__", {})
+    # a config's own options first, then those it inherits (e.g. GarmentFileOptions)
+    for f in sorted(fields(cls), key=lambda f: f.name not in own):
         t = hints.get(f.name, f.type)
         if isinstance(t, type) and is_dataclass(t):
             yield from options(t, prefix + f.name + ".")

@@ -29,7 +29,6 @@ config.json (the record of the run, with the config), preview.mp4.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -52,17 +51,16 @@ from ..garment_sim import GarmentPart, layered, simulate_on_body, split_layers, 
 from ..sim import SimSettings
 from ..sim.contact import ContactScene
 from ..sim.simulate import self_contact_possible, self_intersecting_frames
-from ..sim.start import repair_start
 from .animate import transition
-from .base import option, setting, to_dict
-from .garment_file import choose_boundary, file_on_body, garment_part
+from .base import option, to_dict
+from .garment_file import GarmentFileOptions, choose_boundary, file_on_body, garment_part, repaired_start
 
 INTEGRATORS = ("euler", "bdf2")
 log = logging.getLogger("physavatar.progress")
 
 
 @dataclass(frozen=True)
-class SimulateConfig:
+class SimulateConfig(GarmentFileOptions):
     """How the garment is simulated (the ``simulate`` options besides what to simulate).
 
     Attributes:
@@ -103,20 +101,6 @@ class SimulateConfig:
                                     "(comma-separated: dress, skirt, tshirt), simulated together with it as one cloth, "
                                     "each with its own boundary, in contact with each other (self-contact); "
                                     "e.g. --garment skirt --over tshirt")
-    up: str | None = option(None, "a garment file's up axis: x, y, z, -x, -y, -z (default z; y for glTF)",
-                            choices=("x", "y", "z", "-x", "-y", "-z"))
-    scale: str = option("1", "a garment file's scale: a factor or its unit (m, cm, mm, in)")
-    rest: str | None = option(None, "a garment file's rest shape: a file with the same triangles, 'uv' or 'world' "
-                                    "(default: NAME-m.obj beside NAME-w.obj, else material uv, else the world shape)")
-    boundary: str = option("auto", "a garment file's attached vertices: auto (the file's flags, else where it rests "
-                                   "on the body: waistband, shoulders) or none (held by contact and friction alone)",
-                           choices=("auto", "none"))
-    fit: bool = option(True, "with --motion and a garment file: fit it onto Anny's rest pose (align, then settle "
-                             "while the body grows from a shrunk one); off: it is already on Anny's rest pose")
-    repair_limit: float = option(0.03, "largest move [m] the start repair may make to push the garment out of "
-                                       "the body (beyond it the start is refused)", flag="--repair-limit")
-    fit_frames: int = setting(20)  # frames of the body growing to full size while fitting
-    fit_hold: int = setting(10)  # frames the fitted garment settles on the full body
     preview: bool = option(True, "write preview.mp4")
 
 
@@ -188,7 +172,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         _bad_option("--capture/--garment/--collider",
                     "say what to simulate: --capture C, or --garment KIND --motion M, or --collider SEQ --garment FILE")
     source = garment if garment is not None and Path(str(garment)).exists() else (capture or collider or garment)
-    part, repair = _repaired_start(part, bodies[0], body_faces, sim_settings, cfg, source)
+    part, repair = repaired_start(part, bodies[0], body_faces, sim_settings.dhat, cfg.repair_limit, source)
     if imported is not None:
         imported["start_repair"] = repair
     if part.layer is not None:  # the repair may have pushed a garment into the one over it: layered again
@@ -327,7 +311,7 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
         g = make_garment(str(garment), body, edge_length=cfg.edge_length)
         part = GarmentPart(np.arange(len(g.vertices)), g.vertices, g.faces, np.flatnonzero(g.boundary))
     elif Path(garment).suffix.lower() in FORMATS:
-        part, imported = _file_on_body(Path(garment), cfg, body, mat, sim_settings, progress)
+        part, imported = file_on_body(Path(garment), body, mat, sim_settings, progress=progress, **cfg.placement())
     else:
         _bad_option("--garment", f"{garment!r} is not one of {', '.join(GARMENTS)} nor a garment file "
                                  f"({', '.join(FORMATS)})")
@@ -346,33 +330,6 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
         wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
         rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
     return part, body.pose(rots, trs).vertices, body.faces, n_warm, clearance_info, imported
-
-
-def _file_on_body(path: Path, cfg: SimulateConfig, body, mat, sim_settings, progress):
-    """A garment file on Anny's rest pose: fitted (garment_sim.fit_on_body) unless --fit off;
-    its boundary from the file or chosen automatically (or none) (stages.garment_file)."""
-    return file_on_body(path, body, mat, sim_settings, up=cfg.up, scale=cfg.scale, rest=cfg.rest,
-                        boundary=cfg.boundary, fit=cfg.fit, fit_frames=cfg.fit_frames, fit_hold=cfg.fit_hold,
-                        repair_limit=cfg.repair_limit, progress=progress)
-
-
-def _repaired_start(part, body_vertices, body_faces, sim_settings, cfg, source):
-    """The part with its start pushed out of the body's first frame to >= d̂ (sim.start.repair_start),
-    and the repair's report; refused beyond --repair-limit, or when the garment is nowhere near
-    the body (nothing would hold it)."""
-    from ..geometry import MeshQuery
-
-    d = MeshQuery(body_vertices, body_faces).closest(part.vertices, max_dist=0.1)[0]
-    if d.min() > 0.05:
-        raise PhysavatarError(source, f"the garment is {d.min() * 100:.0f} cm from the body's first frame at its "
-                                      "closest: nothing holds it (place it on the body, or give --motion to fit it "
-                                      "onto Anny)")
-    try:
-        x, report = repair_start(part.vertices, part.faces, body_vertices, body_faces, sim_settings.dhat,
-                                 cfg.repair_limit, seams=part.seams)
-    except PhysavatarError as e:
-        raise PhysavatarError(source, f"{e.problem} (--repair-limit)") from None
-    return dataclasses.replace(part, vertices=x), report
 
 
 def garment_file(path: Path, cfg: SimulateConfig | None = None, body_vertices=None, body_faces=None):
