@@ -531,3 +531,27 @@ def test_sewn_boundary_vertices_ride_one_body_point():
     one = attachment_positions(make_attachment(pts, bnd, bodies[0], BF, "s"), bodies)
     np.testing.assert_array_equal(one[:, 0], one[:, 1])
     np.testing.assert_array_equal(one[:, 2], apart[:, 2])
+
+
+def test_sewn_boundary_vertices_are_lifted_together():
+    """A boundary vertex sewn to one of a sinking boundary edge's ends (a second panel meeting
+    it at a seam, its own edges all to free cloth) shares that end's attachment point
+    (sewn_points) and must share its lift too: lifted alone, the end leaves its partner on the
+    body and the seam opens by the lift (the skirt's and dress's seams on the CMU clips opened by
+    exactly their largest lift, 0.8-2.0 mm)."""
+    from physavatar.garment import attachment_positions, keep_clear, make_attachment
+    from physavatar.garment_sim import sewn_points
+
+    bodies, BF, cloth, F, bnd, th = folding_roof()
+    a, o = 0.005, 0.001
+    V = np.vstack([cloth, [[0.0, a, o], [0.0, 3 * a, o], [a, 3 * a, o]]])  # 6: sewn to 4; 7, 8 free
+    F2 = np.vstack([F, [[6, 8, 7]]])
+    bnd2, seams = np.r_[bnd, 6], np.array([[4, 6]])
+    att = make_attachment(sewn_points(V, bnd2, seams), bnd2, bodies[0], BF, "sequence")
+    raw = attachment_positions(att, bodies)
+    lifted, rep = keep_clear(att, raw, F2, bodies, BF, 0.5e-3)
+    np.testing.assert_array_equal(raw[:, 1], raw[:, 2])  # one attachment point
+    assert rep["max_lift_m"] > 0.3e-3 and not rep["failed_frames"]
+    moved = np.linalg.norm(lifted[:, 1] - raw[:, 1], axis=1)
+    assert (moved > 0.3e-3).sum() >= 5
+    np.testing.assert_array_equal(lifted[:, 1], lifted[:, 2])  # the seam stays closed

@@ -489,3 +489,58 @@ def test_bvh_reader_keeps_names_with_spaces_and_reads_crlf(tmp_path):
     b = read_bvh(tmp_path / "s.bvh")
     assert b.skeleton.names == ["Bip01", "Bip01 L Thigh"] and b.data.shape == (2, 9)
     assert np.allclose(b.skeleton.end_sites[1], [0, -4, 0])
+
+
+def test_cmu_pelvis_joints_keep_anny_hips_and_the_thighs_apart(bodies, tmp_path):
+    """The CMU skeleton's hip joints hang from a root at their own height: ``LHipJoint`` (offset 0)
+    runs 50° down and forwards to ``LeftHip`` (the offsets below are CMU's own), where Anny's
+    pelvis.L runs sideways. Standing still in the file's zero pose (the calibration pose), Anny's
+    pelvis must keep its rest shape: the hip joints exactly Anny's rest distances apart and
+    from the root, the thighs aimed along the file's (CMU's 20° splay), no leg through the other.
+    Aimed at the file's hip joints, the pelvis sides swung the hip joints 8 cm down and together
+    (0.204 -> 0.115 m) and the thighs crossed (CMU 131_01 in most frames)."""
+    import ipctk
+
+    from physavatar.body.model import bone_vertex_mask
+
+    body = bodies[0]
+    sk = [("Hips", None, (0, 0, 0)), ("lowerback", "Hips", (0, 0, 0)), ("Chest", "lowerback", (-0.023, 1.987, 0.003)),
+          ("Chest2", "Chest", (-0.007, 1.990, -0.005)), ("lowerneck", "Chest2", (0, 0, 0)),
+          ("Neck", "lowerneck", (0.001, 1.610, 0.107)), ("Head", "Neck", (-0.011, 1.599, 0.013))]
+    for s, S, x in (("L", "Left", 1.0), ("R", "Right", -1.0)):
+        sk += [(f"{s}HipJoint", "Hips", (0, 0, 0)), (f"{S}Hip", f"{s}HipJoint", (x * 1.248, -1.643, 0.717)),
+               (f"{S}Knee", f"{S}Hip", (x * 2.493, -6.850, 0)), (f"{S}Ankle", f"{S}Knee", (x * 2.368, -6.505, 0)),
+               (f"{S}Toe", f"{S}Ankle", (x * 0.148, -0.407, 2.214)),
+               (f"{S}Collar", "Chest2", (0, 0, 0)), (f"{S}Shoulder", f"{S}Collar", (x * 3.054, 1.471, -0.017)),
+               (f"{S}Elbow", f"{S}Shoulder", (0, -4.251, 0)), (f"{S}Wrist", f"{S}Elbow", (0, -3.276, 0))]
+    names = [j[0] for j in sk]
+    parents = [-1 if p is None else names.index(p) for _, p, _ in sk]
+    channels = [["Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation"] if p < 0 else
+                ["Zrotation", "Yrotation", "Xrotation"] for p in parents]
+    data = np.zeros((3, sum(len(c) for c in channels)))
+    data[:, 1] = 17.0  # the hips 17 units (~0.95 m) above the floor, y up
+    write_bvh(tmp_path / "cmu.bvh", names, parents, np.array([o for _, _, o in sk], float), channels, data, 1 / 120)
+    m = import_bvh(tmp_path / "cmu.bvh", body)
+    assert m.meta["mapped_joints"]["LHipJoint"] == "pelvis.L"
+    J = body.pose(m.rotations, m.root_translation).joints
+    n, R = body.bone_names.index, body.rest_joints
+    for a, b in (("upperleg01.L", "upperleg01.R"), ("root", "upperleg01.L"), ("root", "upperleg01.R")):
+        np.testing.assert_allclose(np.linalg.norm(J[:, n(a)] - J[:, n(b)], axis=1),
+                                   np.linalg.norm(R[n(a)] - R[n(b)]), atol=1e-6)
+    C = np.array(m.meta["axes"])  # file axes -> Anny's (y up, facing +z: Anny's x, -z, y)
+    for s, S in (("L", "Left"), ("R", "Right")):
+        want = C @ np.array(sk[names.index(f"{S}Knee")][2])
+        got = J[0, n(f"lowerleg01.{s}")] - J[0, n(f"upperleg01.{s}")]
+        assert np.degrees(np.arccos(np.dot(want, got) / np.linalg.norm(want) / np.linalg.norm(got))) < 1.0
+    # no thigh or shin through the other leg's (ipctk's exact edge-triangle test, the legs only)
+    F = np.asarray(body.faces)
+    legs = [bone_vertex_mask(body, [b for b in body.bone_names if b.startswith(("upperleg", "lowerleg")) and b.endswith(s)])
+            for s in (".L", ".R")]
+    ids = np.r_[np.flatnonzero(legs[0]), np.flatnonzero(legs[1])]
+    local = np.full(len(legs[0]), -1)
+    local[ids] = np.arange(len(ids))
+    Fl = local[np.vstack([F[leg[F].all(1)] for leg in legs])].astype(np.int32)
+    V = body.pose(m.rotations, m.root_translation).vertices
+    mesh = ipctk.CollisionMesh(V[0][ids], ipctk.edges(Fl), Fl)
+    mesh.can_collide = ipctk.make_vertex_patches_filter(np.r_[np.zeros(legs[0].sum()), np.ones(legs[1].sum())].astype(np.int32))
+    assert not ipctk.has_intersections(mesh, V[0][ids])

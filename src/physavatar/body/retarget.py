@@ -10,7 +10,8 @@ A :class:`~physavatar.body.skeleton_map.SkeletonMap` says which joint drives whi
    axis within 20°, or given: AMASS is z-up), left = right hip → left hip; Anny is z-up, facing −y,
    left at +x, so ``C`` turns the file's axes into Anny's.
 2. Alignment ``A_b``: the rotation that takes Anny's rest pose to the calibration pose, bone by
-   bone from the root outwards: each mapped bone is turned (after its parent's turn) so that its
+   bone from the root outwards: each mapped bone (but the pelvis sides, root → hip joints,
+   which keep Anny's hips: ``_RIGID``) is turned (after its parent's turn) so that its
    segment to the next mapped joint points as in the file (the longest such segment exactly, the
    others by the best twist about it; a leaf uses the joint's child or BVH end site against the
    bone's own axis, or the direction to Anny's toes or middle knuckle for feet and hands).
@@ -109,6 +110,17 @@ def _snap(v, deg=20.0):
     return ax if np.dot(_unit(v), ax) > np.cos(np.radians(deg)) else _unit(v)
 
 
+# Anny bones that are part of the rigid hips: the pelvis sides (root -> hip joint). No pose turns
+# them against the root, so their direction in a file's calibration pose says only where that
+# skeleton puts its root joint: CMU's LHipJoint runs 50 deg down and forwards from a root at the
+# hip joints' height, Anny's pelvis.L sideways. Aimed at the file's hip joints, they swung Anny's
+# hip joints 8 cm down and together (CMU 131_01: 0.204 -> 0.115 m apart, the thighs through each
+# other in most frames). They keep Anny's rest direction (the file's motion since the calibration
+# pose is still applied to them). The collar bones are aimed as before: a zero pose's collar
+# direction is partly a pose (a T-pose raises them against Anny's A-pose).
+_RIGID = ("pelvis.",)
+
+
 def _leg_joints(by: dict[str, int], side: str) -> list[int]:
     return [by[b] for b in (f"upperleg01.{side}", f"lowerleg01.{side}", f"foot.{side}") if b in by]
 
@@ -205,7 +217,7 @@ def retarget(src: SourceMotion, body: BodyModel, sm: SkeletonMap, *, path=None, 
     A = np.empty((B, 3, 3))
     for b in range(B):  # parents first
         Ap = A[par[b]] if par[b] >= 0 else np.eye(3)
-        if b not in mapped:
+        if b not in mapped or names[b].startswith(_RIGID):
             A[b] = Ap
             continue
         j = mapped[b]

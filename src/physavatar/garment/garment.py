@@ -103,7 +103,8 @@ def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, b
     kept as it is (bit for bit); otherwise each boundary vertex keeps a lift along its
     triangle's normal (carried over from the last frame), raised by 1.25 × the shortfall of
     the primitives that are too close where the path stops or ends, until it passes (at most
-    ``rounds`` times). Returns (targets [T, K, 3], report: floor, frames lifted, largest lift,
+    ``rounds`` times). Boundary vertices that share a target (sewn ones, attached at one point)
+    share one lift, the largest any of them needs: lifted apart, their seam would open. Returns (targets [T, K, 3], report: floor, frames lifted, largest lift,
     frames that still failed).
     """
     import ipctk
@@ -147,6 +148,10 @@ def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, b
     if floor <= 0:
         return Vt, report
     need = floor * (1.0 - 1e-6)
+    # boundary vertices that share a target (sewn boundary vertices share one attachment point,
+    # garment_sim.sewn_points) share one lift: lifted apart, a seam would open by the lift
+    _, group = np.unique(Vt[0], axis=0, return_inverse=True)
+    group = group.ravel()
     lift = np.zeros(K)
     prev = np.vstack([Vt[0], B[0]])
     for t in range(1, T):
@@ -166,7 +171,9 @@ def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, b
             else:
                 for rows, d in close(V1, need):
                     short[rows] = np.maximum(short[rows], 1.25 * (floor - d))
-            return short
+            most = np.zeros(K)
+            np.maximum.at(most, group, short)
+            return most[group]
 
         short = shortfall(np.zeros(K))
         if not short.any():
