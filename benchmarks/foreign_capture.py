@@ -14,9 +14,12 @@ writes benchmarks/results/foreign_capture.json:
   stage of the chain (start, fit, final), at the hem and the waist, and hidden from every training
   camera or seen (benchmarks/foreign_tracking.py, which also tracks the captures alone);
 - material fit: RMS residual of the fit on the tracked garment and of the "oracle" fit on the
-  true meshes (the model gap to Newton without tracking error);
+  true meshes (the model gap to Newton without tracking error), and the residual split into the
+  model gap and the tracking share (`residual_split`);
 - held-out motion: garment chamfer distance ×10³ of the estimated material, LBS, a random
-  material and the oracle material;
+  material and the oracle material, the truth's own CD (the sampling floor, `cd_floor`) and each
+  row above it (the CD checks compare those; benchmarks/foreign_physics.py measures the oracle
+  side of these rows in minutes, without images);
 - held-out views: PSNR / SSIM / LPIPS on the held-out motion's novel cameras and on the
   capture's own held-out cameras; texture error against the true texture; the ceiling of those
   scores (the true texture, lights and meshes rendered and scored the same way: the captures'
