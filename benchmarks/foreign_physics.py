@@ -50,6 +50,7 @@ def newton_meshes(cfg, folder: Path) -> dict:
     from foreign.capture import FABRICS, _simulate
     from foreign.garments import fitted_top, flared_skirt
     from foreign.newton_cloth import NewtonSettings
+
     from physavatar.body import BodyModel, BodyShape, builtin_motion
 
     body = BodyModel(BodyShape(**dict(cfg.shape)), topology="collider")
@@ -127,7 +128,7 @@ def run_case(cfg, folder: Path, seeds: list[int], say=print) -> dict:
         t0 = time.time()
         try:
             rows[name] = simulate_on_body(part, m["body_heldout"], BF, mat, cfg.fps, max_substeps=16)
-        except Exception as e:  # a random draw the simulator cannot run is recorded, not fatal
+        except (RuntimeError, FloatingPointError, np.linalg.LinAlgError) as e:  # a draw the simulator cannot run: recorded
             say(f"{cfg.name}: {name} failed: {e}")
             continue
         sim_s[name] = round(time.time() - t0, 1)

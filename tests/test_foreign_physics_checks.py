@@ -10,7 +10,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-import foreign_capture as FC  # noqa: E402
+import foreign_capture as FC
 
 
 def fig(est, lbs, rnd, floor):
