@@ -51,7 +51,7 @@ class ForeignConfig:
     edge: float = 0.025  # garment edge length [m]
     # the drape before frame 0: 40 frames with the velocities × 0.7 after each, so frame 0 is at rest
     # (the paper's Algorithm 1 and `animate` start from rest). Undamped, 12 frames left the skirt
-    # swinging at 0.12 m/s (it went on at ~3 mm per frame for seconds on a still body), and that
+    # swinging at 0.12 m/s (it went on at ~2.7 mm per frame after 2.4 s on a still body), and that
     # free swing, not the held-out motion, made most of the held-out ground truth.
     settle_frames: int = 40
     settle_damping: float = 0.7

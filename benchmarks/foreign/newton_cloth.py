@@ -203,7 +203,7 @@ def simulate_sequence(vertices, faces, pinned, pin_targets, body_sequence, body_
     of the result is the settled state. ``settle_damping`` < 1 multiplies the velocities by it
     after every settle frame (a drag that only the drape feels), so the garment comes to rest:
     the fabric's own damping is nearly nil, and an undamped drape still swings after seconds
-    (the flared skirt: 2.6 mm per frame after 60 frames). ``info`` (a dict) receives
+    (the flared skirt: about 2.7 mm per frame after 60 frames). ``info`` (a dict) receives
     ``settle_drift_mm``: the mean vertex displacement [mm] of the last settle frame.
     ``on_frame(f, x)`` is called for each frame."""
     sim = ClothOnBody(vertices, faces, pinned, body_sequence[0], body_faces, fabric, settings)
