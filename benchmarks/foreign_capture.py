@@ -14,9 +14,12 @@ writes benchmarks/results/foreign_capture.json:
   stage of the chain (start, fit, final), at the hem and the waist, and hidden from every training
   camera or seen (benchmarks/foreign_tracking.py, which also tracks the captures alone);
 - material fit: RMS residual of the fit on the tracked garment and of the "oracle" fit on the
-  true meshes (the model gap to Newton without tracking error);
+  true meshes (the model gap to Newton without tracking error), and the residual split into the
+  model gap and the tracking share (`residual_split`);
 - held-out motion: garment chamfer distance ×10³ of the estimated material, LBS, a random
-  material and the oracle material;
+  material and the oracle material, the truth's own CD (the sampling floor, `cd_floor`) and each
+  row above it (the CD checks compare those; benchmarks/foreign_physics.py measures the oracle
+  side of these rows in minutes, without images);
 - held-out views: PSNR / SSIM / LPIPS on the held-out motion's novel cameras and on the
   capture's own held-out cameras; texture error against the true texture; the ceiling of those
   scores (the true texture, lights and meshes rendered and scored the same way: the captures'
@@ -176,19 +179,7 @@ def figures_for(cfg: ForeignConfig, capture: Path, run_dir: Path, record: dict) 
             names = [c.name for c in cap.cameras if c.name not in held]
             fig["tracking"]["breakdown_mm"] = tracking_figures(capture, track_dir, cap.frames[:len(g["per_frame_mean_mm"])],
                                                                names)["per_frame_mm"]
-    fits = {}
-    for step in ("physics", "oracle"):
-        f = run_dir / step / "material.json"
-        if f.exists():
-            d = json.loads(f.read_text())
-            fits[step] = {"rms_mm": d.get("rms_mm", d.get("fit", {}).get("rms_mm")),
-                          "stretch_stiffness": d.get("stretch_stiffness", d.get("material", {}).get("stretch_stiffness")),
-                          "bend_stiffness": d.get("bend_stiffness", d.get("material", {}).get("bend_stiffness")),
-                          "density": d.get("density", d.get("material", {}).get("density")),
-                          "iterations": d.get("iterations")}
-    fig["material_fit"] = {"tracked": fits.get("physics"), "true_meshes_oracle": fits.get("oracle")}
-    rows = m.get("rows", {})
-    fig["heldout_garment_cd_x1e3"] = {r: rows[r]["garment"]["chamfer_x1e3"] for r in rows}
+    fig.update(physics_figures(capture, run_dir, m))
     app = m.get("appearance")
     if app:
         fig["heldout_motion_views"] = {k: app[k] for k in ("psnr", "ssim", "lpips")}
@@ -200,6 +191,107 @@ def figures_for(cfg: ForeignConfig, capture: Path, run_dir: Path, record: dict) 
         fig["appearance_ceiling"] = appearance_ceiling(capture)
     fig["seconds"] = {k: v.get("seconds") for k, v in record.items() if isinstance(v, dict) and "seconds" in v}
     return fig
+
+
+def cd_floor(capture: Path, n_points: int, frames: int | None = None, seed: int = 0) -> dict:
+    """The held-out garment chamfer distance ×10³ of the truth itself: the true meshes against
+    themselves, sampled as `evaluate` samples a row and the truth (n_points, seeds seed + t and
+    seed + t + 1). Two samplings of one surface are not at distance 0 (docs/evaluation.md: E[d²]
+    = A / (π n) per side), so no row can score below this; on the fitted tops (area ~0.3 m²,
+    10,000 points) it is 0.0088, nearly all of LBS's 0.0098."""
+    from physavatar.capture import load_capture
+    from physavatar.files import load_npz
+    from physavatar.geometry import submesh
+    from physavatar.stages.evaluate import _surface_rows
+
+    t = load_capture(capture).template
+    g = t.labels > 0
+    V = load_npz(capture / "ground_truth" / "heldout" / "meshes.npz")["vertices"].astype(np.float64)[:frames, g]
+    _, gf = submesh(t.faces, g)
+    r = _surface_rows(V, V, gf, n_points, seed)
+    return {"chamfer_x1e3": r["chamfer_x1e3"], "per_frame_chamfer_x1e3": r["per_frame_chamfer_x1e3"]}
+
+
+def _fit_record(folder: Path) -> dict | None:
+    f = folder / "material.json"
+    if not f.exists():
+        return None
+    d = json.loads(f.read_text())
+    mat = d.get("material", d)
+    cfg = json.loads((folder / "config.json").read_text()) if (folder / "config.json").exists() else {}
+    return {"rms_mm": d.get("rms_mm"), "initial_rms_mm": d.get("initial_rms_mm"),
+            "stretch_ratio": d.get("ratios", {}).get("stretch_ratio", {}).get("value"),
+            "bend_ratio": d.get("ratios", {}).get("bend_ratio", {}).get("value"),
+            "stretch_stiffness": mat.get("stretch_stiffness"), "bend_stiffness": mat.get("bend_stiffness"),
+            "density": mat.get("density"), "integrator": d.get("integrator"), "bdf2_blend": mat.get("bdf2_blend"),
+            "at_bound": d.get("at_bound"), "iterations": d.get("iterations"),
+            "window": cfg.get("window"), "start": cfg.get("start", 0)}
+
+
+def residual_split(capture: Path, run_dir: Path, tracked: dict | None, oracle: dict | None) -> dict | None:
+    """How much of the fit residual on the tracked meshes is tracking error and how much the
+    model gap: the fit on the true meshes (the oracle) has no tracking error, so its RMS residual
+    is the model gap to Newton; the tracked fit's residual, in quadrature, is that plus the
+    tracking error's share (negative when the tracked meshes are easier to follow than the truth,
+    e.g. when tracking smooths away motion). Also the tracking error itself over the fitted window."""
+    if not tracked or not oracle or tracked.get("rms_mm") is None or oracle.get("rms_mm") is None:
+        return None
+    out = {"fit_on_tracked_rms_mm": tracked["rms_mm"], "fit_on_true_rms_mm_model_gap": oracle["rms_mm"]}
+    d2 = tracked["rms_mm"] ** 2 - oracle["rms_mm"] ** 2
+    out["tracking_share_mm"] = float(np.sign(d2) * np.sqrt(abs(d2)))
+    out["model_gap_fraction_of_squared_residual"] = float(oracle["rms_mm"] ** 2 / max(tracked["rms_mm"] ** 2, 1e-12))
+    tr_file = run_dir / "track" / "tracked.npz"
+    if tr_file.exists() and tracked.get("window"):
+        from physavatar.capture import load_capture
+        from physavatar.files import load_npz
+
+        g = load_capture(capture).template.labels > 0
+        a, w = int(tracked.get("start") or 0), int(tracked["window"])
+        T = load_npz(tr_file)["vertices"][a:a + w][:, g].astype(np.float64)
+        G = load_npz(capture / "ground_truth" / "meshes.npz")["vertices"][a:a + len(T)][:, g].astype(np.float64)
+        out["tracking_error_rms_mm_on_window"] = 1e3 * float(np.sqrt(((T - G) ** 2).sum(-1).mean()))
+    return out
+
+
+def physics_figures(capture: Path, run_dir: Path, metrics: dict) -> dict:
+    """Issue 22 part 4: the material fits (tracked and true meshes), the residual's split, the
+    held-out garment CD rows, the truth's own CD (the sampling floor) and every row above it."""
+    fits = {"tracked": _fit_record(run_dir / "physics"), "true_meshes_oracle": _fit_record(run_dir / "oracle")}
+    out: dict = {"material_fit": fits,
+                 "fit_residual_split": residual_split(capture, run_dir, fits["tracked"], fits["true_meshes_oracle"])}
+    rows = metrics.get("rows", {})
+    out["heldout_garment_cd_x1e3"] = {r: rows[r]["garment"]["chamfer_x1e3"] for r in rows}
+    out["heldout_garment_cd_per_frame_x1e3"] = {r: rows[r]["garment"]["per_frame_chamfer_x1e3"] for r in rows}
+    if rows and (capture / "ground_truth" / "heldout" / "meshes.npz").exists():
+        floor = cd_floor(capture, metrics.get("n_points", 10000), metrics.get("heldout_frames"))
+        out["heldout_garment_cd_floor_x1e3"] = floor["chamfer_x1e3"]
+        out["heldout_garment_cd_above_floor_x1e3"] = {r: v - floor["chamfer_x1e3"]
+                                                      for r, v in out["heldout_garment_cd_x1e3"].items()}
+    return out
+
+
+def physics_checks(name: str, fig: dict) -> dict:
+    """CD ≥ 25 % below LBS and ≥ 10 % below random, on the CD above the truth's own (the floor,
+    :func:`cd_floor`): the raw ratio cannot tell rows apart where every row is within a few
+    percent of the floor (the tops: the truth itself is only 10 % below LBS); the raw ratios
+    are kept beside it."""
+    c = {}
+    cd = fig.get("heldout_garment_cd_x1e3", {})
+    above = fig.get("heldout_garment_cd_above_floor_x1e3") or {}
+    est = cd.get("estimated material")
+    for row, key, target in (("LBS", "below_lbs", 0.25), ("random material", "below_random", 0.10)):
+        if est is None or row not in cd:
+            continue
+        raw = 1 - est / cd[row]
+        if above:
+            v = 1 - above["estimated material"] / max(above[row], 1e-12)
+            c[f"{name}:heldout_cd_{key}"] = {"value": v, "target": f">= {target}",
+                                             "unit": f"1 - (CD - floor)/(CD_{row} - floor)", "raw_value": raw,
+                                             "floor_x1e3": fig["heldout_garment_cd_floor_x1e3"], "pass": v >= target}
+        else:
+            c[f"{name}:heldout_cd_{key}"] = {"value": raw, "target": f">= {target}", "unit": f"1 - CD/CD_{row}",
+                                             "pass": raw >= target}
+    return c
 
 
 def checks_for(name: str, fig: dict) -> dict:
@@ -217,15 +309,7 @@ def checks_for(name: str, fig: dict) -> dict:
         c[f"{name}:heldout_views_psnr"] = {"value": app["psnr"], "target": ">= 28", "unit": "dB", "pass": app["psnr"] >= 28}
         c[f"{name}:heldout_views_lpips"] = {"value": app["lpips"], "target": "<= 0.03", "unit": "LPIPS",
                                             "pass": app["lpips"] <= 0.03}
-    cd = fig.get("heldout_garment_cd_x1e3", {})
-    est = cd.get("estimated material")
-    if est is not None and "LBS" in cd:
-        v = 1 - est / cd["LBS"]
-        c[f"{name}:heldout_cd_below_lbs"] = {"value": v, "target": ">= 0.25", "unit": "1 - CD/CD_LBS", "pass": v >= 0.25}
-    if est is not None and "random material" in cd:
-        v = 1 - est / cd["random material"]
-        c[f"{name}:heldout_cd_below_random"] = {"value": v, "target": ">= 0.10", "unit": "1 - CD/CD_random",
-                                                "pass": v >= 0.10}
+    c.update(physics_checks(name, fig))
     return c
 
 

@@ -49,7 +49,12 @@ class ForeignConfig:
     fps: float = 25.0
     shape: tuple = tuple(sorted(FOREIGN_SHAPE.items()))
     edge: float = 0.025  # garment edge length [m]
-    settle_frames: int = 12
+    # the drape before frame 0: 40 frames with the velocities × 0.7 after each, so frame 0 is at rest
+    # (the paper's Algorithm 1 and `animate` start from rest). Undamped, 12 frames left the skirt
+    # swinging at 0.12 m/s (it went on at ~2.7 mm per frame after 2.4 s on a still body), and that
+    # free swing, not the held-out motion, made most of the held-out ground truth.
+    settle_frames: int = 40
+    settle_damping: float = 0.7
     substeps: int = 10
     iterations: int = 10
     contact_ke: float = 1.0e4  # Newton penalty stiffness [N/m]
@@ -218,12 +223,13 @@ def cameras_for(cfg: ForeignConfig, center_z: float):
 
 # -- building ------------------------------------------------------------------------------------
 
-def _simulate(body, garment, fabric, settings, motion, cfg, BF):
+def _simulate(body, garment, fabric, settings, motion, cfg, BF, info=None):
     posed = motion.pose(body).vertices
     att = attach(garment.vertices[garment.pinned], body.rest_vertices, BF)
     pins = attached_positions(att, posed, BF)
     return posed, simulate_sequence(garment.vertices, garment.faces, garment.pinned, pins, posed, BF, cfg.fps,
-                                    fabric, settings, settle_frames=cfg.settle_frames)
+                                    fabric, settings, settle_frames=cfg.settle_frames,
+                                    settle_damping=cfg.settle_damping, info=info)
 
 
 def build(out: str | Path, cfg: ForeignConfig, say=print) -> Path:
@@ -260,8 +266,9 @@ def build(out: str | Path, cfg: ForeignConfig, say=print) -> Path:
     held = builtin_motion(cfg.heldout_motion, body.bone_names, cfg.fps, (cfg.heldout_frames - 1) / cfg.fps)
     say(f"{cfg.name}: simulating {len(garment.vertices)} garment vertices with Newton VBD")
     t_sim = time.time()
-    body_tr, gar_tr = _simulate(body, garment, fabric, settings, motion, cfg, BF)
-    body_he, gar_he = _simulate(body, garment, fabric, settings, held, cfg, BF)
+    settle = {"training": {}, "heldout": {}}
+    body_tr, gar_tr = _simulate(body, garment, fabric, settings, motion, cfg, BF, settle["training"])
+    body_he, gar_he = _simulate(body, garment, fabric, settings, held, cfg, BF, settle["heldout"])
     t_sim = time.time() - t_sim
     for name, g in (("training", gar_tr), ("held-out", gar_he)):
         if not np.isfinite(g).all():
@@ -318,6 +325,7 @@ def build(out: str | Path, cfg: ForeignConfig, say=print) -> Path:
     write_json_atomic(gt / "foreign.json", {
         "config": cfg.to_dict(), "fabric_newton": dataclasses.asdict(fabric),
         "newton_settings": dataclasses.asdict(settings), "crossing_triangle_pairs": crossings,
+        "settle_drift_mm": {k: round(v["settle_drift_mm"], 4) for k, v in settle.items()},
         "seconds": {"simulate": round(t_sim, 1), "render": round(t_r, 1), "total": round(time.time() - t0, 1)},
         "garment_vertices": len(garment.vertices), "template_vertices": len(V0)})
     if out.exists():
