@@ -205,6 +205,9 @@ class FlowConfig:
         carry: what the prediction's lift takes as "no motion" for the free garment: "still"
             (frame t-1 where it was) or "body" (frame t-1 carried by the body's skinning from t-1
             to t), so what no flow observes follows the body instead of staying behind.
+        predict_colour: the prediction's frame-to-frame flow runs on the same channels as the
+            corrections (``channels``: with "colour", the luma and the patterned opponent
+            channels) instead of the luma alone.
     """
 
     smoothness: float = setting(3.0)
@@ -225,6 +228,7 @@ class FlowConfig:
     bend_reference: str = setting("rest")
     min_texture: float = setting(0.0)
     carry: str = setting("still")
+    predict_colour: bool = setting(False)
 
 
 @dataclass(frozen=True)

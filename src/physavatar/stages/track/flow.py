@@ -140,13 +140,18 @@ class FlowPrediction:
         self.min_texture = min_texture
 
     def observe(self, vertices: np.ndarray, cameras: list[Camera], images0: list[np.ndarray],
-                images1: list[np.ndarray]) -> list[FlowObservation]:
+                images1: list[np.ndarray], channels: str = "luma",
+                opponent: tuple[bool, bool] = (True, True)) -> list[FlowObservation]:
         """Flow observations of the solved vertices at ``vertices`` [V, 3] (frame t-1), from each
-        camera's image pair (frame t-1, frame t; full resolution, sRGB [H, W, 3] or :func:`to_gray8`)."""
+        camera's image pair (frame t-1, frame t; full resolution, sRGB [H, W, 3] or :func:`to_gray8`),
+        on the luma or (``channels="colour"``, colour images) also the ``opponent`` channels."""
         obs = []
         for cam, a, b in zip(cameras, images0, images1):
             depth, face = zbuffer(vertices, self.faces, cam)
-            obs.append(self._observation(vertices, cam, to_gray8(a), to_gray8(b), depth, face, None, self.preset))
+            if channels != "colour":
+                a, b = to_gray8(a), to_gray8(b)
+            obs.append(self._observation(vertices, cam, a, b, depth, face, None, self.preset, channels,
+                                         opponent=opponent))
         return obs
 
     def _observation(self, vertices: np.ndarray, cam: Camera, g0: np.ndarray, g1: np.ndarray, depth: np.ndarray,
@@ -353,8 +358,9 @@ class FlowStart:
 
     def __init__(self, flow: FlowPrediction, cameras: list[Camera], reference_vertices: np.ndarray,
                  reference_images: list[np.ndarray], corrections: int = 2, final_corrections: int = 0,
-                 correction: dict | None = None, coarse: int = 0):
+                 correction: dict | None = None, coarse: int = 0, predict_colour: bool = False):
         self.flow, self.cameras, self.corrections = flow, list(cameras), corrections
+        self.predict_colour = predict_colour
         self.coarse = coarse  # half-size corrections before the first full-size one (not in refine)
         self.final_corrections = final_corrections
         self.correction = dict(correction or {})
@@ -374,7 +380,10 @@ class FlowStart:
         (and the prior of the solved ones); masks: frame t's masks for the corrections'
         silhouette term (``correction["silhouette_weight"]``); carried: [V, 3] frame t-1 moved
         with the body to t, what the lift's smoothness takes as no motion (None: ``previous``)."""
-        obs = self.flow.observe(np.asarray(previous, np.float64), self.cameras, previous_grey, grey)
+        pc = {}
+        if self.predict_colour and self.correction.get("channels") == "colour":
+            pc = dict(channels="colour", opponent=self.correction["opponent"])
+        obs = self.flow.observe(np.asarray(previous, np.float64), self.cameras, previous_grey, grey, **pc)
         X = self.flow.lift(previous if carried is None else carried, obs, start)
         if self.corrections > 0:
             X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections, masks=masks,
