@@ -184,7 +184,7 @@ class FlowPrediction:
                 prior_weight: float = 0.1, preset: str = "fine", iso_weight: float | None = None,
                 bend_weight: float | None = None, masks: list[np.ndarray] | None = None,
                 silhouette_weight: float = 0.0, channels: str = "luma", coarse: int = 0,
-                opponent: tuple[bool, bool] = (True, True), blur: float = 0.0) -> np.ndarray:
+                opponent: tuple[bool, bool] = (True, True)) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
         frame t's images by model-based flow (module docstring): each iteration renders the mesh
         as the reference frame saw it (:class:`ReferenceAppearance`), measures the flow from that
@@ -211,8 +211,6 @@ class FlowPrediction:
             obs: list = []
             for k, (cam, g1) in enumerate(zip(cameras, views)):
                 synth, valid, depth, face = reference.render(X, cam, fill=g1)
-                if blur > 0:  # both views low-passed: a texture aliased differently in each compares
-                    synth, g1 = _blurred(synth, blur), _blurred(g1, blur)
                 obs.append(self._observation(X, cam, synth, g1, depth, face, valid, preset, channels, factor,
                                                opponent))
                 if outlines is not None:
@@ -467,13 +465,6 @@ class ReferenceAppearance:
             valid.ravel()[pix[sel]] = True
         out = np.clip(np.rint(out), 0, 255).astype(np.uint8)
         return (out[..., 0] if C == 1 else out), valid, depth, face
-
-
-def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
-    """``image`` (uint8, grey or colour) under a Gaussian blur of ``sigma`` pixels, uint8."""
-    import cv2
-
-    return np.clip(np.rint(cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma)), 0, 255).astype(np.uint8)
 
 
 def _edge_difference(faces: np.ndarray, solve: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
