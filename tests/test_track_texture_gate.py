@@ -66,3 +66,56 @@ def test_the_texture_gate_keeps_a_plain_sheet_where_its_shading_moved():
     X = fp.correct(V0, cams, tex_images, tex_ref, iterations=2, prior_weight=0.01, smoothness=0.1)
     e0 = np.linalg.norm(V0 - truth, axis=1).mean()
     assert np.linalg.norm(X - truth, axis=1).mean() < 0.2 * e0
+
+
+def test_carry_body_moves_what_no_flow_observes_with_the_body():
+    """The sheet hangs from its top row (placed by skinning) and turns 10 degrees with the body
+    about a vertical axis 0.1 m behind it (the free vertices move 27 mm on average). No flow
+    observes them (views without texture, gated out). Relative to frame t-1 where it was
+    (``carry="still"``) the membrane, edge-length and bending terms drag them along with the top
+    row only partly; relative to frame t-1 carried by the body's motion (``carried``, here the
+    truth) they are where the body took them."""
+    from physavatar.stages.track.flow import FlowStart
+
+    V0, F = _grid(9, 0.4)
+    top = V0[:, 2] > V0[:, 2].max() - 1e-9
+    a = np.radians(10.0)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    axis = np.array([0.0, 0.1, 0.0])
+    truth = (V0 - axis) @ R.T + axis
+    start = V0.copy()
+    start[top] = truth[top]
+    cams = _rig()
+    blank = [np.zeros((c.height, c.width, 3)) for c in cams]
+    fp = FlowPrediction(F, ~top, F, smoothness=3.0, rest=V0, iso_weight=3.0, bend_weight=10.0, min_texture=3.0)
+    fs = FlowStart(fp, cams, V0, blank, corrections=0)
+    still = fs(V0, blank, blank, start)
+    body = fs(V0, blank, blank, start, carried=truth)
+    e_still = np.linalg.norm(still - truth, axis=1)[~top].mean()
+    e_body = np.linalg.norm(body - truth, axis=1)[~top].mean()
+    assert e_still > 0.01, e_still
+    assert e_body < 1e-4, e_body
+
+
+def test_bad_carry_is_one_clear_error():
+    import pytest
+
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.track import TrackConfig
+    from physavatar.stages.track.config import FlowConfig
+    from physavatar.stages.track.stage import _check_config
+
+
+    cfg = TrackConfig(flow=FlowConfig(carry="skin"))
+    with pytest.raises(PhysavatarError, match="flow.carry"):
+        _check_config(cfg, _fake_capture())
+
+
+def _fake_capture():
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from physavatar.camera import Camera, intrinsics, look_at
+
+    cams = [Camera(f"c{i}", 64, 64, intrinsics(64, 64, 40.0), look_at([0, -2, 0], [0, 0, 0])) for i in range(2)]
+    return SimpleNamespace(cameras=cams, frames=[0, 1], root=Path("."))
