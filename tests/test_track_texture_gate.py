@@ -12,10 +12,10 @@ synthetic truth.
 from __future__ import annotations
 
 import numpy as np
+from test_flow import _grid, _motion, _render, _rig
 
 from physavatar.stages.track.channels import texture_strength
 from physavatar.stages.track.flow import FlowPrediction, ReferenceAppearance, rasterize
-from test_flow import _grid, _motion, _render, _rig
 
 
 def test_texture_strength_of_sinusoids_and_stripes():

@@ -382,7 +382,7 @@ class FlowStart:
         with the body to t, what the lift's smoothness takes as no motion (None: ``previous``)."""
         pc = {}
         if self.predict_colour and self.correction.get("channels") == "colour":
-            pc = dict(channels="colour", opponent=self.correction["opponent"])
+            pc = {"channels": "colour", "opponent": self.correction["opponent"]}
         obs = self.flow.observe(np.asarray(previous, np.float64), self.cameras, previous_grey, grey, **pc)
         X = self.flow.lift(previous if carried is None else carried, obs, start)
         if self.corrections > 0:
