@@ -127,3 +127,22 @@ def scaled_flow(image0: np.ndarray, image1: np.ndarray, preset: str, factor: int
     up[..., 0] *= sx
     up[..., 1] *= sy
     return up
+
+
+def texture_strength(image: np.ndarray, window: int = 5) -> np.ndarray:
+    """[H, W] float64: the smaller eigenvalue's square root of the structure tensor of a uint8
+    channel ``image`` [H, W] over ``window`` x ``window`` pixels (Shi and Tomasi's "good features to
+    track"): the root-mean-square intensity gradient, in levels per pixel, in the direction where
+    the window varies least. A flow vector is only measured where both directions vary (a plain
+    patch has none, an edge or a stripe one); elsewhere it follows the shading or the smoothness
+    of the flow's own search."""
+    import cv2
+
+    a = np.asarray(image, np.float32)
+    gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3) / 8.0  # levels per pixel
+    gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    box = (window, window)
+    xx, yy, xy = (cv2.blur(p, box) for p in (gx * gx, gy * gy, gx * gy))
+    half = 0.5 * (xx + yy)
+    lam = half - np.sqrt(np.maximum(0.25 * (xx - yy) ** 2 + xy * xy, 0.0))
+    return np.sqrt(np.maximum(lam, 0.0)).astype(np.float64)

@@ -198,6 +198,16 @@ class FlowConfig:
             coarse to fine, for errors of several pixels an aliased texture hides.
         bend_reference: what the bending terms hold: "rest" (the template's hinge distances) or
             "start" (those of the mesh each lift starts from: the previous frame, the estimate).
+        min_texture: [levels per pixel] a flow observation counts only where the view it is
+            measured from has at least this much texture in both directions
+            (:func:`~physavatar.stages.track.channels.texture_strength`, per channel; 0: all). On a
+            plain garment the flow follows the shading, which moves with the light, not the cloth.
+        carry: what the prediction's lift takes as "no motion" for the free garment: "still"
+            (frame t-1 where it was) or "body" (frame t-1 carried by the body's skinning from t-1
+            to t), so what no flow observes follows the body instead of staying behind.
+        predict_colour: the prediction's frame-to-frame flow runs on the same channels as the
+            corrections (``channels``: with "colour", the luma and the patterned opponent
+            channels) instead of the luma alone.
     """
 
     smoothness: float = setting(3.0)
@@ -216,6 +226,9 @@ class FlowConfig:
     channels: str = setting("colour")
     coarse: int = setting(0)
     bend_reference: str = setting("rest")
+    min_texture: float = setting(0.0)
+    carry: str = setting("still")
+    predict_colour: bool = setting(False)
 
 
 @dataclass(frozen=True)

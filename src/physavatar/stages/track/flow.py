@@ -39,7 +39,7 @@ import scipy.sparse as sp
 
 from ...camera import Camera
 from .channels import (image_channels, opponent_channels, optical_flow, patterned_opponents,  # noqa: F401
-                       scaled_flow, to_gray8, to_rgb8)
+                       scaled_flow, texture_strength, to_gray8, to_rgb8)
 from .raster import _in_front, projection_jacobian, rasterize, sample_bilinear, visible_vertices, zbuffer
 from .silhouette import MaskOutline, silhouette_observation
 
@@ -103,7 +103,8 @@ class FlowPrediction:
                  iterations: int = 3, preset: str = "medium", prior_weight: float = 0.0,
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
-                 bend_weight: float = 0.0, bend_huber: float = 0.0, bend_reference: str = "rest"):
+                 bend_weight: float = 0.0, bend_huber: float = 0.0, bend_reference: str = "rest",
+                 min_texture: float = 0.0):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -136,15 +137,21 @@ class FlowPrediction:
         self.collision_margin = collision_margin
         self.collision_weight = collision_weight
         self.contact_range = contact_range
+        self.min_texture = min_texture
 
     def observe(self, vertices: np.ndarray, cameras: list[Camera], images0: list[np.ndarray],
-                images1: list[np.ndarray]) -> list[FlowObservation]:
+                images1: list[np.ndarray], channels: str = "luma",
+                opponent: tuple[bool, bool] = (True, True)) -> list[FlowObservation]:
         """Flow observations of the solved vertices at ``vertices`` [V, 3] (frame t-1), from each
-        camera's image pair (frame t-1, frame t; full resolution, sRGB [H, W, 3] or :func:`to_gray8`)."""
+        camera's image pair (frame t-1, frame t; full resolution, sRGB [H, W, 3] or :func:`to_gray8`),
+        on the luma or (``channels="colour"``, colour images) also the ``opponent`` channels."""
         obs = []
         for cam, a, b in zip(cameras, images0, images1):
             depth, face = zbuffer(vertices, self.faces, cam)
-            obs.append(self._observation(vertices, cam, to_gray8(a), to_gray8(b), depth, face, None, self.preset))
+            if channels != "colour":
+                a, b = to_gray8(a), to_gray8(b)
+            obs.append(self._observation(vertices, cam, a, b, depth, face, None, self.preset, channels,
+                                         opponent=opponent))
         return obs
 
     def _observation(self, vertices: np.ndarray, cam: Camera, g0: np.ndarray, g1: np.ndarray, depth: np.ndarray,
@@ -166,6 +173,8 @@ class FlowPrediction:
             f = sample_bilinear(fw, uv)
             back = sample_bilinear(bw, uv + f)
             ok = np.linalg.norm(f + back, axis=1) < self.consistency_px * factor
+            if self.min_texture > 0:  # only where the source view has texture in both directions
+                ok &= sample_bilinear(texture_strength(a)[..., None], uv)[:, 0] >= self.min_texture
             vs.append(idx[ok])
             ts.append(uv[ok] + f[ok])
         return FlowObservation(cam, np.concatenate(vs), np.concatenate(ts))
@@ -349,8 +358,9 @@ class FlowStart:
 
     def __init__(self, flow: FlowPrediction, cameras: list[Camera], reference_vertices: np.ndarray,
                  reference_images: list[np.ndarray], corrections: int = 2, final_corrections: int = 0,
-                 correction: dict | None = None, coarse: int = 0):
+                 correction: dict | None = None, coarse: int = 0, predict_colour: bool = False):
         self.flow, self.cameras, self.corrections = flow, list(cameras), corrections
+        self.predict_colour = predict_colour
         self.coarse = coarse  # half-size corrections before the first full-size one (not in refine)
         self.final_corrections = final_corrections
         self.correction = dict(correction or {})
@@ -363,12 +373,18 @@ class FlowStart:
                           if corrections > 0 or final_corrections > 0 else None)
 
     def __call__(self, previous: np.ndarray, previous_grey: list[np.ndarray], grey: list[np.ndarray],
-                 start: np.ndarray, masks: list[np.ndarray] | None = None) -> np.ndarray:
+                 start: np.ndarray, masks: list[np.ndarray] | None = None,
+                 carried: np.ndarray | None = None) -> np.ndarray:
         """[V, 3] float64 start of frame t. previous: [V, 3] tracked frame t-1; previous_grey,
         grey: :func:`to_gray8` views of frames t-1 and t; start: [V, 3] the other vertices' start
         (and the prior of the solved ones); masks: frame t's masks for the corrections'
-        silhouette term (``correction["silhouette_weight"]``)."""
-        X = self.flow(previous, self.cameras, previous_grey, grey, start=start)
+        silhouette term (``correction["silhouette_weight"]``); carried: [V, 3] frame t-1 moved
+        with the body to t, what the lift's smoothness takes as no motion (None: ``previous``)."""
+        pc = {}
+        if self.predict_colour and self.correction.get("channels") == "colour":
+            pc = {"channels": "colour", "opponent": self.correction["opponent"]}
+        obs = self.flow.observe(np.asarray(previous, np.float64), self.cameras, previous_grey, grey, **pc)
+        X = self.flow.lift(previous if carried is None else carried, obs, start)
         if self.corrections > 0:
             X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections, masks=masks,
                                   coarse=self.coarse, **self.correction)

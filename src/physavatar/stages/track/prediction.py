@@ -229,11 +229,12 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.smoothness, rest=t.vertices,
                           iso_weight=cfg.iso, collider_faces=body_faces, collision_weight=cfg.collision,
                           bend_weight=cfg.bend, bend_huber=cfg.bend_huber, prior_weight=cfg.prior,
-                          bend_reference=cfg.bend_reference)
+                          bend_reference=cfg.bend_reference, min_texture=cfg.min_texture)
     return FlowStart(lift, train, first_vertices, first_grey, cfg.corrections, cfg.final_corrections,
                      dict(smoothness=cfg.correction_smoothness, prior_weight=cfg.correction_prior,
                           iso_weight=cfg.correction_iso, bend_weight=cfg.correction_bend,
-                          silhouette_weight=cfg.silhouette, channels=cfg.channels), cfg.coarse)
+                          silhouette_weight=cfg.silhouette, channels=cfg.channels), cfg.coarse,
+                     predict_colour=cfg.predict_colour)
 
 
 
@@ -288,8 +289,12 @@ class FrameStarts:
                     first = (self._grey.get(self.frames[0])
                              or flow_views(self.cap, self.frames[0], self.train, self.cfg.flow.channels))
                     self.flow = flow_start(self.cfg.flow, self.template, self.train, tracked[0], first, self.skinned)
+                carried = None
+                if self.cfg.flow.carry == "body":  # frame t-1 moved with the body to t
+                    carried = self.skin.skin(i, self.skin.unskin(i - 1, tracked[-1]))
+                    carried[self.skinned] = init[self.skinned]
                 init = self.flow(tracked[-1], self._grey.pop(prev), self._grey[f], init,
-                                 self._masks.get(f)).astype(np.float32)
+                                 self._masks.get(f), carried).astype(np.float32)
             if self.physics is not None and i >= 2:
                 x = self.physics(tracked[-2], tracked[-1], self.skin.skin(i - 1), self.skin.skin(i), p.velocity,
                                  self.smooth)

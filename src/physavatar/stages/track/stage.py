@@ -69,7 +69,7 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"level_iters needs one count >= 1 per level {fit.levels}, got {fit.level_iters}")
     if pred.garment not in ("velocity", "physics", "flow"):
         raise PhysavatarError(None, f"garment_prediction must be 'velocity', 'physics' or 'flow', got {pred.garment!r}")
-    numeric = [f.name for f in fields(flow) if f.name not in ("channels", "bend_reference")]
+    numeric = [f.name for f in fields(flow) if f.name not in ("channels", "bend_reference", "carry")]
     if min(getattr(flow, k) for k in numeric) < 0:
         raise PhysavatarError(None, "the flow_* settings must be >= 0, got "
                                     + ", ".join(f"flow_{k}={getattr(flow, k)}" for k in numeric))
@@ -77,6 +77,8 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"flow.channels must be 'luma' or 'colour', got {flow.channels!r}")
     if flow.bend_reference not in ("rest", "start"):
         raise PhysavatarError(None, f"flow.bend_reference must be 'rest' or 'start', got {flow.bend_reference!r}")
+    if flow.carry not in ("still", "body"):
+        raise PhysavatarError(None, f"flow.carry must be 'still' or 'body', got {flow.carry!r}")
     if pred.garment == "physics":
         from ...sim import PRESETS
 
