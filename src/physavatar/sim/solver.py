@@ -130,8 +130,8 @@ class ClothSim:
         self.linear_solver.reset()  # a different system: its factor is no preconditioner
         self.linear_solver_all.reset()
         n_total = self.n + self.nb
-        self.scene = ContactScene(self.topo.rest, self.topo.faces, body_vertices, body_faces,
-                                  s.dhat, s.dmin, s.self_contact, exclude=self.contact_exclude)
+        self.scene = ContactScene(self.topo.rest, self.topo.faces, body_vertices, body_faces, s.dhat, s.dmin,
+                                  s.self_contact, exclude=self.contact_exclude, prescribed=self.boundary)
         self.scene.ccd_threads = s.ccd_threads if s.deterministic else 0
         free = np.ones(n_total)
         free[self.boundary] = 0.0
