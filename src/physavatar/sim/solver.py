@@ -496,7 +496,7 @@ class ClothSim:
                 if sv.penalty_iters >= s.max_penalty_iterations:
                     return "break"
                 return "continue"
-        elif s.follow_body > 0 and s.follow_retry > 0 and sv.penalty_iters % s.follow_retry == 0:
+        elif s.follow_body > 0 and self.nb and s.follow_retry > 0 and sv.penalty_iters % s.follow_retry == 0:
             # try again to carry the cloth the rest of the way (the pairs that cut the
             # first try may have separated)
             free = self.inertia.unit_mass[: self.n] > 0
