@@ -16,6 +16,7 @@ hops and strides), a 0.4-s warm-up. ``--full``: the 2-cm dress, the clips whole,
 built-in motion, a 1-s warm-up. ``--max-substeps 1`` runs the old fixed one step per frame.
 
     python benchmarks/motion_suite.py [--full] [--only NAME ...] [--max-substeps N] [--out FILE]
+    python benchmarks/motion_suite.py --full --partial --only cmu-walk --work DIR   # a run not finished: its frames so far
 
 Prints a table and writes benchmarks/results/motion_suite.json (``checks``: per motion, lag,
 intersection and NaN frames must all be 0).
