@@ -16,6 +16,7 @@ hops and strides), a 0.4-s warm-up. ``--full``: the 2-cm dress, the clips whole,
 built-in motion, a 1-s warm-up. ``--max-substeps 1`` runs the old fixed one step per frame.
 
     python benchmarks/motion_suite.py [--full] [--only NAME ...] [--max-substeps N] [--out FILE]
+    python benchmarks/motion_suite.py --full --partial --only cmu-walk --work DIR   # a run not finished: its frames so far
 
 Prints a table and writes benchmarks/results/motion_suite.json (``checks``: per motion, lag,
 intersection and NaN frames must all be 0).
@@ -229,10 +230,13 @@ def stress_motions(body: BodyModel, fps: float, duration: float) -> dict[str, Mo
     return out
 
 
-def garment_self_intersections(seq: GarmentSequence) -> list[int]:
+def garment_self_intersections(seq: GarmentSequence, prescribed: bool = False) -> list[int]:
     """Frames where the garment (all its layers) intersects itself (ipctk on the garments alone;
-    the suite's garments have no sewn seams to leave out)."""
-    return self_intersecting_frames(np.asarray(seq.vertices, np.float64), seq.faces)
+    the suite's garments have no sewn seams to leave out). ``prescribed``: leave out the pairs
+    of the attached (boundary) vertices alone, as the solver does: their crossings come with
+    the prescribed motion (the attachment riding the body's skin), not from the solve."""
+    return self_intersecting_frames(np.asarray(seq.vertices, np.float64), seq.faces,
+                                    prescribed=seq.boundary if prescribed else None)
 
 
 def main():
@@ -248,6 +252,8 @@ def main():
                     help="read the motions already simulated in --work instead of simulating them again")
     ap.add_argument("--append", action="store_true", help="keep the other motions' rows of an existing result file")
     ap.add_argument("--work", default=None, help="keep the simulate folders here (default: a temporary folder)")
+    ap.add_argument("--partial", action="store_true",
+                    help="check the frames written so far by the (interrupted or running) runs in --work, simulate nothing")
     args = ap.parse_args()
     if args.progress:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
@@ -289,6 +295,17 @@ def main():
     print(f"{'motion':15s} {'frames':>6s} {'lag':>4s} {'body-x':>6s} {'self-x':>6s} {'NaN':>4s} {'s/frame':>8s} "
           f"{'steps/frame':>11s}")
     cases = {name: ("dress", None, spec) for name, spec in specs.items()} | layered
+    if args.partial:
+        for name, (garment, over, spec) in cases.items():
+            if (work / name / "frames" / "state.npz").exists():
+                rows[name] = partial_row(work / name, garment, over, spec, edge, duration, warmup, args)
+                r = rows[name]
+                print(f"{name:15s} {r['frames']:6d} {len(r['frames_with_lag']):4d} "
+                      f"{len(r['frames_with_body_intersection']):6d} {len(r['frames_with_self_intersection']):6d} "
+                      f"{len(r['frames_with_nan']):4d} {r['s_per_frame']:8.2f} {r['mean_substeps']:6.2f} "
+                      f"(max {r['max_substeps']})  written frames 0-{r['frames'] - 1} of {r['frames_total']}", flush=True)
+                _write(args, rows, load0, edge, duration, warmup, fps)
+        return
     for name, (garment, over, spec) in cases.items():
         cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
                                             max_substeps=args.max_substeps, self_contact=not args.no_self_contact,
@@ -304,13 +321,17 @@ def main():
         nan = [f for f in range(seq.n_frames) if not np.all(np.isfinite(seq.vertices[f]))]
         body_x = [f for f in rec["frames_with_intersection_or_nan"] if f not in nan]
         self_x = garment_self_intersections(seq)
+        solver_x = garment_self_intersections(seq, prescribed=True) if self_x else []
         steps = rec["per_frame"]["substeps"]
         frames, warm = rec["frames"], rec["warmup_frames"]
         simulated = frames + warm - 1
         row = {"garment": garment if over is None else f"{garment} under {over}", "vertices": seq.vertices.shape[1],
                "frames": frames, "warmup_frames": warm, "frames_with_lag": rec["frames_with_lag"],
                "frames_with_body_intersection": body_x, "frames_with_self_intersection": self_x,
-               "frames_with_nan": nan, "s_per_frame": rec["seconds"] / max(simulated, 1), "wall_s": wall,
+               "frames_with_nan": nan,
+               # of the self-intersecting frames, those where more than the attached vertices' own
+               # triangles cross (those are prescribed: sim.contact.prescribed_filter)
+               "frames_with_self_intersection_beyond_prescribed": solver_x, "s_per_frame": rec["seconds"] / max(simulated, 1), "wall_s": wall,
                "reused": bool(reused),
                "resumed_after_frame": rec.get("resumed_after_frame"),
                "mean_substeps": float(np.mean(steps)) if steps else 1.0, "max_substeps": int(max(steps, default=1)),
@@ -322,6 +343,42 @@ def main():
         _write(args, rows, load0, edge, duration, warmup, fps)
     failed = [k for k, c in _checks(rows).items() if not c["pass"]]
     print(f"\n{len(_checks(rows)) - len(failed)}/{len(_checks(rows))} checks pass" + (f"; failing: {failed}" if failed else ""))
+
+
+def partial_row(run: Path, garment, over, spec, edge, duration, warmup, args) -> dict:
+    """The row of a run not finished yet: its frames written so far (run/frames/, as
+    ``simulate`` writes them) checked like a finished run's. Written frame k is simulated
+    frame k + warm-up frames; frame reports, lag and checks count written frames only."""
+    from physavatar.data.material import resolve_material
+    from physavatar.sim import SimSettings
+    from physavatar.sim.contact import ContactScene
+
+    cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
+                                        max_substeps=args.max_substeps, self_contact=not args.no_self_contact, over=over)
+    mat = resolve_material(cfg.material, option="--material")
+    part, bodies, bf, n_warm, _, _ = simulate_stage._on_motion(garment, spec, 25.0, cfg, mat, SimSettings(), None)
+    folder = run / "frames"
+    done = sorted(int(f.stem) for f in folder.glob("[0-9]*.npz"))
+    last = max(f for f in range(len(done) + 1) if done[:f] == list(range(1, f + 1)))
+    reports = [json.loads(str(np.load(folder / f"{f:06d}.npz")["report"])) for f in range(1, last + 1)]
+    X = np.stack([np.load(folder / f"{f:06d}.npz")["x"] for f in range(n_warm, last + 1)])
+    B = bodies[n_warm:last + 1]
+    scene = ContactScene(part.rest_shape, part.faces, B[0], bf, SimSettings().dhat)
+    nan = [f for f in range(len(X)) if not np.all(np.isfinite(X[f]))]
+    body_x = [f for f in range(len(X)) if f not in nan and scene.has_intersections(np.vstack([X[f], B[f]]))]
+    seq = GarmentSequence(X, part.faces, part.boundary, B, bf, 25.0, part.rest_shape)
+    self_x = garment_self_intersections(seq)
+    written = [r for r in reports if r["frame"] >= n_warm]
+    steps = [r["substeps"] for r in written]
+    return {"garment": garment, "vertices": X.shape[1], "frames": len(X), "frames_total": len(bodies) - n_warm,
+            "warmup_frames": n_warm, "partial": True,
+            "frames_with_lag": [r["frame"] - n_warm for r in written if r["lagged"]],
+            "frames_with_body_intersection": body_x, "frames_with_self_intersection": self_x,
+            "frames_with_self_intersection_beyond_prescribed": garment_self_intersections(seq, True) if self_x else [],
+            "frames_with_nan": nan, "s_per_frame": float(np.mean([r["seconds"] for r in reports])),
+            "mean_substeps": float(np.mean(steps)) if steps else 1.0, "max_substeps": int(max(steps, default=1)),
+            "max_lag_m": float(max((r["lag_m"] for r in written), default=0.0)),
+            "per_frame": [{**r, "written_frame": r["frame"] - n_warm} for r in reports]}
 
 
 def _checks(rows: dict) -> dict:

@@ -348,3 +348,38 @@ def test_body_that_leaves_no_room_lags_instead_of_crossing_the_cloth():
     x2, v2, st2 = sim.step(x, v, plates_t1, plates_t1, Fb)
     assert st2.body_lagged and np.all(np.isfinite(x2))
     assert not scene.has_intersections(np.vstack([x2, sim._body_lag[1] if sim._body_lag else plates_t1]))
+
+
+def test_prescribed_parts_that_pass_through_each_other_leave_the_step_free():
+    """Issue 25 part 1 (the whole CMU clips lagged from frame 70): the dress's shoulder straps
+    are attached to the body and ride its skin, which folds at the shoulder, so the prescribed
+    strap triangles passed through each other. Contact between two prescribed primitives held
+    the prescribed vertices back (penalty phase stalled: the step lagged, κ doubled). Here two
+    cloth flaps are each attached along a strip; one strip's targets are moved, tilted, through the
+    other's. No unknown can separate them: those pairs are left out (contact.prescribed_filter),
+    the step converges with every attached vertex at its target and κ unchanged; the crossing
+    of the prescribed strips themselves is in the input and the written-frame check sees it."""
+    from physavatar.sim.simulate import self_intersecting_frames
+
+    n = 5
+    V, F = cloth_grid.grid(n, 0.1)
+    X0 = np.vstack([V, V * [1, -1, 1] + [0, 0.0125, 0.004]])  # flap B 4 mm above A, mirrored
+    FF = np.vstack([F, F[:, ::-1] + len(V)])
+    strip = np.r_[np.arange(n) * n, np.arange(n) * n + 1]  # rows y = 0 and 0.025 (A); B's overlap them
+    bnd = np.r_[strip, strip + len(V)]
+    sim = ClothSim(X0, FF, Material(), SimSettings(friction=0.0, self_contact=True, max_penalty_iterations=20), bnd)
+    x, v = X0.copy(), np.zeros_like(X0)
+    ids = np.sort(bnd)
+    kappa = None
+    onB = ids >= len(V)
+    edge = onB & ((ids - len(V)) % n == 0)  # B's row over A's strip (y = 0.0125)
+    for z_edge, z_rest in ((0.002, 0.002), (-0.0005, 0.001)):  # then tilted through A's strip
+        tgt = X0[ids].copy()
+        tgt[onB, 2] = np.where(edge[onB], z_edge, z_rest)
+        x, v, st = sim.step(x, v, None, None, None, tgt)
+        assert st.converged and st.body_gap == 0.0 and st.penalty_iterations == 0
+        kappa = kappa or st.barrier_stiffness
+        assert st.barrier_stiffness == kappa
+    np.testing.assert_array_equal(x[ids], tgt)
+    assert self_intersecting_frames(x[None], FF) == [0]  # the prescribed strips cross (input)
+    assert self_intersecting_frames(x[None], FF, prescribed=bnd) == []  # nothing else does

@@ -25,10 +25,16 @@ class ContactScene:
         exclude: [P, 2] cloth vertex pairs never in contact with each other, nor the edges and
             faces holding them (ipctk's filter: a pair of primitives is skipped when every pair
             of their vertices is excluded); e.g. a sewn seam's neighbourhood (sim.simulate.seam_exclusions).
+        prescribed: [K] cloth vertices whose motion is prescribed (the solver's Dirichlet
+            vertices). Like body–body pairs, primitive pairs made only of prescribed vertices
+            (these and the body's) are left out: no unknown can move them apart, so their
+            barrier only holds the prescribed motion back (the kinematic-penalty phase stalls
+            and the body lags) and their closing distance drives κ up (docs/simulation.md
+            "Prescribed pairs").
     """
 
     def __init__(self, cloth_rest, cloth_faces, body_rest, body_faces, dhat, dmin=0.0,
-                 self_contact=False, ccd_rescaling=0.9, exclude=None):
+                 self_contact=False, ccd_rescaling=0.9, exclude=None, prescribed=None):
         self.n_cloth = len(cloth_rest)
         self.n_body = len(body_rest)
         faces = np.vstack([cloth_faces, np.asarray(body_faces) + self.n_cloth]).astype(np.int32)
@@ -41,6 +47,8 @@ class ContactScene:
         else:
             patch = np.r_[np.zeros(self.n_cloth), np.ones(self.n_body)].astype(np.int32)
             self.mesh.can_collide = ipctk.make_vertex_patches_filter(patch)
+        if prescribed is not None and len(prescribed):
+            self.mesh.can_collide = self.mesh.can_collide & prescribed_filter(self.n_cloth, self.n_body, prescribed)
         self.dhat = float(dhat)
         self.dmin = float(dmin)
         # AdditiveCCD (C-IPC's CCD; far faster than Tight Inclusion on cloth sliding along the
@@ -112,6 +120,15 @@ def cloth_filter(n_cloth: int, exclude=None):
     pairs = np.sort(np.asarray(exclude, dtype=np.int64).reshape(-1, 2), axis=1)
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     return static & ipctk.make_sparse_filter(dict.fromkeys(map(tuple, pairs.tolist()), False), True)
+
+
+def prescribed_filter(n_cloth: int, n_body: int, prescribed):
+    """ipctk filter: no pair of two prescribed vertices (the cloth vertices ``prescribed`` [K]
+    and every body vertex): each free cloth vertex is its own patch, the prescribed ones one
+    patch together (ipctk then skips a primitive pair only when all its vertex pairs are)."""
+    patch = np.r_[np.arange(1, n_cloth + 1), np.zeros(n_body)].astype(np.int32)
+    patch[np.asarray(prescribed, dtype=np.int64)] = 0
+    return ipctk.make_vertex_patches_filter(patch)
 
 
 class Barrier(Term):

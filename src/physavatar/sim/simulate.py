@@ -138,16 +138,20 @@ def self_contact_possible(vertices, faces, dhat: float, exclude=None) -> bool:
     return ok
 
 
-def self_intersecting_frames(X, faces, exclude=None) -> list[int]:
+def self_intersecting_frames(X, faces, exclude=None, prescribed=None) -> list[int]:
     """Frames f of X [T, N, 3] (finite ones) where the garment intersects itself: ipctk's exact
     check on the garment alone, leaving out the pairs ``exclude`` (seam_exclusions: a sewn seam's
-    two sides touch by construction)."""
-    from .contact import cloth_filter
+    two sides touch by construction) and, when ``prescribed`` [K] (the Dirichlet vertices) is
+    given, the primitive pairs made of those alone (as the solver does, contact.prescribed_filter:
+    what remains is what the solver answers for; their crossings are in its input)."""
+    from .contact import cloth_filter, prescribed_filter
 
     F = np.asarray(faces, np.int32)
     X = np.asarray(X, np.float64)
     mesh = ipctk.CollisionMesh(X[0] if np.all(np.isfinite(X[0])) else np.zeros_like(X[0]), ipctk.edges(F), F)
     mesh.can_collide = cloth_filter(X.shape[1], exclude)
+    if prescribed is not None and len(prescribed):
+        mesh.can_collide = mesh.can_collide & prescribed_filter(X.shape[1], 0, prescribed)
     return [f for f in range(len(X)) if np.all(np.isfinite(X[f])) and ipctk.has_intersections(mesh, X[f])]
 
 

@@ -130,8 +130,8 @@ class ClothSim:
         self.linear_solver.reset()  # a different system: its factor is no preconditioner
         self.linear_solver_all.reset()
         n_total = self.n + self.nb
-        self.scene = ContactScene(self.topo.rest, self.topo.faces, body_vertices, body_faces,
-                                  s.dhat, s.dmin, s.self_contact, exclude=self.contact_exclude)
+        self.scene = ContactScene(self.topo.rest, self.topo.faces, body_vertices, body_faces, s.dhat, s.dmin,
+                                  s.self_contact, exclude=self.contact_exclude, prescribed=self.boundary)
         self.scene.ccd_threads = s.ccd_threads if s.deterministic else 0
         free = np.ones(n_total)
         free[self.boundary] = 0.0
@@ -496,7 +496,7 @@ class ClothSim:
                 if sv.penalty_iters >= s.max_penalty_iterations:
                     return "break"
                 return "continue"
-        elif s.follow_body > 0 and s.follow_retry > 0 and sv.penalty_iters % s.follow_retry == 0:
+        elif s.follow_body > 0 and self.nb and s.follow_retry > 0 and sv.penalty_iters % s.follow_retry == 0:
             # try again to carry the cloth the rest of the way (the pairs that cut the
             # first try may have separated)
             free = self.inertia.unit_mass[: self.n] > 0
