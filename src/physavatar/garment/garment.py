@@ -98,8 +98,8 @@ def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, b
     body at frame 0 (frame 0, where the garment starts, is never changed). Frame after frame,
     the targets must be reachable from the last frame's along the straight path the simulator
     takes between frames (sub-steps interpolate body and targets linearly) without any of those
-    primitives coming closer to the body than half the floor (ipctk's exact CCD, Tight
-    Inclusion), and end at least the floor away from it. A frame whose own targets pass is
+    primitives coming closer to the body than half the floor (half their start distance after a
+    frame that failed; ipctk's exact CCD, Tight Inclusion), and end at least the floor away from it. A frame whose own targets pass is
     kept as it is (bit for bit); otherwise each boundary vertex keeps a lift along its
     triangle's normal (carried over from the last frame), raised by 1.25 × the shortfall of
     the primitives that are too close where the path stops or ends, until it passes (at most
