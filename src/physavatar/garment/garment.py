@@ -98,8 +98,8 @@ def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, b
     body at frame 0 (frame 0, where the garment starts, is never changed). Frame after frame,
     the targets must be reachable from the last frame's along the straight path the simulator
     takes between frames (sub-steps interpolate body and targets linearly) without any of those
-    primitives coming closer to the body than half the floor (ipctk's exact CCD, Tight
-    Inclusion), and end at least the floor away from it. A frame whose own targets pass is
+    primitives coming closer to the body than half the floor (half their start distance after a
+    frame that failed; ipctk's exact CCD, Tight Inclusion), and end at least the floor away from it. A frame whose own targets pass is
     kept as it is (bit for bit); otherwise each boundary vertex keeps a lift along its
     triangle's normal (carried over from the last frame), raised by 1.25 × the shortfall of
     the primitives that are too close where the path stops or ends, until it passes (at most
@@ -156,13 +156,17 @@ def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, b
     prev = np.vstack([Vt[0], B[0]])
     for t in range(1, T):
         normal = _frames(B[t][attachment.triangles])[..., 2]  # [K, 3]
+        # the path may come to half the floor; after a frame that failed, it starts closer than
+        # that, and no lift of its end would let it pass (the CCD stops at once): half its start
+        start = min([d for _, d in close(prev, need)], default=floor)
+        path = 0.5 * (floor if start >= need else start)
 
         def shortfall(extra):
             """[K] how much further each boundary vertex must go out (0: the path and the end pass)."""
             V1 = np.vstack([Vt[t] + extra[:, None] * normal, B[t]])
             cand = ipctk.Candidates()
-            cand.build(mesh, prev, V1, 0.5 * floor)
-            alpha = cand.compute_collision_free_stepsize(mesh, prev, V1, 0.5 * floor, ccd)
+            cand.build(mesh, prev, V1, path)
+            alpha = cand.compute_collision_free_stepsize(mesh, prev, V1, path, ccd)
             short = np.zeros(K)
             if alpha < 1.0:  # where the path reaches half the floor (the CCD stops 0.9 of the way there)
                 at = prev + min(1.0, alpha / CCD_RESCALING) * (V1 - prev)
