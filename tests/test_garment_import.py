@@ -555,3 +555,52 @@ def test_sewn_boundary_vertices_are_lifted_together():
     moved = np.linalg.norm(lifted[:, 1] - raw[:, 1], axis=1)
     assert (moved > 0.3e-3).sum() >= 5
     np.testing.assert_array_equal(lifted[:, 1], lifted[:, 2])  # the seam stays closed
+
+
+def test_keep_clear_recovers_after_a_failed_frame():
+    """A failed frame leaves the boundary closer to the body than half the floor; the next
+    frame's path must then be allowed to start there (half its own start distance), or the CCD
+    stops at once whatever the lift, the frame fails too and the lift grows frame after frame
+    (the t-shirt's lift on 131_01 grew to 7.67 mm). Scene: the folding roof's cloth patch o = 1 mm
+    over a flat body sheet (normals +z), its boundary edge along y at x = 0, and a tall body wall
+    (an arm at the side) that presses to g = 0.1 mm beside the edge at odd frames and is 3 cm
+    away at even ones. A lift along the sheet's normal cannot leave a wall beside it: each
+    pressed frame fails with exactly ``rounds`` × 1.25 (floor − g) of lift, and its edge ends g
+    from the wall (< floor / 2). Each relief frame's own targets pass from there (half the start
+    distance, g / 2): they are kept bit for bit and the lift drops back to 0, so it never exceeds
+    one pressed frame's (the code before 079e741 failed every frame from 1 on, its lift growing
+    by 4 mm a frame to 24 mm). Every lifted step is free of the body per ipctk's CCD."""
+    from physavatar.garment import attachment_positions, keep_clear, make_attachment
+
+    a, o, g, floor, rounds = 0.005, 0.001, 0.1e-3, 0.5e-3, 8
+    sheet = np.array([[x, y, 0.0] for x in (-0.03, 0.03) for y in (-0.03, 0.03)])
+    wall = np.array([[0.0, y, z] for y in (-0.03, 0.03) for z in (-0.05, 0.05)])
+    xw = np.array([0.03, g, 0.03, g, 0.03, g, 0.03])  # the wall's x at each frame
+    bodies = np.stack([np.vstack([sheet, wall + [x, 0, 0]]) for x in xw])
+    BF = np.array([[0, 2, 3], [0, 3, 1], [4, 5, 7], [4, 7, 6]])  # the sheet (normal +z), the wall
+    cloth = np.array([[x, y, o] for y in (-a, a) for x in (-a, 0.0, a)])
+    F = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4]])
+    bnd = np.array([1, 4])  # the edge (0, ±a, o)
+    att = make_attachment(cloth[bnd], bnd, bodies[0], BF, "sequence")
+    assert (np.asarray(att.triangles) < 4).all()  # riding the sheet's triangles: lifted along +z
+    raw = attachment_positions(att, bodies)
+    np.testing.assert_allclose(raw, np.broadcast_to(cloth[bnd], raw.shape), atol=1e-15)  # the sheet is still
+    lifted, rep = keep_clear(att, raw, F, bodies, BF, floor, rounds=rounds)
+    pressed, relief = [1, 3, 5], [2, 4, 6]
+    assert rep["floor_m"] == floor and rep["failed_frames"] == pressed
+    one = rounds * 1.25 * (floor - g)  # 4 mm: a pressed frame's lift (the shortfall g short of the floor, each round)
+    assert abs(rep["max_lift_m"] - one) < 1e-9, rep
+    for t in pressed:  # failed, lifted along +z only: the edge ends g from the wall, inside half the floor
+        np.testing.assert_allclose(lifted[t] - raw[t], [[0, 0, one]] * 2, atol=1e-9)
+        assert np.allclose(xw[t] - lifted[t, :, 0], g) and lifted[t, :, 2].max() < 0.05 and g < 0.5 * floor
+    for t in relief:  # a path from g to 3 cm off the wall needs no lift: kept bit for bit, the lift dropped
+        np.testing.assert_array_equal(lifted[t], raw[t])
+    # every lifted step, pressed ones included, is free of the body per ipctk's CCD; the relief
+    # steps keep at least half their start distance g (the path keep_clear now asks for)
+    E = np.vstack([[[0, 1]], ipctk.edges(BF.astype(np.int32)) + 2])
+    mesh = ipctk.CollisionMesh(np.vstack([lifted[0], bodies[0]]), E, (BF + 2).astype(np.int32))
+    mesh.can_collide = ipctk.make_vertex_patches_filter(np.r_[0, 0, np.ones(len(bodies[0]))].astype(np.int32))
+    ccd = ipctk.TightInclusionCCD(1e-6, 1_000_000)
+    for t in range(1, len(xw)):
+        V0, V1 = np.vstack([lifted[t - 1], bodies[t - 1]]), np.vstack([lifted[t], bodies[t]])
+        assert ipctk.is_step_collision_free(mesh, V0, V1, 0.5 * g if t in relief else 0.0, narrow_phase_ccd=ccd), t
