@@ -252,6 +252,17 @@ class _Model:
         return torch.stack(cols, 1)
 
 
+def _extremities(body: DiffBody) -> np.ndarray:
+    """[V] bool: vertices mostly skinned to the bones below a wrist or a foot (fingers,
+    metacarpals, toes), the parts thinner than a clothed mesh of centimetre edges resolves."""
+    names, par = body.bone_names, body.parents
+    ends = np.zeros(len(names), bool)
+    for b in range(len(names)):
+        p = par[b]
+        ends[b] = p >= 0 and (ends[p] or names[p].startswith(("wrist", "foot")))
+    return body.weights.numpy()[:, ends].sum(1) > 0.5
+
+
 # -- placement -----------------------------------------------------------------------------------
 
 def _hull_extent(views: list[MaskView], step: float = 0.05) -> tuple[np.ndarray, float, float]:
@@ -316,6 +327,10 @@ class _Fitter:
         self.sample_faces = torch.as_tensor(np.repeat(F_, n, axis=0))
         self.sample_bary = torch.as_tensor(bary, dtype=DTYPE)
         self.kp_ids = np.array(self.model.kp_ids)
+        # the clothed mesh's terms leave out the hands' and feet's extremities (fingers, metacarpals,
+        # toes): a surface remeshed at a few centimetres has no fingers, only a blob whose nearest
+        # vertex normals put the true fingers 3-4 cm "outside" it; they pulled the arms into the blob
+        self.clothing_points = torch.as_tensor(np.flatnonzero(~_extremities(self.model.body)))
 
     def data_loss(self, frames: list[int], V, H, sigma: float) -> torch.Tensor:
         cfg, obs = self.cfg, self.obs
@@ -329,7 +344,7 @@ class _Fitter:
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
                                                                 max(sigma, 0.05))
             if t == 0 and self.clothing is not None and self.use_clothing:
-                inside, near = self.clothing.terms(V[i], cfg.clothing_margin, sigma)
+                inside, near = self.clothing.terms(V[i][self.clothing_points], cfg.clothing_margin, sigma)
                 total = total + cfg.w_clothing_inside * inside + cfg.w_clothing_near * near
         return total / len(frames)
 
@@ -499,7 +514,7 @@ def _check(fitter: _Fitter, rot, tau, phen) -> dict:
                                                      for k, v in errs.items()},
                                "count": len(allv)}
     if fitter.clothing is not None:
-        s = fitter.clothing.signed_distance(torch.as_tensor(V[0])).numpy()
+        s = fitter.clothing.signed_distance(torch.as_tensor(V[0])[fitter.clothing_points]).numpy()
         rep["clothing_first_frame"] = {"share_outside": round(float((s > 0).mean()), 4),
                                        "max_outside_mm": round(float(max(s.max(), 0.0)) * 1000, 1),
                                        "depth_p95_mm": round(float(np.percentile(s, 95)) * 1000, 1)}
