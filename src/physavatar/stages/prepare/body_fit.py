@@ -344,9 +344,14 @@ class _Fitter:
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
                                                                 max(sigma, 0.05))
             if t == 0 and self.clothing is not None and self.use_clothing:
-                inside, near = self.clothing.terms(V[i][self.clothing_points], cfg.clothing_margin, sigma)
-                total = total + cfg.w_clothing_inside * inside + cfg.w_clothing_near * near
+                total = total + self.clothing_loss(V[i], sigma)
         return total / len(frames)
+
+    def clothing_loss(self, V: torch.Tensor, sigma: float) -> torch.Tensor:
+        """The clothed mesh's terms for body vertices ``V`` [V, 3] (the body inside the clothing,
+        on it where it is skin), without the hands' and feet's extremities."""
+        inside, near = self.clothing.terms(V[self.clothing_points], self.cfg.clothing_margin, sigma)
+        return self.cfg.w_clothing_inside * inside + self.cfg.w_clothing_near * near
 
     def samples(self, V: torch.Tensor) -> torch.Tensor:
         """[V, 3] body vertices -> [V + n F, 3] vertices and surface samples."""
