@@ -114,7 +114,9 @@ def _find_boundary(vertices, faces, body_frames, body_faces, cameras, masks_of, 
     np.maximum.at(reach, lab, vertices[idx, 2] >= top - cfg.top_band)
     reach &= big
     out = np.zeros(len(vertices), bool)
-    out[idx[reach[lab]]] = True
+    # a hold is the part of a kept region within the band: where a tight bodice stays in contact
+    # from the straps down to the hips, the region is one, and the whole bodice is no hold
+    out[idx[reach[lab] & (vertices[idx, 2] >= top - cfg.top_band)]] = True
     if cfg.grow and out.any():  # the whole hold: the contact around what was kept, in the band
         near = np.flatnonzero(contact & (vertices[:, 2] >= top - cfg.top_band))
         k2, lab2 = connected_components(adjacency(faces, len(vertices))[near][:, near], directed=False)
