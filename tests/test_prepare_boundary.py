@@ -37,3 +37,30 @@ def test_a_bodice_in_contact_all_along_is_held_at_its_top():
     # the chosen holds: the top band, all around (without the band limit: every vertex)
     assert b.any() and GV[b, 2].min() >= 1.40 - cfg.top_band - 1e-9, GV[b, 2].min()
     assert b.sum() == (GV[:, 2] >= 1.40 - cfg.top_band - 1e-9).sum()
+
+
+def test_a_top_the_body_does_not_carry_still_holds_the_band_under_it():
+    """The top 8 cm (straps) in contact but outside the masks once carried (a fitted body a few
+    pixels off in a side view): the hold grows over the contact up to the top, and is the band
+    under it, not everything from the followed part's top up."""
+    from physavatar.stages.prepare.boundary import find_boundary
+    from physavatar.stages.prepare.config import BoundaryConfig
+
+    BV, BF = _tube(0.12, 0.0, 1.6)
+    GV, GF = _tube(0.13, 0.80, 1.40)
+    cams = ring_rig(4, 3.0, 1.0, (0, 0, 0.9), 64, 64, 50.0)
+
+    def masks(i):
+        out = {}
+        for c in cams:
+            m = np.ones((64, 64))
+            if i > 0:  # rows above z = 1.32 (at the axis) are background
+                uv, _ = c.project(np.array([[0.0, 0.0, 1.32]]))
+                m[: int(np.floor(uv[0, 1])) + 1] = 0
+            out[c.name] = m
+        return out
+
+    cfg = BoundaryConfig()
+    b, info = find_boundary(GV, GF, np.stack([BV, BV]), BF, cams, masks, [0, 1], cfg)
+    assert info["candidates"] < info["contact"] == len(GV)
+    assert np.isclose(GV[b, 2].max(), 1.40) and GV[b, 2].min() >= 1.40 - cfg.top_band - 1e-9, GV[b, 2].min()

@@ -123,6 +123,9 @@ def _find_boundary(vertices, faces, body_frames, body_faces, cameras, masks_of, 
         hit = np.zeros(k2, bool)
         np.maximum.at(hit, lab2, out[near])
         out[near[hit[lab2]]] = True
+        # grown over contact above the followed part (straps a fitted body carries a few pixels
+        # out of a side view's mask): the hold is the band under the grown region's top
+        out &= vertices[:, 2] >= vertices[out, 2].max() - cfg.top_band
     info["boundary"] = int(out.sum())
     info["regions_kept"] = int(reach.sum())
     info["regions"] = int(k)
