@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from physavatar.body.motion import builtin_motion
 from physavatar.body.fit_terms import ClothedSurface
+from physavatar.body.motion import builtin_motion
 from physavatar.geometry.mesh import vertex_normals
 
 

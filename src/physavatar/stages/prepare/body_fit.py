@@ -30,12 +30,13 @@ import torch
 from PIL import Image
 
 from ...body.differentiable import DTYPE, DiffBody
-from ...body.fit_terms import ClothedSurface, MaskView, keypoint_term, project, sample_field, silhouette_terms
+from ...body.fit_terms import ClothedSurface, MaskView, keypoint_term, silhouette_terms
 from ...body.model import PHENOTYPES, TOPOLOGIES, BodyShape
 from ...camera import Camera
 from ...errors import PhysavatarError
 from ...files import read_json
 from ..base import option, setting
+from .body_check import check
 from .keypoints import KEYPOINT_WEIGHT, MEDIAPIPE_TO_ANNY, make_detector, triangulate
 
 # The bones a fit moves (the rest follow their parents): trunk, neck and head, arms to the
@@ -478,59 +479,6 @@ class _Fitter:
         return rot.detach(), tau.detach()
 
 
-# -- the check -----------------------------------------------------------------------------------
-
-def _check(fitter: _Fitter, rot, tau, phen) -> dict:
-    obs, model = fitter.obs, fitter.model
-    with torch.no_grad():
-        V, H = model.pose(rot, tau, phen)
-        kps = model.keypoints(V, H) if obs.kp is not None else None
-    V, H = V.numpy(), H.numpy()
-    T = len(V)
-    share = np.zeros((T, len(obs.cams)))
-    near = np.zeros((T, len(obs.cams)))
-    for t in range(T):
-        for c, view in enumerate(obs.views(t)):
-            uv, z = project(torch.as_tensor(V[t]), view.camera)
-            H_, W_ = view.mask.shape
-            inimg = ((uv[:, 0] >= -0.5) & (uv[:, 1] >= -0.5) & (uv[:, 0] <= W_ - 0.5) & (uv[:, 1] <= H_ - 0.5)
-                     & (z > 0)).numpy()
-            sd = sample_field(view.dt, uv).numpy()  # signed distance to the mask's edge [px]
-            share[t, c] = (inimg & (sd <= 0)).mean()
-            near[t, c] = (inimg & (sd <= 1.0)).mean()
-    rep = {"inside_masks": {
-        "mean": round(float(share.mean()), 4),
-        "mean_within_1px": round(float(near.mean()), 4),
-        "per_camera_mean": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.mean(0))},
-        "per_camera_worst_frame": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.min(0))},
-        "pixel_mm": round(1000 * float(np.median([np.linalg.norm(c.center - V[0].mean(0)) / c.K[0, 0]
-                                                 for c in obs.cams])), 1)}}
-    if kps is not None:
-        errs = {c.name: [] for c in obs.native}
-        for t in range(T):
-            for c, (cam, nat) in enumerate(zip(obs.cams, obs.native)):
-                uv, _ = cam.project(kps[t].numpy())
-                sel = obs.conf[t, c, fitter.kp_ids] > 0.5
-                d = np.linalg.norm(uv - obs.kp[t, c, fitter.kp_ids], axis=1)[sel] * nat.width / cam.width
-                errs[nat.name] += d.tolist()
-        allv = sum(errs.values(), [])
-        rep["keypoints_px"] = {"median": round(float(np.median(allv)), 2) if allv else None,
-                               "per_camera_median": {k: round(float(np.median(v)), 2) if v else None
-                                                     for k, v in errs.items()},
-                               "count": len(allv)}
-    if fitter.clothing is not None:
-        s = fitter.clothing.signed_distance(torch.as_tensor(V[0])[fitter.clothing_points]).numpy()
-        rep["clothing_first_frame"] = {"share_outside": round(float((s > 0).mean()), 4),
-                                       "max_outside_mm": round(float(max(s.max(), 0.0)) * 1000, 1),
-                                       "depth_p95_mm": round(float(np.percentile(s, 95)) * 1000, 1)}
-    joints = H[:, fitter.model.active.numpy()]
-    if T >= 3:
-        acc = np.linalg.norm(joints[2:] - 2 * joints[1:-1] + joints[:-2], axis=-1) * fitter.fps ** 2
-        rep["jitter"] = {"joint_acceleration_mean_m_s2": round(float(acc.mean()), 3),
-                         "joint_acceleration_max_m_s2": round(float(acc.max()), 3)}
-    return rep
-
-
 # -- entry point ---------------------------------------------------------------------------------
 
 def fit_body(capture_dir: str | Path, *, template_vertices: np.ndarray | None, config: BodyFitConfig | None = None,
@@ -598,7 +546,7 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
             with prog.task("prepare: body, whole sequence", total=1) as task:
                 rot, tau = fitter.sequence(rot, tau, phen)
                 task.advance()
-    report.update(_check(fitter, rot, tau, phen))
+    report.update(check(fitter, rot, tau, phen))
     shape = BodyShape.from_array(np.clip(phen.numpy(), 0.0, 1.0))
     report["shape"] = shape.to_dict()
     with torch.no_grad():
@@ -611,4 +559,4 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
     return BodyFit(shape.as_array(), list(fitter.model.body.bone_names), R, trans, cfg.topology, report)
 
 
-__all__ = ["BodyFitConfig", "BodyFit", "fit_body", "FIT_BONES", "PHENOTYPES"]
+__all__ = ["FIT_BONES", "PHENOTYPES", "BodyFit", "BodyFitConfig", "fit_body"]

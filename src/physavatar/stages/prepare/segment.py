@@ -197,7 +197,7 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
         info["colour_used"] = True
         if cfg.under_weight > 0:
             # the body under each vertex seen alike by its cameras: bare skin the hull bridges
-            dev, n = under_disagreement(vertices, body_vertices, body_faces, cameras, images)
+            dev, _ = under_disagreement(vertices, body_vertices, body_faces, cameras, images)
             ok = np.isfinite(dev)
             x = np.log(np.where(ok, dev, 1.0) + 0.005)[:, None]
             gs, bs = g_seed & ok & (sd > cfg.margin), b_seed & ok
