@@ -1,7 +1,7 @@
 """``physavatar prepare`` round trip on synthetic captures (issue 23).
 
     python benchmarks/prepare_accuracy.py [--presets tiny,demo] [--demo PATH] [--work DIR] [--keep]
-        [--given-body] [--run] [--cases no_template,no_template_no_masks] [--pose2sim DIR]
+        [--given-body | --body-npz FILE] [--run] [--cases no_template,no_template_no_masks] [--pose2sim DIR]
 
 For each synthetic capture (the tiny preset is built with ``physavatar synth``; the demo one is
 taken from ``--demo`` or built when missing), two cases are prepared from a copy of the capture
@@ -209,6 +209,9 @@ def main() -> int:
     ap.add_argument("--keep", action="store_true")
     ap.add_argument("--given-body", action="store_true",
                     help="keep the capture's body.npz (skip the body fit: the other steps alone, in minutes)")
+    ap.add_argument("--body-npz", type=Path, default=None,
+                    help="give this body.npz (a body fitted before) instead of the capture's true one: the steps "
+                         "after the body fit with a fitted body, without refitting it (implies --given-body)")
     ap.add_argument("--run", action="store_true",
                     help="also `physavatar run --quick` the original and the prepared capture (no_template case) and compare")
     ap.add_argument("--cases", default="no_template,no_template_no_masks")
@@ -222,7 +225,7 @@ def main() -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix="prepare_bench_"))
     work.mkdir(parents=True, exist_ok=True)
     load_start = os.getloadavg()
-    fit = not args.given_body
+    fit = not (args.given_body or args.body_npz is not None)
     results, checks = {}, {}
     for preset in [p for p in args.presets.split(",") if p and p != "none"]:
         cap = args.demo if preset == "demo" else work / preset
@@ -241,6 +244,9 @@ def main() -> int:
             shutil.rmtree(src, ignore_errors=True)
             shutil.rmtree(dst, ignore_errors=True)
             unprepared_copy(cap, src, masks=keep_masks, body=not fit)
+            if args.body_npz is not None:
+                (src / "body.npz").unlink()
+                shutil.copy(args.body_npz, src / "body.npz")
             t = time.time()
             prepare(src, out=dst, config=PrepareConfig(), progress=False)
             r = evaluate(cap, dst, masks_computed=not keep_masks)
@@ -269,7 +275,8 @@ def main() -> int:
     result = {"benchmark": "prepare_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                           "load_average_start": list(load_start), "load_average_end": list(os.getloadavg())},
-              "config": to_dict(PrepareConfig()), "body_fit": fit, "cases": results, "checks": checks}
+              "config": to_dict(PrepareConfig()), "body_fit": fit,
+              "body_given": str(args.body_npz) if args.body_npz is not None else ("true" if not fit else None), "cases": results, "checks": checks}
     for k, c in checks.items():
         print(f"{k:48s} {c['value']:.4f} (target {c['target']}) {'PASS' if c['pass'] else 'FAIL'}")
     args.results.parent.mkdir(parents=True, exist_ok=True)

@@ -30,12 +30,13 @@ import torch
 from PIL import Image
 
 from ...body.differentiable import DTYPE, DiffBody
-from ...body.fit_terms import ClothedSurface, MaskView, keypoint_term, project, sample_field, silhouette_terms
+from ...body.fit_terms import ClothedSurface, MaskView, keypoint_term, silhouette_terms
 from ...body.model import PHENOTYPES, TOPOLOGIES, BodyShape
 from ...camera import Camera
 from ...errors import PhysavatarError
 from ...files import read_json
 from ..base import option, setting
+from .body_check import check
 from .keypoints import KEYPOINT_WEIGHT, MEDIAPIPE_TO_ANNY, make_detector, triangulate
 
 # The bones a fit moves (the rest follow their parents): trunk, neck and head, arms to the
@@ -252,6 +253,17 @@ class _Model:
         return torch.stack(cols, 1)
 
 
+def _extremities(body: DiffBody) -> np.ndarray:
+    """[V] bool: vertices mostly skinned to the bones below a wrist or a foot (fingers,
+    metacarpals, toes), the parts thinner than a clothed mesh of centimetre edges resolves."""
+    names, par = body.bone_names, body.parents
+    ends = np.zeros(len(names), bool)
+    for b in range(len(names)):
+        p = par[b]
+        ends[b] = p >= 0 and (ends[p] or names[p].startswith(("wrist", "foot")))
+    return body.weights.numpy()[:, ends].sum(1) > 0.5
+
+
 # -- placement -----------------------------------------------------------------------------------
 
 def _hull_extent(views: list[MaskView], step: float = 0.05) -> tuple[np.ndarray, float, float]:
@@ -316,6 +328,10 @@ class _Fitter:
         self.sample_faces = torch.as_tensor(np.repeat(F_, n, axis=0))
         self.sample_bary = torch.as_tensor(bary, dtype=DTYPE)
         self.kp_ids = np.array(self.model.kp_ids)
+        # the clothed mesh's terms leave out the hands' and feet's extremities (fingers, metacarpals,
+        # toes): a surface remeshed at a few centimetres has no fingers, only a blob whose nearest
+        # vertex normals put the true fingers 3-4 cm "outside" it; they pulled the arms into the blob
+        self.clothing_points = torch.as_tensor(np.flatnonzero(~_extremities(self.model.body)))
 
     def data_loss(self, frames: list[int], V, H, sigma: float) -> torch.Tensor:
         cfg, obs = self.cfg, self.obs
@@ -329,9 +345,14 @@ class _Fitter:
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
                                                                 max(sigma, 0.05))
             if t == 0 and self.clothing is not None and self.use_clothing:
-                inside, near = self.clothing.terms(V[i], cfg.clothing_margin, sigma)
-                total = total + cfg.w_clothing_inside * inside + cfg.w_clothing_near * near
+                total = total + self.clothing_loss(V[i], sigma)
         return total / len(frames)
+
+    def clothing_loss(self, V: torch.Tensor, sigma: float) -> torch.Tensor:
+        """The clothed mesh's terms for body vertices ``V`` [V, 3] (the body inside the clothing,
+        on it where it is skin), without the hands' and feet's extremities."""
+        inside, near = self.clothing.terms(V[self.clothing_points], self.cfg.clothing_margin, sigma)
+        return self.cfg.w_clothing_inside * inside + self.cfg.w_clothing_near * near
 
     def samples(self, V: torch.Tensor) -> torch.Tensor:
         """[V, 3] body vertices -> [V + n F, 3] vertices and surface samples."""
@@ -458,59 +479,6 @@ class _Fitter:
         return rot.detach(), tau.detach()
 
 
-# -- the check -----------------------------------------------------------------------------------
-
-def _check(fitter: _Fitter, rot, tau, phen) -> dict:
-    obs, model = fitter.obs, fitter.model
-    with torch.no_grad():
-        V, H = model.pose(rot, tau, phen)
-        kps = model.keypoints(V, H) if obs.kp is not None else None
-    V, H = V.numpy(), H.numpy()
-    T = len(V)
-    share = np.zeros((T, len(obs.cams)))
-    near = np.zeros((T, len(obs.cams)))
-    for t in range(T):
-        for c, view in enumerate(obs.views(t)):
-            uv, z = project(torch.as_tensor(V[t]), view.camera)
-            H_, W_ = view.mask.shape
-            inimg = ((uv[:, 0] >= -0.5) & (uv[:, 1] >= -0.5) & (uv[:, 0] <= W_ - 0.5) & (uv[:, 1] <= H_ - 0.5)
-                     & (z > 0)).numpy()
-            sd = sample_field(view.dt, uv).numpy()  # signed distance to the mask's edge [px]
-            share[t, c] = (inimg & (sd <= 0)).mean()
-            near[t, c] = (inimg & (sd <= 1.0)).mean()
-    rep = {"inside_masks": {
-        "mean": round(float(share.mean()), 4),
-        "mean_within_1px": round(float(near.mean()), 4),
-        "per_camera_mean": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.mean(0))},
-        "per_camera_worst_frame": {c.name: round(float(s), 4) for c, s in zip(obs.native, share.min(0))},
-        "pixel_mm": round(1000 * float(np.median([np.linalg.norm(c.center - V[0].mean(0)) / c.K[0, 0]
-                                                 for c in obs.cams])), 1)}}
-    if kps is not None:
-        errs = {c.name: [] for c in obs.native}
-        for t in range(T):
-            for c, (cam, nat) in enumerate(zip(obs.cams, obs.native)):
-                uv, _ = cam.project(kps[t].numpy())
-                sel = obs.conf[t, c, fitter.kp_ids] > 0.5
-                d = np.linalg.norm(uv - obs.kp[t, c, fitter.kp_ids], axis=1)[sel] * nat.width / cam.width
-                errs[nat.name] += d.tolist()
-        allv = sum(errs.values(), [])
-        rep["keypoints_px"] = {"median": round(float(np.median(allv)), 2) if allv else None,
-                               "per_camera_median": {k: round(float(np.median(v)), 2) if v else None
-                                                     for k, v in errs.items()},
-                               "count": len(allv)}
-    if fitter.clothing is not None:
-        s = fitter.clothing.signed_distance(torch.as_tensor(V[0])).numpy()
-        rep["clothing_first_frame"] = {"share_outside": round(float((s > 0).mean()), 4),
-                                       "max_outside_mm": round(float(max(s.max(), 0.0)) * 1000, 1),
-                                       "depth_p95_mm": round(float(np.percentile(s, 95)) * 1000, 1)}
-    joints = H[:, fitter.model.active.numpy()]
-    if T >= 3:
-        acc = np.linalg.norm(joints[2:] - 2 * joints[1:-1] + joints[:-2], axis=-1) * fitter.fps ** 2
-        rep["jitter"] = {"joint_acceleration_mean_m_s2": round(float(acc.mean()), 3),
-                         "joint_acceleration_max_m_s2": round(float(acc.max()), 3)}
-    return rep
-
-
 # -- entry point ---------------------------------------------------------------------------------
 
 def fit_body(capture_dir: str | Path, *, template_vertices: np.ndarray | None, config: BodyFitConfig | None = None,
@@ -578,7 +546,7 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
             with prog.task("prepare: body, whole sequence", total=1) as task:
                 rot, tau = fitter.sequence(rot, tau, phen)
                 task.advance()
-    report.update(_check(fitter, rot, tau, phen))
+    report.update(check(fitter, rot, tau, phen))
     shape = BodyShape.from_array(np.clip(phen.numpy(), 0.0, 1.0))
     report["shape"] = shape.to_dict()
     with torch.no_grad():
@@ -591,4 +559,4 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
     return BodyFit(shape.as_array(), list(fitter.model.body.bone_names), R, trans, cfg.topology, report)
 
 
-__all__ = ["BodyFitConfig", "BodyFit", "fit_body", "FIT_BONES", "PHENOTYPES"]
+__all__ = ["FIT_BONES", "PHENOTYPES", "BodyFit", "BodyFitConfig", "fit_body"]

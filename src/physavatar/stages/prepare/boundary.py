@@ -114,13 +114,18 @@ def _find_boundary(vertices, faces, body_frames, body_faces, cameras, masks_of, 
     np.maximum.at(reach, lab, vertices[idx, 2] >= top - cfg.top_band)
     reach &= big
     out = np.zeros(len(vertices), bool)
-    out[idx[reach[lab]]] = True
+    # a hold is the part of a kept region within the band: where a tight bodice stays in contact
+    # from the straps down to the hips, the region is one, and the whole bodice is no hold
+    out[idx[reach[lab] & (vertices[idx, 2] >= top - cfg.top_band)]] = True
     if cfg.grow and out.any():  # the whole hold: the contact around what was kept, in the band
         near = np.flatnonzero(contact & (vertices[:, 2] >= top - cfg.top_band))
         k2, lab2 = connected_components(adjacency(faces, len(vertices))[near][:, near], directed=False)
         hit = np.zeros(k2, bool)
         np.maximum.at(hit, lab2, out[near])
         out[near[hit[lab2]]] = True
+        # grown over contact above the followed part (straps a fitted body carries a few pixels
+        # out of a side view's mask): the hold is the band under the grown region's top
+        out &= vertices[:, 2] >= vertices[out, 2].max() - cfg.top_band
     info["boundary"] = int(out.sum())
     info["regions_kept"] = int(reach.sum())
     info["regions"] = int(k)

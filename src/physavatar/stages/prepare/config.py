@@ -103,6 +103,8 @@ class SegmentConfig:
     distance_cap: float = setting(3.0)  # the distance term's log-odds are capped at this
     bridge_normal: float = setting(-0.8)  # unseen vertices facing further down than this are body (hull bridges)
     colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term
+    under_weight: float = setting(1.0)  # weight of the cameras' agreement on the body under a vertex (bare skin)
+    under_cap: float = setting(1.5)  # and its log-odds cap
     smoothness: float = option(1.5, "graph-cut smoothness between neighbouring vertices", flag="--segment-smoothness",
                                check=lambda v: None if v >= 0 else "must be at least 0")
     garments: int = option(1, "number of garments to separate by colour", flag="--garments",

@@ -78,6 +78,37 @@ def vertex_colours(vertices: np.ndarray, faces: np.ndarray, cameras: list, image
     return np.nan_to_num(col, nan=0.5), seen
 
 
+def under_disagreement(points: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray, cameras: list,
+                       images: dict[str, np.ndarray], min_cos: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """([n] how much the cameras facing the fitted body's surface point under each point disagree on
+    its colour: the median distance of their colours to the median colour; [n] how many).
+
+    Where nothing lies between a point and the body (bare skin the visual hull bridges: between
+    a dress's straps), the cameras see that body point itself and agree, even on plain skin; under
+    a garment they see different parts of the cloth in front of it and disagree. The consistency
+    test of voxel colouring (Seitz and Dyer), made at the body's surface instead of the hull's."""
+    from ...geometry.closest import MeshQuery
+
+    _, f, w, P = MeshQuery(body_vertices, body_faces, spacing=0.02).closest(points)
+    BN = vertex_normals(body_vertices, body_faces)
+    N = (BN[body_faces[f]] * w[:, :, None]).sum(1)
+    N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
+    S = np.full((len(cameras), len(P), 3), np.nan)
+    for i, c in enumerate(cameras):
+        uv, z = c.project(P)
+        to = c.center[None] - P
+        to /= np.maximum(np.linalg.norm(to, axis=1, keepdims=True), 1e-12)
+        ok = ((N * to).sum(1) > min_cos) & (z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) \
+            & (uv[:, 0] <= c.width - 1) & (uv[:, 1] <= c.height - 1)
+        S[i, ok] = images[c.name][np.round(uv[ok, 1]).astype(int), np.round(uv[ok, 0]).astype(int)]
+    n = np.isfinite(S[..., 0]).sum(0)
+    dev = np.full(len(P), np.nan)
+    m = n >= 2
+    med = np.nanmedian(S[:, m], 0)
+    dev[m] = np.nanmedian(np.linalg.norm(S[:, m] - med[None], axis=2), 0)
+    return dev, n
+
+
 def _mixture_loglik(x: np.ndarray, sel: np.ndarray, k: int = 3) -> np.ndarray:
     """[n] log-likelihood of ``x`` under a mixture of ``k`` Gaussians fitted to ``x[sel]`` (k-means
     clusters, each its own Gaussian, weighted by its size): a patterned garment has several colours."""
@@ -164,6 +195,17 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
             if g_seed.sum() < 20 or b_seed.sum() < 20:
                 break
         info["colour_used"] = True
+        if cfg.under_weight > 0:
+            # the body under each vertex seen alike by its cameras: bare skin the hull bridges
+            dev, _ = under_disagreement(vertices, body_vertices, body_faces, cameras, images)
+            ok = np.isfinite(dev)
+            x = np.log(np.where(ok, dev, 1.0) + 0.005)[:, None]
+            gs, bs = g_seed & ok & (sd > cfg.margin), b_seed & ok
+            if gs.sum() >= 20 and bs.sum() >= 20:
+                llr_u = np.clip(_mixture_loglik(x, gs, k=1) - _mixture_loglik(x, bs, k=1), -cfg.under_cap, cfg.under_cap)
+                # only above the body: on it the body point is the vertex itself (colour decides)
+                logit = logit + cfg.under_weight * np.where(ok & (sd > cfg.margin), llr_u, 0.0)
+                info["under_body_votes"] = int(((llr_u < 0) & ok & (sd > cfg.margin)).sum())
     N = vertex_normals(vertices, faces)
     # unseen and facing down: the hull closing a gap no camera looks into (a hem to the legs)
     bridge = (seen == 0) & (N[:, 2] < cfg.bridge_normal)
