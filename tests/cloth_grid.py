@@ -1,4 +1,4 @@
-"""A square cloth mesh for simulator tests."""
+"""Simple meshes for simulator tests: a square cloth and an open tube."""
 
 import numpy as np
 
@@ -16,4 +16,17 @@ def grid(n: int = 4, size: float = 1.0, z: float = 0.0, center: bool = False):
         for j in range(n - 1):
             a = i * n + j
             F += [[a, a + n, a + 1], [a + 1, a + n, a + n + 1]]
+    return V, np.array(F)
+
+
+def tube(radius: float, z0: float, z1: float, n_around: int = 24, n_up: int = 6):
+    """An open tube about the z axis: ``n_up`` rings of ``n_around`` vertices from z0 to z1,
+    triangles facing outwards. Returns V [n_up·n_around, 3], F."""
+    a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    V = np.array([[radius * np.cos(t), radius * np.sin(t), h] for h in np.linspace(z0, z1, n_up) for t in a])
+    F = []
+    for j in range(n_up - 1):
+        for i in range(n_around):
+            p, q = j * n_around + i, j * n_around + (i + 1) % n_around
+            F += [[p, q, q + n_around], [p, q + n_around, p + n_around]]
     return V, np.array(F)

@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 import pytest
-from cloth_grid import grid
+from cloth_grid import grid, tube
 
 from physavatar.errors import PhysavatarError
 from physavatar.garment_sim import GarmentPart, layered, push_over, split_layers
@@ -88,15 +88,7 @@ def test_push_over_puts_a_garment_outside_the_one_under_it():
     starts *inside* the inner one (r = 0.098 < 0.1); pushed over, every vertex of it ends at
     least the gap outside the inner cylinder's facets, and far from it barely anything moves."""
     def cylinder(r, n=24, m=6, z0=0.0, z1=0.3):
-        a = np.linspace(0, 2 * np.pi, n, endpoint=False)
-        z = np.linspace(z0, z1, m)
-        V = np.array([[r * np.cos(t), r * np.sin(t), h] for h in z for t in a])
-        F = []
-        for j in range(m - 1):
-            for i in range(n):
-                p, q = j * n + i, j * n + (i + 1) % n
-                F += [[p, q, q + n], [p, q + n, p + n]]
-        return V, np.array(F)
+        return tube(r, z0, z1, n, m)
 
     body = cylinder(0.08, 24, 8, -0.2, 0.8)
     inner = cylinder(0.1)

@@ -6,20 +6,13 @@ computed, fitted body: 274 vertices chosen from 0.83 to 1.39 m, 23 cm from the t
 from __future__ import annotations
 
 import numpy as np
+from cloth_grid import tube
 
 from physavatar.camera import ring_rig
 
 
-def _tube(radius: float, z0: float, z1: float, n_around: int = 24, n_up: int = 31):
-    a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
-    zs = np.linspace(z0, z1, n_up)
-    V = np.array([[radius * np.cos(t), radius * np.sin(t), z] for z in zs for t in a])
-    F = []
-    for j in range(n_up - 1):
-        for i in range(n_around):
-            p, q = j * n_around + i, j * n_around + (i + 1) % n_around
-            F += [[p, q, p + n_around], [q, q + n_around, p + n_around]]
-    return V, np.array(F)
+def _tube(radius: float, z0: float, z1: float):
+    return tube(radius, z0, z1, 24, 31)
 
 
 def test_a_bodice_in_contact_all_along_is_held_at_its_top():
