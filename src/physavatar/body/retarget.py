@@ -13,8 +13,9 @@ A :class:`~physavatar.body.skeleton_map.SkeletonMap` says which joint drives whi
    bone from the root outwards: each mapped bone (but the pelvis sides, root → hip joints,
    which keep Anny's hips: ``_RIGID``, and the collars: ``_COLLAR``) is turned (after its
    parent's turn) so that its segment to the next mapped joint points as in the file (the
-   longest such segment exactly, the others by the best twist about it; a leaf uses the joint's child or BVH end site against the
-   bone's own axis, or the direction to Anny's toes or middle knuckle for feet and hands).
+   longest such segment exactly, the others by the best twist about it; a leaf uses the joint's
+   child or BVH end site against the bone's own axis, or the direction to Anny's toes or middle
+   knuckle for feet and hands).
 3. Frames: ``X_b(t) = C G_j(t) G_j(cal)ᵀ Cᵀ A_b``: the file's rotation since the calibration pose,
    applied to Anny's calibrated bone; for a collar ``G_j(cal)`` is its parent's calibration
    rotation times the collar's average local rotation over the clip (Anny's rest collar stands for
