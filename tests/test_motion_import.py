@@ -491,19 +491,9 @@ def test_bvh_reader_keeps_names_with_spaces_and_reads_crlf(tmp_path):
     assert np.allclose(b.skeleton.end_sites[1], [0, -4, 0])
 
 
-def test_cmu_pelvis_joints_keep_anny_hips_and_the_thighs_apart(bodies, tmp_path):
-    """The CMU skeleton's hip joints hang from a root at their own height: ``LHipJoint`` (offset 0)
-    runs 50° down and forwards to ``LeftHip`` (the offsets below are CMU's own), where Anny's
-    pelvis.L runs sideways. Standing still in the file's zero pose (the calibration pose), Anny's
-    pelvis must keep its rest shape: the hip joints exactly Anny's rest distances apart and
-    from the root, the thighs aimed along the file's (CMU's 20° splay), no leg through the other.
-    Aimed at the file's hip joints, the pelvis sides swung the hip joints 8 cm down and together
-    (0.204 -> 0.115 m) and the thighs crossed (CMU 131_01 in most frames)."""
-    import ipctk
-
-    from physavatar.body.model import bone_vertex_mask
-
-    body = bodies[0]
+def _write_cmu_still(path):
+    """CMU's own offsets (131_01: collars at the neck base, shoulders 26 deg above it), standing
+    still in the zero pose for three frames, y up; returns the skeleton [(name, parent, offset)]."""
     sk = [("Hips", None, (0, 0, 0)), ("lowerback", "Hips", (0, 0, 0)), ("Chest", "lowerback", (-0.023, 1.987, 0.003)),
           ("Chest2", "Chest", (-0.007, 1.990, -0.005)), ("lowerneck", "Chest2", (0, 0, 0)),
           ("Neck", "lowerneck", (0.001, 1.610, 0.107)), ("Head", "Neck", (-0.011, 1.599, 0.013))]
@@ -519,7 +509,25 @@ def test_cmu_pelvis_joints_keep_anny_hips_and_the_thighs_apart(bodies, tmp_path)
                 ["Zrotation", "Yrotation", "Xrotation"] for p in parents]
     data = np.zeros((3, sum(len(c) for c in channels)))
     data[:, 1] = 17.0  # the hips 17 units (~0.95 m) above the floor, y up
-    write_bvh(tmp_path / "cmu.bvh", names, parents, np.array([o for _, _, o in sk], float), channels, data, 1 / 120)
+    write_bvh(path, names, parents, np.array([o for _, _, o in sk], float), channels, data, 1 / 120)
+    return sk
+
+
+def test_cmu_pelvis_joints_keep_anny_hips_and_the_thighs_apart(bodies, tmp_path):
+    """The CMU skeleton's hip joints hang from a root at their own height: ``LHipJoint`` (offset 0)
+    runs 50° down and forwards to ``LeftHip`` (the offsets below are CMU's own), where Anny's
+    pelvis.L runs sideways. Standing still in the file's zero pose (the calibration pose), Anny's
+    pelvis must keep its rest shape: the hip joints exactly Anny's rest distances apart and
+    from the root, the thighs aimed along the file's (CMU's 20° splay), no leg through the other.
+    Aimed at the file's hip joints, the pelvis sides swung the hip joints 8 cm down and together
+    (0.204 -> 0.115 m) and the thighs crossed (CMU 131_01 in most frames)."""
+    import ipctk
+
+    from physavatar.body.model import bone_vertex_mask
+
+    body = bodies[0]
+    sk = _write_cmu_still(tmp_path / "cmu.bvh")
+    names = [j[0] for j in sk]
     m = import_bvh(tmp_path / "cmu.bvh", body)
     assert m.meta["mapped_joints"]["LHipJoint"] == "pelvis.L"
     J = body.pose(m.rotations, m.root_translation).joints
@@ -544,3 +552,28 @@ def test_cmu_pelvis_joints_keep_anny_hips_and_the_thighs_apart(bodies, tmp_path)
     mesh = ipctk.CollisionMesh(V[0][ids], ipctk.edges(Fl), Fl)
     mesh.can_collide = ipctk.make_vertex_patches_filter(np.r_[np.zeros(legs[0].sum()), np.ones(legs[1].sum())].astype(np.int32))
     assert not ipctk.has_intersections(mesh, V[0][ids])
+
+
+def test_cmu_collars_keep_anny_rest_shoulders(bodies, tmp_path):
+    """CMU's collar joints sit at the neck base, its shoulders 26 deg above them; Anny's clavicle
+    runs 10 deg down from beside the sternum. A collar's direction in a zero pose says where the
+    skeleton puts its collar joint as much as a pose: the collars are calibrated on the clip's
+    average collar pose, which is Anny's rest. Standing still, Anny's shoulders stay at rest on
+    the chest (aimed at the file's collars they rose 8.7 cm: a shrug in every frame of the CMU clips), and
+    the arms still hang along the file's."""
+    body = bodies[0]
+    sk = _write_cmu_still(tmp_path / "cmu.bvh")
+    m = import_bvh(tmp_path / "cmu.bvh", body)
+    assert m.meta["mapped_joints"]["LeftCollar"] == "clavicle.L"
+    J = body.pose(m.rotations, m.root_translation).joints
+    n, R = body.bone_names.index, body.rest_joints
+    names = [j[0] for j in sk]
+    C = np.array(m.meta["axes"])
+    X, _ = _pose_points(body, m.rotations, m.root_translation)
+    for s, S in (("L", "Left"), ("R", "Right")):
+        # the shoulder where Anny's rest puts it on the chest (spine01, Anny's collars' parent)
+        rel = np.einsum("tji,tj->ti", X[:, n("spine01")], J[:, n(f"upperarm01.{s}")] - J[:, n("spine01")])
+        assert np.abs(rel - (R[n(f"upperarm01.{s}")] - R[n("spine01")])).max() < 0.01
+        want = C @ np.array(sk[names.index(f"{S}Elbow")][2])
+        got = J[0, n(f"lowerarm01.{s}")] - J[0, n(f"upperarm01.{s}")]
+        assert np.degrees(np.arccos(np.dot(want, got) / np.linalg.norm(want) / np.linalg.norm(got))) < 1.0

@@ -11,12 +11,15 @@ A :class:`~physavatar.body.skeleton_map.SkeletonMap` says which joint drives whi
    left at +x, so ``C`` turns the file's axes into Anny's.
 2. Alignment ``A_b``: the rotation that takes Anny's rest pose to the calibration pose, bone by
    bone from the root outwards: each mapped bone (but the pelvis sides, root → hip joints,
-   which keep Anny's hips: ``_RIGID``) is turned (after its parent's turn) so that its
-   segment to the next mapped joint points as in the file (the longest such segment exactly, the
-   others by the best twist about it; a leaf uses the joint's child or BVH end site against the
-   bone's own axis, or the direction to Anny's toes or middle knuckle for feet and hands).
+   which keep Anny's hips: ``_RIGID``, and the collars: ``_COLLAR``) is turned (after its
+   parent's turn) so that its segment to the next mapped joint points as in the file (the
+   longest such segment exactly, the others by the best twist about it; a leaf uses the joint's
+   child or BVH end site against the bone's own axis, or the direction to Anny's toes or middle
+   knuckle for feet and hands).
 3. Frames: ``X_b(t) = C G_j(t) G_j(cal)ᵀ Cᵀ A_b``: the file's rotation since the calibration pose,
-   applied to Anny's calibrated bone. Unmapped Anny bones follow their parent. Local rotations
+   applied to Anny's calibrated bone; for a collar ``G_j(cal)`` is its parent's calibration
+   rotation times the collar's average local rotation over the clip (Anny's rest collar stands for
+   the file's average one). Unmapped Anny bones follow their parent. Local rotations
    ``X_parentᵀ X_b`` are stored as axis-angle (docs/motions.md).
 4. Root translation: the hips' path times ``scale`` (Anny's hip-to-ankle length over the file's:
    units and body size at once), horizontally relative to the first frame; vertically so that
@@ -116,9 +119,26 @@ def _snap(v, deg=20.0):
 # hip joints' height, Anny's pelvis.L sideways. Aimed at the file's hip joints, they swung Anny's
 # hip joints 8 cm down and together (CMU 131_01: 0.204 -> 0.115 m apart, the thighs through each
 # other in most frames). They keep Anny's rest direction (the file's motion since the calibration
-# pose is still applied to them). The collar bones are aimed as before: a zero pose's collar
-# direction is partly a pose (a T-pose raises them against Anny's A-pose).
+# pose is still applied to them).
+# The collar bones are not aimed either: their direction says where a skeleton puts its collar
+# joint (CMU: at the neck base, the shoulder 26 deg above it; Anny: beside the sternum, 10 deg
+# down) as much as a pose, and aimed they shrugged Anny's shoulders 8-10 cm on the CMU clips. But
+# a zero pose's collars can also be a pose (SMPL's T-pose raises them; a relaxed AMASS actor's
+# turn down from it, and kept at Anny's rest against the zero pose they sank 28 deg: AMASS round
+# trip 3.7 cm). So a collar keeps Anny's rest direction in the file's *average* collar pose over
+# the clip (relative to its parent), and the motion is taken from there: collars move little and
+# come back. The arms are aimed as before (the arm's direction is matched; only the shoulder
+# joint's place on the chest is Anny's).
 _RIGID = ("pelvis.",)
+_COLLAR = ("clavicle.",)
+
+
+def _mean_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest the average of rotation matrices [T, 3, 3] (chordal mean)."""
+    U, _, Vt = np.linalg.svd(R.mean(0))
+    if np.linalg.det(U @ Vt) < 0:
+        U[:, -1] *= -1
+    return U @ Vt
 
 
 def _leg_joints(by: dict[str, int], side: str) -> list[int]:
@@ -217,7 +237,7 @@ def retarget(src: SourceMotion, body: BodyModel, sm: SkeletonMap, *, path=None, 
     A = np.empty((B, 3, 3))
     for b in range(B):  # parents first
         Ap = A[par[b]] if par[b] >= 0 else np.eye(3)
-        if b not in mapped or names[b].startswith(_RIGID):
+        if b not in mapped or names[b].startswith(_RIGID + _COLLAR):
             A[b] = Ap
             continue
         j = mapped[b]
@@ -256,7 +276,11 @@ def retarget(src: SourceMotion, body: BodyModel, sm: SkeletonMap, *, path=None, 
     for b in range(B):
         if b in mapped:
             j = mapped[b]
-            X[:, b] = C @ src.G[:, j] @ G0[j].T @ C.T @ A[b]
+            G0j = G0[j]
+            pj = src.parents[j]
+            if names[b].startswith(_COLLAR) and pj >= 0:  # calibrated on the clip's average collar pose
+                G0j = G0[pj] @ _mean_rotation(np.swapaxes(src.G[:, pj], -1, -2) @ src.G[:, j])
+            X[:, b] = C @ src.G[:, j] @ G0j.T @ C.T @ A[b]
         else:
             X[:, b] = X[:, par[b]] if par[b] >= 0 else np.eye(3)
     D = X.copy()
