@@ -57,17 +57,23 @@ def visible(points: np.ndarray, normals: np.ndarray, cam, spacing: float) -> tup
     return vis, uv
 
 
+def _samples(cameras: list, images: dict[str, np.ndarray], n: int, usable) -> np.ndarray:
+    """[C, n, 3] each camera's pixel colour at the points it can use (NaN elsewhere);
+    ``usable(camera)`` gives ([n] which points, [n, 2] their pixel positions)."""
+    samples = np.full((len(cameras), n, 3), np.nan)
+    for i, c in enumerate(cameras):
+        ok, uv = usable(c)
+        x = np.clip(np.round(uv[ok, 0]).astype(int), 0, c.width - 1)
+        y = np.clip(np.round(uv[ok, 1]).astype(int), 0, c.height - 1)
+        samples[i, ok] = images[c.name][y, x]
+    return samples
+
+
 def vertex_colours(vertices: np.ndarray, faces: np.ndarray, cameras: list, images: dict[str, np.ndarray],
                    spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """([V, 3] median colour over the cameras that see each vertex, [V] how many do)."""
     N = vertex_normals(vertices, faces)
-    samples = np.full((len(cameras), len(vertices), 3), np.nan)
-    for i, c in enumerate(cameras):
-        vis, uv = visible(vertices, N, c, spacing)
-        img = images[c.name]
-        x = np.clip(np.round(uv[vis, 0]).astype(int), 0, c.width - 1)
-        y = np.clip(np.round(uv[vis, 1]).astype(int), 0, c.height - 1)
-        samples[i, vis] = img[y, x]
+    samples = _samples(cameras, images, len(vertices), lambda c: visible(vertices, N, c, spacing))
     seen = np.isfinite(samples[..., 0]).sum(0)
     with np.errstate(all="ignore"):
         import warnings
@@ -93,14 +99,16 @@ def under_disagreement(points: np.ndarray, body_vertices: np.ndarray, body_faces
     BN = vertex_normals(body_vertices, body_faces)
     N = (BN[body_faces[f]] * w[:, :, None]).sum(1)
     N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
-    S = np.full((len(cameras), len(P), 3), np.nan)
-    for i, c in enumerate(cameras):
+
+    def facing(c):
         uv, z = c.project(P)
         to = c.center[None] - P
         to /= np.maximum(np.linalg.norm(to, axis=1, keepdims=True), 1e-12)
         ok = ((N * to).sum(1) > min_cos) & (z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) \
             & (uv[:, 0] <= c.width - 1) & (uv[:, 1] <= c.height - 1)
-        S[i, ok] = images[c.name][np.round(uv[ok, 1]).astype(int), np.round(uv[ok, 0]).astype(int)]
+        return ok, uv
+
+    S = _samples(cameras, images, len(P), facing)
     n = np.isfinite(S[..., 0]).sum(0)
     dev = np.full(len(P), np.nan)
     m = n >= 2
