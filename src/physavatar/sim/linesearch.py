@@ -5,14 +5,41 @@ from __future__ import annotations
 import time
 
 
-def backtrack(scene, energy, X, step, stats):
+class EnergyMemo:
+    """E at the last accepted iterate, reused as the next line search's E(X) while nothing E
+    depends on has changed: the iterate (the same array), the barrier set at it (ContactScene's
+    cached collisions, rebuilt after any new candidate build), the barrier potential (a new one
+    at every κ change), the lagged friction set, the penalty mode and weight. The value is then
+    the same bits that E(X) would return (docs/simulation.md "Session 17")."""
+
+    def __init__(self):
+        self._key = None
+        self.value = None
+
+    @staticmethod
+    def key(sim, X, penalty):
+        return ((X, sim.scene._collisions_at, sim.barrier.potential, sim.friction.tangential),
+                (bool(penalty), sim.penalty.weight))
+
+    def get(self, key):
+        if self._key is None or self._key[1] != key[1] or any(a is not b for a, b in zip(self._key[0], key[0])):
+            return None
+        return self.value
+
+    def set(self, key, value):
+        self._key, self.value = key, value
+
+
+def backtrack(scene, energy, X, step, stats, E0=None):
     """(X_new, E(X_new), α): X + α·step with α the collision-free step size (CCD), halved
     until E does not increase (or α < 1e-12). ``scene.covers_last_point`` is set: X_new lies
-    on the CCD's segment, whose candidates hold its barrier set."""
+    on the CCD's segment, whose candidates hold its barrier set. ``E0``: E(X) when known
+    (EnergyMemo), else computed here."""
     tls = time.perf_counter()
     # E at X before the CCD's segment build replaces the candidates: the barrier set at X is
     # still the one the gradient used (no rebuild)
-    E0 = energy(X)
+    if E0 is None:
+        E0 = energy(X)
     stats.time["line_search"] += time.perf_counter() - tls
     tcd = time.perf_counter()
     alpha = scene.collision_free_stepsize(X, X + step)

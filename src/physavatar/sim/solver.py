@@ -18,10 +18,9 @@ linearization that sensitivity.py differentiates.
 Moving body (docs/simulation.md "Moving collider"): the prescribed motion (body t → t+1,
 Dirichlet vertices → targets) is swept with CCD against the cloth at xₜ; if it is collision-
 free it is applied and those DOFs eliminated. Otherwise the cloth is carried with the body
-(start.follow_body) or, when that move is cut too, the prescribed vertices become unknowns
-pulled to their targets by a stiff penalty (KinematicPenalty): every Newton step is limited by
-CCD and the barrier pushes the cloth ahead of the body, until they are snapped (IPC's
-Dirichlet treatment).
+(start.follow_body) or, when that is cut too, the prescribed vertices become unknowns pulled
+to their targets by a stiff penalty (KinematicPenalty) until they are snapped (IPC's Dirichlet
+treatment).
 """
 
 from __future__ import annotations
@@ -38,7 +37,7 @@ from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, Stiffnes
 from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
-from .linesearch import backtrack, expand_step
+from .linesearch import EnergyMemo, backtrack, expand_step
 from .start import follow_body, warm_start
 from .terms import StepState
 
@@ -61,6 +60,7 @@ class _Solve:
     cut: bool = False  # the last step was cut by CCD (α < 1): the next direction may be looser
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
+    memo: EnergyMemo = dataclasses.field(default_factory=EnergyMemo)  # E at the last iterate
 
 
 class ClothSim:
@@ -258,8 +258,7 @@ class ClothSim:
             (x_new [N, 3], v_new [N, 3], StepStats).
         """
         t_start = time.perf_counter()
-        # ipctk's threaded reductions sum in a scheduling-dependent order; one thread makes a
-        # step bit-reproducible (DESIGN.md: same inputs, same outputs).
+        # one ipctk thread: its threaded sums' order depends on scheduling (DESIGN.md: same inputs, same outputs)
         if self.settings.deterministic:
             ipctk.set_num_threads(1)
         stats = StepStats()
@@ -370,9 +369,8 @@ class ClothSim:
                     break
                 if action == "continue":
                     continue
-            # The candidates of the last CCD segment (X → X + t·step, inflated by d̂) hold every
-            # pair within d̂ of any point on it, X_new included: no rebuild needed for the next
-            # iteration's barrier set (one LBVH build per iteration instead of two).
+            # The last CCD segment's candidates (inflated by d̂) hold every pair within d̂ of
+            # any point on it, X_new included: no rebuild for the next iteration's barrier set.
             if not self.scene.covers_last_point:
                 self.scene.prepare_static(sv.X)
             if stop_after_step:
@@ -444,7 +442,9 @@ class ClothSim:
     def _line_search(self, sv: _Solve, step, residual, stats):
         """Backtracking from the collision-free step size (CCD) until E does not increase; a
         full step on a linearly converging tail is also tried longer (expand_step)."""
-        X_new, E1, alpha = backtrack(self.scene, lambda Y: self._energy(Y, sv.penalty), sv.X, step, stats)
+        E0 = sv.memo.get(EnergyMemo.key(self, sv.X, sv.penalty))
+        X_new, E1, alpha = backtrack(self.scene, lambda Y: self._energy(Y, sv.penalty), sv.X, step, stats, E0)
+        sv.memo.set(EnergyMemo.key(self, X_new, sv.penalty), E1)
         sv.cut = alpha < 1.0
         if (self.settings.step_expansion and not sv.penalty and alpha == 1.0
                 and residual > 0.7 * sv.prev_residual):
