@@ -4,6 +4,41 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
+from .contact import ContactScene
+
+
+class CandidateScene(ContactScene):
+    """A ContactScene that remembers, per coordinate, the box of the configurations its last
+    candidate build covered (the configuration of a static build; the two ends of a segment's).
+
+    ipctk's broad phase bounds each primitive by the box of its vertices at the build's
+    configuration(s), inflated by d̂; a configuration X inside that box per vertex has every
+    primitive box inside the built one, so the candidates hold every pair within d̂ at X and
+    its barrier set needs no new build (:meth:`covers`). The solver asks this where it used to
+    rebuild around a point a CCD segment or a carry had just swept (docs/simulation.md
+    "Session 17")."""
+
+    _box = None
+
+    def prepare_static(self, X):
+        super().prepare_static(X)
+        self._box = (np.array(X, dtype=np.float64), None)
+
+    def prepare_segment(self, X0, X1):
+        super().prepare_segment(X0, X1)
+        self._box = (np.minimum(X0, X1), np.maximum(X0, X1))
+
+    def covers(self, X) -> bool:
+        """Whether the last build's candidates hold every pair within d̂ at X."""
+        box = self._box
+        if box is None or np.shape(X) != box[0].shape:
+            return False
+        if box[1] is None:
+            return bool(np.array_equal(X, box[0]))
+        return bool(np.all(X >= box[0]) and np.all(X <= box[1]))
+
 
 class EnergyMemo:
     """E at the last accepted iterate, reused as the next line search's E(X) while nothing E

@@ -32,12 +32,12 @@ import ipctk
 import numpy as np
 
 from .assembly import Assembler, Linearization, NewtonLinearSolver
-from .contact import Barrier, ContactScene, Friction, KinematicPenalty
+from .contact import Barrier, Friction, KinematicPenalty
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
 from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
-from .linesearch import EnergyMemo, backtrack, expand_step
+from .linesearch import CandidateScene, EnergyMemo, backtrack, expand_step
 from .start import follow_body, warm_start
 from .terms import StepState
 
@@ -130,7 +130,7 @@ class ClothSim:
         self.linear_solver.reset()  # a different system: its factor is no preconditioner
         self.linear_solver_all.reset()
         n_total = self.n + self.nb
-        self.scene = ContactScene(self.topo.rest, self.topo.faces, body_vertices, body_faces, s.dhat, s.dmin,
+        self.scene = CandidateScene(self.topo.rest, self.topo.faces, body_vertices, body_faces, s.dhat, s.dmin,
                                   s.self_contact, exclude=self.contact_exclude, prescribed=self.boundary)
         self.scene.ccd_threads = s.ccd_threads if s.deterministic else 0
         free = np.ones(n_total)
@@ -332,7 +332,8 @@ class ClothSim:
             # friction is not lagged yet at this point
             X = warm_start(self.scene, self.terms + [self.barrier], free, X, x_pred, stats)
         diag = self.scene.bbox_diagonal(X_goal)
-        self.scene.prepare_static(X)
+        if not self.scene.covers(X):  # the start's last CCD segment (carry, body move) usually holds X
+            self.scene.prepare_static(X)
         self._update_stiffness_init(X)
         self.friction.lag(X, self.barrier)
         return _Solve(X=X, penalty=penalty, X_goal=X_goal, diag=diag,
@@ -357,8 +358,7 @@ class ClothSim:
                     continue
                 stats.converged = True
                 break
-            # "rms" (Codim-IPC): the step is taken, and the solve ends once the last
-            # newton_window directions were all below the tolerance
+            # "rms" (Codim-IPC): the step is taken; stop once the last newton_window directions were below tol
             sv.below_count = sv.below_count + 1 if below else 0
             stop_after_step = s.newton_norm == "rms" and sv.below_count >= s.newton_window
             self._line_search(sv, step, residual, stats)
@@ -371,7 +371,7 @@ class ClothSim:
                     continue
             # The last CCD segment's candidates (inflated by d̂) hold every pair within d̂ of
             # any point on it, X_new included: no rebuild for the next iteration's barrier set.
-            if not self.scene.covers_last_point:
+            if not (self.scene.covers_last_point or self.scene.covers(sv.X)):
                 self.scene.prepare_static(sv.X)
             if stop_after_step:
                 if self._relag_friction(sv):
@@ -419,11 +419,10 @@ class ClothSim:
         Hm = assembler.assemble(hess_el + hess_c)
         stats.time["assembly"] += time.perf_counter() - ta
         tl = time.perf_counter()
-        # Penalty iterations solve their (larger) system by CG too, to 1e-10 (linear_solver_all)
+        # penalty iterations: their (larger) system by CG too, to 1e-10 (linear_solver_all);
+        # free ones inexact: a loose direction while far from the solution (the stopping step is
+        # refined to 1e-10 below); 10× looser after a CCD-cut step (this one will likely be cut too)
         sv.linear_solver = self.linear_solver_all if penalty else self.linear_solver
-        # inexact Newton: a loose direction while far from the solution (the stopping
-        # step is refined to 1e-10 below, so the solution is unchanged); 10× looser still
-        # after a step that CCD cut (contact discovery: this one will likely be cut too)
         loose = sv.cut and s.integrator == "euler"  # BDF2: docs/simulation.md "Session 14"
         forcing = None if penalty else s.newton_forcing * (CUT_FORCING if loose else 1.0)
         dx = -sv.linear_solver.solve(Hm, grad, assembler, forcing)
@@ -523,7 +522,8 @@ class ClothSim:
             stats.body_gap = float(np.max(np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)))
             self._body_lag = (state.x_goal[self.n:].copy(), X[self.n:].copy())
         stats.barrier_stiffness = self.barrier_stiffness
-        self.scene.prepare_static(X)
+        if s.keep_linearization or not self.scene.covers(X):
+            self.scene.prepare_static(X)
         c = self.scene.collisions_at(X)
         stats.n_contacts = len(c)
         stats.min_distance = float(np.sqrt(self.scene.min_distance(X)))  # ipctk: squared
