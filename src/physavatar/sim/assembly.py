@@ -10,6 +10,10 @@ A step's system at its solution is kept as a :class:`Linearization` (for sensiti
 
 from __future__ import annotations
 
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -241,6 +245,45 @@ class Assembler:
         c = self.dof_map[M.col]
         keep = (r >= 0) & (c >= 0)
         return sp.csr_matrix((M.data[keep], (r[keep], c[keep])), shape=(self.n, self.n))
+
+
+_POOL = {}  # process id -> one worker thread (a forked child makes its own)
+
+
+def _worker() -> ThreadPoolExecutor:
+    pid = os.getpid()
+    if pid not in _POOL:
+        _POOL.clear()
+        _POOL[pid] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="physavatar-sim")
+    return _POOL[pid]
+
+
+def term_derivatives(terms, X, offload=(), contact=(), times=None):
+    """[(gradient, projected Hessian)] of each term at X, in the order of ``terms``.
+
+    The terms in ``offload`` (those whose numba kernels release the GIL: membrane, hinges) are
+    evaluated on a second thread while this one evaluates the rest (ipctk's contact terms hold
+    the GIL throughout), so a step uses both cores; every value is the one the term returns
+    alone, and the caller sums them in the same order, so the result is bit-identical to the
+    serial loop (docs/simulation.md "Session 17"). ``times``: a dict whose "contact" entry
+    gets the seconds spent in the ``contact`` terms.
+    """
+    def both(t):
+        return t.gradient(X), t.hessian(X, project=True)
+
+    off = [t for t in terms if any(t is o for o in offload)]
+    future = _worker().submit(lambda: [both(t) for t in off]) if len(off) > 1 else None
+    out = {}
+    for t in terms:
+        if future is not None and any(t is o for o in off):
+            continue
+        tt = time.perf_counter()
+        out[id(t)] = both(t)
+        if times is not None and any(t is c for c in contact):
+            times["contact"] += time.perf_counter() - tt
+    if future is not None:
+        out.update(zip(map(id, off), future.result()))
+    return [out[id(t)] for t in terms]
 
 
 class Factorization:

@@ -31,7 +31,7 @@ import time
 import ipctk
 import numpy as np
 
-from .assembly import Assembler, Linearization, NewtonLinearSolver
+from .assembly import Assembler, Linearization, NewtonLinearSolver, term_derivatives
 from .contact import Barrier, Friction, KinematicPenalty
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
 from .material import Material
@@ -402,21 +402,13 @@ class ClothSim:
         assembler = self.assembler_all if penalty else self.assembler_free
         self._update_stiffness_init(sv.X)
         ta = time.perf_counter()
-        grads_el, hess_el, grads_c, hess_c = [], [], [], []
-        for t in self.active_terms(penalty):
-            contact = t is self.barrier or t is self.friction
-            tt = time.perf_counter()
-            g = t.gradient(sv.X)
-            H = t.hessian(sv.X, project=True)
-            if contact:
-                grads_c.append(g)
-                hess_c.append(H)
-                stats.time["contact"] += time.perf_counter() - tt
-            else:
-                grads_el.append(g)
-                hess_el.append(H)
-        grad = assembler.reduce(np.sum(grads_el + grads_c, axis=0))
-        Hm = assembler.assemble(hess_el + hess_c)
+        terms, contact = self.active_terms(penalty), (self.barrier, self.friction)
+        # membrane and hinges on a second thread beside the contact terms (bit-identical)
+        derivs = term_derivatives(terms, sv.X, (self.membrane, self.bending), contact, stats.time)
+        order = [i for i, t in enumerate(terms) if not any(t is c for c in contact)]
+        order += [i for i, t in enumerate(terms) if any(t is c for c in contact)]
+        grad = assembler.reduce(np.sum([derivs[i][0] for i in order], axis=0))
+        Hm = assembler.assemble([derivs[i][1] for i in order])
         stats.time["assembly"] += time.perf_counter() - ta
         tl = time.perf_counter()
         # penalty iterations: their (larger) system by CG too, to 1e-10 (linear_solver_all);
