@@ -489,7 +489,7 @@ def bending_hessian(x, hinges, weight, rest_angle, scale, mode):
 # -- assembly ------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def scatter_add(data, slot, values):
     """data[slot[i]] += values[i] (serial: slots repeat)."""
     for i in range(slot.shape[0]):

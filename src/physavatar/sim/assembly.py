@@ -149,7 +149,7 @@ class Assembler:
         out[keep] = reduced[self.dof_map[keep]]
         return out
 
-    def assemble(self, hessians) -> sp.csr_matrix:
+    def assemble(self, hessians, partial=None) -> sp.csr_matrix:
         """Sum Hessians (terms.Hessian, or scipy-sparse over all DOFs) into one reduced CSR.
 
         Blocks and diagonals go through their precomputed slots (numba scatter). A sparse
@@ -157,10 +157,22 @@ class Assembler:
         so the matrix keeps its pattern (and its cached symbolic factorization); otherwise it
         is added with scipy and the pattern grows. Blocks over an element set the assembler
         was not built with (a new term's) take the sparse path. :meth:`assemble_numpy` is the
-        twin.
+        twin. ``partial``: (data, extra) of :meth:`scatter_hessians` over Hessians that precede these
+        (term_derivatives' second thread), continued here in order (the same sums).
         """
-        data = np.zeros(self.nnz + 1)  # the last slot collects entries on eliminated DOFs
-        extra = []
+        data, extra = partial if partial is not None else self.scatter_hessians([])
+        self.scatter_hessians(hessians, data, extra)
+        H = sp.csr_matrix((data[: self.nnz], self.indices, self.indptr), shape=(self.n, self.n))
+        for h in extra:
+            H = H + self.reduce_matrix(h)
+        return H
+
+    def scatter_hessians(self, hessians, data=None, extra=None):
+        """Add Hessians into the pattern's value array: (data [nnz + 1], extra: sparse
+        Hessians outside the pattern, for :meth:`assemble` to add), both created when None."""
+        if data is None:
+            data = np.zeros(self.nnz + 1)  # the last slot collects entries on eliminated DOFs
+        extra = [] if extra is None else extra
         for h in hessians:
             for b in as_hessian(h).parts():
                 slot = self.scatter.get(id(b.index)) if isinstance(b, Blocks) else None
@@ -177,10 +189,7 @@ class Assembler:
                         extra.append(M)
                     else:
                         _kernels.scatter_add(data, slot, values)
-        H = sp.csr_matrix((data[: self.nnz], self.indices, self.indptr), shape=(self.n, self.n))
-        for h in extra:
-            H = H + self.reduce_matrix(h)
-        return H
+        return data, extra
 
     def _sparse_slots(self, M):
         """Slots of a full-DOF sparse matrix's kept entries in the pattern, or (None, None).
@@ -258,32 +267,41 @@ def _worker() -> ThreadPoolExecutor:
     return _POOL[pid]
 
 
-def term_derivatives(terms, X, offload=(), contact=(), times=None):
-    """[(gradient, projected Hessian)] of each term at X, in the order of ``terms``.
+def term_derivatives(terms, X, offload=(), contact=(), times=None, assembler=None):
+    """([(gradient, projected Hessian)] of each term at X in the order of ``terms``, partial).
 
-    The terms in ``offload`` (those whose numba kernels release the GIL: membrane, hinges) are
-    evaluated on a second thread while this one evaluates the rest (ipctk's contact terms hold
-    the GIL throughout), so a step uses both cores; every value is the one the term returns
-    alone, and the caller sums them in the same order, so the result is bit-identical to the
-    serial loop (docs/simulation.md "Session 17"). ``times``: a dict whose "contact" entry
-    gets the seconds spent in the ``contact`` terms.
+    The leading terms of ``terms`` that are in ``offload`` (inertia, gravity, and the membrane
+    and hinges, whose numba kernels release the GIL) are evaluated on a second thread while
+    this one evaluates the rest (ipctk's contact terms hold the GIL throughout), so a step
+    uses both cores. With an ``assembler``, that thread also scatters their Hessians
+    (``partial`` = (k, Assembler.scatter_hessians' (data, extra)) for the first k Hessians, to be
+    continued by Assembler.assemble; else None). Every value is the one the term returns
+    alone, and the sums run in the same order: bit-identical to the serial loop
+    (docs/simulation.md "Session 17"). ``times``: a dict whose "contact" entry gets the
+    seconds spent in the ``contact`` terms.
     """
     def both(t):
         return t.gradient(X), t.hessian(X, project=True)
 
-    off = [t for t in terms if any(t is o for o in offload)]
-    future = _worker().submit(lambda: [both(t) for t in off]) if len(off) > 1 else None
-    out = {}
-    for t in terms:
-        if future is not None and any(t is o for o in off):
-            continue
+    k = 0
+    while k < len(terms) and any(terms[k] is o for o in offload):
+        k += 1
+
+    def lead():
+        d = [both(t) for t in terms[:k]]
+        return d, (assembler.scatter_hessians([h for _, h in d]) if assembler is not None else None)
+
+    future = _worker().submit(lead) if k > 1 else None
+    out = []
+    for t in terms[(k if future is not None else 0):]:
         tt = time.perf_counter()
-        out[id(t)] = both(t)
+        out.append(both(t))
         if times is not None and any(t is c for c in contact):
             times["contact"] += time.perf_counter() - tt
-    if future is not None:
-        out.update(zip(map(id, off), future.result()))
-    return [out[id(t)] for t in terms]
+    if future is None:
+        return out, None
+    d, part = future.result()
+    return d + out, (None if part is None else (k, part))
 
 
 class Factorization:

@@ -403,12 +403,14 @@ class ClothSim:
         self._update_stiffness_init(sv.X)
         ta = time.perf_counter()
         terms, contact = self.active_terms(penalty), (self.barrier, self.friction)
-        # membrane and hinges on a second thread beside the contact terms (bit-identical)
-        derivs = term_derivatives(terms, sv.X, (self.membrane, self.bending), contact, stats.time)
+        # the elastic terms (and their scatter) on a second thread beside the contact terms (bit-identical)
+        derivs, part = term_derivatives(terms, sv.X, (self.inertia, self.gravity, self.membrane, self.bending),
+                                        contact, stats.time, assembler)
         order = [i for i, t in enumerate(terms) if not any(t is c for c in contact)]
         order += [i for i, t in enumerate(terms) if any(t is c for c in contact)]
+        k = part[0] if part is not None and order[: part[0]] == list(range(part[0])) else 0
         grad = assembler.reduce(np.sum([derivs[i][0] for i in order], axis=0))
-        Hm = assembler.assemble([derivs[i][1] for i in order])
+        Hm = assembler.assemble([derivs[i][1] for i in order[k:]], part[1] if k else None)
         stats.time["assembly"] += time.perf_counter() - ta
         tl = time.perf_counter()
         # penalty iterations: their (larger) system by CG too, to 1e-10 (linear_solver_all);
