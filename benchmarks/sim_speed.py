@@ -263,6 +263,8 @@ def main():
     ap.add_argument("--large-baseline", action="store_true", help="run the baseline on the large case too")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a SimSettings field of the new code (e.g. newton_forcing=1e-2); repeatable")
+    ap.add_argument("--set-baseline", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a SimSettings field of the baseline code (one it has); repeatable")
     ap.add_argument("--out", default=None, help="result file (default benchmarks/results/sim_speed.json)")
     ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -273,16 +275,21 @@ def main():
 
     frames = args.frames or (12 if args.quick else 48)
     base = {"self_contact": True}
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        if not value:
-            sys.exit(f"--set {item!r}: expected FIELD=VALUE")
-        try:
-            overrides[key] = json.loads(value.lower() if value.lower() in ("true", "false") else value)
-        except json.JSONDecodeError:
-            overrides[key] = value
-    new_settings = base | overrides
+
+    def parse(items):
+        overrides = {}
+        for item in items:
+            key, _, value = item.partition("=")
+            if not value:
+                sys.exit(f"--set {item!r}: expected FIELD=VALUE")
+            try:
+                overrides[key] = json.loads(value.lower() if value.lower() in ("true", "false") else value)
+            except json.JSONDecodeError:
+                overrides[key] = value
+        return overrides
+
+    new_settings = base | parse(args.set)
+    base = base | parse(args.set_baseline)
     codes_new = [("new", ROOT / "src")]
     codes = codes_new if args.no_baseline else [("baseline", baseline_src(args.baseline))] + codes_new
     load0 = os.getloadavg()

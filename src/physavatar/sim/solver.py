@@ -404,8 +404,8 @@ class ClothSim:
         ta = time.perf_counter()
         terms, contact = self.active_terms(penalty), (self.barrier, self.friction)
         # the elastic terms (and their scatter) on a second thread beside the contact terms (bit-identical)
-        derivs, part = term_derivatives(terms, sv.X, (self.inertia, self.gravity, self.membrane, self.bending),
-                                        contact, stats.time, assembler)
+        off = (self.inertia, self.gravity, self.membrane, self.bending) if self.settings.term_threads > 1 else ()
+        derivs, part = term_derivatives(terms, sv.X, off, contact, stats.time, assembler)
         order = [i for i, t in enumerate(terms) if not any(t is c for c in contact)]
         order += [i for i, t in enumerate(terms) if any(t is c for c in contact)]
         k = part[0] if part is not None and order[: part[0]] == list(range(part[0])) else 0
