@@ -383,3 +383,78 @@ def test_prescribed_parts_that_pass_through_each_other_leave_the_step_free():
     np.testing.assert_array_equal(x[ids], tgt)
     assert self_intersecting_frames(x[None], FF) == [0]  # the prescribed strips cross (input)
     assert self_intersecting_frames(x[None], FF, prescribed=bnd) == []  # nothing else does
+
+
+def test_elastic_terms_on_a_second_thread_give_bit_identical_steps():
+    """SimSettings.term_threads=2 (elastic derivatives and their scatter beside the contact
+    terms, sim.assembly.term_derivatives) gives the same bits as the serial loop, and the
+    second thread's partial scatter continued by Assembler.assemble is the serial sum."""
+    from physavatar.sim.assembly import term_derivatives
+
+    V, F = grid(6, 0.3, z=0.11)
+    B, BF = sphere()
+    seq = np.stack([B + np.array([0.004 * t, 0, 0]) for t in range(5)])
+    runs = [simulate(V, F, Material(), seq, BF, fps=25.0, settings=SimSettings(term_threads=k)) for k in (1, 2)]
+    assert np.array_equal(runs[0], runs[1])
+    sim = ClothSim(V, F, Material(), SimSettings())
+    sim.prepare(seq[0], BF)
+    X = np.vstack([runs[0][-1], seq[-1]])
+    sim.scene.prepare_static(X)
+    terms = sim.active_terms()
+    serial, none = term_derivatives(terms, X)
+    asm = sim.assembler_free
+    threaded, part = term_derivatives(terms, X, (sim.inertia, sim.gravity, sim.membrane, sim.bending), assembler=asm)
+    assert none is None and part is not None and part[0] == 4
+    H1 = asm.assemble([h for _, h in serial])
+    H2 = asm.assemble([h for _, h in threaded[part[0]:]], part[1])
+    assert np.array_equal(H1.indptr, H2.indptr) and np.array_equal(H1.data, H2.data)
+    assert all(np.array_equal(a[0], b[0]) for a, b in zip(serial, threaded))
+
+
+def test_candidates_of_a_segment_cover_its_points_and_give_the_static_barrier_set():
+    """CandidateScene.covers: a point on the last CCD segment (inside its per-vertex box) has
+    the same barrier set from the segment's candidates as from a fresh static build; a point
+    off the segment is not covered."""
+    V, F = grid(6, 0.3, z=0.1005)
+    B, BF = sphere()
+    sim = ClothSim(V, F, Material(), SimSettings())
+    sim.prepare(B, BF)
+    X0 = np.vstack([V, B])
+    X1 = X0.copy()
+    X1[: len(V), 2] -= 0.002  # the cloth comes down towards the sphere
+    scene = sim.scene
+    alpha = scene.collision_free_stepsize(X0, X1)
+    X = X0 + 0.5 * alpha * (X1 - X0)
+    assert scene.covers(X) and scene.covers(X0) and not scene.covers(X1 + 1e-3)
+    seg = scene.collisions_at(X)
+    pairs_seg = sorted(tuple(c.vertex_ids(scene.mesh.edges, scene.mesh.faces)) for c in seg)
+    assert len(pairs_seg) > 0
+    scene.prepare_static(X)
+    assert scene.covers(X) and not scene.covers(X0)
+    stat = scene.collisions_at(X)
+    assert sorted(tuple(c.vertex_ids(scene.mesh.edges, scene.mesh.faces)) for c in stat) == pairs_seg
+
+
+def test_energy_memo_is_used_only_while_nothing_e_depends_on_changed():
+    """linesearch.EnergyMemo returns the stored E only for the same iterate, barrier set,
+    barrier potential (κ), friction lag and penalty state."""
+    from physavatar.sim.linesearch import EnergyMemo
+
+    V, F = grid(4, 0.3, z=0.1005)
+    B, BF = sphere()
+    sim = ClothSim(V, F, Material(), SimSettings())
+    sim.prepare(B, BF)
+    X = np.vstack([V, B])
+    sim.scene.prepare_static(X)
+    sim.scene.collisions_at(X)
+    memo = EnergyMemo()
+    memo.set(EnergyMemo.key(sim, X, False), 1.5)
+    assert memo.get(EnergyMemo.key(sim, X, False)) == 1.5
+    assert memo.get(EnergyMemo.key(sim, X.copy(), False)) is None  # another iterate
+    assert memo.get(EnergyMemo.key(sim, X, True)) is None  # penalty mode
+    sim.barrier.set_stiffness(2.0 * sim.barrier.scale + 1.0)  # κ changed
+    assert memo.get(EnergyMemo.key(sim, X, False)) is None
+    memo.set(EnergyMemo.key(sim, X, False), 2.5)
+    sim.scene.prepare_static(X)  # the barrier set is rebuilt
+    sim.scene.collisions_at(X)
+    assert memo.get(EnergyMemo.key(sim, X, False)) is None
