@@ -332,8 +332,7 @@ class ClothSim:
             # friction is not lagged yet at this point
             X = warm_start(self.scene, self.terms + [self.barrier], free, X, x_pred, stats)
         diag = self.scene.bbox_diagonal(X_goal)
-        if not self.scene.covers(X):  # the start's last CCD segment (carry, body move) usually holds X
-            self.scene.prepare_static(X)
+        self.scene.prepare_static(X)
         self._update_stiffness_init(X)
         self.friction.lag(X, self.barrier)
         return _Solve(X=X, penalty=penalty, X_goal=X_goal, diag=diag,
@@ -371,7 +370,7 @@ class ClothSim:
                     continue
             # The last CCD segment's candidates (inflated by d̂) hold every pair within d̂ of
             # any point on it, X_new included: no rebuild for the next iteration's barrier set.
-            if not (self.scene.covers_last_point or self.scene.covers(sv.X)):
+            if not self.scene.covers_last_point:
                 self.scene.prepare_static(sv.X)
             if stop_after_step:
                 if self._relag_friction(sv):
@@ -516,6 +515,8 @@ class ClothSim:
             stats.body_gap = float(np.max(np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)))
             self._body_lag = (state.x_goal[self.n:].copy(), X[self.n:].copy())
         stats.barrier_stiffness = self.barrier_stiffness
+        # the last build usually holds X (the next step starts with its own CCD build, so only
+        # the reported contacts, the same set, come from these candidates)
         if s.keep_linearization or not self.scene.covers(X):
             self.scene.prepare_static(X)
         c = self.scene.collisions_at(X)
