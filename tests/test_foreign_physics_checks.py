@@ -67,3 +67,23 @@ def test_floor_of_a_surface_is_its_sampling_floor():
     r = _surface_rows(seq, seq, F, 10000, 0)
     expect = 0.25 / (np.pi * 10000) * 1e3  # area 0.25 m²; edges of the square add a little
     assert expect < r["chamfer_x1e3"] < 1.3 * expect
+
+
+def test_with_dense_rows_the_checks_are_the_raw_ratios_there():
+    """The dense CD (100,000 points: the floor a tenth) makes the raw ratio the check; the ratio
+    above the 10,000-point floor is kept beside it. Top numbers of session 17's foreign_physics
+    run: at 100,000 points truth 0.00088, LBS 0.00166, so a perfect prediction is 47 % below LBS
+    and passes the raw 25 % there, where at 10,000 points it was 9 % below and could not."""
+    f = fig(est=0.0089, lbs=0.0098, rnd=0.0138, floor=0.0089)
+    f["heldout_garment_cd_dense"] = {"points": 100000, "floor_x1e3": 0.00088,
+                                     "heldout_garment_cd_x1e3": {"estimated material": 0.00088, "LBS": 0.00166,
+                                                                 "random material": 0.00564}}
+    c = FC.physics_checks("top", f)
+    lbs = c["top:heldout_cd_below_lbs"]
+    assert lbs["value"] == pytest.approx(1 - 0.00088 / 0.00166) and lbs["pass"]
+    assert lbs["raw_value"] == pytest.approx(1 - 0.0089 / 0.0098) and lbs["value_above_floor"] == pytest.approx(1.0)
+    assert "100000 points" in lbs["unit"]
+    f["heldout_garment_cd_dense"]["heldout_garment_cd_x1e3"]["estimated material"] = 0.00166
+    c = FC.physics_checks("top", f)
+    assert c["top:heldout_cd_below_lbs"]["value"] == pytest.approx(0.0) and not c["top:heldout_cd_below_lbs"]["pass"]
+    assert c["top:heldout_cd_below_random"]["value"] == pytest.approx(1 - 0.00166 / 0.00564)

@@ -94,7 +94,8 @@ def _surface_rows(pred: np.ndarray, gt: np.ndarray, faces: np.ndarray, n_points:
 def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tracked: str | Path | None = None,
              frames: int | None = None, n_points: int = 10000, views_spp: int = 64, seed: int = 0,
              random_draws: int = RANDOM_DRAWS, sequence: str | Path | None = None, references: str | Path | None = None,
-             holdout: tuple[str, ...] | None = None, oracle: str | Path | None = None, progress=True) -> dict:
+             holdout: tuple[str, ...] | None = None, oracle: str | Path | None = None, views: bool = True,
+             progress=True) -> dict:
     """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics.
 
     ``references``: a :func:`reference_sequences` folder of this capture; its true- and
@@ -110,6 +111,9 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     ``holdout``: capture cameras scored as held-out views (the tracked meshes rendered with the
     avatar's texture and light against their images); default: the cameras the tracking held
     out. This part needs no ground truth, so a real capture is evaluated too.
+
+    ``views=False``: geometry and tracking only, no rendered views (e.g. the rows again at
+    another ``n_points``).
     """
     cap = load_capture(capture)
     gt_root = cap.ground_truth
@@ -122,11 +126,12 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
                               "motion) and no held-out cameras (pass --tracked of a tracking that held cameras out, "
                               "or --holdout CAMS)")
     metrics: dict = {"capture": str(cap.root), "avatar": str(av.root), "n_points": n_points, "rows": {}, "seconds": {}}
-    if hold:
+    if hold and views:
         metrics["heldout_cameras"] = _capture_views(cap, av, Path(tracked), hold, out, views_spp)
     if has_heldout_motion:
         _heldout_motion(metrics, cap, av, out, frames=frames, n_points=n_points, views_spp=views_spp, seed=seed,
-                        random_draws=random_draws, sequence=sequence, references=references, oracle=oracle, progress=progress)
+                        random_draws=random_draws, sequence=sequence, references=references, oracle=oracle,
+                        views=views, progress=progress)
     # Tracking accuracy.
     if tracked is not None and gt_root is not None and (gt_root / "meshes.npz").is_file():
         metrics["tracking"] = _tracking(cap, Path(tracked))
@@ -136,7 +141,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
 
 
 def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, views_spp, seed, random_draws, sequence, references,
-                    oracle, progress) -> None:
+                    oracle, views, progress) -> None:
     """The geometry rows (and the views of ``ground_truth/heldout``'s cameras) on the held-out motion."""
     from ..garment import garment_skinning_weights
     from ..body import BodyModel
@@ -215,7 +220,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
 
     # Appearance on the held-out views.
     cams_file = gt_root / "heldout" / "cameras.json"
-    if cams_file.exists() and av.texture is not None:
+    if views and cams_file.exists() and av.texture is not None:
         metrics["appearance"] = _appearance(cap, av, est, gt_root / "heldout", out, views_spp)
 
 
