@@ -308,14 +308,14 @@ def physics_figures(capture: Path, run_dir: Path, metrics: dict) -> dict:
 
 
 def physics_checks(name: str, fig: dict) -> dict:
-    """CD ≥ 25 % below LBS and ≥ 10 % below random (the median of `evaluate`'s draws).
-
-    With the dense CD (:func:`dense_cd`, 100,000 points: the floor a tenth of 10,000's) the check
-    is the raw ratio there; the ratio above the floor at 10,000 points is kept beside it
-    (``value_above_floor``). Without it, the ratio above the truth's own CD (the floor,
-    :func:`cd_floor`): at 10,000 points the raw ratio cannot tell rows apart where every row is
-    within a few percent of the floor (the tops: the truth itself is only 10 % below LBS); the
-    raw ratios are kept beside it."""
+    """CD ≥ 25 % below LBS and ≥ 10 % below random (the median of `evaluate`'s draws), on the CD
+    above the truth's own (the floor, :func:`cd_floor`): at 10,000 points the raw ratio cannot
+    tell rows apart where every row is within a few percent of the floor (the tops: the truth
+    itself is only 9 % below LBS). With the dense CD (:func:`dense_cd`, 100,000 points: the floor
+    a tenth of 10,000's, and its sampling noise far smaller) the check is the ratio above the
+    floor there; the raw ratios (``raw_value`` at 10,000 points, ``raw_value_dense``) and the
+    10,000-point ratio above the floor (``value_10k``) are kept beside it. The raw ratio alone is
+    not yet the check: at 100,000 points the plain top's truth is still only 22 % below LBS."""
     c = {}
     cd = fig.get("heldout_garment_cd_x1e3", {})
     above = fig.get("heldout_garment_cd_above_floor_x1e3") or {}
@@ -327,12 +327,14 @@ def physics_checks(name: str, fig: dict) -> dict:
         raw = 1 - est / cd[row]
         dcd = dense.get("heldout_garment_cd_x1e3", {})
         if "estimated material" in dcd and row in dcd:
-            v = 1 - dcd["estimated material"] / dcd[row]
+            fl = dense["floor_x1e3"]
+            v = 1 - (dcd["estimated material"] - fl) / max(dcd[row] - fl, 1e-12)
             c[f"{name}:heldout_cd_{key}"] = {
-                "value": v, "target": f">= {target}", "unit": f"1 - CD/CD_{row} at {dense['points']} points",
-                "floor_x1e3": dense["floor_x1e3"], "raw_value": raw,
-                "value_above_floor": 1 - above["estimated material"] / max(above[row], 1e-12) if above else None,
-                "pass": v >= target}
+                "value": v, "target": f">= {target}",
+                "unit": f"1 - (CD - floor)/(CD_{row} - floor) at {dense['points']} points",
+                "floor_x1e3": fl, "raw_value_dense": 1 - dcd["estimated material"] / dcd[row], "raw_value": raw,
+                "value_10k": 1 - above["estimated material"] / max(above[row], 1e-12) if above else None,
+                "floor_10k_x1e3": fig.get("heldout_garment_cd_floor_x1e3"), "pass": v >= target}
         elif above:
             v = 1 - above["estimated material"] / max(above[row], 1e-12)
             c[f"{name}:heldout_cd_{key}"] = {"value": v, "target": f">= {target}",
