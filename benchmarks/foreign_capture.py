@@ -223,8 +223,9 @@ DENSE_POINTS = 100_000
 
 def dense_cd(capture: Path, run_dir: Path, metrics: dict, points: int = DENSE_POINTS) -> dict | None:
     """The held-out garment CD rows again at ``points`` surface points, and the floor at that
-    count: `evaluate` without views on the run's own outputs (the references' random draws, the
-    animate sequence, the oracle fit; only the oracle row and LBS are simulated / skinned again),
+    count: `evaluate` without views or full-mesh rows on the run's own outputs (the references'
+    random draws, the animate sequence, the oracle fit; only the oracle row and LBS are
+    simulated / skinned again),
     cached in run_dir/evaluate_<points> while it is newer than the run's evaluate."""
     from physavatar.stages.evaluate import evaluate
 
@@ -240,7 +241,7 @@ def dense_cd(capture: Path, run_dir: Path, metrics: dict, points: int = DENSE_PO
         m = evaluate(capture, run_dir / "avatar", folder, frames=metrics.get("heldout_frames"), n_points=points,
                      sequence=run_dir / "animate", references=run_dir / "references",
                      oracle=run_dir / "oracle" if (run_dir / "oracle" / "material.json").is_file() else None,
-                     views=False, progress=False)
+                     views=False, full=False, progress=False)
     floor = cd_floor(capture, points, metrics.get("heldout_frames"))
     cd = {r: v["garment"]["chamfer_x1e3"] for r, v in m["rows"].items()}
     return {"points": points, "heldout_garment_cd_x1e3": cd, "floor_x1e3": floor["chamfer_x1e3"],

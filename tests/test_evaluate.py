@@ -91,9 +91,11 @@ def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
     (root / "oracle").mkdir()
     (root / "oracle" / "material.json").write_text(json.dumps({"material": true.to_dict()}))
     m2 = evaluate(tiny_capture, root / "avatar", root / "out2", n_points=4000, views_spp=4,
-                  references=root / "refs", oracle=root / "oracle", views=False, progress=False)
+                  references=root / "refs", oracle=root / "oracle", views=False, full=False,
+                  progress=False)
     assert m2["references"] == str(root / "refs")
     assert "appearance" not in m2 and not (root / "out2" / "views").exists()  # views=False: geometry only
+    assert all("full" not in r for r in m2["rows"].values()) and m2["random_draws"]["full_chamfer_x1e3"] is None
     for row in ("true material", "random material", "LBS"):
         assert m2["rows"][row]["garment"]["chamfer_x1e3"] == pytest.approx(
             m["rows"][row]["garment"]["chamfer_x1e3"], rel=1e-4, abs=1e-9), row

@@ -78,7 +78,8 @@ def median_random_row(draw_rows: dict[int, dict]) -> tuple[dict, dict]:
     cd = {s: draw_rows[s]["garment"]["chamfer_x1e3"] for s in seeds}
     mid = sorted(seeds, key=lambda s: (cd[s], s))[len(seeds) // 2]
     audit = {"seeds": seeds, "median_seed": mid, "garment_chamfer_x1e3": [cd[s] for s in seeds],
-             "full_chamfer_x1e3": [draw_rows[s]["full"]["chamfer_x1e3"] for s in seeds],
+             "full_chamfer_x1e3": [draw_rows[s]["full"]["chamfer_x1e3"] for s in seeds]
+             if all("full" in draw_rows[s] for s in seeds) else None,
              "garment_chamfer_x1e3_median": float(np.median([cd[s] for s in seeds]))}
     return draw_rows[mid], audit
 
@@ -95,7 +96,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
              frames: int | None = None, n_points: int = 10000, views_spp: int = 64, seed: int = 0,
              random_draws: int = RANDOM_DRAWS, sequence: str | Path | None = None, references: str | Path | None = None,
              holdout: tuple[str, ...] | None = None, oracle: str | Path | None = None, views: bool = True,
-             progress=True) -> dict:
+             full: bool = True, progress=True) -> dict:
     """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics.
 
     ``references``: a :func:`reference_sequences` folder of this capture; its true- and
@@ -113,7 +114,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     out. This part needs no ground truth, so a real capture is evaluated too.
 
     ``views=False``: geometry and tracking only, no rendered views (e.g. the rows again at
-    another ``n_points``).
+    another ``n_points``); ``full=False``: the garment rows only, no full-mesh rows.
     """
     cap = load_capture(capture)
     gt_root = cap.ground_truth
@@ -131,7 +132,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     if has_heldout_motion:
         _heldout_motion(metrics, cap, av, out, frames=frames, n_points=n_points, views_spp=views_spp, seed=seed,
                         random_draws=random_draws, sequence=sequence, references=references, oracle=oracle,
-                        views=views, progress=progress)
+                        views=views, full=full, progress=progress)
     # Tracking accuracy.
     if tracked is not None and gt_root is not None and (gt_root / "meshes.npz").is_file():
         metrics["tracking"] = _tracking(cap, Path(tracked))
@@ -141,7 +142,7 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
 
 
 def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, views_spp, seed, random_draws, sequence, references,
-                    oracle, views, progress) -> None:
+                    oracle, views, full, progress) -> None:
     """The geometry rows (and the views of ``ground_truth/heldout``'s cameras) on the held-out motion."""
     from ..garment import garment_skinning_weights
     from ..body import BodyModel
@@ -203,8 +204,8 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
 
     def rows_of(V):
         V = V[: len(gt)]
-        return {"garment": _surface_rows(V[:, gmask], gt[:, gmask], gfaces_local, n_points, seed),
-                "full": _surface_rows(V, gt, t.faces, n_points, seed)}
+        r = {"garment": _surface_rows(V[:, gmask], gt[:, gmask], gfaces_local, n_points, seed)}
+        return r | ({"full": _surface_rows(V, gt, t.faces, n_points, seed)} if full else {})
 
     draws = {s: rows_of(seqs[random_draw_row(s)]) for s in random_seeds(seed, random_draws)}
     metrics["rows"]["random material"], metrics["random_draws"] = median_random_row(draws)
@@ -446,9 +447,10 @@ def report_markdown(m: dict) -> str:
         r = m["rows"].get(row)
         if r is None:
             continue
-        g, f = r["garment"], r["full"]
+        g, f = r["garment"], r.get("full")
+        full = f"{f['chamfer_x1e3']:.4f} | {f['fscore@1cm']:.3f}" if f else "– | –"
         lines.append(f"| {row} | {g['chamfer_x1e3']:.4f} | {g['fscore@1cm']:.3f} | {g['fscore@2cm']:.3f} | "
-                     f"{g['fscore@sq0.001']:.3f} | {f['chamfer_x1e3']:.4f} | {f['fscore@1cm']:.3f} |")
+                     f"{g['fscore@sq0.001']:.3f} | {full} |")
     if "random_draws" in m:
         d = m["random_draws"]
         lines += ["", f"Random material: the median of {len(d['seeds'])} draws (seeds "
