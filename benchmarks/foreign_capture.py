@@ -1,6 +1,7 @@
 """Accuracy on captures physavatar did not make (issue 22 part 1): the foreign-capture benchmark.
 
     python benchmarks/foreign_capture.py [--full] [--cases NAME,NAME] [--work DIR] [--out FILE]
+                                         [--dense-points N] [--add-dense]
 
 Builds captures with benchmarks/foreign/ (a generator that shares as little as possible with the
 project: NVIDIA Newton's VBD cloth solver with penalty contact and its own membrane and bending
@@ -18,14 +19,19 @@ writes benchmarks/results/foreign_capture.json:
   model gap and the tracking share (`residual_split`);
 - held-out motion: garment chamfer distance ×10³ of the estimated material, LBS, a random
   material and the oracle material, the truth's own CD (the sampling floor, `cd_floor`) and each
-  row above it (the CD checks compare those; benchmarks/foreign_physics.py measures the oracle
-  side of these rows in minutes, without images);
+  row above it; the same rows and floor again at --dense-points (100,000: `evaluate` without
+  views, reusing the run's reference, animate and oracle outputs), where the floor is a tenth
+  and the raw ratios mean what the issue's targets say (benchmarks/foreign_physics.py measures
+  the oracle side of these rows in minutes, without images);
 - held-out views: PSNR / SSIM / LPIPS on the held-out motion's novel cameras and on the
   capture's own held-out cameras; texture error against the true texture; the ceiling of those
   scores (the true texture, lights and meshes rendered and scored the same way: the captures'
   and the scoring renders' Monte Carlo noise caps them: 26.8 dB on the plaid skirt at the old
   8 spp, 33.4 dB at the 64 spp the captures are now rendered with);
 - checks: the targets of issue 22 (parts 2-4). Today most of them fail; the JSON records that.
+
+--add-dense adds the dense CD figures (and their checks) to the cases of an existing --out file
+whose runs have finished, without running anything else.
 
 Captures are cached in --work (default /tmp/foreign_capture): a capture whose config is unchanged
 is not rebuilt and `physavatar run` resumes finished stages.
@@ -212,6 +218,38 @@ def cd_floor(capture: Path, n_points: int, frames: int | None = None, seed: int 
     return {"chamfer_x1e3": r["chamfer_x1e3"], "per_frame_chamfer_x1e3": r["per_frame_chamfer_x1e3"]}
 
 
+DENSE_POINTS = 100_000
+
+
+def dense_cd(capture: Path, run_dir: Path, metrics: dict, points: int = DENSE_POINTS) -> dict | None:
+    """The held-out garment CD rows again at ``points`` surface points, and the floor at that
+    count: `evaluate` without views or full-mesh rows on the run's own outputs (the references'
+    random draws, the animate sequence, the oracle fit; only the oracle row and LBS are
+    simulated / skinned again),
+    cached in run_dir/evaluate_<points> while it is newer than the run's evaluate."""
+    from physavatar.stages.evaluate import evaluate
+
+    base = run_dir / "evaluate" / "metrics.json"
+    if not base.is_file() or not metrics.get("rows"):
+        return None
+    folder = run_dir / f"evaluate_{points}"
+    t0 = time.time()
+    f = folder / "metrics.json"
+    if f.is_file() and f.stat().st_mtime > base.stat().st_mtime:
+        m = json.loads(f.read_text())
+    else:
+        m = evaluate(capture, run_dir / "avatar", folder, frames=metrics.get("heldout_frames"), n_points=points,
+                     sequence=run_dir / "animate", references=run_dir / "references",
+                     oracle=run_dir / "oracle" if (run_dir / "oracle" / "material.json").is_file() else None,
+                     views=False, full=False, progress=False)
+    floor = cd_floor(capture, points, metrics.get("heldout_frames"))
+    cd = {r: v["garment"]["chamfer_x1e3"] for r, v in m["rows"].items()}
+    return {"points": points, "heldout_garment_cd_x1e3": cd, "floor_x1e3": floor["chamfer_x1e3"],
+            "above_floor_x1e3": {r: v - floor["chamfer_x1e3"] for r, v in cd.items()},
+            "random_draws": {k: m["random_draws"][k] for k in ("seeds", "garment_chamfer_x1e3", "median_seed")},
+            "seconds": round(time.time() - t0, 1)}
+
+
 def _fit_record(folder: Path) -> dict | None:
     f = folder / "material.json"
     if not f.exists():
@@ -271,19 +309,34 @@ def physics_figures(capture: Path, run_dir: Path, metrics: dict) -> dict:
 
 
 def physics_checks(name: str, fig: dict) -> dict:
-    """CD ≥ 25 % below LBS and ≥ 10 % below random, on the CD above the truth's own (the floor,
-    :func:`cd_floor`): the raw ratio cannot tell rows apart where every row is within a few
-    percent of the floor (the tops: the truth itself is only 10 % below LBS); the raw ratios
-    are kept beside it."""
+    """CD ≥ 25 % below LBS and ≥ 10 % below random (the median of `evaluate`'s draws), on the CD
+    above the truth's own (the floor, :func:`cd_floor`): at 10,000 points the raw ratio cannot
+    tell rows apart where every row is within a few percent of the floor (the tops: the truth
+    itself is only 9 % below LBS). With the dense CD (:func:`dense_cd`, 100,000 points: the floor
+    a tenth of 10,000's, and its sampling noise far smaller) the check is the ratio above the
+    floor there; the raw ratios (``raw_value`` at 10,000 points, ``raw_value_dense``) and the
+    10,000-point ratio above the floor (``value_10k``) are kept beside it. The raw ratio alone is
+    not yet the check: at 100,000 points the plain top's truth is still only 22 % below LBS."""
     c = {}
     cd = fig.get("heldout_garment_cd_x1e3", {})
     above = fig.get("heldout_garment_cd_above_floor_x1e3") or {}
+    dense = fig.get("heldout_garment_cd_dense") or {}
     est = cd.get("estimated material")
     for row, key, target in (("LBS", "below_lbs", 0.25), ("random material", "below_random", 0.10)):
         if est is None or row not in cd:
             continue
         raw = 1 - est / cd[row]
-        if above:
+        dcd = dense.get("heldout_garment_cd_x1e3", {})
+        if "estimated material" in dcd and row in dcd:
+            fl = dense["floor_x1e3"]
+            v = 1 - (dcd["estimated material"] - fl) / max(dcd[row] - fl, 1e-12)
+            c[f"{name}:heldout_cd_{key}"] = {
+                "value": v, "target": f">= {target}",
+                "unit": f"1 - (CD - floor)/(CD_{row} - floor) at {dense['points']} points",
+                "floor_x1e3": fl, "raw_value_dense": 1 - dcd["estimated material"] / dcd[row], "raw_value": raw,
+                "value_10k": 1 - above["estimated material"] / max(above[row], 1e-12) if above else None,
+                "floor_10k_x1e3": fig.get("heldout_garment_cd_floor_x1e3"), "pass": v >= target}
+        elif above:
             v = 1 - above["estimated material"] / max(above[row], 1e-12)
             c[f"{name}:heldout_cd_{key}"] = {"value": v, "target": f">= {target}",
                                              "unit": f"1 - (CD - floor)/(CD_{row} - floor)", "raw_value": raw,
@@ -313,6 +366,25 @@ def checks_for(name: str, fig: dict) -> dict:
     return c
 
 
+def _metrics(run_dir: Path) -> dict:
+    return json.loads((run_dir / "evaluate" / "metrics.json").read_text())
+
+
+def add_dense(out: Path, work: Path, cases: str | None, points: int) -> int:
+    """--add-dense: the dense CD rows of each finished case of ``out``, its checks again."""
+    result = json.loads(out.read_text())
+    for name, fig in result["figures"].items():
+        if "error" in fig or (cases and name not in cases.split(",")):
+            continue
+        run_dir = work / name / "run"
+        fig["heldout_garment_cd_dense"] = dense_cd(work / name / "capture", run_dir, _metrics(run_dir), points)
+        result["checks"].update(checks_for(name, fig))
+        out.write_text(json.dumps(result, indent=2) + "\n")
+        d = fig["heldout_garment_cd_dense"]
+        print(name, json.dumps({k: d[k] for k in ("heldout_garment_cd_x1e3", "floor_x1e3", "seconds")}), flush=True)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--full", action="store_true", help="all cases, 40 frames, full `physavatar run` budgets")
@@ -321,7 +393,13 @@ def main(argv=None) -> int:
     ap.add_argument("--heldout-frames", type=int, default=None, help="override the held-out frames of every case")
     ap.add_argument("--work", default="/tmp/foreign_capture", help="captures and runs are kept here")
     ap.add_argument("--out", default=str(HERE / "results" / "foreign_capture.json"))
+    ap.add_argument("--dense-points", type=int, default=DENSE_POINTS,
+                    help="surface points of the dense CD rows (0: none)")
+    ap.add_argument("--add-dense", action="store_true",
+                    help="only add the dense CD rows and their checks to the finished cases of --out")
     args = ap.parse_args(argv)
+    if args.add_dense:
+        return add_dense(Path(args.out), Path(args.work), args.cases, args.dense_points)
     from physavatar.pipeline import RunConfig, run
 
     cases = FULL_CASES if args.full else QUICK_CASES
@@ -356,6 +434,8 @@ def main(argv=None) -> int:
             out.write_text(json.dumps(result, indent=2) + "\n")
             continue
         fig = figures_for(cfg, cap, run_dir, record)
+        if args.dense_points:
+            fig["heldout_garment_cd_dense"] = dense_cd(cap, run_dir, _metrics(run_dir), args.dense_points)
         gen = json.loads((cap / "ground_truth" / "foreign.json").read_text())
         # from the files, so a rerun that reuses the cached capture and run reports the same times
         fig["seconds"]["stages_sum"] = round(sum(v for v in fig["seconds"].values() if isinstance(v, (int, float))), 1)

@@ -83,6 +83,7 @@ def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
 
     m, root = result
     reference_sequences(tiny_capture, root / "refs", progress=False)
+    _check_random_median(m, root / "refs", tiny_capture)
     # an oracle (fit-physics on the true meshes) that found the true material: its row is the true row
     from physavatar.sim import Material
 
@@ -90,8 +91,11 @@ def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
     (root / "oracle").mkdir()
     (root / "oracle" / "material.json").write_text(json.dumps({"material": true.to_dict()}))
     m2 = evaluate(tiny_capture, root / "avatar", root / "out2", n_points=4000, views_spp=4,
-                  references=root / "refs", oracle=root / "oracle", progress=False)
+                  references=root / "refs", oracle=root / "oracle", views=False, full=False,
+                  progress=False)
     assert m2["references"] == str(root / "refs")
+    assert "appearance" not in m2 and not (root / "out2" / "views").exists()  # views=False: geometry only
+    assert all("full" not in r for r in m2["rows"].values()) and m2["random_draws"]["full_chamfer_x1e3"] is None
     for row in ("true material", "random material", "LBS"):
         assert m2["rows"][row]["garment"]["chamfer_x1e3"] == pytest.approx(
             m["rows"][row]["garment"]["chamfer_x1e3"], rel=1e-4, abs=1e-9), row
@@ -100,13 +104,55 @@ def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
     assert m2["materials"]["oracle"] == true.to_dict()
     assert "| oracle material |" in (root / "out2" / "report.md").read_text()
     # references made for another random material (another --seed) are refused, by name
-    meta_file = root / "refs" / "random" / "sequence.json"
+    meta_file = root / "refs" / "random-0" / "sequence.json"
     meta = json.loads(meta_file.read_text())
     meta["material"]["density"] *= 1.5
     meta_file.write_text(json.dumps(meta))
-    with pytest.raises(PhysavatarError, match="random material was simulated with"):
+    with pytest.raises(PhysavatarError, match=r"random material \(seed 0\) was simulated with"):
         evaluate(tiny_capture, root / "avatar", root / "out3", n_points=1000, views_spp=4,
                  references=root / "refs", progress=False)
+
+
+def _check_random_median(m, refs, cap):
+    """The random row is the median of the documented draws (seeds 0-4): each draw's garment CD
+    computed here from the reference-sims sequences (a separate simulation path) with the metric
+    itself, and numpy's median of them."""
+    from physavatar.data.animated import AnimatedSequence
+    from physavatar.geometry import submesh
+    from physavatar.metrics import surface_metrics
+
+    d = m["random_draws"]
+    assert d["seeds"] == [0, 1, 2, 3, 4]
+    assert d["materials"] == [random_material(s).to_dict() for s in range(5)]
+    gt = np.load(cap / "ground_truth" / "heldout" / "meshes.npz")["vertices"].astype(np.float64)
+    cds = []
+    for s in range(5):
+        seq = AnimatedSequence.load(refs / f"random-{s}")
+        g = seq.labels > 0
+        _, gf = submesh(seq.faces, g)
+        n = m["heldout_frames"]
+        cds.append(np.mean([surface_metrics(seq.vertices[t][g].astype(np.float64), gf, gt[t][g], gf, n_points=4000,
+                                            seed=t)["chamfer_x1e3"] for t in range(n)]))
+    np.testing.assert_allclose(d["garment_chamfer_x1e3"], cds, rtol=1e-3)
+    assert len(set(np.round(cds, 6))) == 5  # five different materials, five different rows
+    assert m["rows"]["random material"]["garment"]["chamfer_x1e3"] == pytest.approx(float(np.median(cds)), rel=1e-3)
+    assert m["materials"]["random"] == random_material(int(np.argsort(cds)[2])).to_dict()
+
+
+def test_median_random_row_and_documented_seeds():
+    from physavatar.stages.evaluate import (EvaluateConfig, ReferencesConfig, median_random_row, random_draw_row,
+                                            random_seeds, reference_folder)
+
+    assert random_seeds() == [0, 1, 2, 3, 4] and random_seeds(7, 3) == [7, 8, 9]
+    assert EvaluateConfig().random_draws == ReferencesConfig().random_draws == 5
+    assert reference_folder(random_draw_row(3)) == "random-3" and reference_folder("true material") == "true"
+    rows = {s: {"garment": {"chamfer_x1e3": cd}, "full": {"chamfer_x1e3": 10 * cd}}
+            for s, cd in ((3, 0.5), (1, 0.1), (7, 0.9), (4, 0.3), (0, 2.0))}
+    row, audit = median_random_row(rows)
+    assert row is rows[3] and audit["median_seed"] == 3 and audit["seeds"] == [0, 1, 3, 4, 7]
+    assert audit["garment_chamfer_x1e3"] == [2.0, 0.1, 0.5, 0.3, 0.9] and audit["garment_chamfer_x1e3_median"] == 0.5
+    with pytest.raises(ValueError, match="odd"):
+        median_random_row({0: rows[3], 1: rows[1]})
 
 
 def test_heldout_cameras_of_a_capture_without_ground_truth(tmp_path, tiny_capture):

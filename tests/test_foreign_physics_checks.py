@@ -67,3 +67,25 @@ def test_floor_of_a_surface_is_its_sampling_floor():
     r = _surface_rows(seq, seq, F, 10000, 0)
     expect = 0.25 / (np.pi * 10000) * 1e3  # area 0.25 m²; edges of the square add a little
     assert expect < r["chamfer_x1e3"] < 1.3 * expect
+
+
+def test_with_dense_rows_the_checks_are_taken_above_the_dense_floor():
+    """The dense CD (100,000 points: the floor a tenth) is the check, above its own floor; the
+    raw ratios and the 10,000-point one above the floor are kept beside it. Plain-top numbers of
+    session 17's foreign_physics run at 100,000 points: truth 0.00089, LBS 0.00114, so even a
+    perfect prediction is only 22 % below LBS in raw CD (not yet the 25 %), 100 % above the floor."""
+    f = fig(est=0.0089, lbs=0.0092, rnd=0.0138, floor=0.0089)
+    f["heldout_garment_cd_dense"] = {"points": 100000, "floor_x1e3": 0.00089,
+                                     "heldout_garment_cd_x1e3": {"estimated material": 0.00089, "LBS": 0.00114,
+                                                                 "random material": 0.00560}}
+    c = FC.physics_checks("top", f)
+    lbs = c["top:heldout_cd_below_lbs"]
+    assert lbs["value"] == pytest.approx(1.0) and lbs["pass"] and "100000 points" in lbs["unit"]
+    assert lbs["raw_value_dense"] == pytest.approx(1 - 0.00089 / 0.00114) and lbs["raw_value_dense"] < 0.25
+    assert lbs["raw_value"] == pytest.approx(1 - 0.0089 / 0.0092) and lbs["value_10k"] == pytest.approx(1.0)
+    # the oracle's dense CD: (0.00148 - 0.00089) / (0.00114 - 0.00089) = 2.36 -> -1.36, fails
+    f["heldout_garment_cd_dense"]["heldout_garment_cd_x1e3"]["estimated material"] = 0.00148
+    c = FC.physics_checks("top", f)
+    assert c["top:heldout_cd_below_lbs"]["value"] == pytest.approx(1 - 0.00059 / 0.00025)
+    assert not c["top:heldout_cd_below_lbs"]["pass"]
+    assert c["top:heldout_cd_below_random"]["value"] == pytest.approx(1 - 0.00059 / (0.00560 - 0.00089))

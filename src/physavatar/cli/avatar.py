@@ -96,18 +96,18 @@ def evaluate(
 
 @config_command(app, "reference-sims", ReferencesConfig, wrap=handle_errors)
 def reference_sims(capture: Path = typer.Argument(..., help="synthetic capture (with ground_truth/)"),
-                   out: Path = typer.Option(..., "--out", "-o", help="output folder: avatar/, true/, random/, references.json"),
+                   out: Path = typer.Option(..., "--out", "-o", help="output folder: avatar/, true/, random-<seed>/, references.json"),
                    *, config: ReferencesConfig):
     """The evaluation's reference rows ahead of time: the garment on the held-out motion with the
     true and with the random material (they need nothing fitted; `run` makes them while tracking)."""
     from ..stages.evaluate import run_references
 
     from ..files import read_json
-    from ..stages.evaluate import REFERENCE_FOLDERS
+    from ..stages.evaluate import reference_folder
 
     run_references(capture, out=out, config=config, progress=True)
     rows = read_json(out / "references.json")["rows"]
-    console.print(f"wrote {', '.join(f'{out}/{REFERENCE_FOLDERS[r]} ({r})' for r in rows)}")
+    console.print(f"wrote {', '.join(f'{out}/{reference_folder(r)} ({r})' for r in rows)}")
 
 
 @config_command(app, "run", RunConfig, wrap=handle_errors)

@@ -2,7 +2,10 @@
 
 Geometry on the held-out motion (``ground_truth/heldout``): the garment is animated with
   - LBS: skinned with weights transferred from the body (no simulation),
-  - random material: a seeded draw in the paper's parameter ranges,
+  - random material: the median of several seeded draws in the paper's parameter ranges (seeds
+    ``seed`` … ``seed + random_draws − 1``, default 0–4: one draw can land near the truth or far
+    from it, the paper's baseline is a typical random material); the row is the draw whose
+    garment CD is the median, and every draw's CD is kept under ``random_draws``,
   - estimated material: the avatar's (fit-physics),
   - true material: ``ground_truth/material.json`` (the oracle),
   - oracle material: for a capture whose material is not in this simulator's terms (no
@@ -40,6 +43,7 @@ from ..sim import Material
 from .base import camera_list, option, setting
 
 ROWS = ("LBS", "random material", "estimated material", "true material", "oracle material")
+RANDOM_DRAWS = 5  # random materials per evaluation (seeds seed .. seed + 4): the row is their median
 
 
 def random_material(seed: int = 0) -> Material:
@@ -54,6 +58,32 @@ def random_material(seed: int = 0) -> Material:
     return dataclasses.replace(m, name=f"random-{seed}")
 
 
+def random_draw_row(seed: int) -> str:
+    """The name of one random draw among the reference rows (its sequence, its folder)."""
+    return f"random material (seed {seed})"
+
+
+def random_seeds(seed: int = 0, draws: int = RANDOM_DRAWS) -> list[int]:
+    """The seeds of the random-material draws: ``seed`` … ``seed + draws - 1``."""
+    return [seed + k for k in range(draws)]
+
+
+def median_random_row(draw_rows: dict[int, dict]) -> tuple[dict, dict]:
+    """The "random material" row from the rows of several draws (seed -> {"garment", "full"}):
+    the draw whose garment CD is the median (an odd count has one), and the audit record of all
+    draws (seeds, each one's garment and full CD, the median's seed)."""
+    seeds = sorted(draw_rows)
+    if len(seeds) % 2 == 0:
+        raise ValueError(f"an odd number of random draws is needed for a median draw, got {len(seeds)}")
+    cd = {s: draw_rows[s]["garment"]["chamfer_x1e3"] for s in seeds}
+    mid = sorted(seeds, key=lambda s: (cd[s], s))[len(seeds) // 2]
+    audit = {"seeds": seeds, "median_seed": mid, "garment_chamfer_x1e3": [cd[s] for s in seeds],
+             "full_chamfer_x1e3": [draw_rows[s]["full"]["chamfer_x1e3"] for s in seeds]
+             if all("full" in draw_rows[s] for s in seeds) else None,
+             "garment_chamfer_x1e3_median": float(np.median([cd[s] for s in seeds]))}
+    return draw_rows[mid], audit
+
+
 def _surface_rows(pred: np.ndarray, gt: np.ndarray, faces: np.ndarray, n_points: int, seed: int) -> dict:
     from ..metrics import surface_metrics
 
@@ -64,8 +94,9 @@ def _surface_rows(pred: np.ndarray, gt: np.ndarray, faces: np.ndarray, n_points:
 
 def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tracked: str | Path | None = None,
              frames: int | None = None, n_points: int = 10000, views_spp: int = 64, seed: int = 0,
-             sequence: str | Path | None = None, references: str | Path | None = None,
-             holdout: tuple[str, ...] | None = None, oracle: str | Path | None = None, progress=True) -> dict:
+             random_draws: int = RANDOM_DRAWS, sequence: str | Path | None = None, references: str | Path | None = None,
+             holdout: tuple[str, ...] | None = None, oracle: str | Path | None = None, views: bool = True,
+             full: bool = True, progress=True) -> dict:
     """Write ``metrics.json`` and ``report.md`` into ``out``; returns the metrics.
 
     ``references``: a :func:`reference_sequences` folder of this capture; its true- and
@@ -81,6 +112,9 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     ``holdout``: capture cameras scored as held-out views (the tracked meshes rendered with the
     avatar's texture and light against their images); default: the cameras the tracking held
     out. This part needs no ground truth, so a real capture is evaluated too.
+
+    ``views=False``: geometry and tracking only, no rendered views (e.g. the rows again at
+    another ``n_points``); ``full=False``: the garment rows only, no full-mesh rows.
     """
     cap = load_capture(capture)
     gt_root = cap.ground_truth
@@ -93,11 +127,12 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
                               "motion) and no held-out cameras (pass --tracked of a tracking that held cameras out, "
                               "or --holdout CAMS)")
     metrics: dict = {"capture": str(cap.root), "avatar": str(av.root), "n_points": n_points, "rows": {}, "seconds": {}}
-    if hold:
+    if hold and views:
         metrics["heldout_cameras"] = _capture_views(cap, av, Path(tracked), hold, out, views_spp)
     if has_heldout_motion:
         _heldout_motion(metrics, cap, av, out, frames=frames, n_points=n_points, views_spp=views_spp, seed=seed,
-                        sequence=sequence, references=references, oracle=oracle, progress=progress)
+                        random_draws=random_draws, sequence=sequence, references=references, oracle=oracle,
+                        views=views, full=full, progress=progress)
     # Tracking accuracy.
     if tracked is not None and gt_root is not None and (gt_root / "meshes.npz").is_file():
         metrics["tracking"] = _tracking(cap, Path(tracked))
@@ -106,8 +141,8 @@ def evaluate(capture: str | Path, avatar_dir: str | Path, out: str | Path, *, tr
     return metrics
 
 
-def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, views_spp, seed, sequence, references,
-                    oracle, progress) -> None:
+def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, views_spp, seed, random_draws, sequence, references,
+                    oracle, views, full, progress) -> None:
     """The geometry rows (and the views of ``ground_truth/heldout``'s cameras) on the held-out motion."""
     from ..garment import garment_skinning_weights
     from ..body import BodyModel
@@ -138,7 +173,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The reference materials: two independent simulations, side by side (physavatar.parallel),
     # or taken from a `reference_sequences` folder made earlier (`physavatar run` makes it while
     # tracking runs).
-    refs = dict(_reference_materials(gt_root, seed))
+    refs = dict(_reference_materials(gt_root, seed, random_draws))
     if oracle is not None:
         from ..data.material import FittedMaterial
 
@@ -166,42 +201,57 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     lbs = est.vertices.copy()
     lbs[:, gmask] = linear_blend_skinning(t.vertices[gmask], Wg, T_rel)
     seqs["LBS"] = lbs
+
+    def rows_of(V):
+        V = V[: len(gt)]
+        r = {"garment": _surface_rows(V[:, gmask], gt[:, gmask], gfaces_local, n_points, seed)}
+        return r | ({"full": _surface_rows(V, gt, t.faces, n_points, seed)} if full else {})
+
+    draws = {s: rows_of(seqs[random_draw_row(s)]) for s in random_seeds(seed, random_draws)}
+    metrics["rows"]["random material"], metrics["random_draws"] = median_random_row(draws)
+    metrics["random_draws"]["materials"] = [refs[random_draw_row(s)].to_dict() for s in metrics["random_draws"]["seeds"]]
     for row in ROWS:
-        if row not in seqs:
-            continue
-        V = seqs[row][: len(gt)]
-        metrics["rows"][row] = {
-            "garment": _surface_rows(V[:, gmask], gt[:, gmask], gfaces_local, n_points, seed),
-            "full": _surface_rows(V, gt, t.faces, n_points, seed),
-        }
-    metrics["materials"] = {"estimated": av.material.to_dict(), "random": refs["random material"].to_dict(),
+        if row in seqs:
+            metrics["rows"][row] = rows_of(seqs[row])
+    metrics["rows"] = {row: metrics["rows"][row] for row in ROWS if row in metrics["rows"]}
+    median_mat = refs[random_draw_row(metrics["random_draws"]["median_seed"])]
+    metrics["materials"] = {"estimated": av.material.to_dict(), "random": median_mat.to_dict(),
                             "true": refs["true material"].to_dict() if "true material" in refs else None,
                             "oracle": refs["oracle material"].to_dict() if "oracle material" in refs else None}
 
     # Appearance on the held-out views.
     cams_file = gt_root / "heldout" / "cameras.json"
-    if cams_file.exists() and av.texture is not None:
+    if views and cams_file.exists() and av.texture is not None:
         metrics["appearance"] = _appearance(cap, av, est, gt_root / "heldout", out, views_spp)
 
 
-def _reference_materials(gt_root: Path, seed: int) -> list[tuple[str, Material]]:
+def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS) -> list[tuple[str, Material]]:
+    """The rows that need only the capture: the true material (when the capture has one) and each
+    random draw (:func:`random_draw_row`)."""
     true_path = gt_root / "material.json"
     return ([("true material", Material.load(true_path))] if true_path.exists() else []) + \
-        [("random material", random_material(seed))]
+        [(random_draw_row(s), random_material(s)) for s in random_seeds(seed, draws)]
 
 
-REFERENCE_FOLDERS = {"true material": "true", "random material": "random"}
+def reference_folder(row: str) -> str:
+    """The folder of a reference row in a :func:`reference_sequences` output: ``true``,
+    ``random-<seed>``."""
+    if row == "true material":
+        return "true"
+    if row.startswith("random material (seed ") and row.endswith(")"):
+        return "random-" + row[len("random material (seed "):-1]
+    raise KeyError(row)
 
 
 def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | None = None, seed: int = 0,
-                        progress=True) -> Path:
+                        random_draws: int = RANDOM_DRAWS, progress=True) -> Path:
     """The true- and random-material rows of :func:`evaluate` simulated ahead of time.
 
     They depend on the capture alone (its template, body shape and frame-1 pose; the held-out
     motion; the ground-truth material; the seed), not on anything fitted, so ``physavatar run``
     computes them on the second core while tracking runs on the first. Writes
-    ``out/avatar`` (a bare avatar of the capture), ``out/true`` and ``out/random`` (``animate``
-    folders, without PLYs) and ``out/references.json``.
+    ``out/avatar`` (a bare avatar of the capture), ``out/true`` and ``out/random-<seed>`` for each
+    random draw (``animate`` folders, without PLYs) and ``out/references.json``.
     """
     from .avatar import build_avatar
     from ..parallel import Job, run_jobs
@@ -215,7 +265,7 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     held = Motion.load(gt_root / "heldout" / "motion.npz")
     if frames:
         held = held.slice(0, frames)
-    refs = _reference_materials(gt_root, seed)
+    refs = _reference_materials(gt_root, seed, random_draws)
     av = build_avatar(cap, out / "avatar", material=refs[0][1])
     n_sim = simulated_frames(av, held)
     t0 = time.time()
@@ -224,10 +274,10 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     t = av.template
     for (row, mat), V in zip(refs, seqs):
         AnimatedSequence(V, t.faces, t.labels, None, av.fps, av.root).save(
-            out / REFERENCE_FOLDERS[row], {"command": "reference-sims", "material": mat.to_dict(),
+            out / reference_folder(row), {"command": "reference-sims", "material": mat.to_dict(),
                                            "motion": held.name, "seed": seed}, ply=False)
     write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames), "seed": seed,
-                                                "rows": [r for r, _ in refs], "seconds": round(time.time() - t0, 1)})
+                                                "random_seeds": random_seeds(seed, random_draws), "rows": [r for r, _ in refs], "seconds": round(time.time() - t0, 1)})
     return out
 
 
@@ -245,15 +295,15 @@ def _reuse_references(path: Path, av, refs: dict, n_frames: int) -> dict:
                               "than the evaluated avatar (made for another capture or avatar)")
     rows = {}
     for row, mat in refs.items():
-        if row not in REFERENCE_FOLDERS:  # the oracle is fitted in the run, not a reference-sims row
+        if row == "oracle material":  # the oracle is fitted in the run, not a reference-sims row
             continue
-        folder = path / REFERENCE_FOLDERS[row]
+        folder = path / reference_folder(row)
         used = read_json(folder / SEQUENCE_META).get("material") if (folder / SEQUENCE_META).is_file() else None
         if used is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
         if Material.from_dict(used) != mat:
             raise PhysavatarError(folder / "sequence.json", f"{row} was simulated with {used.get('name')!r}, "
-                                  f"this evaluation uses {mat.name!r} (other ground truth or --seed)")
+                                  f"this evaluation uses {mat.name!r} (other ground truth, --seed or --random-draws)")
         rows[row] = _reuse_sequence(folder, av, n_frames).vertices
     return rows
 
@@ -397,9 +447,15 @@ def report_markdown(m: dict) -> str:
         r = m["rows"].get(row)
         if r is None:
             continue
-        g, f = r["garment"], r["full"]
+        g, f = r["garment"], r.get("full")
+        full = f"{f['chamfer_x1e3']:.4f} | {f['fscore@1cm']:.3f}" if f else "– | –"
         lines.append(f"| {row} | {g['chamfer_x1e3']:.4f} | {g['fscore@1cm']:.3f} | {g['fscore@2cm']:.3f} | "
-                     f"{g['fscore@sq0.001']:.3f} | {f['chamfer_x1e3']:.4f} | {f['fscore@1cm']:.3f} |")
+                     f"{g['fscore@sq0.001']:.3f} | {full} |")
+    if "random_draws" in m:
+        d = m["random_draws"]
+        lines += ["", f"Random material: the median of {len(d['seeds'])} draws (seeds "
+                  f"{', '.join(map(str, d['seeds']))}; garment CD ×10³ "
+                  f"{', '.join(f'{v:.4f}' for v in d['garment_chamfer_x1e3'])}), the draw of seed {d['median_seed']}."]
     if m["rows"]:
         lines += ["", "F@1cm and F@2cm use plain distances; F@sq0.001 compares squared distances with 0.001 m² "
                   "(≈3.2 cm), the convention of widely copied code.", ""]
@@ -432,11 +488,17 @@ def _frames_ok(v):
     return None if v >= 2 else "use at least 2 frames"
 
 
+def _draws_ok(v):
+    return None if v >= 1 and v % 2 == 1 else "use an odd number of draws (the row is the median draw)"
+
+
 @dataclass(frozen=True)
 class EvaluateConfig:
     frames: int | None = option(None, "evaluate the first N held-out frames", check=_frames_ok)
     points: int = option(10000, "points sampled per surface for Chamfer / F-score",
                          check=lambda v: None if v >= 100 else "use at least 100 points")
+    random_draws: int = option(RANDOM_DRAWS, "random materials drawn (seeds 0..N-1); the random row is their median",
+                               check=_draws_ok)
     holdout: tuple[str, ...] | None = option(None, "capture cameras scored as held-out views, CAM,CAM "
                                              "(default: those the tracking held out)", parse=camera_list)
 
@@ -445,6 +507,7 @@ class EvaluateConfig:
 class ReferencesConfig:
     frames: int | None = option(None, "the first N held-out frames", check=_frames_ok)
     seed: int = setting(0)
+    random_draws: int = option(RANDOM_DRAWS, "random materials drawn (seeds seed..seed+N-1)", check=_draws_ok)
 
 
 def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), avatar: Path,
@@ -452,10 +515,11 @@ def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), 
         oracle: Path | None = None, progress=None) -> dict:
     """:func:`evaluate` as a stage: metrics.json and report.md in ``out``."""
     return evaluate(capture, avatar, out, tracked=tracked, frames=config.frames, n_points=config.points,
-                    sequence=sequence, references=references, holdout=config.holdout, oracle=oracle,
+                    random_draws=config.random_draws, sequence=sequence, references=references, holdout=config.holdout, oracle=oracle,
                     progress=progress)
 
 
 def run_references(capture: Path, *, out: Path, config: ReferencesConfig = ReferencesConfig(), progress=None) -> Path:
     """:func:`reference_sequences` as a stage (``physavatar reference-sims``)."""
-    return reference_sequences(capture, out, frames=config.frames, seed=config.seed, progress=progress)
+    return reference_sequences(capture, out, frames=config.frames, seed=config.seed,
+                               random_draws=config.random_draws, progress=progress)
