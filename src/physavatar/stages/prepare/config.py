@@ -43,6 +43,8 @@ class MaskConfig:
     refine: int = setting(2)  # background re-estimations without the frames' foreground
     border_share: float = setting(0.6)  # median image share explained by border colours to use them too
     border_max_threshold: float = setting(0.15)  # a border this varied is no backdrop (a room): not used
+    max_clutter: float = setting(0.15)  # differenced masks with more foreground outside the largest region: warned
+    max_foreground: float = setting(0.5)  # or more of the image foreground: warned
 
 
 @dataclass(frozen=True)
