@@ -217,12 +217,17 @@ def unreliable_warning(info: dict, cfg: MaskConfig) -> str | None:
            and (v["clutter"] > cfg.max_clutter or v["foreground"] > cfg.max_foreground)}
     if not bad:
         return None
-    shown = ", ".join(f"{k} {100 * v['clutter']:.0f} % of the foreground outside the person's region, "
-                      f"{100 * v['foreground']:.0f} % of the image foreground" for k, v in bad.items())
+    what = []
+    if any(v["clutter"] > cfg.max_clutter for v in bad.values()):
+        what.append("share of the foreground outside its largest region: " + ", ".join(
+            f"{k} {100 * v['clutter']:.0f} %" for k, v in bad.items() if v["clutter"] > cfg.max_clutter))
+    if any(v["foreground"] > cfg.max_foreground for v in bad.values()):
+        what.append("share of the image foreground: " + ", ".join(
+            f"{k} {100 * v['foreground']:.0f} %" for k, v in bad.items() if v["foreground"] > cfg.max_foreground))
     return (f"masks by background differencing without a background plate look unreliable in {len(bad)} of "
-            f"{len(info)} cameras ({shown}; a cluttered or changing background): install the MediaPipe extra "
-            "(pip install 'physavatar[keypoints]'), give masks (masks/<camera>/<frame>.png) or background plates "
-            "(background/<camera>.png)")
+            f"{len(info)} cameras ({'; '.join(what)}: a cluttered or changing background): install the MediaPipe "
+            "extra (pip install 'physavatar[keypoints]'), give masks (masks/<camera>/<frame>.png) or background "
+            "plates (background/<camera>.png)")
 
 
 def segmentation_masks(images: list[Path], cfg: MaskConfig) -> tuple[list[np.ndarray], dict]:
