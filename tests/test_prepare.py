@@ -25,7 +25,7 @@ from physavatar.stages.prepare.config import (
     MaskConfig,
     MeshConfig,
 )
-from physavatar.stages.prepare.masks import camera_masks, mask_iou
+from physavatar.stages.prepare.masks import camera_masks, mask_iou, reliability, unreliable_warning
 from physavatar.stages.prepare.mesh import (
     make_manifold,
     reconstruct,
@@ -178,11 +178,13 @@ def test_atlas_gives_corner_uvs_in_the_unit_square():
 
 def test_masks_without_plate_match_the_rendered_alpha(tiny_capture):
     cap = load_capture(tiny_capture)
-    ious = []
+    ious, info = [], {}
     for c in cap.cameras[:2]:
-        ms, _ = camera_masks([cap.image_path(c.name, f) for f in cap.frames], MaskConfig())
+        ms, info[c.name] = camera_masks([cap.image_path(c.name, f) for f in cap.frames], MaskConfig())
         ious += [mask_iou(m, cap.mask(c.name, f)) for m, f in zip(ms, cap.frames)]
+        info[c.name] |= reliability(ms)
     assert np.mean(ious) > 0.88, np.mean(ious)  # 96 px images: the edge pixels are a large share
+    assert unreliable_warning(info, MaskConfig()) is None, info  # a clean backdrop: no warning
 
 
 def test_masks_with_a_background_plate(tiny_capture, tmp_path):

@@ -74,6 +74,7 @@ class BodyFitConfig:
     w_clothing_inside: float = setting(3.0)
     w_clothing_near: float = setting(0.1)
     w_pose_prior: float = setting(2e-4)
+    w_spine_twist: float = setting(0.0)  # the spine's turn about the vertical (pelvis against shoulders)
     w_shape_prior: float = setting(1e-3)
     clothing_margin: float = setting(0.003)  # [m] the body keeps this far under the clothing
     bones: tuple = setting(FIT_BONES)
@@ -328,6 +329,8 @@ class _Fitter:
         self.sample_faces = torch.as_tensor(np.repeat(F_, n, axis=0))
         self.sample_bary = torch.as_tensor(bary, dtype=DTYPE)
         self.kp_ids = np.array(self.model.kp_ids)
+        # the spine bones' turns about the vertical (world-aligned axis-angle: the z component)
+        self.twist_ids = [i for i, b in enumerate(cfg.bones) if b.startswith("spine")]
         # the clothed mesh's terms leave out the hands' and feet's extremities (fingers, metacarpals,
         # toes): a surface remeshed at a few centimetres has no fingers, only a blob whose nearest
         # vertex normals put the true fingers 3-4 cm "outside" it; they pulled the arms into the blob
@@ -360,7 +363,12 @@ class _Fitter:
         return torch.cat([V, P])
 
     def prior(self, rot) -> torch.Tensor:
-        return self.cfg.w_pose_prior * (rot[:, 1:] ** 2).sum((1, 2)).mean()
+        p = self.cfg.w_pose_prior * (rot[:, 1:] ** 2).sum((1, 2)).mean()
+        if self.cfg.w_spine_twist > 0 and self.twist_ids:
+            # under a dress only the lower legs show the hips' heading: the pelvis turned ±20°
+            # with the spine turning back (the shoulders right); a person's pelvis and chest turn together
+            p = p + self.cfg.w_spine_twist * (rot[:, self.twist_ids, 2] ** 2).sum(1).mean()
+        return p
 
     def _run(self, params: list, lrs: list, iters: int, loss_fn, sigma0: float, sigma1: float, phen=None):
         cfg = self.cfg

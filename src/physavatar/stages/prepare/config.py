@@ -43,6 +43,8 @@ class MaskConfig:
     refine: int = setting(2)  # background re-estimations without the frames' foreground
     border_share: float = setting(0.6)  # median image share explained by border colours to use them too
     border_max_threshold: float = setting(0.15)  # a border this varied is no backdrop (a room): not used
+    max_clutter: float = setting(0.15)  # differenced masks with more foreground outside the largest region: warned
+    max_foreground: float = setting(0.5)  # or more of the image foreground: warned
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,7 @@ class SegmentConfig:
     colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term
     under_weight: float = setting(1.0)  # weight of the cameras' agreement on the body under a vertex (bare skin)
     under_cap: float = setting(1.5)  # and its log-odds cap
+    under_occlusion: bool = setting(True)  # cameras seeing other garment in front of the body point are left out
     smoothness: float = option(1.5, "graph-cut smoothness between neighbouring vertices", flag="--segment-smoothness",
                                check=lambda v: None if v >= 0 else "must be at least 0")
     garments: int = option(1, "number of garments to separate by colour", flag="--garments",

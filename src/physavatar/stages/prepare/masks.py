@@ -16,6 +16,14 @@ Each frame's colour distance to its background is thresholded (Otsu's threshold 
 camera's distance histogram, or a fixed one), then cleaned with OpenCV morphology: an opening
 removes speckle, a closing joins cracks, regions smaller than ``min_area`` of the image are
 dropped and holes inside the person are filled.
+
+Without a plate, differencing is unreliable in a cluttered or changing scene (people walking
+behind, a person who stays in place and leaves a ghost in the median). Each camera's masks are
+measured for that (:func:`reliability`): the share of the foreground outside each frame's
+largest region (one person is one region: the synthetic captures 0.00, the Pose2Sim lab clip
+0.40-0.54) and the share of the image that is foreground. Past ``max_clutter`` or
+``max_foreground`` :func:`estimate_masks` logs one warning line saying what to do and returns it
+(``prepare`` records it in prepare.json, capture.json and the report).
 """
 
 from __future__ import annotations
@@ -187,6 +195,41 @@ def _colour_distance(img: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return d
 
 
+def reliability(masks: list[np.ndarray]) -> dict:
+    """How much a camera's masks look like one person: ``clutter``, the mean share of each
+    frame's foreground outside its largest connected region, and ``foreground``, the mean share
+    of the image that is foreground."""
+    import cv2
+
+    clutter, fg = [], []
+    for m in masks:
+        _, _, stats, _ = cv2.connectedComponentsWithStats(np.asarray(m).astype(np.uint8), connectivity=8)
+        a = stats[1:, cv2.CC_STAT_AREA]
+        clutter.append(1.0 - a.max() / a.sum() if a.sum() else 0.0)
+        fg.append(float(np.asarray(m).mean()))
+    return {"clutter": round(float(np.mean(clutter)), 4), "foreground": round(float(np.mean(fg)), 4)}
+
+
+def unreliable_warning(info: dict, cfg: MaskConfig) -> str | None:
+    """One line when the masks differencing computed without background plates look unreliable
+    (``info``: :func:`estimate_masks`'s per camera record), else None."""
+    bad = {k: v for k, v in info.items() if v["background"] not in ("plate", "mediapipe person segmentation")
+           and (v["clutter"] > cfg.max_clutter or v["foreground"] > cfg.max_foreground)}
+    if not bad:
+        return None
+    what = []
+    if any(v["clutter"] > cfg.max_clutter for v in bad.values()):
+        what.append("share of the foreground outside its largest region: " + ", ".join(
+            f"{k} {100 * v['clutter']:.0f} %" for k, v in bad.items() if v["clutter"] > cfg.max_clutter))
+    if any(v["foreground"] > cfg.max_foreground for v in bad.values()):
+        what.append("share of the image foreground: " + ", ".join(
+            f"{k} {100 * v['foreground']:.0f} %" for k, v in bad.items() if v["foreground"] > cfg.max_foreground))
+    return (f"masks by background differencing without a background plate look unreliable in {len(bad)} of "
+            f"{len(info)} cameras ({'; '.join(what)}: a cluttered or changing background): install the MediaPipe "
+            "extra (pip install 'physavatar[keypoints]'), give masks (masks/<camera>/<frame>.png) or background "
+            "plates (background/<camera>.png)")
+
+
 def segmentation_masks(images: list[Path], cfg: MaskConfig) -> tuple[list[np.ndarray], dict]:
     """Masks of one camera's frames from MediaPipe's person segmentation (the Pose solution's
     segmentation output, whose model ships inside the wheel: nothing is downloaded), its
@@ -226,9 +269,12 @@ def mask_method(root: Path, cameras: list, cfg: MaskConfig) -> str:
 
 
 def estimate_masks(root: Path, cameras: list, frames: list[int], cfg: MaskConfig, progress=None
-                   ) -> tuple[dict[str, list[np.ndarray]], dict]:
-    """Masks of every camera and frame of the capture at ``root``: {camera: [T × [H, W] bool]}, and
-    per camera what was used (background source, threshold)."""
+                   ) -> tuple[dict[str, list[np.ndarray]], dict, str | None]:
+    """Masks of every camera and frame of the capture at ``root``: {camera: [T × [H, W] bool]}, per
+    camera what was used (background source, threshold) and how reliable the masks look
+    (:func:`reliability`), and the warning (logged here) when differencing looks unreliable."""
+    import logging
+
     from ...progress import resolve
 
     method = mask_method(root, cameras, cfg)
@@ -240,8 +286,12 @@ def estimate_masks(root: Path, cameras: list, frames: list[int], cfg: MaskConfig
                 out[c.name], info[c.name] = segmentation_masks(paths, cfg)
             else:
                 out[c.name], info[c.name] = camera_masks(paths, cfg, plate_path(root, c.name))
+            info[c.name].update(reliability(out[c.name]))
             task.advance(camera=c.name, threshold=info[c.name]["threshold"])
-    return out, info
+    warning = unreliable_warning(info, cfg)
+    if warning is not None:
+        logging.getLogger("physavatar.progress").warning("%s: %s", root, warning)
+    return out, info, warning
 
 
 def mask_iou(pred: np.ndarray, true: np.ndarray) -> float:

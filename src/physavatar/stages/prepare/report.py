@@ -43,7 +43,8 @@ def _sheet(images, names, path: Path) -> None:
     save_png(path, contact_sheet(images, names))
 
 
-def write_report(cap: Capture, root: Path, steps: dict, numbers: dict, progress=None) -> Path:
+def write_report(cap: Capture, root: Path, steps: dict, numbers: dict, progress=None,
+                 warnings: list[str] | None = None) -> Path:
     """Write ``root/prepare/report.md`` and its pictures for the prepared capture ``cap``."""
     from .posing import pose_body
     from .segment import visible
@@ -93,7 +94,9 @@ def write_report(cap: Capture, root: Path, steps: dict, numbers: dict, progress=
         _distance_figure(numbers["_distance"], numbers, out / "distance.png")
         figures.append("distance.png")
     lines = ["# Preparation report", "", f"Capture `{cap.root}`: {len(cap.cameras)} cameras, {len(cap.frames)} frames.",
-             "", "| step | what was done |", "| --- | --- |"]
+             ""]
+    lines += [f"**Warning:** {w}" for w in warnings or []] + ([""] if warnings else [])
+    lines += ["| step | what was done |", "| --- | --- |"]
     lines += [f"| {k} | {v} |" for k, v in steps.items()]
     tpl = numbers.get("template")
     if tpl:
@@ -102,6 +105,9 @@ def write_report(cap: Capture, root: Path, steps: dict, numbers: dict, progress=
     if "masks" in numbers:
         lines += ["", "Masks per camera (background, threshold): " + ", ".join(
             f"{k}: {v['background']} {v['threshold']}" for k, v in numbers["masks"].items())]
+        lines += ["", "Share of each camera's foreground outside the largest region (clutter), and of the image "
+                  "that is foreground: " + ", ".join(f"{k}: {v.get('clutter', 0):.2f}, {v.get('foreground', 0):.2f}"
+                                                    for k, v in numbers["masks"].items())]
     if numbers.get("boundary"):
         lines += ["", "Boundary per garment: " + "; ".join(
             f"garment {g}: {v}" for g, v in numbers["boundary"].items())]

@@ -85,14 +85,22 @@ def vertex_colours(vertices: np.ndarray, faces: np.ndarray, cameras: list, image
 
 
 def under_disagreement(points: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray, cameras: list,
-                       images: dict[str, np.ndarray], min_cos: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+                       images: dict[str, np.ndarray], min_cos: float = 0.5, occluders: np.ndarray | None = None,
+                       spacing: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
     """([n] how much the cameras facing the fitted body's surface point under each point disagree on
     its colour: the median distance of their colours to the median colour; [n] how many).
 
     Where nothing lies between a point and the body (bare skin the visual hull bridges: between
     a dress's straps), the cameras see that body point itself and agree, even on plain skin; under
     a garment they see different parts of the cloth in front of it and disagree. The consistency
-    test of voxel colouring (Seitz and Dyer), made at the body's surface instead of the hull's."""
+    test of voxel colouring (Seitz and Dyer), made at the body's surface instead of the hull's.
+
+    ``occluders`` ([n] bool, the points taken for garment so far): a camera is not used for a
+    body point when one of those points farther than ``2 h + 2 spacing`` from the point above it
+    (``h`` its height above the body: its own patch, through which any camera sees the body) lies
+    in front of the body point in that camera (a point z-buffer of the occluders, splatted
+    ``spacing`` wide). Over bare skin between a dress's straps, an oblique camera sees a strap in
+    front of the skin: it saw the strap, not the skin, and made the skin look covered."""
     from ...geometry.closest import MeshQuery
 
     _, f, w, P = MeshQuery(body_vertices, body_faces, spacing=0.02).closest(points)
@@ -106,6 +114,8 @@ def under_disagreement(points: np.ndarray, body_vertices: np.ndarray, body_faces
         to /= np.maximum(np.linalg.norm(to, axis=1, keepdims=True), 1e-12)
         ok = ((N * to).sum(1) > min_cos) & (z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) \
             & (uv[:, 0] <= c.width - 1) & (uv[:, 1] <= c.height - 1)
+        if occluders is not None and occluders.any() and ok.any():
+            ok &= ~_occluded(c, points, P, uv, z, ok, occluders, spacing)
         return ok, uv
 
     S = _samples(cameras, images, len(P), facing)
@@ -115,6 +125,42 @@ def under_disagreement(points: np.ndarray, body_vertices: np.ndarray, body_faces
     med = np.nanmedian(S[:, m], 0)
     dev[m] = np.nanmedian(np.linalg.norm(S[:, m] - med[None], axis=2), 0)
     return dev, n
+
+
+def _occluded(cam, points: np.ndarray, P: np.ndarray, uv: np.ndarray, z: np.ndarray, ok: np.ndarray,
+              occluders: np.ndarray, spacing: float) -> np.ndarray:
+    """[n] bool: body point ``P[i]`` (at pixel ``uv[i]``, depth ``z[i]``; only where ``ok``) has an
+    occluder point in front of it in ``cam`` that is farther than ``2 h + 2 spacing`` from
+    ``points[i]`` (``h = |points[i] - P[i]|``)."""
+    ids = np.flatnonzero(occluders)
+    ouv, oz = cam.project(points[ids])
+    good = (oz > 1e-6) & np.isfinite(ouv).all(1)
+    ids, ouv, oz = ids[good], ouv[good], oz[good]
+    out = np.zeros(len(P), bool)
+    if not len(ids):
+        return out
+    r = max(1, int(np.ceil(cam.K[0, 0] * spacing / np.median(oz))))
+    zbuf = np.full((cam.height, cam.width), np.inf)
+    who = np.full((cam.height, cam.width), -1, np.int64)
+    px = np.round(ouv).astype(np.int64)
+    order = np.argsort(-oz)  # nearest written last: it wins
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            x, y = px[order, 0] + dx, px[order, 1] + dy
+            inside = (x >= 0) & (x < cam.width) & (y >= 0) & (y < cam.height)
+            x, y, o = x[inside], y[inside], order[inside]
+            nearer = oz[o] < zbuf[y, x]
+            zbuf[y[nearer], x[nearer]] = oz[o[nearer]]
+            who[y[nearer], x[nearer]] = ids[o[nearer]]
+    q = np.flatnonzero(ok)
+    x = np.clip(np.round(uv[q, 0]).astype(int), 0, cam.width - 1)
+    y = np.clip(np.round(uv[q, 1]).astype(int), 0, cam.height - 1)
+    occ = who[y, x]
+    front = (occ >= 0) & (zbuf[y, x] < z[q] - 0.5 * spacing)
+    h = np.linalg.norm(points[q] - P[q], axis=1)
+    far = np.linalg.norm(points[np.maximum(occ, 0)] - points[q], axis=1) > 2 * h + 2 * spacing
+    out[q] = front & far
+    return out
 
 
 def _mixture_loglik(x: np.ndarray, sel: np.ndarray, k: int = 3) -> np.ndarray:
@@ -205,7 +251,10 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
         info["colour_used"] = True
         if cfg.under_weight > 0:
             # the body under each vertex seen alike by its cameras: bare skin the hull bridges
-            dev, _ = under_disagreement(vertices, body_vertices, body_faces, cameras, images)
+            # cameras that see another part of the garment in front of the body point are left out
+            occ = (logit > 0) if cfg.under_occlusion else None
+            dev, _ = under_disagreement(vertices, body_vertices, body_faces, cameras, images, occluders=occ,
+                                        spacing=spacing)
             ok = np.isfinite(dev)
             x = np.log(np.where(ok, dev, 1.0) + 0.005)[:, None]
             gs, bs = g_seed & ok & (sd > cfg.margin), b_seed & ok

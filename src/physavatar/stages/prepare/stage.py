@@ -86,6 +86,7 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
     tmp = _work_dir(out)
     t_all = time.time()
     steps: dict[str, str] = {}
+    warnings: list[str] = []
     numbers: dict = {}
     seconds: dict[str, float] = {}
     try:
@@ -107,22 +108,11 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
 
         # -- masks
         t = time.time()
-        if raw.has_masks:
-            for c in raw.cameras:
-                for f in raw.frames:
-                    link_file(raw.mask_path(c.name, f), tmp / "masks" / c.name / f"{frame_name(f)}.png", cfg.copy_images)
-            steps["masks"] = "given"
-        else:
-            from .masks import estimate_masks
-
-            masks, info = estimate_masks(src, raw.cameras, raw.frames, cfg.masks, prog)
-            for c in raw.cameras:
-                for f, m in zip(raw.frames, masks[c.name]):
-                    save_png(tmp / "masks" / c.name / f"{frame_name(f)}.png", m.astype(np.uint8) * 255)
-            numbers["masks"] = {k: {"background": v["background"], "threshold": v["threshold"]} for k, v in info.items()}
-            kinds = sorted({v["background"] for v in info.values()})
-            steps["masks"] = ("computed: " + ", ".join(kinds) if kinds == ["mediapipe person segmentation"] else
-                              "computed: background differencing (" + ", ".join(kinds) + ")")
+        steps["masks"], mask_numbers, warning = _masks(src, tmp, raw, cfg, prog)
+        if mask_numbers:
+            numbers["masks"] = mask_numbers
+        if warning:
+            warnings.append(warning)
         seconds["masks"] = time.time() - t
 
         def masks_of(frame: int) -> dict[str, np.ndarray]:
@@ -211,17 +201,17 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
                                                   np.asarray(tpl.vertex_data["label"]).astype(np.int64))
             seconds["ground_truth"] = time.time() - t
 
-        extra["prepared"] = {"from": str(src.resolve()), "steps": steps}
+        extra["prepared"] = {"from": str(src.resolve()), "steps": steps} | ({"warnings": warnings} if warnings else {})
         save_capture_meta(tmp, fps=raw.meta["fps"], frames=raw.frames, extra=extra)
         cap = load_capture(tmp)  # what run will read: checked before anything is renamed
         if cfg.report:
             t = time.time()
             from .report import write_report
 
-            write_report(cap, tmp, steps, numbers, prog)
+            write_report(cap, tmp, steps, numbers, prog, warnings)
             seconds["report"] = time.time() - t
         seconds["total"] = time.time() - t_all
-        write_json_atomic(tmp / "prepare.json", {"capture": str(src), "steps": steps,
+        write_json_atomic(tmp / "prepare.json", {"capture": str(src), "steps": steps, "warnings": warnings,
                                                  "seconds": {k: round(v, 2) for k, v in seconds.items()},
                                                  "numbers": _jsonable(numbers), "config": to_dict(cfg)})
     except BaseException:
@@ -229,6 +219,28 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
         raise
     _finish(tmp, out)
     return out
+
+
+def _masks(src: Path, tmp: Path, raw, cfg: PrepareConfig, prog) -> tuple[str, dict, str | None]:
+    """The masks step: the capture's masks linked, or computed into ``tmp/masks``; returns what was
+    done (one line), the per camera numbers, and the warning when computed masks look unreliable
+    (masks.unreliable_warning, already logged)."""
+    if raw.has_masks:
+        for c in raw.cameras:
+            for f in raw.frames:
+                link_file(raw.mask_path(c.name, f), tmp / "masks" / c.name / f"{frame_name(f)}.png", cfg.copy_images)
+        return "given", {}, None
+    from .masks import estimate_masks
+
+    masks, info, warning = estimate_masks(src, raw.cameras, raw.frames, cfg.masks, prog)
+    for c in raw.cameras:
+        for f, m in zip(raw.frames, masks[c.name]):
+            save_png(tmp / "masks" / c.name / f"{frame_name(f)}.png", m.astype(np.uint8) * 255)
+    kinds = sorted({v["background"] for v in info.values()})
+    step = ("computed: " + ", ".join(kinds) if kinds == ["mediapipe person segmentation"] else
+            "computed: background differencing (" + ", ".join(kinds) + ")")
+    keep = ("background", "threshold", "clutter", "foreground")
+    return step, {k: {q: v[q] for q in keep if q in v} for k, v in info.items()}, warning
 
 
 def _footprint(cameras, V) -> float:
