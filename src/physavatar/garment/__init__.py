@@ -2,6 +2,7 @@
 
 from .garment import (GARMENTS, MIN_CLEARANCE, Attachment, Garment, attachment_positions, combine_template,
                       garment_skinning_weights, keep_clear, make_attachment, make_garment)
+from .unfold import unfold_targets
 
 __all__ = ["GARMENTS", "MIN_CLEARANCE", "Attachment", "Garment", "attachment_positions", "combine_template",
-           "garment_skinning_weights", "keep_clear", "make_attachment", "make_garment"]
+           "garment_skinning_weights", "keep_clear", "make_attachment", "make_garment", "unfold_targets"]
