@@ -5,7 +5,7 @@ and frames where nothing crosses keep the ride bit for bit."""
 import ipctk
 import numpy as np
 
-from physavatar.garment import attachment_positions, make_attachment, unfold_targets
+from physavatar.garment import attachment_normals, attachment_positions, make_attachment, unfold_targets
 from physavatar.garment.unfold import crossing_frames
 
 
@@ -40,11 +40,12 @@ def test_a_strip_over_a_folding_surface_keeps_its_targets_from_crossing():
     bodies = np.stack([_folding_surface(suv, s) for s in np.r_[np.zeros(6), np.linspace(0, 1, T - 6)]])
     X, F = _strip()
     ids = np.arange(len(X))
-    ride = attachment_positions(make_attachment(X, ids, bodies[0], SF, "s"), bodies)
+    att = make_attachment(X, ids, bodies[0], SF, "s")
+    ride = attachment_positions(att, bodies)
     np.testing.assert_allclose(ride[0], X, atol=1e-12)
     crossed = crossing_frames(ride, F, ids)
     assert crossed and crossed[-1] == T - 1  # the per-vertex ride crosses itself as the surface folds
-    out, rep = unfold_targets(ride, F, ids)
+    out, rep = unfold_targets(ride, F, ids, attachment_normals(att, bodies))
     assert rep["frames_crossing"] == crossed
     assert crossing_frames(out, F, ids) == [] and rep["still_crossing"] == []
     # independent of crossing_frames: ipctk on the whole strip, every frame

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .garment import attachment_positions, keep_clear, make_attachment, unfold_targets
+from .garment import attachment_normals, attachment_positions, keep_clear, make_attachment, unfold_targets
 from .sim import Material, SimSettings, simulate
 
 
@@ -238,7 +238,7 @@ def boundary_targets(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
     att = make_attachment(sewn_points(part.vertices, part.boundary, part.seams), part.boundary, body_sequence[0],
                           body_faces, "sequence")
     targets = attachment_positions(att, body_sequence)
-    targets, unfolded = unfold_targets(targets, part.faces, part.boundary)
+    targets, unfolded = unfold_targets(targets, part.faces, part.boundary, attachment_normals(att, body_sequence))
     log = logging.getLogger("physavatar.progress")
     if unfolded["frames_changed"]:
         log.info("attached triangles crossed in %d frames: fitted as-rigid-as-possible in %d (at most %.1f mm from "

@@ -15,7 +15,8 @@ start shape up to local rotations while following the skin on average, as a stra
 the skin instead of crumpling with it. Around those frames the fit is blended in and out over
 ``ramp`` frames (the targets stay continuous in time); every other frame is kept bit for bit, so
 a motion whose attached triangles never cross gets exactly the per-vertex ride. A frame whose
-fit still crosses is fitted again with 4× the stiffness (at most ``rounds`` times).
+fit still crosses is fitted again with 4× the stiffness and a tenth of the normal weight (the
+patch freer to leave the skin where the skin itself folds through), at most ``rounds`` times.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from scipy.sparse.linalg import factorized
 
 STIFFNESS = 10.0  # ARAP weight against the data term (per edge spoke, both in m²): 10 = close to rigid locally
 RAMP = 5  # frames over which the fit is blended in before and out after the frames that cross
+NORMAL_WEIGHT = 100.0  # the data term along the body's normal: the patch slides over the skin, not off or into it
 ITERATIONS = 20  # local-global iterations per frame (warm-started from the frame before)
 
 
@@ -52,26 +54,36 @@ def _patch(faces: np.ndarray, vertex_ids: np.ndarray, start: np.ndarray):
 
 class _ARAP:
     """As-rigid-as-possible fit of a patch (start positions X [G, 3], edges [E, 2]) to data
-    points P [G, 3]: min Σ_i |y_i − p_i|² + λ Σ_i Σ_{j∈N(i)} |(y_i − y_j) − R_i (x_i − x_j)|²."""
+    points P [G, 3]: min Σ_i (y_i − p_i)ᵀ W_i (y_i − p_i) + λ Σ_i Σ_{j∈N(i)} |(y_i − y_j) − R_i (x_i − x_j)|²,
+    W_i = I + (``normal_weight`` − 1) n_i n_iᵀ: held ``normal_weight`` times harder along the
+    body's normal n_i than along the skin, so the patch slides over the skin to keep its shape
+    instead of leaving (or entering) the body."""
 
-    def __init__(self, X: np.ndarray, edges: np.ndarray, stiffness: float):
+    def __init__(self, X: np.ndarray, edges: np.ndarray, stiffness: float, normal_weight: float = 1.0):
         G = len(X)
-        self.X, self.lam = X, float(stiffness)
+        self.X, self.lam, self.wn = X, float(stiffness), float(normal_weight)
         self.i, self.j = np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]]  # directed spokes
         self.e = X[self.i] - X[self.j]  # [2E, 3] rest spokes
         A = sp.coo_matrix((np.ones(len(self.i)), (self.i, self.j)), (G, G)).tocsr()
-        L = sp.diags(np.asarray(A.sum(1)).ravel()) - A
-        self.solve = factorized((sp.identity(G) + 2.0 * self.lam * L).tocsc())
+        self.L = sp.kron((sp.diags(np.asarray(A.sum(1)).ravel()) - A) * (2.0 * self.lam), sp.identity(3)).tocsr()
         self.R = np.broadcast_to(np.eye(3), (G, 3, 3)).copy()
 
-    def fit(self, P: np.ndarray, iterations: int = ITERATIONS) -> np.ndarray:
+    def fit(self, P: np.ndarray, normals: np.ndarray | None = None, iterations: int = ITERATIONS) -> np.ndarray:
         G = len(P)
+        W = np.broadcast_to(np.eye(3), (G, 3, 3)).copy()
+        if normals is not None and self.wn != 1.0:
+            n = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+            W += (self.wn - 1.0) * np.einsum("ga,gb->gab", n, n)
+        rows = np.repeat(np.arange(3 * G).reshape(G, 3), 3, axis=1).ravel()
+        cols = np.tile(np.arange(3 * G).reshape(G, 3), (1, 3)).ravel()
+        solve = factorized((self.L + sp.csr_matrix((W.ravel(), (rows, cols)), (3 * G, 3 * G))).tocsc())
+        WP = np.einsum("gab,gb->ga", W, P)
         Y = P.copy()
         for _ in range(iterations):
-            # global: (I + 2λL) y = p + λ Σ_j (R_i + R_j) e_ij
+            # global: (W + 2λL) y = W p + λ Σ_j (R_i + R_j) e_ij
             rhs = np.zeros((G, 3))
             np.add.at(rhs, self.i, np.einsum("kab,kb->ka", self.R[self.i] + self.R[self.j], self.e))
-            Y = np.column_stack([self.solve(P[:, d] + self.lam * rhs[:, d]) for d in range(3)])
+            Y = solve((WP + self.lam * rhs).ravel()).reshape(G, 3)
             # local: R_i = the rotation closest to Σ_j (y_i − y_j) e_ijᵀ
             S = np.zeros((G, 3, 3))
             np.add.at(S, self.i, np.einsum("ka,kb->kab", Y[self.i] - Y[self.j], self.e))
@@ -95,10 +107,11 @@ def crossing_frames(targets: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarr
     return [t for t in range(len(T)) if ipctk.has_intersections(mesh, T[t][first])]
 
 
-def unfold_targets(targets: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarray, stiffness: float = STIFFNESS,
-                   ramp: int = RAMP, rounds: int = 3):
+def unfold_targets(targets: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarray, normals: np.ndarray | None = None,
+                   stiffness: float = STIFFNESS, normal_weight: float = NORMAL_WEIGHT, ramp: int = RAMP, rounds: int = 3):
     """Attached targets [T, K, 3] (garment.attachment_positions, rows ``vertex_ids`` of the
-    garment ``faces``) with the frames where the attached patch crosses itself replaced by an
+    garment ``faces``; ``normals`` [T, K, 3]: the body's normal under each, e.g. its attachment
+    triangle's) with the frames where the attached patch crosses itself replaced by an
     as-rigid-as-possible fit of the patch (its shape at frame 0) to them, blended in and out
     over ``ramp`` frames; other frames unchanged (bit for bit), frame 0 always. Returns (targets,
     report: frames that crossed, frames changed, largest change [m], frames that still cross)."""
@@ -120,20 +133,24 @@ def unfold_targets(targets: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarra
     mesh = ipctk.CollisionMesh(Vt[0][first], Eb.astype(np.int32), Fb.astype(np.int32))
     out = Vt.copy()
     lam = float(stiffness)
-    for _ in range(max(1, rounds)):
-        arap = _ARAP(Vt[0][first], Eb, lam)
+    for r in range(max(1, rounds)):
+        arap = _ARAP(Vt[0][first], Eb, lam, normal_weight)
         todo = np.flatnonzero(alpha > 0)
         for t in todo:  # in time order: each frame's rotations start from the frame before
             P = Vt[t][first]
-            Y = arap.fit(P)
+            n = None
+            if normals is not None:
+                n = np.zeros((len(first), 3))
+                np.add.at(n, group, np.asarray(normals[t], np.float64))
+            Y = arap.fit(P, n)
             out[t] = ((1.0 - alpha[t]) * P + alpha[t] * Y)[group]
         still = [int(t) for t in todo if ipctk.has_intersections(mesh, out[t][first])]
-        if not still:
+        if not still or r == max(1, rounds) - 1:
             break
-        lam *= 4.0
+        lam, normal_weight = 4.0 * lam, max(1.0, normal_weight / 10.0)  # stiffer, and freer to leave the skin
     report["still_crossing"] = still
     changed = np.abs(out - Vt).max(axis=(1, 2))
     report["frames_changed"] = int(np.sum(changed > 0))
     report["max_change_m"] = float(changed.max())
-    report["stiffness"] = lam
+    report["stiffness"], report["normal_weight"] = lam, normal_weight
     return out, report
