@@ -254,6 +254,8 @@ def main():
                     help="read the motions already simulated in --work instead of simulating them again")
     ap.add_argument("--append", action="store_true", help="keep the other motions' rows of an existing result file")
     ap.add_argument("--work", default=None, help="keep the simulate folders here (default: a temporary folder)")
+    ap.add_argument("--commit", default=None,
+                    help="with --partial: the code commit the runs in --work were started on (default: this checkout's)")
     ap.add_argument("--targets", action="store_true",
                     help="check only the attached (boundary) targets, simulate nothing: the frames where the "
                          "attached triangles alone cross, riding the skin and after garment.unfold_targets")
@@ -308,7 +310,8 @@ def main():
             print(f"{name:15s} {r['frames']:6d} frames: attached triangles cross in {len(r['crossing_frames_ride'])} "
                   f"riding the skin, {len(r['crossing_frames_targets'])} as simulated; changed {r['frames_unfolded']} "
                   f"frames by <= {1e3 * r['max_unfold_change_m']:.1f} mm; area {r['area_ratio_range']}")
-        write_json_atomic(out, {"benchmark": "motion_suite --targets", "edge_length": edge, "full": args.full,
+        write_json_atomic(out, {"benchmark": "motion_suite --targets", "code_commit": _head(), "edge_length": edge,
+                                "full": args.full,
                                 "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                                 "figures": rows, "checks": {f"{k}:crossing_frames_targets": {
                                     "value": len(r["crossing_frames_targets"]), "target": "0 frames",
@@ -442,6 +445,15 @@ def _checks(rows: dict) -> dict:
     return checks
 
 
+def _head() -> str | None:
+    """This checkout's commit (None outside git)."""
+    import subprocess
+
+    r = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=Path(__file__).resolve().parent,
+                       capture_output=True, text=True)
+    return r.stdout.strip() or None
+
+
 def _write(args, rows, load0, edge, duration, warmup, fps):
     """The result file, rewritten after every motion; with --append, rows of an earlier run in
     it are kept (each row says the run it came from: its date and load)."""
@@ -454,7 +466,8 @@ def _write(args, rows, load0, edge, duration, warmup, fps):
     old = json.loads(out.read_text())["figures"] if args.append and out.exists() else {}
     rows = {**old, **rows}
     result = {
-        "benchmark": "motion_suite", "date": stamp["date"],
+        "benchmark": "motion_suite", "date": stamp["date"], "code_commit": args.commit or _head(),
+        "partial": bool(args.partial),
         "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None, **{k: v for k, v in stamp.items() if k != "date"}},
         "config": {"garment": "dress (layered cases: their rows' garment)", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
                    "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,
