@@ -450,7 +450,7 @@ def _head() -> str | None:
     import subprocess
 
     r = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=Path(__file__).resolve().parent,
-                       capture_output=True, text=True)
+                       capture_output=True, text=True, check=False)
     return r.stdout.strip() or None
 
 
