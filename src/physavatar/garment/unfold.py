@@ -108,7 +108,7 @@ def crossing_frames(targets: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarr
 
 
 def unfold_targets(targets: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarray, normals: np.ndarray | None = None,
-                   stiffness: float = STIFFNESS, normal_weight: float = NORMAL_WEIGHT, ramp: int = RAMP, rounds: int = 3):
+                   stiffness: float = STIFFNESS, normal_weight: float = NORMAL_WEIGHT, ramp: int = RAMP, rounds: int = 8):
     """Attached targets [T, K, 3] (garment.attachment_positions, rows ``vertex_ids`` of the
     garment ``faces``; ``normals`` [T, K, 3]: the body's normal under each, e.g. its attachment
     triangle's) with the frames where the attached patch crosses itself replaced by an
@@ -125,17 +125,17 @@ def unfold_targets(targets: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarra
     group, Fb, Eb = _patch(faces, vertex_ids, Vt[0])
     first = np.unique(group, return_index=True)[1]
     T = len(Vt)
-    alpha = np.zeros(T)
-    for b in bad:  # 1 at a crossing frame, falling linearly to 0 over `ramp` frames each side
-        d = np.abs(np.arange(T) - b)
-        alpha = np.maximum(alpha, np.clip(1.0 - d / (ramp + 1.0), 0.0, 1.0))
-    alpha[0] = 0.0
     mesh = ipctk.CollisionMesh(Vt[0][first], Eb.astype(np.int32), Fb.astype(np.int32))
     out = Vt.copy()
-    lam = float(stiffness)
-    for r in range(max(1, rounds)):
+    lam, fitted = float(stiffness), set(bad)
+    for _ in range(max(1, rounds)):
+        alpha = np.zeros(T)
+        for b in fitted:  # 1 at a fitted frame, falling linearly to 0 over `ramp` frames each side
+            alpha = np.maximum(alpha, np.clip(1.0 - np.abs(np.arange(T) - b) / (ramp + 1.0), 0.0, 1.0))
+        alpha[0] = 0.0
         arap = _ARAP(Vt[0][first], Eb, lam, normal_weight)
         todo = np.flatnonzero(alpha > 0)
+        out = Vt.copy()
         for t in todo:  # in time order: each frame's rotations start from the frame before
             P = Vt[t][first]
             n = None
@@ -145,12 +145,14 @@ def unfold_targets(targets: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarra
             Y = arap.fit(P, n)
             out[t] = ((1.0 - alpha[t]) * P + alpha[t] * Y)[group]
         still = [int(t) for t in todo if ipctk.has_intersections(mesh, out[t][first])]
-        if not still or r == max(1, rounds) - 1:
+        if not still:
             break
-        lam, normal_weight = 4.0 * lam, max(1.0, normal_weight / 10.0)  # stiffer, and freer to leave the skin
+        if any(alpha[t] == 1.0 for t in still):  # the fit itself crosses: stiffer
+            lam *= 4.0
+        fitted |= set(still)  # a blend of the ride and the fit crosses: fit it fully, the ramp moves out
     report["still_crossing"] = still
     changed = np.abs(out - Vt).max(axis=(1, 2))
     report["frames_changed"] = int(np.sum(changed > 0))
     report["max_change_m"] = float(changed.max())
-    report["stiffness"], report["normal_weight"] = lam, normal_weight
+    report["stiffness"] = lam
     return out, report
