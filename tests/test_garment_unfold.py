@@ -54,8 +54,8 @@ def test_a_strip_over_a_folding_surface_keeps_its_targets_from_crossing():
     # frames where the surface is still flat (0-5) are the ride bit for bit; the crossing ones changed
     changed = np.flatnonzero(np.abs(out - ride).max(axis=(1, 2)) > 0)
     assert rep["frames_changed"] == len(changed) and changed.min() > 5 and set(crossed) <= set(changed)
-    # the fit follows the surface on average: it moves no further than the 20-cm reversed section
-    assert rep["max_change_m"] == np.abs(out - ride).max() and 0 < rep["max_change_m"] < 0.25
+    # the fit follows the surface on average: it moves less than half the strip's length (0.8 m)
+    assert rep["max_change_m"] == np.abs(out - ride).max() and 0 < rep["max_change_m"] < 0.4
 
 def test_targets_that_do_not_cross_are_returned_unchanged():
     suv, SF = _grid(np.linspace(0.0, 1.0, 21), np.linspace(0.0, 0.2, 5))

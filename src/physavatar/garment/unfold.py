@@ -29,6 +29,7 @@ from scipy.sparse.linalg import factorized
 STIFFNESS = 10.0  # ARAP weight against the data term (per edge spoke, both in m²): 10 = close to rigid locally
 RAMP = 5  # frames over which the fit is blended in before and out after the frames that cross
 NORMAL_WEIGHT = 100.0  # the data term along the body's normal: the patch slides over the skin, not off or into it
+OUTSIDE = True  # each fitted vertex kept at least as far out along the body's normal as its ride
 ITERATIONS = 20  # local-global iterations per frame (warm-started from the frame before)
 
 
@@ -68,10 +69,13 @@ class _ARAP:
         self.L = sp.kron((sp.diags(np.asarray(A.sum(1)).ravel()) - A) * (2.0 * self.lam), sp.identity(3)).tocsr()
         self.R = np.broadcast_to(np.eye(3), (G, 3, 3)).copy()
 
-    def fit(self, P: np.ndarray, normals: np.ndarray | None = None, iterations: int = ITERATIONS) -> np.ndarray:
+    def fit(self, P: np.ndarray, normals: np.ndarray | None = None, iterations: int = ITERATIONS,
+            outside: bool | None = None) -> np.ndarray:
         G = len(P)
+        outside = OUTSIDE if outside is None else outside
         W = np.broadcast_to(np.eye(3), (G, 3, 3)).copy()
-        if normals is not None and self.wn != 1.0:
+        n = None
+        if normals is not None:
             n = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
             W += (self.wn - 1.0) * np.einsum("ga,gb->gab", n, n)
         rows = np.repeat(np.arange(3 * G).reshape(G, 3), 3, axis=1).ravel()
@@ -84,6 +88,8 @@ class _ARAP:
             rhs = np.zeros((G, 3))
             np.add.at(rhs, self.i, np.einsum("kab,kb->ka", self.R[self.i] + self.R[self.j], self.e))
             Y = solve((WP + self.lam * rhs).ravel()).reshape(G, 3)
+            if outside and n is not None:  # never deeper than the ride along the body's normal
+                Y += np.maximum(((P - Y) * n).sum(1), 0.0)[:, None] * n
             # local: R_i = the rotation closest to Σ_j (y_i − y_j) e_ijᵀ
             S = np.zeros((G, 3, 3))
             np.add.at(S, self.i, np.einsum("ka,kb->kab", Y[self.i] - Y[self.j], self.e))
