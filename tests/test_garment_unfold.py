@@ -39,18 +39,26 @@ def test_a_strip_over_a_folding_surface_keeps_its_targets_from_crossing():
     T = 21
     bodies = np.stack([_folding_surface(suv, s) for s in np.r_[np.zeros(6), np.linspace(0, 1, T - 6)]])
     X, F = _strip()
-    ids = np.arange(len(X))
-    att = make_attachment(X, ids, bodies[0], SF, "s")
+    # a seam across the strip: its middle column's vertices doubled, the faces right of it on the
+    # copies (sewn boundary vertices share one attachment point, garment_sim.sewn_points)
+    col = np.arange(16 * 3, 17 * 3)
+    Fs = F.copy()
+    right = (F >= 17 * 3).any(1)
+    Fs[right] = np.where(np.isin(F[right], col), F[right] - col[0] + len(X), F[right])
+    Xs = np.vstack([X, X[col]])
+    ids = np.arange(len(Xs))
+    att = make_attachment(Xs, ids, bodies[0], SF, "s")
     ride = attachment_positions(att, bodies)
-    np.testing.assert_allclose(ride[0], X, atol=1e-12)
-    crossed = crossing_frames(ride, F, ids)
+    np.testing.assert_allclose(ride[0], Xs, atol=1e-12)
+    crossed = crossing_frames(ride, Fs, ids)
     assert crossed and crossed[-1] == T - 1  # the per-vertex ride crosses itself as the surface folds
-    out, rep = unfold_targets(ride, F, ids, attachment_normals(att, bodies))
+    out, rep = unfold_targets(ride, Fs, ids, attachment_normals(att, bodies))
     assert rep["frames_crossing"] == crossed
-    assert crossing_frames(out, F, ids) == [] and rep["still_crossing"] == []
-    # independent of crossing_frames: ipctk on the whole strip, every frame
+    assert crossing_frames(out, Fs, ids) == [] and rep["still_crossing"] == []
+    assert np.array_equal(out[:, len(X):], out[:, col])  # the seam stays closed, bit for bit
+    # independent of crossing_frames: ipctk on the whole (welded) strip, every frame
     mesh = ipctk.CollisionMesh(X, ipctk.edges(F.astype(np.int32)), F.astype(np.int32))
-    assert not any(ipctk.has_intersections(mesh, out[t]) for t in range(T))
+    assert not any(ipctk.has_intersections(mesh, out[t, :len(X)]) for t in range(T))
     # frames where the surface is still flat (0-5) are the ride bit for bit; the crossing ones changed
     changed = np.flatnonzero(np.abs(out - ride).max(axis=(1, 2)) > 0)
     assert rep["frames_changed"] == len(changed) and changed.min() > 5 and set(crossed) <= set(changed)
