@@ -59,10 +59,8 @@ def main():
     from physavatar.body.load import load_motion, with_arm_clearance
     from physavatar.errors import PhysavatarError
     from physavatar.garment.boundary import arm_vertices, auto_boundary
-    from physavatar.garment import attachment_positions, keep_clear, make_attachment
     from physavatar.garment.files import load_garment
-    from physavatar.garment_sim import (BOUNDARY_CLEARANCE, GarmentPart, fit_on_body, rest_strain, sewn_points,
-                                       simulate_on_body)
+    from physavatar.garment_sim import GarmentPart, boundary_targets, fit_on_body, rest_strain, simulate_on_body
     from physavatar.sim import SimSettings, preset
     from physavatar.sim.contact import ContactScene
     from physavatar.sim.mesh import ClothTopology
@@ -133,11 +131,9 @@ def main():
             wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
             rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
             bodies = body.pose(rots, trs).vertices
-            # what simulate_on_body does to the boundary's targets (garment.keep_clear), reported
-            att = make_attachment(sewn_points(fitted.vertices, fitted.boundary, fitted.seams), fitted.boundary, bodies[0],
-                                  body.faces, "sequence")
-            _, lifted = keep_clear(att, attachment_positions(att, bodies), fitted.faces, bodies, body.faces,
-                                   BOUNDARY_CLEARANCE * settings.dhat)
+            # what simulate_on_body does to the boundary's targets (garment.unfold_targets, keep_clear), reported
+            _, targets_report = boundary_targets(fitted, bodies, body.faces, settings.dhat)
+            lifted, unfolded = targets_report["keep_clear"], targets_report["unfold"]
             t0 = time.time()
             X = simulate_on_body(fitted, bodies, body.faces, material, fps, settings=settings)
             secs = time.time() - t0
@@ -153,7 +149,10 @@ def main():
                    "strain_first_frame_p95": round(float(np.percentile(s0, 95)), 4),
                    "boundary_lift": {"floor_mm": round(1e3 * lifted["floor_m"], 4), "frames": lifted["frames_lifted"],
                                      "max_mm": round(1e3 * lifted["max_lift_m"], 4),
-                                     "failed_frames": lifted["failed_frames"]}}
+                                     "failed_frames": lifted["failed_frames"]},
+                   "boundary_unfold": {"frames_crossing": unfolded["frames_crossing"],
+                                       "frames_changed": unfolded["frames_changed"],
+                                       "max_mm": round(1e3 * unfolded["max_change_m"], 4)}}
             entry["motions"][mname] = res
             tag = f"{name}_{Path(mname).stem}"
             if args.cache:

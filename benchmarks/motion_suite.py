@@ -17,6 +17,7 @@ built-in motion, a 1-s warm-up. ``--max-substeps 1`` runs the old fixed one step
 
     python benchmarks/motion_suite.py [--full] [--only NAME ...] [--max-substeps N] [--out FILE]
     python benchmarks/motion_suite.py --full --partial --only cmu-walk --work DIR   # a run not finished: its frames so far
+    python benchmarks/motion_suite.py [--full] --targets   # the attached targets alone, every frame (seconds a motion)
 
 Prints a table and writes benchmarks/results/motion_suite.json (``checks``: per motion, lag,
 intersection and NaN frames must all be 0).
@@ -45,6 +46,7 @@ from physavatar.body import BUILTIN, BodyModel, Motion  # noqa: E402
 from physavatar.body.load import load_motion, with_arm_clearance  # noqa: E402
 from physavatar.body.motion import _x, _y, _z, bone_vertex_mask  # noqa: E402
 from physavatar.data.garment_sequence import GarmentSequence  # noqa: E402
+from physavatar.files import write_json_atomic  # noqa: E402
 from physavatar.sim.simulate import self_intersecting_frames  # noqa: E402
 from physavatar.stages import simulate as simulate_stage  # noqa: E402
 
@@ -252,6 +254,11 @@ def main():
                     help="read the motions already simulated in --work instead of simulating them again")
     ap.add_argument("--append", action="store_true", help="keep the other motions' rows of an existing result file")
     ap.add_argument("--work", default=None, help="keep the simulate folders here (default: a temporary folder)")
+    ap.add_argument("--commit", default=None,
+                    help="with --partial: the code commit the runs in --work were started on (default: this checkout's)")
+    ap.add_argument("--targets", action="store_true",
+                    help="check only the attached (boundary) targets, simulate nothing: the frames where the "
+                         "attached triangles alone cross, riding the skin and after garment.unfold_targets")
     ap.add_argument("--partial", action="store_true",
                     help="check the frames written so far by the (interrupted or running) runs in --work, simulate nothing")
     args = ap.parse_args()
@@ -295,6 +302,21 @@ def main():
     print(f"{'motion':15s} {'frames':>6s} {'lag':>4s} {'body-x':>6s} {'self-x':>6s} {'NaN':>4s} {'s/frame':>8s} "
           f"{'steps/frame':>11s}")
     cases = {name: ("dress", None, spec) for name, spec in specs.items()} | layered
+    if args.targets:
+        out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "motion_suite_targets.json"
+        rows = {name: target_row(garment, over, spec, edge, duration, warmup, args)
+                for name, (garment, over, spec) in cases.items()}
+        for name, r in rows.items():
+            print(f"{name:15s} {r['frames']:6d} frames: attached triangles cross in {len(r['crossing_frames_ride'])} "
+                  f"riding the skin, {len(r['crossing_frames_targets'])} as simulated; changed {r['frames_unfolded']} "
+                  f"frames by <= {1e3 * r['max_unfold_change_m']:.1f} mm; area {r['area_ratio_range']}")
+        write_json_atomic(out, {"benchmark": "motion_suite --targets", "code_commit": _head(), "edge_length": edge,
+                                "full": args.full,
+                                "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                                "figures": rows, "checks": {f"{k}:crossing_frames_targets": {
+                                    "value": len(r["crossing_frames_targets"]), "target": "0 frames",
+                                    "pass": not r["crossing_frames_targets"]} for k, r in rows.items()}})
+        return
     if args.partial:
         for name, (garment, over, spec) in cases.items():
             if (work / name / "frames" / "state.npz").exists():
@@ -381,6 +403,38 @@ def partial_row(run: Path, garment, over, spec, edge, duration, warmup, args) ->
             "per_frame": [{**r, "written_frame": r["frame"] - n_warm} for r in reports]}
 
 
+def target_row(garment, over, spec, edge, duration, warmup, args) -> dict:
+    """The attached targets of a case, as ``simulate`` makes them (garment_sim.boundary_targets),
+    checked on every frame (simulated frames, warm-up included): where the attached triangles
+    alone cross riding the skin, where they cross as simulated, how much unfold_targets moved
+    them, the attached triangles' area range against frame 0, the frames keep_clear lifted."""
+    from physavatar.data.material import resolve_material
+    from physavatar.garment.unfold import crossing_frames
+    from physavatar.garment_sim import boundary_targets
+    from physavatar.sim import SimSettings
+    from physavatar.stages.garment_file import repaired_start
+
+    cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
+                                        max_substeps=args.max_substeps, self_contact=not args.no_self_contact, over=over)
+    mat, ss = resolve_material(cfg.material, option="--material"), SimSettings()
+    part, bodies, bf, n_warm, _, _ = simulate_stage._on_motion(garment, spec, 25.0, cfg, mat, ss, None)
+    part, _ = repaired_start(part, bodies[0], bf, ss.dhat, cfg.repair_limit, garment)
+    T, rep = boundary_targets(part, bodies, bf, ss.dhat)
+    ids = part.boundary
+    remap = -np.ones(len(part.vertices), np.int64)
+    remap[ids] = np.arange(len(ids))
+    Fb = remap[part.faces[(remap[part.faces] >= 0).all(1)]]
+    area = np.linalg.norm(np.cross(T[:, Fb[:, 1]] - T[:, Fb[:, 0]], T[:, Fb[:, 2]] - T[:, Fb[:, 0]]), axis=-1)
+    ratio = area / np.maximum(area[:1], 1e-30) if len(Fb) else np.ones((1, 1))
+    return {"garment": garment if over is None else f"{garment} under {over}", "frames": len(T), "warmup_frames": n_warm,
+            "boundary_vertices": len(ids), "attached_triangles": len(Fb),
+            "crossing_frames_ride": rep["unfold"]["frames_crossing"],
+            "crossing_frames_targets": crossing_frames(T, part.faces, ids),
+            "frames_unfolded": rep["unfold"]["frames_changed"], "max_unfold_change_m": rep["unfold"]["max_change_m"],
+            "area_ratio_range": [round(float(ratio.min()), 3), round(float(ratio.max()), 3)],
+            "keep_clear": {k: v for k, v in rep["keep_clear"].items()}}
+
+
 def _checks(rows: dict) -> dict:
     checks = {}
     for name, row in rows.items():
@@ -389,6 +443,15 @@ def _checks(rows: dict) -> dict:
             checks[f"{name}:{key}"] = {"value": len(row[key]), "target": "0 frames", "unit": "frames",
                                        "pass": not row[key]}
     return checks
+
+
+def _head() -> str | None:
+    """This checkout's commit (None outside git)."""
+    import subprocess
+
+    r = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=Path(__file__).resolve().parent,
+                       capture_output=True, text=True, check=False)
+    return r.stdout.strip() or None
 
 
 def _write(args, rows, load0, edge, duration, warmup, fps):
@@ -403,7 +466,8 @@ def _write(args, rows, load0, edge, duration, warmup, fps):
     old = json.loads(out.read_text())["figures"] if args.append and out.exists() else {}
     rows = {**old, **rows}
     result = {
-        "benchmark": "motion_suite", "date": stamp["date"],
+        "benchmark": "motion_suite", "date": stamp["date"], "code_commit": args.commit or _head(),
+        "partial": bool(args.partial),
         "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None, **{k: v for k, v in stamp.items() if k != "date"}},
         "config": {"garment": "dress (layered cases: their rows' garment)", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
                    "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,

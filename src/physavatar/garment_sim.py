@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .garment import attachment_positions, keep_clear, make_attachment
+from .garment import attachment_normals, attachment_positions, keep_clear, make_attachment, unfold_targets
 from .sim import Material, SimSettings, simulate
 
 
@@ -219,21 +219,36 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
     body_sequence = np.asarray(body_sequence, dtype=np.float64)
     targets = None
     if len(part.boundary):
-        att = make_attachment(sewn_points(part.vertices, part.boundary, part.seams), part.boundary, body_sequence[0],
-                              body_faces, "sequence")
-        targets = attachment_positions(att, body_sequence)
-        # the boundary's own edges must not be carried through a bending body (garment.keep_clear)
-        dhat = (settings or SimSettings()).dhat
-        targets, lifted = keep_clear(att, targets, part.faces, body_sequence, body_faces, BOUNDARY_CLEARANCE * dhat)
-        if lifted["frames_lifted"]:
-            logging.getLogger("physavatar.progress").info(
-                "boundary targets lifted off the body in %d frames (at most %.2f mm; floor %.3f mm)",
-                lifted["frames_lifted"], 1e3 * lifted["max_lift_m"], 1e3 * lifted["floor_m"])
+        targets, _ = boundary_targets(part, body_sequence, body_faces, (settings or SimSettings()).dhat)
     return simulate(part.rest_shape, part.faces, material, body_sequence, body_faces,
                     boundary_indices=part.boundary, boundary_targets=targets, fps=fps, substeps=substeps,
                     settings=settings, progress=progress, callback=callback, x0=part.vertices,
                     extra_terms=part.terms(), contact_exclude=part.contact_exclusions(), **options)
 
+
+
+def boundary_targets(part: GarmentPart, body_sequence: np.ndarray, body_faces: np.ndarray, dhat: float):
+    """(targets [T, K, 3] of ``part``'s boundary vertices on a body sequence [T, Nb, 3], report).
+
+    Each boundary vertex rides the body triangle it starts on (garment.make_attachment, at its
+    :func:`sewn_points`); in frames where the attached patch's own triangles would pass through
+    each other (the skin under it folds) an as-rigid-as-possible fit of the patch replaces the
+    ride (garment.unfold_targets); then the boundary's own edges are kept from being carried
+    through a bending body (garment.keep_clear)."""
+    att = make_attachment(sewn_points(part.vertices, part.boundary, part.seams), part.boundary, body_sequence[0],
+                          body_faces, "sequence")
+    targets = attachment_positions(att, body_sequence)
+    targets, unfolded = unfold_targets(targets, part.faces, part.boundary, attachment_normals(att, body_sequence))
+    log = logging.getLogger("physavatar.progress")
+    if unfolded["frames_changed"]:
+        log.info("attached triangles crossed in %d frames: fitted as-rigid-as-possible in %d (at most %.1f mm from "
+                 "the ride; %d still cross)", len(unfolded["frames_crossing"]), unfolded["frames_changed"],
+                 1e3 * unfolded["max_change_m"], len(unfolded["still_crossing"]))
+    targets, lifted = keep_clear(att, targets, part.faces, body_sequence, body_faces, BOUNDARY_CLEARANCE * dhat)
+    if lifted["frames_lifted"]:
+        log.info("boundary targets lifted off the body in %d frames (at most %.2f mm; floor %.3f mm)",
+                 lifted["frames_lifted"], 1e3 * lifted["max_lift_m"], 1e3 * lifted["floor_m"])
+    return targets, {"unfold": unfolded, "keep_clear": lifted}
 
 
 def sewn_points(vertices, boundary, seams) -> np.ndarray:

@@ -82,6 +82,11 @@ def attachment_positions(attachment: Attachment, posed_body_vertices: np.ndarray
     return out[0] if single else out
 
 
+def attachment_normals(attachment: Attachment, posed_body_vertices: np.ndarray) -> np.ndarray:
+    """[T, K, 3] the unit normal of each attached vertex's body triangle on a posed body [T, Vb, 3]."""
+    return _frames(np.asarray(posed_body_vertices, float)[:, attachment.triangles])[..., 2]
+
+
 def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, bodies: np.ndarray,
                body_faces: np.ndarray, clearance: float, rounds: int = 40):
     """Boundary targets [T, K, 3] (:func:`attachment_positions` on ``bodies`` [T, Vb, 3]) lifted
@@ -155,7 +160,7 @@ def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, b
     lift = np.zeros(K)
     prev = np.vstack([Vt[0], B[0]])
     for t in range(1, T):
-        normal = _frames(B[t][attachment.triangles])[..., 2]  # [K, 3]
+        normal = attachment_normals(attachment, B[t:t + 1])[0]  # [K, 3]
         # the path may come to half the floor; after a frame that failed, it starts closer than
         # that, and no lift of its end would let it pass (the CCD stops at once): half its start
         start = min([d for _, d in close(prev, need)], default=floor)
