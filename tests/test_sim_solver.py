@@ -385,32 +385,6 @@ def test_prescribed_parts_that_pass_through_each_other_leave_the_step_free():
     assert self_intersecting_frames(x[None], FF, prescribed=bnd) == []  # nothing else does
 
 
-def test_elastic_terms_on_a_second_thread_give_bit_identical_steps():
-    """SimSettings.term_threads=2 (elastic derivatives and their scatter beside the contact
-    terms, sim.assembly.term_derivatives) gives the same bits as the serial loop, and the
-    second thread's partial scatter continued by Assembler.assemble is the serial sum."""
-    from physavatar.sim.assembly import term_derivatives
-
-    V, F = grid(6, 0.3, z=0.11)
-    B, BF = sphere()
-    seq = np.stack([B + np.array([0.004 * t, 0, 0]) for t in range(5)])
-    runs = [simulate(V, F, Material(), seq, BF, fps=25.0, settings=SimSettings(term_threads=k)) for k in (1, 2)]
-    assert np.array_equal(runs[0], runs[1])
-    sim = ClothSim(V, F, Material(), SimSettings())
-    sim.prepare(seq[0], BF)
-    X = np.vstack([runs[0][-1], seq[-1]])
-    sim.scene.prepare_static(X)
-    terms = sim.active_terms()
-    serial, none = term_derivatives(terms, X)
-    asm = sim.assembler_free
-    threaded, part = term_derivatives(terms, X, (sim.inertia, sim.gravity, sim.membrane, sim.bending), assembler=asm)
-    assert none is None and part is not None and part[0] == 4
-    H1 = asm.assemble([h for _, h in serial])
-    H2 = asm.assemble([h for _, h in threaded[part[0]:]], part[1])
-    assert np.array_equal(H1.indptr, H2.indptr) and np.array_equal(H1.data, H2.data)
-    assert all(np.array_equal(a[0], b[0]) for a, b in zip(serial, threaded))
-
-
 def test_candidates_of_a_segment_cover_its_points_and_give_the_static_barrier_set():
     """CandidateScene.covers: a point on the last CCD segment (inside its per-vertex box) has
     the same barrier set from the segment's candidates as from a fresh static build; a point

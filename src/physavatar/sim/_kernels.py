@@ -4,9 +4,7 @@ Each kernel has a plain-numpy twin in energies.py / assembly.py (the reference) 
 tests/test_sim_kernels.py holds the fast one to it. The loops are serial on purpose: a
 gradient is well under a millisecond of work, less than numba's parallel=True costs in thread
 start and barriers on a loaded machine (docs/simulation.md "The step"). Scatters into shared
-vertex rows / CSR slots must be serial anyway. The membrane and hinge gradient/Hessian kernels
-release the GIL (``nogil``): the solver runs them on a second thread beside ipctk's contact
-terms (assembly.TermDerivatives).
+vertex rows / CSR slots must be serial anyway.
 
 Conventions are those of energies.py: x [N, 3], gradients [N, 3] (flattened by the caller),
 membrane blocks [F, 9, 9] and hinge blocks [H, 12, 12] ordered (vertex, axis).
@@ -84,7 +82,7 @@ def membrane_energy(x, tri, G, area, mu, lam, model):
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True)
 def membrane_gradient(x, tri, G, area, mu, lam, model, n_vertices):
     """∇Ψ_membrane [n_vertices, 3] (Neo-Hookean on a collapsed triangle: nan, as the twin)."""
     nf = tri.shape[0]
@@ -263,7 +261,7 @@ def _project_psd_isotropic(K, F, R, Kh, absolute):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True)
 def membrane_hessian(x, tri, G, area, mu, lam, model, project):
     """[F, 9, 9] vertex blocks A Gᵀ K G with K = ∂²W/∂F² (6×6, PSD-projected if ``project``)."""
     nf = tri.shape[0]
@@ -415,7 +413,7 @@ def bending_energy(x, hinges, weight, rest_angle, scale):
     return scale * total
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True)
 def bending_gradient(x, hinges, weight, rest_angle, scale, n_vertices):
     nh = hinges.shape[0]
     per = np.empty((nh, 12))
@@ -440,7 +438,7 @@ def bending_gradient(x, hinges, weight, rest_angle, scale, n_vertices):
 _COMPLEX_STEP = 1e-30
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True)
 def bending_hessian(x, hinges, weight, rest_angle, scale, mode):
     """[H, 12, 12] hinge blocks c (∇θ∇θᵀ + (θ − θ̄) ∇²θ), c = 2 κb w_e.
 
@@ -489,7 +487,7 @@ def bending_hessian(x, hinges, weight, rest_angle, scale, mode):
 # -- assembly ------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True)
 def scatter_add(data, slot, values):
     """data[slot[i]] += values[i] (serial: slots repeat)."""
     for i in range(slot.shape[0]):

@@ -10,10 +10,6 @@ A step's system at its solution is kept as a :class:`Linearization` (for sensiti
 
 from __future__ import annotations
 
-import os
-import time
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import scipy.sparse as sp
 
@@ -149,7 +145,7 @@ class Assembler:
         out[keep] = reduced[self.dof_map[keep]]
         return out
 
-    def assemble(self, hessians, partial=None) -> sp.csr_matrix:
+    def assemble(self, hessians) -> sp.csr_matrix:
         """Sum Hessians (terms.Hessian, or scipy-sparse over all DOFs) into one reduced CSR.
 
         Blocks and diagonals go through their precomputed slots (numba scatter). A sparse
@@ -157,22 +153,10 @@ class Assembler:
         so the matrix keeps its pattern (and its cached symbolic factorization); otherwise it
         is added with scipy and the pattern grows. Blocks over an element set the assembler
         was not built with (a new term's) take the sparse path. :meth:`assemble_numpy` is the
-        twin. ``partial``: (data, extra) of :meth:`scatter_hessians` over Hessians that precede these
-        (term_derivatives' second thread), continued here in order (the same sums).
+        twin.
         """
-        data, extra = partial if partial is not None else self.scatter_hessians([])
-        self.scatter_hessians(hessians, data, extra)
-        H = sp.csr_matrix((data[: self.nnz], self.indices, self.indptr), shape=(self.n, self.n))
-        for h in extra:
-            H = H + self.reduce_matrix(h)
-        return H
-
-    def scatter_hessians(self, hessians, data=None, extra=None):
-        """Add Hessians into the pattern's value array: (data [nnz + 1], extra: sparse
-        Hessians outside the pattern, for :meth:`assemble` to add), both created when None."""
-        if data is None:
-            data = np.zeros(self.nnz + 1)  # the last slot collects entries on eliminated DOFs
-        extra = [] if extra is None else extra
+        data = np.zeros(self.nnz + 1)  # the last slot collects entries on eliminated DOFs
+        extra = []
         for h in hessians:
             for b in as_hessian(h).parts():
                 slot = self.scatter.get(id(b.index)) if isinstance(b, Blocks) else None
@@ -189,7 +173,10 @@ class Assembler:
                         extra.append(M)
                     else:
                         _kernels.scatter_add(data, slot, values)
-        return data, extra
+        H = sp.csr_matrix((data[: self.nnz], self.indices, self.indptr), shape=(self.n, self.n))
+        for h in extra:
+            H = H + self.reduce_matrix(h)
+        return H
 
     def _sparse_slots(self, M):
         """Slots of a full-DOF sparse matrix's kept entries in the pattern, or (None, None).
@@ -254,54 +241,6 @@ class Assembler:
         c = self.dof_map[M.col]
         keep = (r >= 0) & (c >= 0)
         return sp.csr_matrix((M.data[keep], (r[keep], c[keep])), shape=(self.n, self.n))
-
-
-_POOL = {}  # process id -> one worker thread (a forked child makes its own)
-
-
-def _worker() -> ThreadPoolExecutor:
-    pid = os.getpid()
-    if pid not in _POOL:
-        _POOL.clear()
-        _POOL[pid] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="physavatar-sim")
-    return _POOL[pid]
-
-
-def term_derivatives(terms, X, offload=(), contact=(), times=None, assembler=None):
-    """([(gradient, projected Hessian)] of each term at X in the order of ``terms``, partial).
-
-    The leading terms of ``terms`` that are in ``offload`` (inertia, gravity, and the membrane
-    and hinges, whose numba kernels release the GIL) are evaluated on a second thread while
-    this one evaluates the rest (ipctk's contact terms hold the GIL throughout), so a step
-    uses both cores. With an ``assembler``, that thread also scatters their Hessians
-    (``partial`` = (k, Assembler.scatter_hessians' (data, extra)) for the first k Hessians, to be
-    continued by Assembler.assemble; else None). Every value is the one the term returns
-    alone, and the sums run in the same order: bit-identical to the serial loop
-    (docs/simulation.md "Session 17"). ``times``: a dict whose "contact" entry gets the
-    seconds spent in the ``contact`` terms.
-    """
-    def both(t):
-        return t.gradient(X), t.hessian(X, project=True)
-
-    k = 0
-    while k < len(terms) and any(terms[k] is o for o in offload):
-        k += 1
-
-    def lead():
-        d = [both(t) for t in terms[:k]]
-        return d, (assembler.scatter_hessians([h for _, h in d]) if assembler is not None else None)
-
-    future = _worker().submit(lead) if k > 1 else None
-    out = []
-    for t in terms[(k if future is not None else 0):]:
-        tt = time.perf_counter()
-        out.append(both(t))
-        if times is not None and any(t is c for c in contact):
-            times["contact"] += time.perf_counter() - tt
-    if future is None:
-        return out, None
-    d, part = future.result()
-    return d + out, (None if part is None else (k, part))
 
 
 class Factorization:

@@ -76,12 +76,6 @@ class SimSettings:
             result is a minimum over the candidates, the same bits on any number of threads;
             1 by default: two were slower on a loaded 2-core machine, and process pools run
             one simulation per core (docs/simulation.md "Speed").
-        term_threads: 2 evaluates the elastic terms (inertia, gravity, membrane, hinges:
-            numba kernels without the GIL) and scatters their Hessians on a second thread while
-            ipctk computes the contact terms (which hold the GIL); 1 (default) = all on the
-            calling thread. Bit-identical either way (sim.assembly.term_derivatives). 1 by
-            default: 2 was 3 % slower on the shared 2-core machine (GIL hand-offs;
-            docs/simulation.md "Session 17"); not measured on an idle one.
         max_body_move: with sub-stepping decided per frame (``simulate(max_substeps=...)``), a
             frame in which a body vertex within reach of the cloth moves farther than this [m]
             is split into ceil(move / max_body_move) implicit steps (sim.simulate.substep_count).
@@ -121,7 +115,6 @@ class SimSettings:
     keep_linearization: bool = False
     deterministic: bool = True
     ccd_threads: int = 1
-    term_threads: int = 1
     max_body_move: float = 0.08
     gravity: tuple = (0.0, 0.0, -9.81)
 

@@ -11,7 +11,7 @@ backtracking line search that starts from ipctk's collision-free step size (Addi
 
 :meth:`ClothSim.step` is made of named parts: ``_begin_step`` (the step's state, handed to
 every term's ``begin_step``), ``_start`` (the prescribed motion; start.py), then Newton
-iterations of ``_newton_direction``, ``_line_search``, ``_adapt_barrier_stiffness`` and, while
+iterations of ``_newton_direction``, ``_line_search``, the barrier stiffness's update (kappa.py) and, while
 the body is not at its pose, ``_penalty_phase``; ``_finish_step`` reports and keeps the
 linearization that sensitivity.py differentiates.
 
@@ -31,9 +31,10 @@ import time
 import ipctk
 import numpy as np
 
-from .assembly import Assembler, Linearization, NewtonLinearSolver, term_derivatives
+from .assembly import Assembler, Linearization, NewtonLinearSolver
 from .contact import Barrier, Friction, KinematicPenalty
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
+from .kappa import adapt_stiffness, initial_stiffness
 from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
@@ -333,7 +334,7 @@ class ClothSim:
             X = warm_start(self.scene, self.terms + [self.barrier], free, X, x_pred, stats)
         diag = self.scene.bbox_diagonal(X_goal)
         self.scene.prepare_static(X)
-        self._update_stiffness_init(X)
+        initial_stiffness(self, X)
         self.friction.lag(X, self.barrier)
         return _Solve(X=X, penalty=penalty, X_goal=X_goal, diag=diag,
                       lag_left=max(1, s.friction_iterations) - 1, prev_min_dist=self.scene.min_distance(X))
@@ -361,7 +362,7 @@ class ClothSim:
             sv.below_count = sv.below_count + 1 if below else 0
             stop_after_step = s.newton_norm == "rms" and sv.below_count >= s.newton_window
             self._line_search(sv, step, residual, stats)
-            self._adapt_barrier_stiffness(sv, stats)
+            adapt_stiffness(self, sv, stats)
             if sv.penalty:
                 action = self._penalty_phase(sv, stats)
                 if action == "break":
@@ -399,17 +400,23 @@ class ClothSim:
         h = s.dt
         penalty = sv.penalty
         assembler = self.assembler_all if penalty else self.assembler_free
-        self._update_stiffness_init(sv.X)
+        initial_stiffness(self, sv.X)
         ta = time.perf_counter()
-        terms, contact = self.active_terms(penalty), (self.barrier, self.friction)
-        # the elastic terms (and their scatter) on a second thread beside the contact terms (bit-identical)
-        off = (self.inertia, self.gravity, self.membrane, self.bending) if self.settings.term_threads > 1 else ()
-        derivs, part = term_derivatives(terms, sv.X, off, contact, stats.time, assembler)
-        order = [i for i, t in enumerate(terms) if not any(t is c for c in contact)]
-        order += [i for i, t in enumerate(terms) if any(t is c for c in contact)]
-        k = part[0] if part is not None and order[: part[0]] == list(range(part[0])) else 0
-        grad = assembler.reduce(np.sum([derivs[i][0] for i in order], axis=0))
-        Hm = assembler.assemble([derivs[i][1] for i in order[k:]], part[1] if k else None)
+        grads_el, hess_el, grads_c, hess_c = [], [], [], []
+        for t in self.active_terms(penalty):
+            contact = t is self.barrier or t is self.friction
+            tt = time.perf_counter()
+            g = t.gradient(sv.X)
+            H = t.hessian(sv.X, project=True)
+            if contact:
+                grads_c.append(g)
+                hess_c.append(H)
+                stats.time["contact"] += time.perf_counter() - tt
+            else:
+                grads_el.append(g)
+                hess_el.append(H)
+        grad = assembler.reduce(np.sum(grads_el + grads_c, axis=0))
+        Hm = assembler.assemble(hess_el + hess_c)
         stats.time["assembly"] += time.perf_counter() - ta
         tl = time.perf_counter()
         # penalty iterations: their (larger) system by CG too, to 1e-10 (linear_solver_all);
@@ -445,19 +452,6 @@ class ClothSim:
             stats.time["line_search"] += time.perf_counter() - tls
         sv.prev_residual = residual
         sv.X = X_new
-
-    def _adapt_barrier_stiffness(self, sv: _Solve, stats):
-        """ipctk's adaptive κ: grow it when contacts keep closing in."""
-        tc = time.perf_counter()
-        min_dist = self.scene.min_distance(sv.X)
-        if self.max_barrier_stiffness > 0 and np.isfinite(min_dist) and np.isfinite(sv.prev_min_dist):
-            k = ipctk.update_barrier_stiffness(sv.prev_min_dist, min_dist, self.max_barrier_stiffness,
-                                               self.barrier_stiffness, sv.diag, dmin=self.settings.dmin)
-            if k != self.barrier_stiffness:
-                self.barrier_stiffness = k
-                self.barrier.set_stiffness(k)
-        sv.prev_min_dist = min_dist
-        stats.time["contact"] += time.perf_counter() - tc
 
     def _penalty_phase(self, sv: _Solve, stats):
         """After a penalty-mode iteration: snap the prescribed vertices to their targets once
@@ -569,27 +563,3 @@ class ClothSim:
         if self.settings.newton_norm == "max":
             return res_max, res_max
         return res_max, float(np.sqrt(np.sum(cloth * cloth) / self._n_free)) / h
-
-    def _update_stiffness_init(self, X):
-        """ipctk's initial κ from the balance of elastic and barrier gradients (IPC Sec. 4.3).
-
-        Before any contact κ is ipctk's minimum (scaled by mass); the first time contacts
-        exist it is set from the gradient balance; afterwards it only grows through
-        update_barrier_stiffness and persists across steps, as in IPC.
-        """
-        if self._kappa_balanced:
-            return
-        c = self.scene.collisions_at(X)
-        if self.barrier_stiffness > 0 and not len(c):
-            return
-        grad_e = np.sum([t.gradient(X) for t in self.terms], axis=0)
-        unit = ipctk.BarrierPotential(self.settings.dhat, 1.0)
-        grad_b = unit.gradient(c, self.scene.mesh, X) if len(c) else np.zeros_like(grad_e)
-        k, kmax = ipctk.initial_barrier_stiffness(
-            self.scene.bbox_diagonal(X), unit.barrier, self.settings.dhat, self._average_mass,
-            grad_e, grad_b, self.settings.barrier_stiffness_scale, self.settings.dmin,
-        )
-        self._kappa_balanced = bool(len(c))
-        self.barrier_stiffness = max(k, self.barrier_stiffness)
-        self.max_barrier_stiffness = max(kmax, self.max_barrier_stiffness)
-        self.barrier.set_stiffness(self.barrier_stiffness)
