@@ -432,3 +432,60 @@ def test_energy_memo_is_used_only_while_nothing_e_depends_on_changed():
     sim.scene.prepare_static(X)  # the barrier set is rebuilt
     sim.scene.collisions_at(X)
     assert memo.get(EnergyMemo.key(sim, X, False)) is None
+
+
+def test_contact_stiffness_is_the_pressing_force_over_the_allowed_closing():
+    """sim.direction.contact_stiffness: a cloth vertex over a large body triangle at gap d,
+    pressed down by a gradient g (∇E · n < 0 pulls it in), gets f d-closing stiffness g_z / (f d)
+    along the normal only (the distance gradient of a point over a face's interior is its normal);
+    a vertex pushed away, or one farther than d̂, gets none."""
+    from physavatar.sim.contact import ContactScene
+    from physavatar.sim.direction import contact_stiffness
+
+    V = np.array([[0.0, 0.0, 4e-4], [0.05, 0.0, 8e-4], [0.0, 0.05, 5e-3]])
+    F = np.array([[0, 1, 2]])
+    B = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
+    BF = np.array([[0, 1, 2]])
+    scene = ContactScene(V, F, B, BF, dhat=1e-3)
+    X = np.vstack([V, B])
+    scene.prepare_static(X)
+    g = np.zeros(X.size)
+    g[[2, 5, 8]] = [3.0, -2.0, 7.0]  # vertex 0 pressed in (∂E/∂z > 0: E falls as z falls), 1 pulled out, 2 far
+    g[[0, 1]] = [0.5, -0.25]  # tangential parts do not count
+    C = contact_stiffness(scene, X, g, 3, 0.9).tocsr()
+    expect = np.zeros((X.size, X.size))
+    expect[2, 2] = 3.0 / (0.9 * 4e-4)
+    np.testing.assert_allclose(C.toarray(), expect, rtol=1e-9, atol=1e-9)
+    # a one-vertex Newton step with that stiffness alone closes 90 % of the gap
+    assert np.isclose(-g[2] / C[2, 2], -0.9 * 4e-4)
+    assert contact_stiffness(scene, X, -g, 3, 0.9) is not None  # vertex 1 is pressed now
+    assert contact_stiffness(scene, X, np.zeros_like(g), 3, 0.9) is None
+
+
+def test_contact_stiffening_changes_the_newton_path_not_the_solution():
+    """SimSettings.contact_stiffening: each step from the same state ends where the step with it
+    off ends, to the Newton tolerance (a cloth pressed by gravity onto a body plane that rises
+    into it, so the body's move is cut and contacts are pressed); the path did change. Fewer
+    iterations on the demo walk: benchmarks/sim_speed.py."""
+    V, F = grid(6, 0.2, z=6e-4)
+    B = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    BF = np.array([[0, 1, 2], [0, 2, 3]])
+    m = Material(density=0.15, stretch_stiffness=30.0, bend_stiffness=1e-5)
+    base = SimSettings(dt=0.02, newton_tol=1e-6, friction=0.0)
+    sims = {f: ClothSim(V, F, m, dataclasses.replace(base, contact_stiffening=f)) for f in (0.0, 0.9)}
+    x, v = V.copy(), np.zeros_like(V)
+    diffs, changed = [], False
+    for k in range(8):
+        b0, b1 = B + [0, 0, 0.002 * k], B + [0, 0, 0.002 * (k + 1)]
+        out = {}
+        state = sims[0.0].get_state()
+        for f, sim in sims.items():
+            sim.set_state(state)
+            out[f] = sim.step(x, v, b0, b1, BF)
+            assert out[f][2].converged
+        diffs.append(np.abs(out[0.9][0] - out[0.0][0]).max())
+        changed |= not np.array_equal(out[0.9][0], out[0.0][0])
+        x, v = out[0.0][0], out[0.0][1]
+        assert x[:, 2].min() > b1[0, 2]  # above the plane
+    assert changed
+    assert max(diffs) < 2e-6, diffs
