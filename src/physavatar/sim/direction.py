@@ -5,9 +5,10 @@ pair at a fraction of a millimetre barely sees it: the direction carries the clo
 body, and CCD cuts the *whole* step to ~10 % of that pair's gap (α = 0.03–0.4 on the demo
 walk, ~20 iterations a frame; docs/simulation.md "Session 15", "Session 18"). Here every
 active cloth–body pair whose gradient presses it closer gets a stiffness c u uᵀ along its
-distance gradient u (over the pair's cloth DOFs), with c = (∇E · u) / (f d |u|²): on its own
-that spring lets the direction close at most the fraction f of the gap d, which is about what
-CCD would allow for that pair, so the pair stops limiting everyone else's step.
+distance gradient u (over the pair's cloth DOFs), with c = (∇E · u) / (f d |u|²) − uᵀHu / |u|⁴
+(H's diagonal part): in the one-dimensional Newton model along u the direction then closes at
+most the fraction f of the gap d, about what CCD would allow for that pair, so the pair stops
+limiting everyone else's step; where H already holds the pair nothing is added.
 
 Only the direction changes, not the energy, its gradient or the line search: the matrix stays
 symmetric positive definite, the direction is one of descent, and the solver stops only on a
@@ -20,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 
-def contact_stiffness(scene, X, gradient, n_cloth: int, fraction: float):
+def contact_stiffness(scene, X, gradient, n_cloth: int, fraction: float, diagonal=None, dof_map=None):
     """The extra Newton-matrix term over all DOFs (scipy COO, [3 (N + Nb)]²), or None.
 
     Args:
@@ -28,6 +29,10 @@ def contact_stiffness(scene, X, gradient, n_cloth: int, fraction: float):
             pairs of cloth only (self-contact) or of body only are left out.
         X: [N + Nb, 3] the iterate; gradient: [3 (N + Nb)] ∇E at X (all terms).
         n_cloth: N (rows below it are cloth); fraction: f in (0, 1].
+        diagonal, dof_map: the Newton matrix's diagonal over the reduced DOFs and the map of a
+            DOF to its row (Assembler.dof_map): only the stiffness that the matrix's diagonal
+            along u lacks is added (none where the barrier's own curvature already stops the
+            pair, as at resting contacts near the solution).
     """
     coll = scene.collisions_at(X)
     E, F = scene.mesh.edges, scene.mesh.faces
@@ -51,6 +56,11 @@ def contact_stiffness(scene, X, gradient, n_cloth: int, fraction: float):
             if press <= 0.0 or uu <= 0.0:
                 continue
             coef = press / (fraction * np.sqrt(d2) * uu)
+            if diagonal is not None:  # the 1-D model along u already has uᵀHu / |u|⁴ (diagonal part)
+                r = dof_map[dofs]
+                coef -= float(np.sum(u[r >= 0] ** 2 * diagonal[r[r >= 0]])) / (uu * uu)
+                if coef <= 0.0:
+                    continue
             k = len(dofs)
             rows.append(np.repeat(dofs, k))
             cols.append(np.tile(dofs, k))

@@ -423,7 +423,8 @@ class ClothSim:
         matrices = [Hm]  # the last one is the exact (projected) Newton matrix
         if s.contact_stiffening > 0 and not penalty and s.integrator == "euler" and self.nb:
             tc = time.perf_counter()
-            C = contact_stiffness(self.scene, sv.X, grad_full.ravel(), self.n, s.contact_stiffening)
+            C = contact_stiffness(self.scene, sv.X, grad_full.ravel(), self.n, s.contact_stiffening,
+                                  Hm.diagonal(), assembler.dof_map)
             if C is not None:
                 matrices.insert(0, add_in_pattern(assembler, Hm, C))
             stats.time["contact"] += time.perf_counter() - tc
