@@ -81,8 +81,8 @@ class SimSettings:
             along their distance gradient in the Newton matrix (sim.direction), so that CCD
             does not cut everyone's step to a fraction of one pair's gap. Only the path to the
             step's minimiser changes (the solve stops on an unmodified direction). 0 = off
-            (default): 0.9 cut the demo walk's Newton iterations by 7–12 % but not its time
-            (docs/simulation.md "Session 18"). Implicit Euler only (as the looser directions
+            (default): 0.9 cut the demo walk's Newton iterations by 6–12 % but not its time,
+            and one of its steps did not converge (docs/simulation.md "Session 18"). Implicit Euler only (as the looser directions
             after a cut: "Session 14"), free system only (not in the kinematic-penalty phase).
         max_body_move: with sub-stepping decided per frame (``simulate(max_substeps=...)``), a
             frame in which a body vertex within reach of the cloth moves farther than this [m]
