@@ -76,14 +76,6 @@ class SimSettings:
             result is a minimum over the candidates, the same bits on any number of threads;
             1 by default: two were slower on a loaded 2-core machine, and process pools run
             one simulation per core (docs/simulation.md "Speed").
-        contact_stiffening: the fraction f of its gap that a Newton direction may close at an
-            active cloth–body contact the gradient presses closer: such pairs get a stiffness
-            along their distance gradient in the Newton matrix (sim.direction), so that CCD
-            does not cut everyone's step to a fraction of one pair's gap. Only the path to the
-            step's minimiser changes (the solve stops on an unmodified direction). 0 = off
-            (default): 0.9 cut the demo walk's Newton iterations by 6–12 % but not its time,
-            and one of its steps did not converge (docs/simulation.md "Session 18"). Implicit Euler only (as the looser directions
-            after a cut: "Session 14"), free system only (not in the kinematic-penalty phase).
         max_body_move: with sub-stepping decided per frame (``simulate(max_substeps=...)``), a
             frame in which a body vertex within reach of the cloth moves farther than this [m]
             is split into ceil(move / max_body_move) implicit steps (sim.simulate.substep_count).
@@ -123,7 +115,6 @@ class SimSettings:
     keep_linearization: bool = False
     deterministic: bool = True
     ccd_threads: int = 1
-    contact_stiffening: float = 0.0
     max_body_move: float = 0.08
     gravity: tuple = (0.0, 0.0, -9.81)
 

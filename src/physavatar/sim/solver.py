@@ -33,7 +33,6 @@ import numpy as np
 
 from .assembly import Assembler, Linearization, NewtonLinearSolver
 from .contact import Barrier, Friction, KinematicPenalty
-from .direction import add_in_pattern, contact_stiffness
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
 from .kappa import adapt_stiffness, initial_stiffness
 from .material import Material
@@ -416,40 +415,27 @@ class ClothSim:
             else:
                 grads_el.append(g)
                 hess_el.append(H)
-        grad_full = np.sum(grads_el + grads_c, axis=0)
-        grad = assembler.reduce(grad_full)
+        grad = assembler.reduce(np.sum(grads_el + grads_c, axis=0))
         Hm = assembler.assemble(hess_el + hess_c)
         stats.time["assembly"] += time.perf_counter() - ta
-        matrices = [Hm]  # the last one is the exact (projected) Newton matrix
-        if s.contact_stiffening > 0 and not penalty and s.integrator == "euler" and self.nb:
-            tc = time.perf_counter()
-            C = contact_stiffness(self.scene, sv.X, grad_full.ravel(), self.n, s.contact_stiffening,
-                                  Hm.diagonal(), assembler.dof_map)
-            if C is not None:
-                matrices.insert(0, add_in_pattern(assembler, Hm, C))
-            stats.time["contact"] += time.perf_counter() - tc
+        tl = time.perf_counter()
         # penalty iterations: their (larger) system by CG too, to 1e-10 (linear_solver_all);
         # free ones inexact: a loose direction while far from the solution (the stopping step is
         # refined to 1e-10 below); 10× looser after a CCD-cut step (this one will likely be cut too)
         sv.linear_solver = self.linear_solver_all if penalty else self.linear_solver
         loose = sv.cut and s.integrator == "euler"  # BDF2: docs/simulation.md "Session 14"
         forcing = None if penalty else s.newton_forcing * (CUT_FORCING if loose else 1.0)
-        for k, H in enumerate(matrices):
+        dx = -sv.linear_solver.solve(Hm, grad, assembler, forcing)
+        sv.matrix = Hm
+        stats.time["linear_solve"] += time.perf_counter() - tl
+        step = assembler.expand(dx).reshape(-1, 3)
+        residual, res_stop = self._residuals(step, h)
+        if not penalty and res_stop < s.newton_tol:  # about to stop: make dx exact first
             tl = time.perf_counter()
-            dx = -sv.linear_solver.solve(H, grad, assembler, forcing)
-            sv.matrix = H
+            dx = -self.linear_solver.refine(Hm, grad, -dx, assembler)
             stats.time["linear_solve"] += time.perf_counter() - tl
             step = assembler.expand(dx).reshape(-1, 3)
             residual, res_stop = self._residuals(step, h)
-            if penalty or res_stop >= s.newton_tol:
-                break
-            if k == len(matrices) - 1:  # about to stop: make dx exact first
-                tl = time.perf_counter()
-                dx = -self.linear_solver.refine(H, grad, -dx, assembler)
-                stats.time["linear_solve"] += time.perf_counter() - tl
-                step = assembler.expand(dx).reshape(-1, 3)
-                residual, res_stop = self._residuals(step, h)
-            # else: a stiffened direction below the tolerance; the solver stops only on the exact one
         return step, residual, res_stop
 
     def _line_search(self, sv: _Solve, step, residual, stats):
