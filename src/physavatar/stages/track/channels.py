@@ -129,6 +129,18 @@ def scaled_flow(image0: np.ndarray, image1: np.ndarray, preset: str, factor: int
     return up
 
 
+def shading_free(image: np.ndarray, sigma: float) -> np.ndarray:
+    """[H, W] uint8: a uint8 channel ``image`` less its Gaussian blur of ``sigma`` px, at 128 (a
+    high-pass, the "texture" part of a structure-texture decomposition: Wedel et al. 2009, "An
+    improved algorithm for TV-L1 optical flow"). Shading varies slowly over the cloth and changes
+    as the cloth turns against the lights; the flow of the high-passed pair follows the texture
+    (and the outlines) that move with the cloth, not the shading that does not."""
+    import cv2
+
+    a = np.asarray(image, np.float32)
+    return np.clip(np.rint(128.0 + a - cv2.GaussianBlur(a, (0, 0), sigma)), 0, 255).astype(np.uint8)
+
+
 def texture_strength(image: np.ndarray, window: int = 5) -> np.ndarray:
     """[H, W] float64: the smaller eigenvalue's square root of the structure tensor of a uint8
     channel ``image`` [H, W] over ``window`` x ``window`` pixels (Shi and Tomasi's "good features to

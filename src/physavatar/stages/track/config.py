@@ -208,6 +208,9 @@ class FlowConfig:
         predict_colour: the prediction's frame-to-frame flow runs on the same channels as the
             corrections (``channels``: with "colour", the luma and the patterned opponent
             channels) instead of the luma alone.
+        highpass: [px] every flow runs on its channels less their Gaussian blur of this width
+            (:func:`~physavatar.stages.track.channels.shading_free`; 0: off): the flow of the
+            texture that moves with the cloth, not of the shading that changes as it turns.
     """
 
     smoothness: float = setting(3.0)
@@ -229,6 +232,7 @@ class FlowConfig:
     min_texture: float = setting(0.0)
     carry: str = setting("still")
     predict_colour: bool = setting(False)
+    highpass: float = setting(0.0)
 
 
 @dataclass(frozen=True)
