@@ -104,7 +104,7 @@ class FlowPrediction:
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
                  bend_weight: float = 0.0, bend_huber: float = 0.0, bend_reference: str = "rest",
-                 min_texture: float = 0.0, highpass: float = 0.0):
+                 min_texture: float = 0.0, highpass: float = 0.0, texture_blur: float = 0.0):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -139,6 +139,7 @@ class FlowPrediction:
         self.contact_range = contact_range
         self.min_texture = min_texture
         self.highpass = highpass
+        self.texture_blur = texture_blur
 
     def observe(self, vertices: np.ndarray, cameras: list[Camera], images0: list[np.ndarray],
                 images1: list[np.ndarray], channels: str = "luma",
@@ -177,7 +178,8 @@ class FlowPrediction:
             back = sample_bilinear(bw, uv + f)
             ok = np.linalg.norm(f + back, axis=1) < self.consistency_px * factor
             if self.min_texture > 0:  # only where the source view has texture in both directions
-                ok &= sample_bilinear(texture_strength(a)[..., None], uv)[:, 0] >= self.min_texture
+                src = a if self.texture_blur <= 0 else _blurred(a, self.texture_blur)
+                ok &= sample_bilinear(texture_strength(src)[..., None], uv)[:, 0] >= self.min_texture
             vs.append(idx[ok])
             ts.append(uv[ok] + f[ok])
         return FlowObservation(cam, np.concatenate(vs), np.concatenate(ts))
@@ -468,6 +470,13 @@ class ReferenceAppearance:
             valid.ravel()[pix[sel]] = True
         out = np.clip(np.rint(out), 0, 255).astype(np.uint8)
         return (out[..., 0] if C == 1 else out), valid, depth, face
+
+
+def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
+    """[H, W] float32: a uint8 channel blurred by a Gaussian of ``sigma`` px."""
+    import cv2
+
+    return cv2.GaussianBlur(np.asarray(image, np.float32), (0, 0), sigma)
 
 
 def _edge_difference(faces: np.ndarray, solve: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:

@@ -77,8 +77,10 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"flow.channels must be 'luma' or 'colour', got {flow.channels!r}")
     if flow.bend_reference not in ("rest", "start"):
         raise PhysavatarError(None, f"flow.bend_reference must be 'rest' or 'start', got {flow.bend_reference!r}")
-    if flow.carry not in ("still", "body"):
-        raise PhysavatarError(None, f"flow.carry must be 'still' or 'body', got {flow.carry!r}")
+    if flow.carry not in ("still", "body", "near"):
+        raise PhysavatarError(None, f"flow.carry must be 'still', 'body' or 'near', got {flow.carry!r}")
+    if flow.carry == "near" and flow.carry_range <= 0:
+        raise PhysavatarError(None, f"flow.carry_range must be > 0 with flow.carry='near', got {flow.carry_range}")
     if pred.garment == "physics":
         from ...sim import PRESETS
 
