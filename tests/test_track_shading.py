@@ -96,3 +96,35 @@ def test_near_carry_weights_fall_with_the_distance_from_the_body():
     w = fs.carry_weights()
     np.testing.assert_allclose(w[4:], np.exp(-np.square(np.minimum(h, 0.08) / 0.02)), rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(w[:4], 1.0)  # the body itself moves with the body
+
+
+def test_plain_rule_tells_a_plain_sheet_from_a_textured_one():
+    """``flow.plain="auto"``: a plain sheet under a soft light with pixel noise (a render's, or a
+    fabric's aliased weave) measures below ``plain_texture`` on the views blurred by 1 px, the
+    procedurally textured sheet above; a plain garment's flow settings get the gate and the near
+    carry, a patterned one's stay as configured."""
+    from physavatar.stages.track.channels import garment_texture
+    from physavatar.stages.track.config import FlowConfig, TrackConfig
+    from physavatar.stages.track.prediction import PLAIN_BLUR, FrameStarts
+
+    V0, F = _grid(21, 0.4)
+    cams = _rig()
+    rng = np.random.default_rng(0)
+    region = np.ones(len(V0), bool)
+    plain = [np.clip(_shaded(V0, F, c, np.array([0.0, 0.0, 0.0])) + rng.normal(0, 0.02, (c.height, c.width, 1)), 0, 1)
+             for c in cams]
+    textured = [_render(V0, F, V0, c) for c in cams]
+    limit = FlowConfig().plain_texture
+    t_plain = garment_texture(V0, F, region, cams, plain, PLAIN_BLUR)
+    t_tex = garment_texture(V0, F, region, cams, textured, PLAIN_BLUR)
+    assert t_plain < limit < t_tex, (t_plain, t_tex)
+    assert texture_strength(np.rint(plain[0][..., 0] * 255).astype(np.uint8)).mean() > limit  # raw, the noise passes
+
+    fs = FrameStarts.__new__(FrameStarts)
+    fs.template = SimpleNamespace(faces=F)
+    fs.skinned, fs.train, fs.cfg = ~region, cams, TrackConfig()
+    got = fs._flow_settings(V0, plain)
+    assert fs.plain and (got.min_texture, got.texture_blur, got.carry) == (limit, PLAIN_BLUR, "near")
+    assert fs._flow_settings(V0, textured) == fs.cfg.flow and not fs.plain
+    fs.cfg = TrackConfig(flow=FlowConfig(plain="patterned"))
+    assert fs._flow_settings(V0, plain) == fs.cfg.flow and fs.garment_texture is None

@@ -217,6 +217,15 @@ class FlowConfig:
         texture_blur: [px] ``min_texture`` is measured on the view blurred by this Gaussian (0:
             as it is): texture finer than a pixel (a plain fabric's speckle) is aliased and does
             not move coherently with the cloth, a pattern of several pixels does.
+        plain: whether the garment is plain, so its flow follows the shading more than the cloth:
+            "auto" (default, session 18: plain when the median texture strength of the free
+            garment's first-frame views blurred by 1 px,
+            :func:`~physavatar.stages.track.channels.garment_texture`, is below
+            ``plain_texture``), "plain" or "patterned". For a plain garment every flow observation
+            counts only where the view blurred by 1 px has ``plain_texture`` of texture
+            (``min_texture`` and ``texture_blur`` raised to that), and ``carry`` "still" becomes
+            "near": what the flow does not see moves with the body it lies on.
+        plain_texture: [levels per pixel] that threshold.
     """
 
     smoothness: float = setting(3.0)
@@ -241,6 +250,8 @@ class FlowConfig:
     highpass: float = setting(0.0)
     texture_blur: float = setting(0.0)
     carry_range: float = setting(0.02)
+    plain: str = setting("auto")
+    plain_texture: float = setting(1.2)
 
 
 @dataclass(frozen=True)

@@ -239,6 +239,9 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
 
 
 
+PLAIN_BLUR = 1.0  # [px] the blur under which a plain garment's texture is measured (FlowConfig.plain)
+
+
 class FrameStarts:
     """The start of every frame t > 1 of a run (``cfg.prediction``), and the flow corrections after
     its fit. Frames are fed in order: :meth:`observe` each fitted frame's images, then
@@ -268,6 +271,9 @@ class FrameStarts:
         self._grey: dict[int, list[np.ndarray]] = {}  # frame -> training views' luma (sRGB: colour flow)
         self._masks: dict[int, list[np.ndarray]] = {}  # frame -> training views' masks (silhouette term)
         self._carry_w: np.ndarray | None = None
+        self.flow_cfg: FlowConfig = cfg.flow  # cfg.flow with the plain-garment rule (set at frame 2)
+        self.plain: bool | None = None
+        self.garment_texture: float | None = None
 
     def observe(self, frame: int, images: list[np.ndarray]) -> None:
         """The training views of ``frame`` (full-resolution sRGB), kept as grey for the flow, and
@@ -290,12 +296,13 @@ class FrameStarts:
                 if self.flow is None:
                     first = (self._grey.get(self.frames[0])
                              or flow_views(self.cap, self.frames[0], self.train, self.cfg.flow.channels))
-                    self.flow = flow_start(self.cfg.flow, self.template, self.train, tracked[0], first, self.skinned)
+                    self.flow_cfg = self._flow_settings(tracked[0], first)
+                    self.flow = flow_start(self.flow_cfg, self.template, self.train, tracked[0], first, self.skinned)
                 carried = None
-                if self.cfg.flow.carry in ("body", "near"):  # frame t-1 moved with the body to t
+                if self.flow_cfg.carry in ("body", "near"):  # frame t-1 moved with the body to t
                     prev_x = np.asarray(tracked[-1], np.float64)
                     carried = self.skin.skin(i, self.skin.unskin(i - 1, prev_x))
-                    if self.cfg.flow.carry == "near":  # by how close the cloth lies on the body
+                    if self.flow_cfg.carry == "near":  # by how close the cloth lies on the body
                         w = self.carry_weights()[:, None]
                         carried = prev_x + w * (carried - prev_x)
                     carried[self.skinned] = init[self.skinned]
@@ -312,6 +319,23 @@ class FrameStarts:
         prev = tracked[-1]
         vel = tracked[-1] - tracked[-2] if i >= 2 else np.zeros_like(prev)
         return prev + np.float32(p.velocity) * vel
+
+    def _flow_settings(self, first_vertices: np.ndarray, first_views: list[np.ndarray]) -> FlowConfig:
+        """``cfg.flow`` with the plain-garment rule applied (:class:`FlowConfig` ``plain``): the
+        texture of the first frame's views decides whether the flow is gated and the carry near.
+        Sets ``self.garment_texture`` (None when not measured) and ``self.plain``."""
+        fc = self.cfg.flow
+        self.garment_texture = None
+        if fc.plain == "auto":
+            from .channels import garment_texture
+
+            self.garment_texture = garment_texture(np.asarray(first_vertices, np.float64), self.template.faces,
+                                                   ~self.skinned, self.train, first_views, PLAIN_BLUR)
+        self.plain = fc.plain == "plain" or (fc.plain == "auto" and self.garment_texture < fc.plain_texture)
+        if not self.plain:
+            return fc
+        return replace(fc, min_texture=max(fc.min_texture, fc.plain_texture), texture_blur=fc.texture_blur or PLAIN_BLUR,
+                       carry="near" if fc.carry == "still" else fc.carry)
 
     def carry_weights(self) -> np.ndarray:
         """[V] how much of the body's motion each vertex takes as its "no motion" under
