@@ -42,8 +42,8 @@ def test_highpass_keeps_a_plain_sheet_where_its_shading_moved():
     images = [_shaded(V0, F, c, np.array([0.05, 0.0, 0.03])) for c in cams]  # the light moved, not the sheet
     solve = np.ones(len(V0), bool)
     err = {}
-    for key, kw in (("raw", {}), ("highpass", dict(highpass=2.0)),
-                    ("gated", dict(highpass=2.0, min_texture=0.8, texture_blur=1.0))):
+    for key, kw in (("raw", {}), ("highpass", {"highpass": 2.0}),
+                    ("gated", {"highpass": 2.0, "min_texture": 0.8, "texture_blur": 1.0})):
         fp = FlowPrediction(F, solve, F, rest=V0, iso_weight=10.0, **kw)
         X = fp.correct(V0, cams, images, ref, iterations=2, prior_weight=0.01, smoothness=0.1)
         err[key] = np.linalg.norm(X - V0, axis=1).mean()
