@@ -79,6 +79,21 @@ def tracking_figures(capture: Path, run_dir: Path, frames: list[int], train_name
             "per_frame_mm": {k: [None if v is None else round(v, 3) for v in rows[k]] for k in rows}}
 
 
+def first_frame_texture(capture: Path, train_names: list[str]) -> float:
+    """The free garment's median texture strength in the first frame's training views blurred by
+    1 px (:func:`physavatar.stages.track.channels.garment_texture`: the plain-garment rule's measure)."""
+    from physavatar.capture import load_capture
+    from physavatar.stages.track.channels import garment_texture
+    from physavatar.stages.track.prediction import PLAIN_BLUR
+
+    cap = load_capture(capture)
+    t = cap.template
+    cams = [c for c in cap.cameras if c.name in train_names]
+    free = t.garment_mask & ~t.boundary
+    return garment_texture(np.asarray(t.vertices, np.float64), t.faces, free, cams,
+                           [cap.image(c.name, cap.frames[0]) for c in cams], PLAIN_BLUR)
+
+
 def main(argv=None) -> int:
     from foreign.capture import build
     from foreign_capture import QUICK_CASES
@@ -118,6 +133,9 @@ def main(argv=None) -> int:
         held = json.loads((run_dir / "config.json").read_text())["holdout"]
         names = [c.name for c in load_capture(cap).cameras if c.name not in held]
         fig = tracking_figures(Path(cap), run_dir, res.frames, names)
+        fig["garment_texture"] = first_frame_texture(Path(cap), names)  # flow.plain="auto" decides by it
+        fig["plain"] = (cfg.flow.plain == "plain"
+                        or (cfg.flow.plain == "auto" and fig["garment_texture"] < cfg.flow.plain_texture))
         fig["size_px"] = case.size
         fig["seconds_per_frame"] = {str(f): round(s, 1) for f, s in res.seconds.items()}
         fig["wall_s"] = round(time.time() - t0, 1)

@@ -1,6 +1,7 @@
 """Evaluation: the Table-2 rows are ordered as physics says on a tiny synthetic capture."""
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -141,11 +142,13 @@ def _check_random_median(m, refs, cap):
 
 def test_median_random_row_and_documented_seeds():
     from physavatar.stages.evaluate import (EvaluateConfig, ReferencesConfig, median_random_row, random_draw_row,
-                                            random_seeds, reference_folder)
+                                            _reference_materials, random_seeds)
 
     assert random_seeds() == [0, 1, 2, 3, 4] and random_seeds(7, 3) == [7, 8, 9]
     assert EvaluateConfig().random_draws == ReferencesConfig().random_draws == 5
-    assert reference_folder(random_draw_row(3)) == "random-3" and reference_folder("true material") == "true"
+    refs = _reference_materials(Path("/nonexistent"), seed=3, draws=3)  # no material.json: no true row
+    assert [(r.row, r.folder) for r in refs] == [(random_draw_row(s), f"random-{s}") for s in (3, 4, 5)]
+    assert [r.material for r in refs] == [random_material(s) for s in (3, 4, 5)]
     rows = {s: {"garment": {"chamfer_x1e3": cd}, "full": {"chamfer_x1e3": 10 * cd}}
             for s, cd in ((3, 0.5), (1, 0.1), (7, 0.9), (4, 0.3), (0, 2.0))}
     row, audit = median_random_row(rows)

@@ -103,11 +103,10 @@ def reference_sims(capture: Path = typer.Argument(..., help="synthetic capture (
     from ..stages.evaluate import run_references
 
     from ..files import read_json
-    from ..stages.evaluate import reference_folder
 
     run_references(capture, out=out, config=config, progress=True)
-    rows = read_json(out / "references.json")["rows"]
-    console.print(f"wrote {', '.join(f'{out}/{reference_folder(r)} ({r})' for r in rows)}")
+    refs = read_json(out / "references.json")
+    console.print(f"wrote {', '.join(f'{out}/{d} ({r})' for r, d in zip(refs['rows'], refs['folders']))}")
 
 
 @config_command(app, "run", RunConfig, wrap=handle_errors)

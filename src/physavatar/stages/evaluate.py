@@ -28,6 +28,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -173,13 +174,14 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The reference materials: two independent simulations, side by side (physavatar.parallel),
     # or taken from a `reference_sequences` folder made earlier (`physavatar run` makes it while
     # tracking runs).
-    refs = dict(_reference_materials(gt_root, seed, random_draws))
+    references_ = _reference_materials(gt_root, seed, random_draws)
+    refs = {r.row: r.material for r in references_}
     if oracle is not None:
         from ..data.material import FittedMaterial
 
         refs["oracle material"] = FittedMaterial.load(Path(oracle) / "material.json").material
     if references is not None:
-        for row, V in _reuse_references(Path(references), av, refs, len(gt)).items():
+        for row, V in _reuse_references(Path(references), av, references_, len(gt)).items():
             seqs[row] = V
         metrics["references"] = str(references)
     todo = [(row, mat) for row, mat in refs.items() if row not in seqs]
@@ -225,22 +227,21 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
         metrics["appearance"] = _appearance(cap, av, est, gt_root / "heldout", out, views_spp)
 
 
-def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS) -> list[tuple[str, Material]]:
-    """The rows that need only the capture: the true material (when the capture has one) and each
-    random draw (:func:`random_draw_row`)."""
+class Reference(NamedTuple):
+    """One reference row: its name in the metrics (``row``), its folder in a
+    :func:`reference_sequences` output (``folder``) and its material."""
+
+    row: str
+    folder: str
+    material: Material
+
+
+def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS) -> list[Reference]:
+    """The rows that need only the capture: the true material (when the capture has one, folder
+    ``true``) and each random draw (:func:`random_draw_row`, folder ``random-<seed>``)."""
     true_path = gt_root / "material.json"
-    return ([("true material", Material.load(true_path))] if true_path.exists() else []) + \
-        [(random_draw_row(s), random_material(s)) for s in random_seeds(seed, draws)]
-
-
-def reference_folder(row: str) -> str:
-    """The folder of a reference row in a :func:`reference_sequences` output: ``true``,
-    ``random-<seed>``."""
-    if row == "true material":
-        return "true"
-    if row.startswith("random material (seed ") and row.endswith(")"):
-        return "random-" + row[len("random material (seed "):-1]
-    raise KeyError(row)
+    return ([Reference("true material", "true", Material.load(true_path))] if true_path.exists() else []) + \
+        [Reference(random_draw_row(s), f"random-{s}", random_material(s)) for s in random_seeds(seed, draws)]
 
 
 def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | None = None, seed: int = 0,
@@ -266,23 +267,26 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     if frames:
         held = held.slice(0, frames)
     refs = _reference_materials(gt_root, seed, random_draws)
-    av = build_avatar(cap, out / "avatar", material=refs[0][1])
+    av = build_avatar(cap, out / "avatar", material=refs[0].material)
     n_sim = simulated_frames(av, held)
     t0 = time.time()
-    jobs = [Job(row, animate_job, (av.root, mat, held), total=n_sim) for row, mat in refs]
+    jobs = [Job(r.row, animate_job, (av.root, r.material, held), total=n_sim) for r in refs]
     seqs = run_jobs(jobs, progress=progress, title="reference materials: simulating")
     t = av.template
-    for (row, mat), V in zip(refs, seqs):
+    for r, V in zip(refs, seqs):
         AnimatedSequence(V, t.faces, t.labels, None, av.fps, av.root).save(
-            out / reference_folder(row), {"command": "reference-sims", "material": mat.to_dict(),
-                                           "motion": held.name, "seed": seed}, ply=False)
+            out / r.folder, {"command": "reference-sims", "material": r.material.to_dict(),
+                             "motion": held.name, "seed": seed}, ply=False)
     write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames), "seed": seed,
-                                                "random_seeds": random_seeds(seed, random_draws), "rows": [r for r, _ in refs], "seconds": round(time.time() - t0, 1)})
+                                                "random_seeds": random_seeds(seed, random_draws),
+                                                "rows": [r.row for r in refs], "folders": [r.folder for r in refs],
+                                                "seconds": round(time.time() - t0, 1)})
     return out
 
 
-def _reuse_references(path: Path, av, refs: dict, n_frames: int) -> dict:
-    """Rows of a :func:`reference_sequences` folder, checked against this evaluation's materials."""
+def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int) -> dict:
+    """Rows of a :func:`reference_sequences` folder, checked against this evaluation's materials
+    (``refs``: :func:`_reference_materials`; the oracle is fitted in the run, not a reference)."""
     if not (path / "references.json").is_file():
         raise PhysavatarError(path, "no references.json (pass a `physavatar reference-sims` output folder)")
     ref_av = Avatar.load(path / "avatar")
@@ -294,10 +298,8 @@ def _reuse_references(path: Path, av, refs: dict, n_frames: int) -> dict:
         raise PhysavatarError(path / "avatar", "the references start from another template, shape or rest pose "
                               "than the evaluated avatar (made for another capture or avatar)")
     rows = {}
-    for row, mat in refs.items():
-        if row == "oracle material":  # the oracle is fitted in the run, not a reference-sims row
-            continue
-        folder = path / reference_folder(row)
+    for row, name, mat in refs:
+        folder = path / name
         used = read_json(folder / SEQUENCE_META).get("material") if (folder / SEQUENCE_META).is_file() else None
         if used is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")

@@ -107,6 +107,27 @@ def patterned_opponents(vertices: np.ndarray, faces: np.ndarray, region: np.ndar
                  for c, n in zip(contrast, noise))
 
 
+def garment_texture(vertices: np.ndarray, faces: np.ndarray, region: np.ndarray, cameras: list[Camera],
+                    images: list[np.ndarray], blur: float = 1.0) -> float:
+    """The median :func:`texture_strength` (levels per pixel) of the luma of ``images`` (sRGB)
+    blurred by ``blur`` px, over the pixels of the faces of ``faces`` whose vertices are all in
+    ``region`` [V] bool (the free garment) at ``vertices``, two pixels inside its outline. The blur
+    takes out texture finer than a pixel (a plain fabric's weave, render noise), which is aliased
+    and does not move with the cloth; a print or a plaid of several pixels stays."""
+    import cv2
+
+    vals = []
+    inner = np.asarray(region, bool)[np.asarray(faces)].all(1)
+    for cam, im in zip(cameras, images):
+        _, face, _ = rasterize(vertices, faces, cam)
+        m = (face >= 0) & inner[np.maximum(face, 0)]
+        m = cv2.erode(m.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        if m.any():
+            g = np.asarray(to_gray8(im), np.float32)
+            vals.append(texture_strength(cv2.GaussianBlur(g, (0, 0), blur) if blur > 0 else g)[m])
+    return float(np.median(np.concatenate(vals))) if vals else 0.0
+
+
 def scaled_flow(image0: np.ndarray, image1: np.ndarray, preset: str, factor: int) -> np.ndarray:
     """:func:`optical_flow` of two uint8 images computed at 1/``factor`` of their size (area
     average) and brought back to full-resolution pixels (bilinear, times ``factor``). At half size
@@ -127,6 +148,18 @@ def scaled_flow(image0: np.ndarray, image1: np.ndarray, preset: str, factor: int
     up[..., 0] *= sx
     up[..., 1] *= sy
     return up
+
+
+def shading_free(image: np.ndarray, sigma: float) -> np.ndarray:
+    """[H, W] uint8: a uint8 channel ``image`` less its Gaussian blur of ``sigma`` px, at 128 (a
+    high-pass, the "texture" part of a structure-texture decomposition: Wedel et al. 2009, "An
+    improved algorithm for TV-L1 optical flow"). Shading varies slowly over the cloth and changes
+    as the cloth turns against the lights; the flow of the high-passed pair follows the texture
+    (and the outlines) that move with the cloth, not the shading that does not."""
+    import cv2
+
+    a = np.asarray(image, np.float32)
+    return np.clip(np.rint(128.0 + a - cv2.GaussianBlur(a, (0, 0), sigma)), 0, 255).astype(np.uint8)
 
 
 def texture_strength(image: np.ndarray, window: int = 5) -> np.ndarray:

@@ -204,10 +204,28 @@ class FlowConfig:
             plain garment the flow follows the shading, which moves with the light, not the cloth.
         carry: what the prediction's lift takes as "no motion" for the free garment: "still"
             (frame t-1 where it was) or "body" (frame t-1 carried by the body's skinning from t-1
-            to t), so what no flow observes follows the body instead of staying behind.
+            to t), so what no flow observes follows the body instead of staying behind; "near":
+            the body's motion weighted by exp(-(d / ``carry_range``)^2), d [m] the vertex's distance
+            from the body in the template (a fitted top follows the torso, a skirt's hem does not
+            follow the legs).
         predict_colour: the prediction's frame-to-frame flow runs on the same channels as the
             corrections (``channels``: with "colour", the luma and the patterned opponent
             channels) instead of the luma alone.
+        highpass: [px] every flow runs on its channels less their Gaussian blur of this width
+            (:func:`~physavatar.stages.track.channels.shading_free`; 0: off): the flow of the
+            texture that moves with the cloth, not of the shading that changes as it turns.
+        texture_blur: [px] ``min_texture`` is measured on the view blurred by this Gaussian (0:
+            as it is): texture finer than a pixel (a plain fabric's speckle) is aliased and does
+            not move coherently with the cloth, a pattern of several pixels does.
+        plain: whether the garment is plain, so its flow follows the shading more than the cloth:
+            "auto" (default, session 18: plain when the median texture strength of the free
+            garment's first-frame views blurred by 1 px,
+            :func:`~physavatar.stages.track.channels.garment_texture`, is below
+            ``plain_texture``), "plain" or "patterned". For a plain garment every flow observation
+            counts only where the view blurred by 1 px has ``plain_texture`` of texture
+            (``min_texture`` and ``texture_blur`` raised to that), and ``carry`` "still" becomes
+            "near": what the flow does not see moves with the body it lies on.
+        plain_texture: [levels per pixel] that threshold.
     """
 
     smoothness: float = setting(3.0)
@@ -229,6 +247,11 @@ class FlowConfig:
     min_texture: float = setting(0.0)
     carry: str = setting("still")
     predict_colour: bool = setting(False)
+    highpass: float = setting(0.0)
+    texture_blur: float = setting(0.0)
+    carry_range: float = setting(0.02)
+    plain: str = setting("auto")
+    plain_texture: float = setting(1.2)
 
 
 @dataclass(frozen=True)

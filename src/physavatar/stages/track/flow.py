@@ -39,7 +39,7 @@ import scipy.sparse as sp
 
 from ...camera import Camera
 from .channels import (image_channels, opponent_channels, optical_flow, patterned_opponents,  # noqa: F401
-                       scaled_flow, texture_strength, to_gray8, to_rgb8)
+                       scaled_flow, shading_free, texture_strength, to_gray8, to_rgb8)
 from .raster import _in_front, projection_jacobian, rasterize, sample_bilinear, visible_vertices, zbuffer
 from .silhouette import MaskOutline, silhouette_observation
 
@@ -104,7 +104,7 @@ class FlowPrediction:
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
                  bend_weight: float = 0.0, bend_huber: float = 0.0, bend_reference: str = "rest",
-                 min_texture: float = 0.0):
+                 min_texture: float = 0.0, highpass: float = 0.0, texture_blur: float = 0.0):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -138,6 +138,8 @@ class FlowPrediction:
         self.collision_weight = collision_weight
         self.contact_range = contact_range
         self.min_texture = min_texture
+        self.highpass = highpass
+        self.texture_blur = texture_blur
 
     def observe(self, vertices: np.ndarray, cameras: list[Camera], images0: list[np.ndarray],
                 images1: list[np.ndarray], channels: str = "luma",
@@ -168,13 +170,16 @@ class FlowPrediction:
             idx, uv = idx[ok], uv[ok]
         vs, ts = [], []
         for a, b in image_channels(g0, g1, channels, opponent):
+            if self.highpass > 0:  # the flow of the texture, not of the shading
+                a, b = shading_free(a, self.highpass), shading_free(b, self.highpass)
             fw = scaled_flow(a, b, preset, factor)
             bw = scaled_flow(b, a, preset, factor)
             f = sample_bilinear(fw, uv)
             back = sample_bilinear(bw, uv + f)
             ok = np.linalg.norm(f + back, axis=1) < self.consistency_px * factor
             if self.min_texture > 0:  # only where the source view has texture in both directions
-                ok &= sample_bilinear(texture_strength(a)[..., None], uv)[:, 0] >= self.min_texture
+                src = a if self.texture_blur <= 0 else _blurred(a, self.texture_blur)
+                ok &= sample_bilinear(texture_strength(src)[..., None], uv)[:, 0] >= self.min_texture
             vs.append(idx[ok])
             ts.append(uv[ok] + f[ok])
         return FlowObservation(cam, np.concatenate(vs), np.concatenate(ts))
@@ -465,6 +470,13 @@ class ReferenceAppearance:
             valid.ravel()[pix[sel]] = True
         out = np.clip(np.rint(out), 0, 255).astype(np.uint8)
         return (out[..., 0] if C == 1 else out), valid, depth, face
+
+
+def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
+    """[H, W] float32: a uint8 channel blurred by a Gaussian of ``sigma`` px."""
+    import cv2
+
+    return cv2.GaussianBlur(np.asarray(image, np.float32), (0, 0), sigma)
 
 
 def _edge_difference(faces: np.ndarray, solve: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:

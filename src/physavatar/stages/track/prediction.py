@@ -229,13 +229,17 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.smoothness, rest=t.vertices,
                           iso_weight=cfg.iso, collider_faces=body_faces, collision_weight=cfg.collision,
                           bend_weight=cfg.bend, bend_huber=cfg.bend_huber, prior_weight=cfg.prior,
-                          bend_reference=cfg.bend_reference, min_texture=cfg.min_texture)
+                          bend_reference=cfg.bend_reference, min_texture=cfg.min_texture,
+                          highpass=cfg.highpass, texture_blur=cfg.texture_blur)
     return FlowStart(lift, train, first_vertices, first_grey, cfg.corrections, cfg.final_corrections,
                      dict(smoothness=cfg.correction_smoothness, prior_weight=cfg.correction_prior,
                           iso_weight=cfg.correction_iso, bend_weight=cfg.correction_bend,
                           silhouette_weight=cfg.silhouette, channels=cfg.channels), cfg.coarse,
                      predict_colour=cfg.predict_colour)
 
+
+
+PLAIN_BLUR = 1.0  # [px] the blur under which a plain garment's texture is measured (FlowConfig.plain)
 
 
 class FrameStarts:
@@ -266,6 +270,10 @@ class FrameStarts:
         self.flow: FlowStart | None = None  # built at frame 2: frame 1 may come from a resumed run
         self._grey: dict[int, list[np.ndarray]] = {}  # frame -> training views' luma (sRGB: colour flow)
         self._masks: dict[int, list[np.ndarray]] = {}  # frame -> training views' masks (silhouette term)
+        self._carry_w: np.ndarray | None = None
+        self.flow_cfg: FlowConfig = cfg.flow  # cfg.flow with the plain-garment rule (set at frame 2)
+        self.plain: bool | None = None
+        self.garment_texture: float | None = None
 
     def observe(self, frame: int, images: list[np.ndarray]) -> None:
         """The training views of ``frame`` (full-resolution sRGB), kept as grey for the flow, and
@@ -288,10 +296,15 @@ class FrameStarts:
                 if self.flow is None:
                     first = (self._grey.get(self.frames[0])
                              or flow_views(self.cap, self.frames[0], self.train, self.cfg.flow.channels))
-                    self.flow = flow_start(self.cfg.flow, self.template, self.train, tracked[0], first, self.skinned)
+                    self.flow_cfg = self._flow_settings(tracked[0], first)
+                    self.flow = flow_start(self.flow_cfg, self.template, self.train, tracked[0], first, self.skinned)
                 carried = None
-                if self.cfg.flow.carry == "body":  # frame t-1 moved with the body to t
-                    carried = self.skin.skin(i, self.skin.unskin(i - 1, tracked[-1]))
+                if self.flow_cfg.carry in ("body", "near"):  # frame t-1 moved with the body to t
+                    prev_x = np.asarray(tracked[-1], np.float64)
+                    carried = self.skin.skin(i, self.skin.unskin(i - 1, prev_x))
+                    if self.flow_cfg.carry == "near":  # by how close the cloth lies on the body
+                        w = self.carry_weights()[:, None]
+                        carried = prev_x + w * (carried - prev_x)
                     carried[self.skinned] = init[self.skinned]
                 init = self.flow(tracked[-1], self._grey.pop(prev), self._grey[f], init,
                                  self._masks.get(f), carried).astype(np.float32)
@@ -306,6 +319,39 @@ class FrameStarts:
         prev = tracked[-1]
         vel = tracked[-1] - tracked[-2] if i >= 2 else np.zeros_like(prev)
         return prev + np.float32(p.velocity) * vel
+
+    def _flow_settings(self, first_vertices: np.ndarray, first_views: list[np.ndarray]) -> FlowConfig:
+        """``cfg.flow`` with the plain-garment rule applied (:class:`FlowConfig` ``plain``): the
+        texture of the first frame's views decides whether the flow is gated and the carry near.
+        Sets ``self.garment_texture`` (None when not measured) and ``self.plain``."""
+        fc = self.cfg.flow
+        self.garment_texture = None
+        if fc.plain == "auto":
+            from .channels import garment_texture
+
+            self.garment_texture = garment_texture(np.asarray(first_vertices, np.float64), self.template.faces,
+                                                   ~self.skinned, self.train, first_views, PLAIN_BLUR)
+        self.plain = fc.plain == "plain" or (fc.plain == "auto" and self.garment_texture < fc.plain_texture)
+        if not self.plain:
+            return fc
+        return replace(fc, min_texture=max(fc.min_texture, fc.plain_texture), texture_blur=fc.texture_blur or PLAIN_BLUR,
+                       carry="near" if fc.carry == "still" else fc.carry)
+
+    def carry_weights(self) -> np.ndarray:
+        """[V] how much of the body's motion each vertex takes as its "no motion" under
+        ``flow.carry="near"``: exp(-(d / carry_range)^2), d its distance from the body surface in
+        the template. Cloth that lies on the body (a fitted top) moves with it where no flow
+        observes it; cloth that hangs away from it (a skirt's hem over the legs) keeps its own place."""
+        if self._carry_w is None:
+            from ...geometry import MeshQuery
+
+            t = self.template
+            V = np.asarray(t.vertices, np.float64)
+            body_faces = t.faces[(~t.garment_mask[t.faces]).all(1)]
+            r = self.cfg.flow.carry_range
+            d = MeshQuery(V, body_faces).closest(V, max_dist=4 * r)[0] if len(body_faces) else np.full(len(V), np.inf)
+            self._carry_w = np.exp(-np.square(np.minimum(d, 4 * r) / r))
+        return self._carry_w
 
     def refine(self, i: int, vertices: np.ndarray) -> np.ndarray:
         """``frames[i]``'s fitted ``vertices`` after ``flow.final_corrections`` flow corrections."""

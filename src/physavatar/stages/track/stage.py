@@ -69,7 +69,7 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"level_iters needs one count >= 1 per level {fit.levels}, got {fit.level_iters}")
     if pred.garment not in ("velocity", "physics", "flow"):
         raise PhysavatarError(None, f"garment_prediction must be 'velocity', 'physics' or 'flow', got {pred.garment!r}")
-    numeric = [f.name for f in fields(flow) if f.name not in ("channels", "bend_reference", "carry")]
+    numeric = [f.name for f in fields(flow) if f.name not in ("channels", "bend_reference", "carry", "plain")]
     if min(getattr(flow, k) for k in numeric) < 0:
         raise PhysavatarError(None, "the flow_* settings must be >= 0, got "
                                     + ", ".join(f"flow_{k}={getattr(flow, k)}" for k in numeric))
@@ -77,8 +77,12 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"flow.channels must be 'luma' or 'colour', got {flow.channels!r}")
     if flow.bend_reference not in ("rest", "start"):
         raise PhysavatarError(None, f"flow.bend_reference must be 'rest' or 'start', got {flow.bend_reference!r}")
-    if flow.carry not in ("still", "body"):
-        raise PhysavatarError(None, f"flow.carry must be 'still' or 'body', got {flow.carry!r}")
+    if flow.carry not in ("still", "body", "near"):
+        raise PhysavatarError(None, f"flow.carry must be 'still', 'body' or 'near', got {flow.carry!r}")
+    if flow.plain not in ("auto", "plain", "patterned"):
+        raise PhysavatarError(None, f"flow.plain must be 'auto', 'plain' or 'patterned', got {flow.plain!r}")
+    if flow.carry == "near" and flow.carry_range <= 0:
+        raise PhysavatarError(None, f"flow.carry_range must be > 0 with flow.carry='near', got {flow.carry_range}")
     if pred.garment == "physics":
         from ...sim import PRESETS
 
@@ -133,9 +137,10 @@ def _unhashed(config, prefix: str = "") -> set[str]:
     return out
 
 
-# settings whose default changed after config.json began to record them: a run folder that does
-# not record one ran with this value (flow.channels: grey until session 15)
-UNRECORDED = {"flow.channels": "luma"}
+# settings a run folder's config.json may not record, with the value such a run had: defaults that
+# changed after config.json began to record the setting (flow.channels: grey until session 15),
+# and settings added later (session 18: a run that does not record them ran with them off)
+UNRECORDED = {"flow.channels": "luma", "flow.highpass": 0.0, "flow.texture_blur": 0.0, "flow.plain": "patterned"}
 
 
 def _check_resume(out: Path, saved: dict, wanted: dict) -> None:
