@@ -81,9 +81,6 @@ class BodyFitConfig:
     # a detector's mistake (a 5 cm kernel left an arm that the previous frame had put inside the
     # torso's silhouette 27-39 cm from its keypoints, where the silhouettes do not see it)
     kp_sigma: float = setting(0.25)
-    # the detector's keypoints are not Anny's joints (MediaPipe's shoulders and hips sit off the
-    # joints): with this off they place the joints but do not change the shape
-    kp_shape: bool = setting(True)
     w_clothing_inside: float = setting(3.0)
     w_clothing_near: float = setting(0.1)
     w_pose_prior: float = setting(2e-4)
@@ -349,11 +346,10 @@ class _Fitter:
         # vertex normals put the true fingers 3-4 cm "outside" it; they pulled the arms into the blob
         self.clothing_points = torch.as_tensor(np.flatnonzero(~_extremities(self.model.body)))
 
-    def data_loss(self, frames: list[int], V, H, sigma: float, kps=None) -> torch.Tensor:
+    def data_loss(self, frames: list[int], V, H, sigma: float) -> torch.Tensor:
         cfg, obs = self.cfg, self.obs
         total = V.new_zeros(())
-        if kps is None and obs.kp is not None:
-            kps = self.model.keypoints(V, H)
+        kps = self.model.keypoints(V, H) if obs.kp is not None else None
         for i, t in enumerate(frames):
             o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, cfg.outside_margin_px)
             total = total + (cfg.w_outside if obs.kp is None else cfg.w_outside_keypoints) * o + cfg.w_contour * c
@@ -430,10 +426,7 @@ class _Fitter:
         def loss_fn(rot, tau, ph):
             def f(sigma):
                 V, H = self.model.pose(rot, tau, ph)
-                kps = None
-                if self.obs.kp is not None and not cfg.kp_shape:
-                    kps = self.model.keypoints(*self.model.pose(rot, tau, ph.detach()))
-                return (self.data_loss([0], V, H, sigma, kps) + self.prior(rot)
+                return (self.data_loss([0], V, H, sigma) + self.prior(rot)
                         + cfg.w_shape_prior * ((ph - 0.5) ** 2).sum())
             return f
 
