@@ -83,15 +83,16 @@ def gm(d2: torch.Tensor, sigma) -> torch.Tensor:
     return s2 * d2 / (d2 + s2)
 
 
-def silhouette_terms(points: torch.Tensor, views: list[MaskView], sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean squared outside distance [m^2] and mean robust contour distance [m^2] of body
-    ``points`` [N, 3] over the views of one frame."""
+def silhouette_terms(points: torch.Tensor, views: list[MaskView], sigma: float,
+                     margin_px: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean squared outside distance [m^2] (outside the mask shrunk by ``margin_px``) and mean
+    robust contour distance [m^2] of body ``points`` [N, 3] over the views of one frame."""
     out, cont = points.new_zeros(()), points.new_zeros(())
     for view in views:
         uv, z = project(points, view.camera)
         f = float(view.camera.K[0, 0])
         scale = z.clamp(min=1e-3) / f  # metres per pixel at each point
-        d_out = torch.relu(sample_field(view.dt, uv)) * scale
+        d_out = torch.relu(sample_field(view.dt, uv) + margin_px) * scale
         out = out + (d_out ** 2).mean()
         q = view.contour
         if len(q):

@@ -69,8 +69,18 @@ class BodyFitConfig:
     sigma_start: float = setting(0.12)  # robust kernel of the contour term [m], annealed to ...
     sigma_end: float = setting(0.015)
     w_outside: float = setting(1.0)
+    # with keypoints: they hold the pose and the heading, so the body can be pressed into the masks
+    # (without them a strong outside term squeezes the body into a wrong pose: the demo's first
+    # frame 8 -> 423 mm at 20)
+    w_outside_keypoints: float = setting(20.0)
     w_contour: float = setting(1.0)
+    outside_margin_px: float = setting(0.0)  # the outside term's mask is shrunk by this [working px]
     w_keypoints: float = setting(0.2)  # keypoints guide; silhouettes decide the last centimetres
+    # [m] the keypoint term's robust kernel is never narrower: the keypoints are checked against
+    # the other views (RANSAC triangulation), so a limb far from its keypoints is a fit stuck, not
+    # a detector's mistake (a 5 cm kernel left an arm that the previous frame had put inside the
+    # torso's silhouette 27-39 cm from its keypoints, where the silhouettes do not see it)
+    kp_sigma: float = setting(0.25)
     w_clothing_inside: float = setting(3.0)
     w_clothing_near: float = setting(0.1)
     w_pose_prior: float = setting(2e-4)
@@ -341,12 +351,12 @@ class _Fitter:
         total = V.new_zeros(())
         kps = self.model.keypoints(V, H) if obs.kp is not None else None
         for i, t in enumerate(frames):
-            o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma)
-            total = total + cfg.w_outside * o + cfg.w_contour * c
+            o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, cfg.outside_margin_px)
+            total = total + (cfg.w_outside if obs.kp is None else cfg.w_outside_keypoints) * o + cfg.w_contour * c
             if kps is not None:
                 conf = obs.conf[t][:, self.kp_ids] * self.model.kp_weight
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
-                                                                max(sigma, 0.05))
+                                                                max(sigma, cfg.kp_sigma))
             if t == 0 and self.clothing is not None and self.use_clothing:
                 total = total + self.clothing_loss(V[i], sigma)
         return total / len(frames)
