@@ -42,6 +42,7 @@ from .start import follow_body, warm_start
 from .terms import StepState
 
 CUT_FORCING = 10.0  # newton_forcing × this after a CCD-cut step (docs/simulation.md "Session 14")
+STALL_WINDOW, STALL_PROGRESS = 8, 0.1  # penalty phase: give up when the gap shrank < 10 % in 8 (a pinch)
 
 
 @dataclasses.dataclass
@@ -57,6 +58,7 @@ class _Solve:
     prev_residual: float = np.inf
     below_count: int = 0  # consecutive directions below newton_tol ("rms")
     penalty_iters: int = 0
+    gaps: list = dataclasses.field(default_factory=list)  # the penalty phase's gap per iteration
     cut: bool = False  # the last step was cut by CCD (α < 1): the next direction may be looser
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
@@ -468,6 +470,9 @@ class ClothSim:
         X = sv.X
         sv.penalty_iters += 1
         gap = np.max(np.abs(X[self.penalty.kinematic] - self.penalty.target))
+        sv.gaps.append(gap)
+        if gap >= 1e-2 * s.dhat and len(sv.gaps) > STALL_WINDOW and gap > (1 - STALL_PROGRESS) * sv.gaps[~STALL_WINDOW]:
+            return "break"  # stalled (a pinch): shorter steps (simulate's split) do better than more iterations
         if gap < 1e-2 * s.dhat:
             X_snap = X.copy()
             X_snap[self.penalty.kinematic] = self.penalty.target
