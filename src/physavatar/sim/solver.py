@@ -42,7 +42,6 @@ from .start import follow_body, warm_start
 from .terms import StepState
 
 CUT_FORCING = 10.0  # newton_forcing × this after a CCD-cut step (docs/simulation.md "Session 14")
-STALL_WINDOW, STALL_PROGRESS = 8, 0.1  # penalty phase: give up when the gap shrank < 10 % in 8 (a pinch)
 
 
 @dataclasses.dataclass
@@ -80,6 +79,7 @@ class ClothSim:
     """
 
     predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
+    stall_exit, stall_window, stall_progress = False, 8, 0.1  # give up a penalty phase: gap -10 % in 8 (simulate)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
                  boundary_indices=(), extra_terms=(), contact_exclude=None):
@@ -466,13 +466,13 @@ class ClothSim:
         they are close and the rest of the move is collision-free (back to the free system),
         retry carrying the cloth with the body, or stiffen the penalty when the targets stall.
         Returns "break" (give up: the body lags), "continue" (next iteration at once) or None."""
-        s = self.settings
-        X = sv.X
+        s, X = self.settings, sv.X
         sv.penalty_iters += 1
         gap = np.max(np.abs(X[self.penalty.kinematic] - self.penalty.target))
         sv.gaps.append(gap)
-        if gap >= 1e-2 * s.dhat and len(sv.gaps) > STALL_WINDOW and gap > (1 - STALL_PROGRESS) * sv.gaps[~STALL_WINDOW]:
-            return "break"  # stalled (a pinch): shorter steps (simulate's split) do better than more iterations
+        if self.stall_exit and gap >= 1e-2 * s.dhat and len(sv.gaps) > self.stall_window:
+            if gap > (1 - self.stall_progress) * sv.gaps[~self.stall_window]:  # a pinch: shorter steps do better
+                return "break"
         if gap < 1e-2 * s.dhat:
             X_snap = X.copy()
             X_snap[self.penalty.kinematic] = self.penalty.target
