@@ -165,3 +165,23 @@ def test_self_contact_needs_a_start_with_the_garments_own_triangles_apart():
     assert self_contact_possible(V, F, 1e-3)
     assert self_contact_possible(np.vstack([V, V + [0, 0, 5e-3]]), two, 1e-3)  # layers 5 mm apart
     assert not self_contact_possible(np.vstack([V, V + [0, 0, 5e-4]]), two, 1e-3)  # 0.5 mm < d̂
+
+
+def test_a_run_resumes_on_other_thread_counts_but_not_on_other_settings():
+    """The fingerprint a written run resumes by leaves out the settings that change no result
+    (thread counts: bit-identical on any number), keeps every other one, and is unchanged for
+    runs on the defaults (those started before: the settings dict as it was, every field)."""
+    from dataclasses import asdict
+
+    from physavatar.data.sim_frames import fingerprint, run_settings
+
+    V, F, *_ = rising_sphere()
+
+    def key(settings):
+        return fingerprint(V, F, settings=run_settings(settings), fps=25.0)
+
+    default = key(SimSettings())
+    assert default == fingerprint(V, F, settings=asdict(SimSettings()), fps=25.0)  # keys of earlier runs
+    assert key(SimSettings(ccd_threads=2, term_threads=2)) == default
+    assert key(SimSettings(dhat=2e-3)) != default and key(SimSettings(max_penalty_iterations=20)) != default
+    assert run_settings(None) is None

@@ -4,8 +4,10 @@ Sub-stepping is decided per frame (:func:`substep_count`): a frame in which the 
 cloth moves more than ``SimSettings.max_body_move`` is split into more implicit steps (up to
 ``max_substeps``), and a frame whose step still gives up (the body *lags*, StepStats.body_gap)
 is simulated again from its start with twice the steps, until ``max_substeps``; only then is the
-lag kept (reported per frame). After every frame a :class:`Checkpoint` (positions, velocities
-and the solver's state) can be taken, and ``resume=`` continues from one with the same result
+lag kept (reported per frame). An attempt that such a retry follows stops at its first lagging
+step (its result is discarded anyway), and its penalty phases give up once they stall
+(ClothSim.stall_exit), so the retry comes sooner (docs/simulation.md "Why the whole clips
+stalled"). After every frame a :class:`Checkpoint` (positions, velocities and the solver's state) can be taken, and ``resume=`` continues from one with the same result
 as an uninterrupted run (docs/simulation.md "Never lose work").
 """
 
@@ -243,7 +245,13 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             attempts = 0
             while True:
                 attempts += 1
-                x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps)
+                # an attempt that a retry in shorter steps would follow ends at its first lagging
+                # step (no change: a lagged attempt is retried) and gives up a stalled penalty
+                # phase early (ClothSim.stall_exit; the last attempt keeps the full budget)
+                last = n >= max_substeps or stuck
+                sim.stall_exit = not last
+                x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
+                                           stop_on_lag=not last)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
                 # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
                 # the body's pose) is not undone by shorter steps: no retries until a frame passes
@@ -265,8 +273,9 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     return out
 
 
-def _frame(sim: ClothSim, x, v, body0, body1, body_faces, tb0, tb1, n: int, fps: float):
-    """One frame in ``n`` implicit steps: (x, v, StepStats of each)."""
+def _frame(sim: ClothSim, x, v, body0, body1, body_faces, tb0, tb1, n: int, fps: float, stop_on_lag=False):
+    """One frame in ``n`` implicit steps: (x, v, StepStats of each); with ``stop_on_lag``, up to
+    the first step whose body lagged."""
     sim.set_dt(1.0 / (fps * n))
     stats = []
     for k in range(n):
@@ -276,4 +285,6 @@ def _frame(sim: ClothSim, x, v, body0, body1, body_faces, tb0, tb1, n: int, fps:
         tgt = None if tb1 is None else (1 - w1) * tb0 + w1 * tb1
         x, v, st = sim.step(x, v, b0, b1, body_faces, tgt)
         stats.append(st)
+        if stop_on_lag and st.body_gap > 0:
+            break
     return x, v, stats

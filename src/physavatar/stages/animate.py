@@ -10,7 +10,7 @@ but not returned, so the garment never starts from a jump.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +18,7 @@ import numpy as np
 from ..data.avatar import Avatar
 from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
 from ..data.animated import AnimatedSequence
-from ..data.sim_frames import FrameStore, fingerprint
+from ..data.sim_frames import FrameStore, fingerprint, run_settings
 from ..errors import PhysavatarError
 from ..geometry import count_intersections
 from ..garment_sim import simulate_on_body, split_template
@@ -109,7 +109,7 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
                               **options)
     else:
         key = fingerprint(part.vertices, part.faces, part.boundary, posed.vertices, body.faces,
-                          material=avatar.material.to_dict(), settings=None if settings is None else asdict(settings),
+                          material=avatar.material.to_dict(), settings=run_settings(settings),
                           fps=fps, max_substeps=max_substeps)
         store = FrameStore(out, key, len(posed.vertices))
         Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, resume=store.resume(),

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +42,7 @@ from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
 from ..data.garment_sequence import GarmentSequence
 from ..data.material import resolve_material
 from ..data.mesh_sequence import load_mesh_sequence
-from ..data.sim_frames import FrameStore, fingerprint
+from ..data.sim_frames import FrameStore, fingerprint, run_settings
 from ..errors import PhysavatarError
 from ..files import PlyMesh, load_npz, write_json_atomic, write_ply
 from ..garment import GARMENTS, make_garment
@@ -224,7 +224,7 @@ def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps:
     per-frame reports of frames 1..T−1, the FrameStore, the frame resumed after or None)."""
     key = fingerprint(part.vertices, part.rest_shape, part.faces, part.boundary, bodies, body_faces,
                       *([] if part.seams is None else [part.seams]), material=mat.to_dict(),
-                      settings=asdict(settings), fps=fps, substeps=cfg.substeps, max_substeps=cfg.max_substeps)
+                      settings=run_settings(settings), fps=fps, substeps=cfg.substeps, max_substeps=cfg.max_substeps)
     store = FrameStore(out, key, len(bodies))
     ck = store.resume()
     if ck is None and n_warm == 0:
