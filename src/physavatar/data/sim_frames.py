@@ -42,20 +42,18 @@ def fingerprint(*arrays, **meta) -> str:
     return h.hexdigest()[:32]
 
 
-RESULT_NEUTRAL = ("ccd_threads", "term_threads")  # SimSettings fields that change no result (same bits)
+RESULT_NEUTRAL = ("ccd_threads",)  # SimSettings fields that change no result (same bits)
 
 
 def run_settings(settings) -> dict | None:
-    """The SimSettings of a run as its fingerprint holds them: every field, with the ones that
-    change no result (``RESULT_NEUTRAL``: thread counts, bit-identical on any number) at their
-    defaults, so a run resumes on another thread count; the keys of runs on the defaults are
-    unchanged."""
+    """The SimSettings of a run as its fingerprint holds them: every field but the ones that
+    change no result (``RESULT_NEUTRAL``: thread counts, bit-identical on any number), so a run
+    resumes on another thread count."""
     if settings is None:
         return None
     import dataclasses
 
-    neutral = {f.name: f.default for f in dataclasses.fields(settings) if f.name in RESULT_NEUTRAL}
-    return dataclasses.asdict(dataclasses.replace(settings, **neutral))
+    return {k: v for k, v in dataclasses.asdict(settings).items() if k not in RESULT_NEUTRAL}
 
 
 class FrameStore:
