@@ -7,8 +7,9 @@ is simulated again from its start with twice the steps, until ``max_substeps``; 
 lag kept (reported per frame). An attempt that such a retry follows stops at its first lagging
 step (its result is discarded anyway), and its penalty phases give up once they stall
 (ClothSim.stall_exit), so the retry comes sooner (docs/simulation.md "Why the whole clips
-stalled"). After every frame a :class:`Checkpoint` (positions, velocities and the solver's state) can be taken, and ``resume=`` continues from one with the same result
-as an uninterrupted run (docs/simulation.md "Never lose work").
+stalled"). After every frame a :class:`Checkpoint` (positions, velocities and the solver's
+state) can be taken, and ``resume=`` continues from one with the same result as an
+uninterrupted run (docs/simulation.md "Never lose work").
 """
 
 from __future__ import annotations
