@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import time
 from dataclasses import dataclass, fields, is_dataclass, replace
 from pathlib import Path
@@ -24,6 +25,9 @@ from .gaussians import MeshGaussians
 from .losses import AnchorLoss, CollisionLoss, IsometryLoss, NormalLoss
 from .prediction import FrameStarts
 from .views import initial_colors, load_views
+
+log = logging.getLogger("physavatar.progress")
+PLAIN_FILE = "garment_texture.json"  # the plain-garment rule's measure and decision (flow.plain)
 
 LOG_COLUMNS = ("frame", "iterations", "loss", "render", "l1", "ssim", "mask", "iso", "normal", "anchor", "collision", "seconds")
 
@@ -286,6 +290,13 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
             computed.append(f)
             seconds[f] = dt
             task.advance(frame=frame_name(f), it=res.iterations, loss=res.terms["loss"], s=round(dt, 1))
+    if starts.plain is not None:  # decided in this run (a fully resumed run keeps the file it wrote)
+        decision = "plain" if starts.plain else "patterned"
+        write_json_atomic(out / PLAIN_FILE, {"rule": cfg.flow.plain, "garment_texture": starts.garment_texture,
+                                             "plain_texture": cfg.flow.plain_texture, "decision": decision})
+        if starts.garment_texture is not None:
+            log.info("track: garment texture %.2f (threshold %.2f): %s", starts.garment_texture,
+                     cfg.flow.plain_texture, decision)
     V = np.stack(verts).astype(np.float32)
     C = np.stack(cols).astype(np.float32)
     TrackedSequence(V, t.faces, t.labels, t.boundary, C, np.asarray(frames, np.int64),
