@@ -19,6 +19,10 @@ def test_run_end_to_end_and_resume(tiny_capture, tmp_path):
     stages = ["track", "references", "physics", "appearance", "avatar", "animate", "render", "relight", "export",
               "export-glb", "evaluate"]
     assert all(rec[s]["status"] == "ok" for s in stages)
+    # tracking recorded the plain-garment rule's measure and decision (flow.plain="auto")
+    tex = json.loads((out / "track" / "garment_texture.json").read_text())
+    assert tex["rule"] == "auto" and tex["decision"] == ("plain" if tex["garment_texture"] < tex["plain_texture"]
+                                                         else "patterned")
     m = json.loads((out / "evaluate" / "metrics.json").read_text())
     # the reference rows were simulated beside the other stages (on a multi-core machine) and reused
     assert m["references"].endswith("references")

@@ -26,7 +26,7 @@ from .losses import AnchorLoss, CollisionLoss, IsometryLoss, NormalLoss
 from .prediction import FrameStarts
 from .views import initial_colors, load_views
 
-log = logging.getLogger("physavatar.progress")
+logger = logging.getLogger("physavatar.progress")
 PLAIN_FILE = "garment_texture.json"  # the plain-garment rule's measure and decision (flow.plain)
 
 LOG_COLUMNS = ("frame", "iterations", "loss", "render", "l1", "ssim", "mask", "iso", "normal", "anchor", "collision", "seconds")
@@ -295,7 +295,7 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
         write_json_atomic(out / PLAIN_FILE, {"rule": cfg.flow.plain, "garment_texture": starts.garment_texture,
                                              "plain_texture": cfg.flow.plain_texture, "decision": decision})
         if starts.garment_texture is not None:
-            log.info("track: garment texture %.2f (threshold %.2f): %s", starts.garment_texture,
+            logger.info("track: garment texture %.2f (threshold %.2f): %s", starts.garment_texture,
                      cfg.flow.plain_texture, decision)
     V = np.stack(verts).astype(np.float32)
     C = np.stack(cols).astype(np.float32)
