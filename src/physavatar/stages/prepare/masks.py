@@ -218,12 +218,11 @@ def unreliable_warning(info: dict, cfg: MaskConfig) -> str | None:
     if not bad:
         return None
     what = []
-    if any(v["clutter"] > cfg.max_clutter for v in bad.values()):
-        what.append("share of the foreground outside its largest region: " + ", ".join(
-            f"{k} {100 * v['clutter']:.0f} %" for k, v in bad.items() if v["clutter"] > cfg.max_clutter))
-    if any(v["foreground"] > cfg.max_foreground for v in bad.values()):
-        what.append("share of the image foreground: " + ", ".join(
-            f"{k} {100 * v['foreground']:.0f} %" for k, v in bad.items() if v["foreground"] > cfg.max_foreground))
+    for key, limit, label in (("clutter", cfg.max_clutter, "share of the foreground outside its largest region"),
+                              ("foreground", cfg.max_foreground, "share of the image foreground")):
+        over = [f"{k} {100 * v[key]:.0f} %" for k, v in bad.items() if v[key] > limit]
+        if over:
+            what.append(f"{label}: " + ", ".join(over))
     return (f"masks by background differencing without a background plate look unreliable in {len(bad)} of "
             f"{len(info)} cameras ({'; '.join(what)}: a cluttered or changing background): install the MediaPipe "
             "extra (pip install 'physavatar[keypoints]'), give masks (masks/<camera>/<frame>.png) or background "
