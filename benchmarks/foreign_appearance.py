@@ -114,9 +114,27 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default=None)
     ap.add_argument("--no-init", action="store_true", help="do not score T0")
     ap.add_argument("--results", default=None)
+    ap.add_argument("--score-run", action="store_true",
+                    help="fit nothing: score the run's own appearance (checks that the scoring matches evaluate)")
     a = ap.parse_args(argv)
     case, out = Path(a.case), Path(a.out)
     capture, run_dir = case / "capture", case / "run"
+    if a.score_run:
+        import numpy as _np
+
+        app = run_dir / "appearance"
+        row = {"case": case.name, "label": "run's own appearance (scored here)",
+               "fit": score_views(capture, run_dir, _np.load(app / "texture_linear.npy"), app / "light.json",
+                                  out / "score_run"),
+               "texture_error": texture_error(run_dir, capture)}
+        ev = json.loads((run_dir / "evaluate" / "metrics.json").read_text())
+        row["run_evaluate"] = {"capture_heldout_cameras": {k: ev["heldout_cameras"][k] for k in ("psnr", "ssim", "lpips")},
+                               "heldout_motion_views": {k: ev["appearance"][k] for k in ("psnr", "ssim", "lpips")}}
+        results = Path(a.results) if a.results else out / "results.json"
+        rows = json.loads(results.read_text()) if results.is_file() else []
+        write_json_atomic(results, rows + [row])
+        print(json.dumps({k: row[k] for k in ("fit", "run_evaluate")}, indent=1))
+        return 0
     cfg = dataclasses.replace(pipeline_config(quick=a.schedule == "quick"), meshes=a.meshes, **_parse_set(a.set))
     t0 = time.time()
     res = fit_appearance(capture, out / "appearance", cfg, tracked=run_dir / "track", progress=False)
