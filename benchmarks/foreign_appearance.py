@@ -124,7 +124,11 @@ def summary(rows: list[dict], new_label: str, ceilings: dict) -> dict:
         new = _pick(rows, case, new_label)
         if new is None:
             continue
+        from foreign_capture import texture_error
+
+        capture = Path(new["case_dir"]) / "capture" if "case_dir" in new else None
         fig = {"before": new["run_evaluate"], "after": new["fit"], "after_t0_only": new.get("init"),
+               "texture_error_before": texture_error(capture.parent / "run", capture) if capture else None,
                "texture_error_after": new["texture_error"],
                "variants": {r["label"]: r["fit"] for r in rows if r["case"] == case and r["label"] != new_label
                             and "fit" in r and r.get("label") != "run's own appearance (scored here)"},
@@ -194,7 +198,7 @@ def main(argv=None) -> int:
         import numpy as _np
 
         app = run_dir / "appearance"
-        row = {"case": case.name, "label": "run's own appearance (scored here)",
+        row = {"case": case.name, "case_dir": str(case), "label": "run's own appearance (scored here)",
                "fit": score_views(capture, run_dir, _np.load(app / "texture_linear.npy"), app / "light.json",
                                   out / "score_run"),
                "texture_error": texture_error(run_dir, capture)}
@@ -210,7 +214,7 @@ def main(argv=None) -> int:
     t0 = time.time()
     res = fit_appearance(capture, out / "appearance", cfg, tracked=run_dir / "track", progress=False)
     fit_s = time.time() - t0
-    row = {"case": case.name, "schedule": a.schedule, "label": a.label or ",".join(a.set) or "default", "meshes": a.meshes,
+    row = {"case": case.name, "case_dir": str(case), "schedule": a.schedule, "label": a.label or ",".join(a.set) or "default", "meshes": a.meshes,
            "config": cfg.to_dict(), "fit_seconds": round(fit_s, 1),
            "load_average": list(os.getloadavg()),
            "score_on": a.score_on,
