@@ -2,12 +2,14 @@
 
     python benchmarks/foreign_appearance.py --case DIR --out WORK [--meshes tracked|gt]
                                             [--set light=env --set lr=0.005 ...] [--label NAME]
-                                            [--results FILE]
+                                            [--schedule quick|run] [--score-on run|gt] [--results FILE]
+    python benchmarks/foreign_appearance.py --case DIR --out WORK --score-run   # the run's own fit, scored here
+    python benchmarks/foreign_appearance.py --results FILE --summary OUT.json   # rows -> one file with checks
 
 DIR holds ``capture/`` and ``run/`` (a finished ``physavatar run --quick``, read only). The
 texture and light are fitted again into WORK/appearance with ``run --quick``'s appearance settings
 (:func:`physavatar.stages.appearance.pipeline_config`) changed by ``--set KEY=VALUE`` (fields of
-``AppearanceConfig``), on the tracked meshes (as ``run``) or the true ones (``--meshes gt``: the
+``AppearanceConfig``; run's settings before session 19: ``--set light=ambient --set lr=0.02``), on the tracked meshes (as ``run``) or the true ones (``--meshes gt``: the
 appearance model without tracking error), and scored exactly as ``evaluate`` scores a run
 (``stages.evaluate._score_views``: 64 spp, inside the masks):
 
@@ -68,11 +70,9 @@ def score_views(capture: Path, run_dir: Path, texture: np.ndarray, light_path: P
     ``texture`` under ``light_path``, scored as `evaluate` scores them; ``truth``: on the true
     meshes instead (ground_truth/meshes.npz, ground_truth/heldout/meshes.npz), so that geometry
     error does not count."""
-    from physavatar.files import load_npz
-
     from physavatar.camera import Camera
     from physavatar.capture import frame_name, load_capture
-    from physavatar.files import read_json
+    from physavatar.files import load_npz, read_json
     from physavatar.stages.evaluate import AnimatedSequence, _score_views
 
     cap = load_capture(capture)
@@ -153,6 +153,7 @@ def summary(rows: list[dict], new_label: str, ceilings: dict) -> dict:
 
 def main(argv=None) -> int:
     from foreign_capture import texture_error
+
     from physavatar.files import write_json_atomic
     from physavatar.stages.appearance import pipeline_config
     from physavatar.stages.appearance.fit import fit_appearance
@@ -192,14 +193,14 @@ def main(argv=None) -> int:
         for k, v in res["checks"].items():
             print(("PASS " if v["pass"] else "FAIL ") + k, round(v["before"], 4), "->", round(v["value"], 4))
         return 0
+    if not a.case or not a.out:
+        ap.error("--case and --out are needed (or --summary with --results)")
     case, out = Path(a.case), Path(a.out)
     capture, run_dir = case / "capture", case / "run"
     if a.score_run:
-        import numpy as _np
-
         app = run_dir / "appearance"
         row = {"case": case.name, "case_dir": str(case), "label": "run's own appearance (scored here)",
-               "fit": score_views(capture, run_dir, _np.load(app / "texture_linear.npy"), app / "light.json",
+               "fit": score_views(capture, run_dir, np.load(app / "texture_linear.npy"), app / "light.json",
                                   out / "score_run"),
                "texture_error": texture_error(run_dir, capture)}
         ev = json.loads((run_dir / "evaluate" / "metrics.json").read_text())
@@ -214,7 +215,8 @@ def main(argv=None) -> int:
     t0 = time.time()
     res = fit_appearance(capture, out / "appearance", cfg, tracked=run_dir / "track", progress=False)
     fit_s = time.time() - t0
-    row = {"case": case.name, "case_dir": str(case), "schedule": a.schedule, "label": a.label or ",".join(a.set) or "default", "meshes": a.meshes,
+    row = {"case": case.name, "case_dir": str(case), "schedule": a.schedule,
+           "label": a.label or ",".join(a.set) or "default", "meshes": a.meshes,
            "config": cfg.to_dict(), "fit_seconds": round(fit_s, 1),
            "load_average": list(os.getloadavg()),
            "score_on": a.score_on,

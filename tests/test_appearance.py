@@ -235,7 +235,7 @@ def test_run_settings_keep_the_projected_texture_and_the_old_rate_adds_grain(tin
 
     run = pipeline_config(quick=True)
     assert run.light == "env" and run.lr <= 0.005
-    small = dict(texture_size=64, final_spp=2, project_views=8, env_views=4, iterations=60)  # a smaller budget
+    small = {"texture_size": 64, "final_spp": 2, "project_views": 8, "env_views": 4, "iterations": 60}  # smaller budget
     gt = np.load(tiny.root / "ground_truth" / "texture_linear.npy")
     scores = {}
     for lr in (run.lr, 0.02):
