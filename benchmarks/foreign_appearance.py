@@ -10,7 +10,8 @@ DIR holds ``capture/`` and ``run/`` (a finished ``physavatar run --quick``, read
 texture and light are fitted again into WORK/appearance with ``run --quick``'s appearance settings
 (:func:`physavatar.stages.appearance.pipeline_config`) changed by ``--set KEY=VALUE`` (fields of
 ``AppearanceConfig``; run's settings before session 19: ``--set light=ambient --set lr=0.02``),
-on the tracked meshes (as ``run``) or the true ones (``--meshes gt``: the appearance model without tracking error), and scored exactly as ``evaluate`` scores a run
+on the tracked meshes (as ``run``) or the true ones (``--meshes gt``: the appearance model
+without tracking error), and scored exactly as ``evaluate`` scores a run
 (``stages.evaluate._score_views``: 64 spp, inside the masks):
 
 - the capture's held-out cameras (the tracking's ``holdout``) on the tracked meshes, frames first
