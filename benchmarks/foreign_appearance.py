@@ -152,6 +152,32 @@ def summary(rows: list[dict], new_label: str, ceilings: dict) -> dict:
     return {"figures": out, "checks": checks}
 
 
+def _update_foreign_capture(path: Path, rows: list[dict], new_label: str, source: str) -> None:
+    """foreign_capture.json's appearance figures and checks from the ``new_label`` rows (the run's
+    other figures, tracking and physics, are left as they are)."""
+    from foreign_capture import checks_for
+
+    from physavatar.files import write_json_atomic
+
+    d = json.loads(path.read_text())
+    for case, fig in d["figures"].items():
+        new = _pick(rows, case, new_label)
+        if new is None:
+            continue
+        fig["appearance_before"] = {k: fig.get(k) for k in ("heldout_motion_views", "capture_heldout_cameras",
+                                                             "texture_error")}
+        fig["heldout_motion_views"] = new["fit"]["heldout_motion_views"]
+        fig["capture_heldout_cameras"] = {"cameras": (fig.get("capture_heldout_cameras") or {}).get("cameras"),
+                                          **new["fit"]["capture_heldout_cameras"]}
+        fig["texture_error"] = new["texture_error"]
+        fig["appearance_source"] = (f"benchmarks/foreign_appearance.py ({new_label}: run's appearance defaults "
+                                    f"since session 19), the same run's tracked meshes and animate sequence; {source}")
+        for k, v in checks_for(case, fig).items():
+            if "heldout_views" in k:
+                d["checks"][k] = v
+    write_json_atomic(path, d)
+
+
 def main(argv=None) -> int:
     from foreign_capture import texture_error
 
@@ -173,6 +199,10 @@ def main(argv=None) -> int:
     ap.add_argument("--results", default=None)
     ap.add_argument("--summary", default=None,
                     help="fit nothing: write --results' rows as one benchmark file (with checks) to SUMMARY")
+    ap.add_argument("--into", default=None,
+                    help="with --summary: also replace the appearance rows (held-out views, texture error) and "
+                         "their checks of this foreign_capture.json by the new_label rows (the old ones are kept "
+                         "under appearance_before)")
     ap.add_argument("--new-label", default="light=env,lr=0.005", help="the rows that are the new default")
     ap.add_argument("--score-run", action="store_true",
                     help="fit nothing: score the run's own appearance (checks that the scoring matches evaluate)")
@@ -191,6 +221,8 @@ def main(argv=None) -> int:
                        "exactly as evaluate scores them (--score-run reproduces the run's figures to the last digit)",
                "new_label": a.new_label, **summary(rows, a.new_label, ceil), "rows": rows}
         write_json_atomic(Path(a.summary), res)
+        if a.into:
+            _update_foreign_capture(Path(a.into), rows, a.new_label, a.summary)
         for k, v in res["checks"].items():
             print(("PASS " if v["pass"] else "FAIL ") + k, round(v["before"], 4), "->", round(v["value"], 4))
         return 0
