@@ -132,19 +132,30 @@ def fit_scale(config: AppearanceConfig, width: int, height: int) -> float:
     return float(min(1.0, max(config.scale, config.min_size / max(width, height, 1))))
 
 
+# The Adam steps' learning rate of `run` and `--quick`. Each step renders one random view at 8
+# spp, so a texel's gradient is mostly Monte Carlo and capture noise, and Adam (normalised per
+# texel) moves every texel about lr per step whatever its signal: a random walk whose size grows
+# with lr. At 0.02 it left a texel-scale grain on every surface (foreign print top: T₀ 31.0 dB on
+# the held-out cameras, after the steps 28.0 dB, LPIPS 0.011 -> 0.040); at 0.005 the steps keep
+# what they add (sharper plaid, LPIPS) and lose little (docs/appearance.md).
+RUN_LR = 0.005
+
+
 def quick_preset(config: AppearanceConfig) -> AppearanceConfig:
-    """``--quick``: a few-minute CPU budget (at most 200 iterations at lr >= 0.02 halved at least
-    every 50 steps, half-resolution images, 32-spp previews, initial colours from every 4th
-    frame); settings already below these budgets are kept."""
+    """``--quick``: a few-minute CPU budget (at most 200 iterations at lr at most ``RUN_LR``
+    halved at least every 50 steps, half-resolution images, 32-spp previews, initial colours
+    from every 4th frame); settings already below these budgets are kept."""
     return replace(config, iterations=min(config.iterations, 200), scale=min(config.scale, 0.5),
-                   final_spp=min(config.final_spp, 32), lr=max(config.lr, 0.02),
+                   final_spp=min(config.final_spp, 32), lr=min(config.lr, RUN_LR),
                    lr_decay_every=min(config.lr_decay_every, 50), init_frame_stride=4)
 
 
 def pipeline_config(quick: bool = False) -> AppearanceConfig:
-    """The settings ``physavatar run`` fits with: ``--quick``'s preset, or the CPU schedule (300
-    iterations, lr 0.02 halved every 100, half-resolution images, 64-spp previews;
+    """The settings ``physavatar run`` fits with: the ``env`` light (a smooth environment map
+    fitted with the albedo: the captures' lights are not known, and light with a direction has
+    nowhere else to go than the texture) and lr ``RUN_LR``, with ``--quick``'s preset or the CPU
+    schedule (300 iterations, lr halved every 100, half-resolution images, 64-spp previews;
     docs/appearance.md)."""
     if quick:
-        return quick_preset(AppearanceConfig())
-    return AppearanceConfig(iterations=300, scale=0.5, lr=0.02, lr_decay_every=100, final_spp=64)
+        return replace(quick_preset(AppearanceConfig()), light="env")
+    return AppearanceConfig(light="env", iterations=300, scale=0.5, lr=RUN_LR, lr_decay_every=100, final_spp=64)
