@@ -22,7 +22,7 @@ def fit_appearance_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="output folder (a rerun with the same config resumes)"),
     tracked: Optional[Path] = typer.Option(None, "--tracked", help="tracking output folder (tracked.npz: meshes + Gaussian colours)"),
     lighting: Optional[Path] = typer.Option(None, "--lighting", help="studio lights file (default ground_truth/lighting.json)"),
-    quick: bool = typer.Option(False, "--quick", help="a few-minute CPU budget: 200 iterations (lr 0.02) on half-resolution images, 32-spp previews"),
+    quick: bool = typer.Option(False, "--quick", help="a few-minute CPU budget: 200 iterations (lr at most 0.005) on half-resolution images, 32-spp previews"),
     *,
     config: AppearanceConfig,
 ):
