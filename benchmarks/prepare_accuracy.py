@@ -1,7 +1,7 @@
 """``physavatar prepare`` round trip on synthetic captures (issue 23).
 
     python benchmarks/prepare_accuracy.py [--presets tiny,demo] [--demo PATH] [--work DIR] [--keep]
-        [--given-body | --body-npz FILE] [--run] [--cases no_template,no_template_no_masks] [--pose2sim DIR]
+        [--given-body | --body-npz FILE] [--run [--full] [--original-run DIR]] [--cases no_template,no_template_no_masks] [--pose2sim DIR]
 
 For each synthetic capture (the tiny preset is built with ``physavatar synth``; the demo one is
 taken from ``--demo`` or built when missing), two cases are prepared from a copy of the capture
@@ -115,26 +115,38 @@ def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
     return out
 
 
-def run_pipeline(capture: Path, out: Path) -> dict:
-    """``physavatar run --quick`` (a subprocess, resumed when ``out`` exists); the numbers compared."""
+def run_pipeline(capture: Path, out: Path, quick: bool = True) -> dict:
+    """``physavatar run [--quick]`` (a subprocess, resumed when ``out`` exists); the numbers compared."""
     import subprocess
 
     t = time.time()
     env = dict(os.environ, PYTHONPATH=str(HERE.parent / "src"))
-    subprocess.run([sys.executable, "-m", "physavatar", "run", str(capture), str(out), "--quick"], check=True, env=env,
-                   stdout=subprocess.DEVNULL)
+    subprocess.run([sys.executable, "-m", "physavatar", "run", str(capture), str(out)] + (["--quick"] if quick else []),
+                   check=True, env=env, stdout=subprocess.DEVNULL)
+    return run_numbers(out) | {"wall_seconds": time.time() - t, "run": str(out), "quick": quick}
+
+
+def run_numbers(out: Path) -> dict:
+    """The numbers compared, from a run folder's evaluate/metrics.json."""
     m = json.loads((out / "evaluate" / "metrics.json").read_text())
     return {"tracking_garment_mm": m["tracking"]["garment"]["mean_mm"],
             "tracking_body_mm": m["tracking"]["body"]["mean_mm"],
             "heldout_garment_chamfer_x1e3": m["rows"]["estimated material"]["garment"]["chamfer_x1e3"],
-            "heldout_garment_fscore_1cm": m["rows"]["estimated material"]["garment"]["fscore@1cm"],
-            "wall_seconds": time.time() - t}
+            "heldout_garment_fscore_1cm": m["rows"]["estimated material"]["garment"]["fscore@1cm"]}
 
 
-def compare_runs(preset: str, original: Path, prepared: Path, work: Path, results: dict, checks: dict) -> None:
-    """Run both captures and check the prepared one's numbers against the original's."""
-    a = run_pipeline(original, work / "runs" / preset / "original")
-    b = run_pipeline(prepared, work / "runs" / preset / "prepared")
+def compare_runs(preset: str, original: Path, prepared: Path, work: Path, results: dict, checks: dict,
+                 quick: bool = True, original_run: Path | None = None) -> None:
+    """Run both captures (or take the original's numbers from ``original_run``, a run folder of the
+    same settings) and check the prepared one's numbers against the original's."""
+    if original_run is not None:
+        cfg = json.loads((original_run / "run.json").read_text()).get("_config", {})
+        if bool(cfg.get("quick")) != quick:
+            raise SystemExit(f"{original_run}: run with quick={cfg.get('quick')}, not comparable with quick={quick}")
+        a = run_numbers(original_run) | {"run": str(original_run), "quick": quick}
+    else:
+        a = run_pipeline(original, work / "runs" / preset / "original", quick)
+    b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick)
     ratio_t = b["tracking_garment_mm"] / a["tracking_garment_mm"]
     ratio_c = b["heldout_garment_chamfer_x1e3"] / a["heldout_garment_chamfer_x1e3"]
     results[f"{preset}/run"] = {"original": a, "prepared": b, "tracking_ratio": ratio_t, "chamfer_ratio": ratio_c}
@@ -214,6 +226,9 @@ def main() -> int:
                          "after the body fit with a fitted body, without refitting it (implies --given-body)")
     ap.add_argument("--run", action="store_true",
                     help="also `physavatar run --quick` the original and the prepared capture (no_template case) and compare")
+    ap.add_argument("--full", action="store_true", help="with --run: full budgets (no --quick), as `make demo` runs")
+    ap.add_argument("--original-run", type=Path, default=None,
+                    help="with --run: the original capture's existing run folder (same budgets) instead of running it")
     ap.add_argument("--cases", default="no_template,no_template_no_masks")
     ap.add_argument("--pose2sim", type=Path, default=None,
                     help="also import + prepare the real Pose2Sim clip at this path (../shared/data/pose2sim); "
@@ -269,7 +284,7 @@ def main() -> int:
                 checks[f"{name}/body_mean_mm"] = {"value": r["body"]["mean_mm"], "target": "<= 15", "unit": "mm",
                                                   "pass": bool(r["body"]["mean_mm"] <= 15)}
             if args.run and case == "no_template":
-                compare_runs(preset, cap, dst, work, results, checks)
+                compare_runs(preset, cap, dst, work, results, checks, quick=not args.full, original_run=args.original_run)
     if args.pose2sim is not None or args.pose2sim_prepared is not None:
         pose2sim_case(args.pose2sim, work, args.pose2sim_prepared, results, checks)
     result = {"benchmark": "prepare_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
