@@ -73,6 +73,10 @@ class BodyFitConfig:
     # (without them a strong outside term squeezes the body into a wrong pose: the demo's first
     # frame 8 -> 423 mm at 20)
     w_outside_keypoints: float = setting(20.0)
+    # [m] with keypoints, the outside weight rises from w_outside to w_outside_keypoints while the
+    # kernel narrows from twice this to it: a limb that must swing through the background between
+    # two silhouettes (an arm raised from beside the torso) follows its keypoints first
+    outside_ramp_sigma: float = setting(0.0)
     w_contour: float = setting(1.0)
     outside_margin_px: float = setting(0.0)  # the outside term's mask is shrunk by this [working px]
     w_keypoints: float = setting(0.2)  # keypoints guide; silhouettes decide the last centimetres
@@ -352,7 +356,7 @@ class _Fitter:
         kps = self.model.keypoints(V, H) if obs.kp is not None else None
         for i, t in enumerate(frames):
             o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, cfg.outside_margin_px)
-            total = total + (cfg.w_outside if obs.kp is None else cfg.w_outside_keypoints) * o + cfg.w_contour * c
+            total = total + self.outside_weight(sigma) * o + cfg.w_contour * c
             if kps is not None:
                 conf = obs.conf[t][:, self.kp_ids] * self.model.kp_weight
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
@@ -360,6 +364,17 @@ class _Fitter:
             if t == 0 and self.clothing is not None and self.use_clothing:
                 total = total + self.clothing_loss(V[i], sigma)
         return total / len(frames)
+
+    def outside_weight(self, sigma: float) -> float:
+        """The outside term's weight at kernel ``sigma`` (see ``outside_ramp_sigma``)."""
+        cfg = self.cfg
+        if self.obs.kp is None:
+            return cfg.w_outside
+        s0 = cfg.outside_ramp_sigma
+        if s0 <= 0 or sigma <= s0:
+            return cfg.w_outside_keypoints
+        frac = min(np.log(sigma / s0) / np.log(2.0), 1.0)  # 0 at s0, 1 at 2 s0 and above
+        return float(cfg.w_outside_keypoints * (cfg.w_outside / cfg.w_outside_keypoints) ** frac)
 
     def clothing_loss(self, V: torch.Tensor, sigma: float) -> torch.Tensor:
         """The clothed mesh's terms for body vertices ``V`` [V, 3] (the body inside the clothing,
