@@ -78,6 +78,9 @@ class BodyFitConfig:
     # two silhouettes (an arm raised from beside the torso) follows its keypoints first
     outside_ramp_sigma: float = setting(0.0)
     w_contour: float = setting(1.0)
+    # with keypoints (real people): the four fingers of each hand flex together by one angle per
+    # hand and frame (Anny's rest hand is open; a real hand is often a fist)
+    finger_curl: bool = setting(False)
     outside_margin_px: float = setting(0.0)  # the outside term's mask is shrunk by this [working px]
     w_keypoints: float = setting(0.2)  # keypoints guide; silhouettes decide the last centimetres
     # [m] the keypoint term's robust kernel is never narrower: the keypoints are checked against
@@ -230,10 +233,39 @@ def _keypoint_vertices(rest: np.ndarray, body: DiffBody) -> dict[str, int]:
     return out
 
 
-class _Model:
-    """The differentiable body with the fit's parameterisation (the moving bones only)."""
+def _curl_axes(heads: np.ndarray, names: list[str], side: str) -> tuple[list[int], np.ndarray]:
+    """The bones of one hand's four fingers (three segments each) and the axis (rest frame) about
+    which a turn flexes each finger towards the palm: across the finger, in the palm's plane.
 
-    def __init__(self, cfg: BodyFitConfig):
+    The palm's normal is that of the plane of the fingers' direction and the thumb's side,
+    oriented as a hand is (a right hand's palm faces thumb x fingers, a left hand's
+    fingers x thumb; Anny's left is +x)."""
+    ix = {n: i for i, n in enumerate(names)}
+    wrist = heads[ix[f"wrist.{side}"]]
+    base = np.array([heads[ix[f"finger{k}-1.{side}"]] for k in (2, 3, 4, 5)])
+    tip = np.array([heads[ix[f"finger{k}-3.{side}"]] for k in (2, 3, 4, 5)])
+    d = (tip - base).mean(0)
+    thumb = heads[ix[f"finger1-1.{side}"]] - wrist
+    n = np.cross(d, thumb) if side == "L" else np.cross(thumb, d)
+    n /= np.linalg.norm(n)
+    bones, axes = [], []
+    for k in (2, 3, 4, 5):
+        dk = heads[ix[f"finger{k}-3.{side}"]] - heads[ix[f"finger{k}-1.{side}"]]
+        a = np.cross(dk, n)
+        a /= np.linalg.norm(a)
+        for j in (1, 2, 3):
+            bones.append(ix[f"finger{k}-{j}.{side}"])
+            axes.append(a)
+    return bones, np.array(axes)
+
+
+class _Model:
+    """The differentiable body with the fit's parameterisation (the moving bones only, and with
+    ``curl`` one flexion angle per hand for its four fingers, an extra row of ``rot``)."""
+
+    MAX_CURL = 1.4  # [rad] per finger joint: a fist
+
+    def __init__(self, cfg: BodyFitConfig, curl: bool = False):
         self.body = DiffBody(cfg.topology)
         names = self.body.bone_names
         missing = [b for b in cfg.bones if b not in names]
@@ -241,8 +273,15 @@ class _Model:
             raise PhysavatarError(None, f"body fit: bones {missing} are not Anny bones")
         self.active = torch.as_tensor([names.index(b) for b in cfg.bones])
         self.B = len(names)
+        self.n_bones = len(cfg.bones)
+        self.curl = curl
+        self.n_params = self.n_bones + int(curl)
         with torch.no_grad():
-            v, _ = self.body.rest(self.body.p0)
+            v, h = self.body.rest(self.body.p0)
+        if curl:
+            parts = [_curl_axes(h.numpy(), names, s) for s in ("L", "R")]
+            self.curl_bones = [torch.as_tensor(b) for b, _ in parts]
+            self.curl_axes = [torch.as_tensor(a, dtype=DTYPE) for _, a in parts]
         kv = _keypoint_vertices(v.numpy(), self.body)
         self.kp_ids, self.kp_src = [], []
         for k, (kind, name) in MEDIAPIPE_TO_ANNY.items():
@@ -255,9 +294,14 @@ class _Model:
         self.kp_weight = np.array([KEYPOINT_WEIGHT.get(k, 1.0) for k in self.kp_ids])
 
     def full_rotations(self, rot: torch.Tensor) -> torch.Tensor:
-        """[T, A, 3] rotations of the moving bones -> [T, B, 3]."""
+        """[T, A, 3] rotations of the moving bones (and the fingers' curl) -> [T, B, 3]."""
         R = torch.zeros(rot.shape[0], self.B, 3, dtype=DTYPE)
-        return R.index_copy(1, self.active, rot)
+        R = R.index_copy(1, self.active, rot[:, :self.n_bones])
+        if self.curl:
+            for s, (bones, axes) in enumerate(zip(self.curl_bones, self.curl_axes)):
+                angle = rot[:, self.n_bones, s].clamp(0.0, self.MAX_CURL)  # flexion only
+                R = R.index_copy(1, bones, angle[:, None, None] * axes[None])
+        return R
 
     def pose(self, rot, tau, phen):
         return self.body.pose(self.full_rotations(rot), tau, phen)
@@ -329,8 +373,8 @@ def _heading_from_keypoints(tri) -> float | None:
 class _Fitter:
     def __init__(self, cfg: BodyFitConfig, obs: _Observations, clothing: ClothedSurface | None, fps: float):
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
-        self.model = _Model(cfg)
-        self.A = len(cfg.bones)
+        self.model = _Model(cfg, curl=cfg.finger_curl and obs.kp is not None)
+        self.A = self.model.n_params
         # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
         # from a far pose they squeeze the body into the wrong part of the clothing
         self.use_clothing = False
