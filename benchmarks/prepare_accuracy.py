@@ -1,7 +1,7 @@
 """``physavatar prepare`` round trip on synthetic captures (issue 23).
 
     python benchmarks/prepare_accuracy.py [--presets tiny,demo] [--demo PATH] [--work DIR] [--keep]
-        [--given-body | --body-npz FILE] [--run [--full] [--original-run DIR]] [--cases no_template,no_template_no_masks] [--pose2sim DIR]
+        [--given-body | --body-npz FILE] [--run [--full] [--original-run DIR]] [--resume] [--cases no_template,no_template_no_masks] [--pose2sim DIR]
 
 For each synthetic capture (the tiny preset is built with ``physavatar synth``; the demo one is
 taken from ``--demo`` or built when missing), two cases are prepared from a copy of the capture
@@ -234,6 +234,8 @@ def main() -> int:
     ap.add_argument("--full", action="store_true", help="with --run: full budgets (no --quick), as `make demo` runs")
     ap.add_argument("--original-run", type=Path, default=None,
                     help="with --run: the original capture's existing run folder (same budgets) instead of running it")
+    ap.add_argument("--resume", action="store_true",
+                    help="with --work: keep a capture already prepared there, and resume its run (tracking resumes per frame)")
     ap.add_argument("--cases", default="no_template,no_template_no_masks")
     ap.add_argument("--pose2sim", type=Path, default=None,
                     help="also import + prepare the real Pose2Sim clip at this path (../shared/data/pose2sim); "
@@ -261,14 +263,15 @@ def main() -> int:
             name = f"{preset}/{case}"
             src = work / "inputs" / preset / case
             dst = work / "prepared" / preset / case
-            shutil.rmtree(src, ignore_errors=True)
-            shutil.rmtree(dst, ignore_errors=True)
-            unprepared_copy(cap, src, masks=keep_masks, body=not fit)
-            if args.body_npz is not None:
-                (src / "body.npz").unlink()
-                shutil.copy(args.body_npz, src / "body.npz")
             t = time.time()
-            prepare(src, out=dst, config=PrepareConfig(), progress=False)
+            if not (args.resume and (dst / "prepare.json").is_file()):
+                shutil.rmtree(src, ignore_errors=True)
+                shutil.rmtree(dst, ignore_errors=True)
+                unprepared_copy(cap, src, masks=keep_masks, body=not fit)
+                if args.body_npz is not None:
+                    (src / "body.npz").unlink()
+                    shutil.copy(args.body_npz, src / "body.npz")
+                prepare(src, out=dst, config=PrepareConfig(), progress=False)
             r = evaluate(cap, dst, masks_computed=not keep_masks)
             r["wall_seconds"] = time.time() - t
             results[name] = r
