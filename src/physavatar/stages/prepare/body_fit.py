@@ -72,8 +72,8 @@ class BodyFitConfig:
     w_outside: float = setting(1.0)
     # with keypoints: they hold the pose and the heading, so the body can be pressed into the masks
     # (without them a strong outside term squeezes the body into a wrong pose: the demo's first
-    # frame 8 -> 423 mm at 20)
-    w_outside_keypoints: float = setting(20.0)
+    # frame 8 -> 423 mm at 20); 20 -> 50 with the ramp and the margin below: Pose2Sim 90.0 -> 91.4 %
+    w_outside_keypoints: float = setting(50.0)
     # [m] with keypoints, the outside weight rises from w_outside to w_outside_keypoints while the
     # kernel narrows from twice this to it: a limb that must swing through the background between
     # two silhouettes (an arm raised from beside the torso) follows its keypoints first. With the
