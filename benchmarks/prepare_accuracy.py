@@ -161,15 +161,16 @@ def compare_runs(preset: str, original: Path, prepared: Path, work: Path, result
     else:
         a = run_pipeline(original, work / "runs" / preset / "original", quick)
     b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick)
-    nan = float("nan")
-    ratio_t = b.get("tracking_garment_mm", nan) / a["tracking_garment_mm"]
-    ratio_c = b.get("heldout_garment_chamfer_x1e3", nan) / a["heldout_garment_chamfer_x1e3"]
+    def ratio(key):  # None where the prepared run did not measure it (a stage failed)
+        return b[key] / a[key] if key in b else None
+
+    ratio_t, ratio_c = ratio("tracking_garment_mm"), ratio("heldout_garment_chamfer_x1e3")
     results[f"{preset}/run"] = {"original": a, "prepared": b, "tracking_ratio": ratio_t, "chamfer_ratio": ratio_c}
     print(f"{preset}/run", json.dumps(results[f"{preset}/run"], default=float))
     checks[f"{preset}/run/tracking_ratio"] = {"value": ratio_t, "target": "<= 1.5", "unit": "prepared / original",
-                                              "pass": bool(ratio_t <= 1.5)}
+                                              "pass": ratio_t is not None and ratio_t <= 1.5}
     checks[f"{preset}/run/heldout_chamfer_ratio"] = {
-        "value": ratio_c, "target": "<= 1.25", "pass": bool(ratio_c <= 1.25),
+        "value": ratio_c, "target": "<= 1.25", "pass": ratio_c is not None and ratio_c <= 1.25,
         "unit": "prepared / original" + (f" (not measured: {b['failed']})" if "failed" in b else "")}
 
 
@@ -317,7 +318,8 @@ def main() -> int:
               "config": to_dict(PrepareConfig()), "body_fit": fit,
               "body_given": str(args.body_npz) if args.body_npz is not None else ("true" if not fit else None), "cases": results, "checks": checks}
     for k, c in checks.items():
-        print(f"{k:48s} {c['value']:.4f} (target {c['target']}) {'PASS' if c['pass'] else 'FAIL'}")
+        v = "not measured" if c["value"] is None else f"{c['value']:.4f}"
+        print(f"{k:48s} {v} (target {c['target']}) {'PASS' if c['pass'] else 'FAIL'}")
     args.results.parent.mkdir(parents=True, exist_ok=True)
     args.results.write_text(json.dumps(result, indent=2, default=float) + "\n")
     if not args.keep and args.work is None:
