@@ -70,3 +70,57 @@ def test_wide_kernel_reaches_an_arm_far_from_its_keypoints():
     # the old 5 cm one (its pull at 40 cm is ~300 times weaker)
     assert wide < 0.03, (start, wide, narrow)
     assert narrow > 0.5 * start, (start, wide, narrow)
+
+
+def test_outside_weight_rises_as_the_kernel_narrows():
+    """With keypoints the outside term's weight goes from ``w_outside`` (kernel >= 2 s0) to
+    ``w_outside_keypoints`` (kernel <= s0), geometrically; without keypoints it is ``w_outside``."""
+    from physavatar.stages.prepare.body_fit import BodyFitConfig, outside_weight
+
+    cfg = BodyFitConfig(outside_ramp_sigma=0.03, w_outside=1.0, w_outside_keypoints=20.0)
+    assert outside_weight(cfg, 0.12, True) == 1.0
+    assert outside_weight(cfg, 0.06, True) == 1.0
+    assert np.isclose(outside_weight(cfg, 0.03 * np.sqrt(2), True), np.sqrt(20.0))
+    assert outside_weight(cfg, 0.03, True) == 20.0
+    assert outside_weight(cfg, 0.015, True) == 20.0
+    assert outside_weight(cfg, 0.015, False) == 1.0
+    assert outside_weight(BodyFitConfig(outside_ramp_sigma=0.0), 0.12, True) == BodyFitConfig().w_outside_keypoints
+
+
+def test_finger_curl_closes_the_hand_towards_the_thumb():
+    """One angle per hand flexes its four fingers towards the palm: the last segments' heads come
+    near the thumb (a fist), not behind the hand (the reverse bend); negative angles are clamped
+    (no hyperextension); the two hands mirror each other (Anny is symmetric in x)."""
+    from physavatar.stages.prepare.body_fit import BodyFitConfig
+    from physavatar.stages.prepare.fit_model import _Model
+
+    m = _Model(BodyFitConfig(), curl=True)
+    names = m.body.bone_names
+    phen = torch.full((6,), 0.5, dtype=torch.float64)
+    tau = torch.zeros(1, 3, dtype=torch.float64)
+
+    def heads(curl_l, curl_r, reverse=False):
+        rot = torch.zeros(1, m.n_params, 3, dtype=torch.float64)
+        rot[0, -1, 0], rot[0, -1, 1] = curl_l, curl_r
+        R = m.full_rotations(rot)
+        if reverse:  # the same bend the other way, past the clamp
+            for b, a in zip(m.curl_bones, m.curl_axes):
+                R[0, b] = -curl_l * a
+        with torch.no_grad():
+            return m.body.pose(R, tau, phen)[1][0].numpy()
+
+    def tips_to_thumb(H, s):
+        tips = [names.index(f"finger{k}-3.{s}") for k in (2, 3, 4, 5)]
+        return float(np.linalg.norm(H[tips] - H[names.index(f"finger1-2.{s}")], axis=1).mean())
+
+    rest, fist, back = heads(0.0, 0.0), heads(1.4, 1.4), heads(1.4, 1.4, reverse=True)
+    for s in ("L", "R"):
+        # measured: 11.3 cm at rest, 4.7 cm curled, 9.8 cm bent backwards
+        assert tips_to_thumb(fist, s) < 0.06 < 0.09 < tips_to_thumb(back, s) < tips_to_thumb(rest, s) + 1e-9
+    np.testing.assert_allclose(heads(-0.5, -0.5), rest, atol=1e-12)  # flexion only
+    L = [i for i, n in enumerate(names) if n.startswith("finger") and n.endswith(".L")]
+    R = [names.index(names[i][:-1] + "R") for i in L]
+    np.testing.assert_allclose(fist[L] * [-1, 1, 1], fist[R], atol=2e-3)
+    one = heads(1.4, 0.0)  # each hand has its own angle
+    np.testing.assert_allclose(one[R], rest[R], atol=1e-12)
+    assert np.abs(one[L] - rest[L]).max() > 0.02

@@ -38,17 +38,25 @@ def check(fitter, rot, tau, phen) -> dict:
                                                  for c in obs.cams])), 1)}}
     if kps is not None:
         errs = {c.name: [] for c in obs.native}
+        per_kp = {k: [] for k in fitter.kp_ids}
         for t in range(T):
             for c, (cam, nat) in enumerate(zip(obs.cams, obs.native)):
                 uv, _ = cam.project(kps[t].numpy())
                 sel = obs.conf[t, c, fitter.kp_ids] > 0.5
                 d = np.linalg.norm(uv - obs.kp[t, c, fitter.kp_ids], axis=1)[sel] * nat.width / cam.width
                 errs[nat.name] += d.tolist()
+                for k, e in zip(np.asarray(fitter.kp_ids)[sel], d):
+                    per_kp[k].append(e)
         allv = sum(errs.values(), [])
         rep["keypoints_px"] = {"median": round(float(np.median(allv)), 2) if allv else None,
                                "per_camera_median": {k: round(float(np.median(v)), 2) if v else None
                                                      for k, v in errs.items()},
-                               "count": len(allv)}
+                               "count": len(allv),
+                               # a limb lost inside another's silhouette shows here, not in the masks' share
+                               "per_keypoint_median": {str(k): round(float(np.median(v)), 1) for k, v in per_kp.items() if v}}
+        if rep["keypoints_px"]["per_keypoint_median"]:
+            k, v = max(rep["keypoints_px"]["per_keypoint_median"].items(), key=lambda kv: kv[1])
+            rep["keypoints_px"]["worst_keypoint"] = {"mediapipe_index": int(k), "median_px": v}
     if fitter.clothing is not None:
         s = fitter.clothing.signed_distance(torch.as_tensor(V[0])[fitter.clothing_points]).numpy()
         rep["clothing_first_frame"] = {"share_outside": round(float((s > 0).mean()), 4),
