@@ -386,6 +386,26 @@ def test_clear_start_refuses_a_start_through_the_body_and_names_clean_frames(tmp
         clear_start(data.window(1, 3), frame=1, sequence=data)
 
 
+def test_clear_start_pushes_the_sheet_off_a_ridge_that_only_its_faces_cross():
+    """A coarse collider's ridge 4 mm through the middle of a two-triangle sheet: every vertex of
+    each mesh is farther than the push's reach from the other mesh's surface, so only the
+    edge-triangle crossings see it (session 19: the prepared demo's strap on the fitted body)."""
+    V = np.array([[-0.3, -0.3, 0.0], [0.3, -0.3, 0.0], [-0.3, 0.3, 0.0], [0.3, 0.3, 0.0]])
+    F = np.array([[0, 1, 2], [2, 1, 3]])
+    box = trimesh.creation.box(extents=(0.2, 0.02, 0.02))
+    box.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 4, [1, 0, 0]))
+    B = np.asarray(box.vertices) + [0.0, 0.0, 0.004 - box.vertices[:, 2].max()]
+    assert np.isclose(B[:, 2].max(), 0.004) and count_intersections(V, F, B, box.faces) > 0
+    data = PhysicsData(np.repeat(V[None], 2, 0), F, np.zeros(0, np.int64), collider=np.stack([B, B]),
+                       collider_faces=np.asarray(box.faces), rest=V)
+    out, info = clear_start(data)
+    assert info["crossing_pairs"] > 0
+    assert count_intersections(out.initial, F, B, box.faces) == 0
+    # lifted just past the ridge (4 mm), not thrown off it
+    centre_height = out.initial[[1, 2], 2].mean()
+    assert 0.004 < centre_height < 0.004 + 3 * START_CLEARANCE
+
+
 def test_cli_fit_physics_from_a_crossing_frame_exits_2_and_records_a_pushed_start(tmp_path):
     write_capture(tmp_path / "cap", frames=4)
     gt = tmp_path / "cap" / "ground_truth" / "meshes.npz"

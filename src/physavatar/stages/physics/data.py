@@ -18,7 +18,7 @@ from ...data.tracked import FILE as TRACKED
 from ...data.tracked import TrackedSequence
 from ...errors import PhysavatarError
 from ...files import load_npz, read_json, read_ply
-from ...geometry import count_intersections, submesh
+from ...geometry import count_intersections, push_out_crossings, submesh
 from .parameters import PAPER_WINDOW
 
 
@@ -128,7 +128,8 @@ def clear_start(data: PhysicsData, source=None, frame: int = 0,
 
     A start closer than :data:`START_MIN_GAP` or crossing the body is pushed out along the body
     normal to :data:`START_CLEARANCE` (garment.push_out; the boundary vertices stay at their
-    targets). When it still crosses, this raises a :class:`PhysavatarError` naming ``source``, the
+    targets), then whatever still crosses (a body edge through a garment triangle whose corners
+    are clear) by :func:`~physavatar.geometry.push_out_crossings`. When it still crosses, this raises a :class:`PhysavatarError` naming ``source``, the
     ``frame`` (``data``'s first frame in ``sequence``) and the crossing pairs, with the frames of
     ``sequence`` (default ``data``, numbered from ``frame``) that are free of crossings, for
     ``--start``. Returns (data with ``initial`` set, info dict for material.json).
@@ -149,6 +150,10 @@ def clear_start(data: PhysicsData, source=None, frame: int = 0,
     moved, _ = push_out(x0, data.faces, [(body, bfaces)], START_CLEARANCE)
     moved[data.boundary] = x0[data.boundary]
     left = count_intersections(moved, data.faces, body, bfaces)
+    if left:
+        # a body edge through a garment triangle whose corners are all clear (a coarse collider's
+        # ridge under a strap): the vertex-wise push cannot see it
+        moved, left = push_out_crossings(moved, data.faces, body, bfaces, START_CLEARANCE, fixed=data.boundary)
     if left:
         seq, first = (sequence, 0) if sequence is not None else (data, frame)
         clean = [first + f for f in range(min(seq.frames, 200))
