@@ -349,6 +349,24 @@ def push_out(V: np.ndarray, F: np.ndarray, bodies: list[tuple[np.ndarray, np.nda
     return V, worst
 
 
+def push_clear(V: np.ndarray, F: np.ndarray, body_V: np.ndarray, body_F: np.ndarray, clearance: float,
+               fixed=None) -> tuple[np.ndarray, int]:
+    """A garment start the simulator can take: :func:`push_out` to ``clearance`` (``fixed``
+    vertices, the boundary, put back), then the crossings a vertex-wise push cannot see (a body
+    edge through a garment triangle whose corners are clear) by
+    :func:`~physavatar.geometry.push_out_crossings`. Returns the vertices and the number of
+    garment-body crossing pairs left (0: a valid start)."""
+    from ..geometry import count_intersections, push_out_crossings
+
+    moved, _ = push_out(V, F, [(body_V, body_F)], clearance)
+    if fixed is not None:
+        moved[fixed] = np.asarray(V)[fixed]
+    left = count_intersections(moved, F, body_V, body_F)
+    if left:
+        moved, left = push_out_crossings(moved, F, body_V, body_F, clearance, fixed=fixed)
+    return moved, left
+
+
 def body_clearance(V: np.ndarray, F: np.ndarray, body_V: np.ndarray, body_F: np.ndarray, reach: float = 0.02) -> float:
     """Smallest vertex-to-surface distance between garment and body, both ways (m): garment
     vertices to the body surface, and body vertices within ``reach`` of the garment to its surface."""

@@ -9,6 +9,7 @@ but not returned, so the garment never starts from a jump.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -26,6 +27,8 @@ from ..sim import SimSettings
 from ..sim.simulate import self_contact_possible
 from .base import option, to_dict
 from .garment_file import GarmentFileOptions, nonnegative
+
+log = logging.getLogger("physavatar.progress")
 
 
 def transition(r0: np.ndarray, t0: np.ndarray, r1: np.ndarray, t1: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -92,10 +95,22 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     Vb = linear_blend_skinning(t.vertices[body_ids], avatar.body_weights, T_rel)
     if garment is not None:
         part = garment
-    if count_intersections(part.vertices, part.faces, posed.vertices[0], body.faces):
-        raise PhysavatarError(avatar.root / "template.ply",
-                              "the garment intersects Anny's collider body in the frame-1 pose; "
-                              "the garment must start outside the collider to be simulated")
+    crossing = count_intersections(part.vertices, part.faces, posed.vertices[0], body.faces)
+    if crossing:
+        # a template prepared from a real capture lies on a fitted body; where the coarse collider
+        # cuts it by a millimetre or two, push it out as fit-physics does (docs/physics.md)
+        from ..garment.garment import push_clear
+
+        moved, left = push_clear(part.vertices, part.faces, posed.vertices[0], body.faces, 1e-3,
+                                 fixed=part.boundary)
+        if left:
+            raise PhysavatarError(avatar.root / "template.ply",
+                                  f"the garment intersects Anny's collider body in the frame-1 pose ({crossing} "
+                                  f"crossing triangle pairs, {left} after pushing it out); the garment must "
+                                  "start outside the collider to be simulated")
+        log.info("animate: the garment crossed the collider body in %d triangle pairs; pushed out "
+                 "(largest move %.2f mm)", crossing, 1e3 * float(np.linalg.norm(moved - part.vertices, axis=1).max()))
+        part = replace(part, vertices=moved, rest=part.rest_shape)
     if settings is not None and settings.self_contact and not self_contact_possible(
             part.vertices, part.faces, settings.dhat, part.contact_exclusions()):
         settings = replace(settings, self_contact=False)

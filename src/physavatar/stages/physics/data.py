@@ -18,7 +18,7 @@ from ...data.tracked import FILE as TRACKED
 from ...data.tracked import TrackedSequence
 from ...errors import PhysavatarError
 from ...files import load_npz, read_json, read_ply
-from ...geometry import count_intersections, push_out_crossings, submesh
+from ...geometry import count_intersections, submesh
 from .parameters import PAPER_WINDOW
 
 
@@ -127,15 +127,14 @@ def clear_start(data: PhysicsData, source=None, frame: int = 0,
     body lets limbs pass through the faces between them (docs/physics.md, "The start state").
 
     A start closer than :data:`START_MIN_GAP` or crossing the body is pushed out along the body
-    normal to :data:`START_CLEARANCE` (garment.push_out; the boundary vertices stay at their
-    targets), then whatever still crosses (a body edge through a garment triangle whose corners
-    are clear) by :func:`~physavatar.geometry.push_out_crossings`. When it still crosses, this raises a :class:`PhysavatarError` naming ``source``, the
+    normal to :data:`START_CLEARANCE` (garment.push_clear: push_out, then the crossings it cannot
+    see; the boundary vertices stay at their targets). When it still crosses, this raises a :class:`PhysavatarError` naming ``source``, the
     ``frame`` (``data``'s first frame in ``sequence``) and the crossing pairs, with the frames of
     ``sequence`` (default ``data``, numbered from ``frame``) that are free of crossings, for
     ``--start``. Returns (data with ``initial`` set, info dict for material.json).
     """
     # garment designs load the body model: imported on use
-    from ...garment.garment import body_clearance, push_out
+    from ...garment.garment import body_clearance, push_clear
 
     x0 = np.asarray(data.reference[0] if data.initial is None else data.initial, dtype=np.float64)
     info = {"frame": int(frame), "crossing_pairs": 0, "min_gap_mm": None, "pushed_vertices": 0, "max_push_mm": 0.0}
@@ -147,13 +146,7 @@ def clear_start(data: PhysicsData, source=None, frame: int = 0,
     info.update(crossing_pairs=int(crossing), min_gap_mm=1e3 * gap)
     if crossing == 0 and gap >= START_MIN_GAP:
         return dataclasses.replace(data, initial=x0), info
-    moved, _ = push_out(x0, data.faces, [(body, bfaces)], START_CLEARANCE)
-    moved[data.boundary] = x0[data.boundary]
-    left = count_intersections(moved, data.faces, body, bfaces)
-    if left:
-        # a body edge through a garment triangle whose corners are all clear (a coarse collider's
-        # ridge under a strap): the vertex-wise push cannot see it
-        moved, left = push_out_crossings(moved, data.faces, body, bfaces, START_CLEARANCE, fixed=data.boundary)
+    moved, left = push_clear(x0, data.faces, body, bfaces, START_CLEARANCE, fixed=data.boundary)
     if left:
         seq, first = (sequence, 0) if sequence is not None else (data, frame)
         clean = [first + f for f in range(min(seq.frames, 200))
