@@ -1,0 +1,88 @@
+"""Confined lag: when a step's penalty phase gives up, only the body near the pinch lags.
+
+The kinematic-penalty phase (solver.ClothSim._penalty_phase) moves every prescribed vertex
+(the body, the Dirichlet cloth vertices) with one line-search step length, so a single pinch —
+cloth caught where Anny's collider passes through itself (the groin, the back of the knee:
+docs/simulation.md "Why the whole clips stalled") — holds back the whole body: on the CMU walk
+one pinch at the groin left every body vertex 16 mm, then 104, then 194 mm behind its pose.
+
+:func:`confine_lag` runs when such a phase gives up (SimSettings.lag_radius > 0). It finds
+the prescribed vertices whose move to their pose is blocked (the collision candidates of that
+move with a time of impact below 1, ipctk's narrow-phase CCD per candidate), and gives every
+prescribed vertex a lag fraction that is 1 within ``lag_radius`` of a blocked one and falls
+linearly to 0 at twice that distance: the rest reach their poses. The cloth is carried along
+(start.follow_body, CCD-checked); if that move is cut, the radius doubles (up to
+``LAG_GROWTH`` times), and past that the whole body lags as before. The solver then finishes
+the step with the prescribed vertices fixed where they are (the free system); the step still
+reports its lag (StepStats.body_gap, the largest distance from the pose), and the next step
+starts from where the body got to (ClothSim._body_lag), as before.
+"""
+
+from __future__ import annotations
+
+import ipctk
+import numpy as np
+
+from .start import follow_body
+
+LAG_GROWTH = 4  # the radius doubles at most this many times before the whole body lags
+
+
+def blocked_vertices(scene, X0, X1) -> np.ndarray:
+    """The vertex ids of every collision candidate of the straight move X0 → X1 (stacked
+    [cloth; body]) whose time of impact is below 1 (ipctk's AdditiveCCD per candidate, as the
+    scene's CCD)."""
+    scene.prepare_segment(X0, X1)
+    E, F = scene.mesh.edges, scene.mesh.faces
+    out = set()
+    cands = scene.candidates
+    for group in (cands.vv_candidates, cands.ev_candidates, cands.ee_candidates, cands.fv_candidates):
+        for c in group:
+            ids = [i for i in c.vertex_ids(E, F) if i >= 0]
+            hit, toi = c.ccd(X0[ids].ravel(), X1[ids].ravel(), scene.dmin, 1.0, scene.ccd)
+            if hit and toi < 1.0:
+                out.update(ids)
+    return np.array(sorted(out), dtype=np.int64)
+
+
+def lag_weights(points, seeds, radius: float) -> np.ndarray:
+    """Per point [M, 3]: 1 within ``radius`` of the nearest of ``seeds`` [S, 3], falling
+    linearly to 0 at twice the radius."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(seeds).query(points)
+    return np.clip(2.0 - d / radius, 0.0, 1.0)
+
+
+def confine_lag(sim, sv, stats) -> bool:
+    """After a penalty phase gave up at ``sv.X``: move the prescribed vertices away from the
+    pinch to their targets, carrying the cloth (module docstring). True when it did (then
+    ``sv.X`` holds the new state and ``sv.penalty`` is False), False when the whole body lags."""
+    s = sim.settings
+    K, target = sim.penalty.kinematic, sim.penalty.target
+    X = sv.X
+    goal = X.copy()
+    goal[K] = target
+    blocked = np.intersect1d(blocked_vertices(sim.scene, X, goal), K)
+    if not len(blocked):
+        return False
+    free = sim.inertia.unit_mass[: sim.n] > 0
+    radius, reached = s.lag_radius, False
+    for _ in range(LAG_GROWTH + 1):
+        w = lag_weights(X[K], X[blocked], radius)[:, None]
+        if np.all(w == 1.0):  # every prescribed vertex is held back: nothing to confine
+            break
+        part = goal.copy()
+        part[K] = X[K] + (1.0 - w) * (target - X[K])  # (exactly X where w = 1)
+        X_f, reached = follow_body(sim.scene, sim._body_faces, free, s, X, part, None, stats, lift_still=False)
+        if reached:
+            break
+        radius *= 2.0
+    if not reached or np.all(w == 1.0):
+        sim.scene.prepare_static(X)
+        return False
+    sv.X, sv.penalty, sv.confined = X_f, False, True
+    sim.scene.prepare_static(sv.X)
+    sim.friction.lag(sv.X, sim.barrier)
+    stats.lag_radius = radius
+    return True
