@@ -11,8 +11,9 @@ the prescribed vertices whose move to their pose is blocked (the collision candi
 move with a time of impact below 1, ipctk's narrow-phase CCD per candidate), and gives every
 prescribed vertex a lag fraction that is 1 within ``lag_radius`` of a blocked one and falls
 linearly to 0 at twice that distance: the rest reach their poses. The cloth is carried along
-(start.follow_body, CCD-checked); if that move is cut, the radius doubles (up to
-``LAG_GROWTH`` times), and past that the whole body lags as before. The solver then finishes
+(start.follow_body, CCD-checked); if that move is cut, the prescribed vertices of the pairs
+that cut it are held back too (another pinch), or when they already are, the radius doubles;
+after ``LAG_ROUNDS`` tries the whole body lags as before. The solver then finishes
 the step with the prescribed vertices fixed where they are (the free system); the step still
 reports its lag (StepStats.body_gap, the largest distance from the pose), and the next step
 starts from where the body got to (ClothSim._body_lag), as before.
@@ -20,12 +21,14 @@ starts from where the body got to (ClothSim._body_lag), as before.
 
 from __future__ import annotations
 
-import ipctk
+import logging
+
 import numpy as np
 
 from .start import follow_body
 
-LAG_GROWTH = 4  # the radius doubles at most this many times before the whole body lags
+log = logging.getLogger(__name__)
+LAG_ROUNDS = 8  # carries tried (more held-back vertices or a wider radius each) before the whole body lags
 
 
 def blocked_vertices(scene, X0, X1) -> np.ndarray:
@@ -68,19 +71,30 @@ def confine_lag(sim, sv, stats) -> bool:
         return False
     free = sim.inertia.unit_mass[: sim.n] > 0
     radius, reached = s.lag_radius, False
-    for _ in range(LAG_GROWTH + 1):
-        w = lag_weights(X[K], X[blocked], radius)[:, None]
+    seeds = blocked
+    for _ in range(LAG_ROUNDS):
+        w = lag_weights(X[K], X[seeds], radius)[:, None]
         if np.all(w == 1.0):  # every prescribed vertex is held back: nothing to confine
             break
         part = goal.copy()
         part[K] = X[K] + (1.0 - w) * (target - X[K])  # (exactly X where w = 1)
-        X_f, reached = follow_body(sim.scene, sim._body_faces, free, s, X, part, None, stats, lift_still=False)
+        cut = []
+        X_f, reached = follow_body(sim.scene, sim._body_faces, free, s, X, part, None, stats, lift_still=False, cut=cut)
         if reached:
             break
-        radius *= 2.0
+        # the carry was cut: hold back the prescribed vertices of the pairs that cut it too
+        # (another pinch), or, when those are held already, widen the radius
+        more = np.setdiff1d(np.intersect1d(blocked_vertices(sim.scene, *cut[0]), K), seeds)
+        if len(more):
+            seeds = np.union1d(seeds, more)
+        else:
+            radius *= 2.0
     if not reached or np.all(w == 1.0):
+        log.debug("confine_lag: %d blocked, the whole body lags", len(blocked))
         sim.scene.prepare_static(X)
         return False
+    log.debug("confine_lag: %d blocked, radius %.3f m, %d of %d held back", len(blocked), radius,
+              int(np.sum(w > 0)), len(K))
     sv.X, sv.penalty, sv.confined = X_f, False, True
     sim.scene.prepare_static(sv.X)
     sim.friction.lag(sv.X, sim.barrier)

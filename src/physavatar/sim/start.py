@@ -90,7 +90,7 @@ def warm_start(scene, terms, free, X, x_pred, stats):
     return X_pred if e1 < e0 else X
 
 
-def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True):
+def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True, cut=None):
     """Carry the cloth along with the body from X_from to the body pose of X_goal
     (SimSettings.follow_body). Returns (X, reached): X_goal's body with the carried cloth
     when every leg of the move is collision-free (reached = True), else X_from moved by
@@ -107,6 +107,7 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
     not survive the small non-rigid distortions of the carry; the free phase settles it
     back in a few iterations. ``lift_still=False``: not where the carrying triangle stays put
     nor carried (sim.lag: cloth pinched where the body is held back stays exactly where it is).
+    ``cut``: a list that gets the leg (X_seg, X_next) whose CCD cut the move.
     """
     s = settings
     n = len(free)
@@ -144,6 +145,8 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
         alpha = scene.collision_free_stepsize(X_seg, X_next)
         stats.time["ccd"] += time.perf_counter() - tc
         if alpha < 1.0:
+            if cut is not None:
+                cut.append((X_seg, X_next))
             return X_seg + alpha * (X_next - X_seg), False
         X_seg = X_next
     return X_seg, True
