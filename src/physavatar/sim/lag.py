@@ -6,14 +6,15 @@ cloth caught where Anny's collider passes through itself (the groin, the back of
 docs/simulation.md "Why the whole clips stalled") — holds back the whole body: on the CMU walk
 one pinch at the groin left every body vertex 16 mm, then 104, then 194 mm behind its pose.
 
-:func:`confine_lag` runs when such a phase gives up (SimSettings.lag_radius > 0). It finds
-the prescribed vertices whose move to their pose is blocked (the collision candidates of that
-move with a time of impact below 1, ipctk's narrow-phase CCD per candidate), and gives every
-prescribed vertex a lag fraction that is 1 within ``lag_radius`` of a blocked one and falls
-linearly to 0 at twice that distance: the rest reach their poses. The cloth is carried along
-(start.follow_body, CCD-checked); if that move is cut, the prescribed vertices of the pairs
-that cut it are held back too (another pinch), or when they already are, the radius doubles;
-after ``LAG_ROUNDS`` tries the whole body lags as before. The solver then finishes
+:func:`confine_lag` runs when such a phase gives up (SimSettings.lag_radius > 0). It carries
+the cloth with the body to its pose (start.follow_body, CCD-checked legs). Where a leg is cut,
+the collision candidates of that leg with a time of impact below 1 (ipctk's narrow-phase CCD
+per candidate) name the pinch: their prescribed vertices are *held back*. Every prescribed
+vertex then gets a lag fraction that is 1 within ``lag_radius`` of a held-back one and falls
+linearly to 0 at twice that distance, and the carry is tried again to that partial pose: the
+rest of the body reaches its pose. A leg cut again holds back the vertices of its pairs too
+(another pinch), or, when they are held already, doubles the radius; after ``LAG_ROUNDS``
+carries the whole body lags as before. The solver then finishes
 the step with the prescribed vertices fixed where they are (the free system); the step still
 reports its lag (StepStats.body_gap, the largest distance from the pose), and the next step
 starts from where the body got to (ClothSim._body_lag), as before.
@@ -66,14 +67,13 @@ def confine_lag(sim, sv, stats) -> bool:
     X = sv.X
     goal = X.copy()
     goal[K] = target
-    blocked = np.intersect1d(blocked_vertices(sim.scene, X, goal), K)
-    if not len(blocked):
-        return False
     free = sim.inertia.unit_mass[: sim.n] > 0
     radius, reached = s.lag_radius, False
-    seeds = blocked
+    seeds = np.zeros(0, dtype=np.int64)  # the prescribed vertices held back (and their radius)
+    w = np.zeros((len(K), 1))
     for _ in range(LAG_ROUNDS):
-        w = lag_weights(X[K], X[seeds], radius)[:, None]
+        if len(seeds):
+            w = lag_weights(X[K], X[seeds], radius)[:, None]
         if np.all(w == 1.0):  # every prescribed vertex is held back: nothing to confine
             break
         part = goal.copy()
@@ -82,18 +82,18 @@ def confine_lag(sim, sv, stats) -> bool:
         X_f, reached = follow_body(sim.scene, sim._body_faces, free, s, X, part, None, stats, lift_still=False, cut=cut)
         if reached:
             break
-        # the carry was cut: hold back the prescribed vertices of the pairs that cut it too
-        # (another pinch), or, when those are held already, widen the radius
+        # the carry was cut: hold back the prescribed vertices of the pairs that cut it (a
+        # pinch), or, when those are held already, widen the radius
         more = np.setdiff1d(np.intersect1d(blocked_vertices(sim.scene, *cut[0]), K), seeds)
         if len(more):
             seeds = np.union1d(seeds, more)
         else:
             radius *= 2.0
     if not reached or np.all(w == 1.0):
-        log.debug("confine_lag: %d blocked, the whole body lags", len(blocked))
+        log.debug("confine_lag: %d blocked, the whole body lags", len(seeds))
         sim.scene.prepare_static(X)
         return False
-    log.debug("confine_lag: %d blocked, radius %.3f m, %d of %d held back", len(blocked), radius,
+    log.debug("confine_lag: %d blocked, radius %.3f m, %d of %d held back", len(seeds), radius,
               int(np.sum(w > 0)), len(K))
     sv.X, sv.penalty, sv.confined = X_f, False, True
     sim.scene.prepare_static(sv.X)
