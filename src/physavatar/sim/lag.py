@@ -63,6 +63,8 @@ def confine_lag(sim, sv, stats) -> bool:
     pinch to their targets, carrying the cloth (module docstring). True when it did (then
     ``sv.X`` holds the new state and ``sv.penalty`` is False), False when the whole body lags."""
     s = sim.settings
+    if s.follow_body <= 0:  # the carry is off: the whole body lags
+        return False
     K, target = sim.penalty.kinematic, sim.penalty.target
     X = sv.X
     goal = X.copy()
@@ -77,7 +79,7 @@ def confine_lag(sim, sv, stats) -> bool:
         if np.all(w == 1.0):  # every prescribed vertex is held back: nothing to confine
             break
         part = goal.copy()
-        part[K] = X[K] + (1.0 - w) * (target - X[K])  # (exactly X where w = 1)
+        part[K] = np.where(w == 0.0, target, X[K] + (1.0 - w) * (target - X[K]))  # (exactly X where w = 1)
         cut = []
         X_f, reached = follow_body(sim.scene, sim._body_faces, free, s, X, part, None, stats, lift_still=False, cut=cut)
         if reached:

@@ -137,6 +137,7 @@ class StepStats:
     body_follows: int = 0  # times the cloth was carried with the body (SimSettings.follow_body)
     body_gap: float = 0.0  # [m] how far the body (or a Dirichlet vertex) stopped short of its pose
     body_lagged: bool = False  # the step started from where the last step's body got to
+    lag_vertices: int = 0  # prescribed vertices (body, attached cloth) short of their pose
     lag_radius: float = 0.0  # [m] the lag was confined to this distance of the pinch (sim.lag); 0: not
     barrier_stiffness: float = 0.0
     min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]

@@ -517,12 +517,11 @@ class ClothSim:
         """Report the step, keep its linearization (sensitivities), and return (x_new, v_new)."""
         s = self.settings
         X = sv.X
-        if sv.penalty:  # never reached the targets: report, keep the best state, let the body lag
-            stats.converged = False
-            stats.body_gap = float(np.max(np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)))
-            self._body_lag = (state.x_goal[self.n:].copy(), X[self.n:].copy())
-        elif sv.confined:  # the body near a pinch lags (lag.py): reported as above
-            stats.body_gap = float(np.max(np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)))
+        if sv.penalty or sv.confined:  # never reached the targets (or only away from a pinch, lag.py):
+            # report, keep the best state, let the body lag
+            stats.converged = stats.converged and not sv.penalty
+            gap = np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)
+            stats.body_gap, stats.lag_vertices = float(np.max(gap)), int(np.count_nonzero(gap))
             self._body_lag = (state.x_goal[self.n:].copy(), X[self.n:].copy())
         stats.barrier_stiffness = self.barrier_stiffness
         # the last build usually holds X (the next step starts with its own CCD build, so only
