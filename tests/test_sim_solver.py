@@ -339,7 +339,8 @@ def test_body_that_leaves_no_room_lags_instead_of_crossing_the_cloth():
     Fb = np.vstack([PF, PF + len(P)])
     sim = ClothSim(V, F, Material(), SimSettings(max_penalty_iterations=8, friction=0.0), [])
     x, v, st = sim.step(V, np.zeros_like(V), plates_t, plates_t1, Fb)
-    assert not st.converged and st.penalty_iterations == 8 and st.body_gap > 1e-3
+    # (the free system converges once only the plates' pinched part is held back: sim.lag)
+    assert st.penalty_iterations == 8 and st.body_gap > 1e-3 and st.lag_vertices > 0
     reached = sim._body_lag[1]
     scene = sim.scene
     assert not scene.has_intersections(np.vstack([x, reached]))
