@@ -273,7 +273,9 @@ class ClothSim:
                                          boundary_targets, history, stats)
         solve = self._start(state, x, x_pred, stats)
         self._newton(solve, stats)
-        if solve.penalty and self.settings.lag_radius > 0 and self.nb and confine_lag(self, solve, stats):
+        # (not in an attempt that simulate retries in shorter steps if it lags: stall_exit)
+        if (solve.penalty and self.settings.lag_radius > 0 and self.nb and not self.stall_exit
+                and confine_lag(self, solve, stats)):
             done = (stats.newton_iterations, stats.factorizations, stats.cg_iterations)
             self._newton(solve, stats)  # the rest of the step with the body where confine_lag left it
             stats.newton_iterations += done[0]
