@@ -12,10 +12,8 @@ the collision candidates of that leg with a time of impact below 1 (ipctk's narr
 per candidate) name the pinch: their prescribed vertices are *held back*. Every prescribed
 vertex then gets a lag fraction that is 1 within ``lag_radius`` of a held-back one and falls
 linearly to 0 at twice that distance, and the carry is tried again to that partial pose: the
-rest of the body reaches its pose. A leg cut again holds back the prescribed vertices of its
-pairs too (another pinch); when they are held already, its cloth vertices stay where they are
-(cloth that a moving triangle carried into a held-back one), and when those stay already, the
-radius doubles; after ``LAG_ROUNDS``
+rest of the body reaches its pose. A leg cut again holds back the vertices of its pairs too
+(another pinch), or, when they are held already, doubles the radius; after ``LAG_ROUNDS``
 carries the whole body lags as before. The solver then finishes
 the step with the prescribed vertices fixed where they are (the free system); the step still
 reports its lag (StepStats.body_gap, the largest distance from the pose), and the next step
@@ -75,7 +73,6 @@ def confine_lag(sim, sv, stats) -> bool:
     radius, reached = s.lag_radius, False
     seeds = np.zeros(0, dtype=np.int64)  # the prescribed vertices held back (and their radius)
     w = np.zeros((len(K), 1))
-    stay = np.zeros(sim.n, dtype=bool)  # cloth vertices not carried (caught at a held-back part)
     for _ in range(LAG_ROUNDS):
         if len(seeds):
             w = lag_weights(X[K], X[seeds], radius)[:, None]
@@ -84,20 +81,14 @@ def confine_lag(sim, sv, stats) -> bool:
         part = goal.copy()
         part[K] = np.where(w == 0.0, target, X[K] + (1.0 - w) * (target - X[K]))  # (exactly X where w = 1)
         cut = []
-        X_f, reached = follow_body(sim.scene, sim._body_faces, free, s, X, part, None, stats, lift_still=False, cut=cut,
-                                   stay=stay)
+        X_f, reached = follow_body(sim.scene, sim._body_faces, free, s, X, part, None, stats, lift_still=False, cut=cut)
         if reached:
             break
         # the carry was cut: hold back the prescribed vertices of the pairs that cut it (a
-        # pinch); when those are held already, keep their cloth vertices where they are; then
-        # widen the radius
-        ids = blocked_vertices(sim.scene, *cut[0])
-        more = np.setdiff1d(np.intersect1d(ids, K), seeds)
-        cloth = ids[ids < sim.n]
+        # pinch), or, when those are held already, widen the radius
+        more = np.setdiff1d(np.intersect1d(blocked_vertices(sim.scene, *cut[0]), K), seeds)
         if len(more):
             seeds = np.union1d(seeds, more)
-        elif len(cloth) and not np.all(stay[cloth]):  # cloth carried into a held-back part: it stays
-            stay[cloth] = True
         else:
             radius *= 2.0
     if not reached or np.all(w == 1.0):

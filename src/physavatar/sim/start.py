@@ -90,8 +90,7 @@ def warm_start(scene, terms, free, X, x_pred, stats):
     return X_pred if e1 < e0 else X
 
 
-def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True, cut=None,
-                stay=None):
+def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True, cut=None):
     """Carry the cloth along with the body from X_from to the body pose of X_goal
     (SimSettings.follow_body). Returns (X, reached): X_goal's body with the carried cloth
     when every leg of the move is collision-free (reached = True), else X_from moved by
@@ -108,8 +107,7 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
     not survive the small non-rigid distortions of the carry; the free phase settles it
     back in a few iterations. ``lift_still=False``: not where the carrying triangle stays put
     nor carried (sim.lag: cloth pinched where the body is held back stays exactly where it is).
-    ``cut``: a list that gets the leg (X_seg, X_next) whose CCD cut the move. ``stay``: cloth
-    vertices [n] (bool) neither carried nor lifted.
+    ``cut``: a list that gets the leg (X_seg, X_next) whose CCD cut the move.
     """
     s = settings
     n = len(free)
@@ -135,9 +133,6 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
         moves = np.linalg.norm(X_goal[n:] - b0, axis=1)[carry.F[carry.face]].max(axis=1)
         lift = np.where(moves > 0, lift, 0.0)
         weight = np.where(moves[:, None] > 0, weight, 0.0)  # exactly where it is (a carry rounds)
-    if stay is not None:
-        lift = np.where(stay[free], 0.0, lift)
-        weight = np.where(stay[free][:, None], 0.0, weight)
     stats.time["contact"] += time.perf_counter() - tq
     X_seg = X_from
     K = max(1, int(s.follow_segments))
