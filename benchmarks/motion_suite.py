@@ -400,6 +400,8 @@ def partial_row(run: Path, garment, over, spec, edge, duration, warmup, args) ->
             "frames_with_nan": nan, "s_per_frame": float(np.mean([r["seconds"] for r in reports])),
             "mean_substeps": float(np.mean(steps)) if steps else 1.0, "max_substeps": int(max(steps, default=1)),
             "max_lag_m": float(max((r["lag_m"] for r in written), default=0.0)),
+            # body (and attached cloth) vertices short of their pose: all of them before sim.lag
+            "max_lag_vertices": int(max((r.get("lag_vertices", -1) for r in written), default=0)),
             "per_frame": [{**r, "written_frame": r["frame"] - n_warm} for r in reports]}
 
 

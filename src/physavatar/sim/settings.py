@@ -81,6 +81,11 @@ class SimSettings:
             is split into ceil(move / max_body_move) implicit steps (sim.simulate.substep_count).
             0.08 m: the demo walk's body moves ≤ 6 cm a frame near the dress (one step per
             frame), the CMU hop's 0.2–0.3 m (3–4 steps).
+        lag_radius: when a step's penalty phase gives up (max_penalty_iterations), only the
+            prescribed vertices within this distance [m] of the pinch lag (fading out at twice
+            the distance; doubled while the cloth cannot be carried along), the rest reach
+            their pose (sim.lag.confine_lag); 0 = the whole body lags. Changes nothing in a step
+            that does not give up.
         gravity: [3] m/s².
     """
 
@@ -116,6 +121,7 @@ class SimSettings:
     deterministic: bool = True
     ccd_threads: int = 1
     max_body_move: float = 0.08
+    lag_radius: float = 0.05
     gravity: tuple = (0.0, 0.0, -9.81)
 
 
@@ -131,6 +137,8 @@ class StepStats:
     body_follows: int = 0  # times the cloth was carried with the body (SimSettings.follow_body)
     body_gap: float = 0.0  # [m] how far the body (or a Dirichlet vertex) stopped short of its pose
     body_lagged: bool = False  # the step started from where the last step's body got to
+    lag_vertices: int = 0  # prescribed vertices (body, attached cloth) short of their pose
+    lag_radius: float = 0.0  # [m] the lag was confined to this distance of the pinch (sim.lag); 0: not
     barrier_stiffness: float = 0.0
     min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]
     n_contacts: int = 0

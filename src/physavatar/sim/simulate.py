@@ -164,7 +164,8 @@ def frame_report(frame: int, stats: list, substeps: int, attempts: int, seconds:
     return {"frame": int(frame), "substeps": int(substeps), "attempts": int(attempts),
             "newton_iterations": int(sum(s.newton_iterations for s in stats)),
             "contacts": int(stats[-1].n_contacts) if stats else 0,
-            "lag_m": float(gap), "lagged": bool(gap > 0), "body_move_m": round(float(move), 5),
+            "lag_m": float(gap), "lagged": bool(gap > 0),
+            "lag_vertices": int(max((s.lag_vertices for s in stats), default=0)), "body_move_m": round(float(move), 5),
             "seconds": round(float(seconds), 3)}
 
 

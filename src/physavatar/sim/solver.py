@@ -35,6 +35,7 @@ from .assembly import Assembler, Linearization, NewtonLinearSolver
 from .contact import Barrier, Friction, KinematicPenalty
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
 from .kappa import adapt_stiffness, initial_stiffness
+from .lag import confine_lag
 from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
@@ -60,6 +61,7 @@ class _Solve:
     penalty_iters: int = 0
     gaps: list = dataclasses.field(default_factory=list)  # the penalty phase's gap per iteration
     cut: bool = False  # the last step was cut by CCD (α < 1): the next direction may be looser
+    confined: bool = False  # a given-up penalty phase left only the body near the pinch behind (lag.py)
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
     memo: EnergyMemo = dataclasses.field(default_factory=EnergyMemo)  # E at the last iterate
@@ -271,6 +273,14 @@ class ClothSim:
                                          boundary_targets, history, stats)
         solve = self._start(state, x, x_pred, stats)
         self._newton(solve, stats)
+        # (not in an attempt that simulate retries in shorter steps if it lags: stall_exit)
+        if (solve.penalty and self.settings.lag_radius > 0 and self.nb and not self.stall_exit
+                and confine_lag(self, solve, stats)):
+            done = (stats.newton_iterations, stats.factorizations, stats.cg_iterations)
+            self._newton(solve, stats)  # the rest of the step with the body where confine_lag left it
+            stats.newton_iterations += done[0]
+            stats.factorizations += done[1]
+            stats.cg_iterations += done[2]
         x_new, v_new = self._finish_step(solve, state, stats)
         self._last_step = (x_new, v_new, x.copy(), v.copy())
         stats.time["total"] = time.perf_counter() - t_start
@@ -509,9 +519,11 @@ class ClothSim:
         """Report the step, keep its linearization (sensitivities), and return (x_new, v_new)."""
         s = self.settings
         X = sv.X
-        if sv.penalty:  # never reached the targets: report, keep the best state, let the body lag
-            stats.converged = False
-            stats.body_gap = float(np.max(np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)))
+        if sv.penalty or sv.confined:  # never reached the targets (or only away from a pinch, lag.py):
+            # report, keep the best state, let the body lag
+            stats.converged = stats.converged and not sv.penalty
+            gap = np.linalg.norm(X[self.penalty.kinematic] - self.penalty.target, axis=1)
+            stats.body_gap, stats.lag_vertices = float(np.max(gap)), int(np.count_nonzero(gap))
             self._body_lag = (state.x_goal[self.n:].copy(), X[self.n:].copy())
         stats.barrier_stiffness = self.barrier_stiffness
         # the last build usually holds X (the next step starts with its own CCD build, so only

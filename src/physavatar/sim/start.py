@@ -90,7 +90,7 @@ def warm_start(scene, terms, free, X, x_pred, stats):
     return X_pred if e1 < e0 else X
 
 
-def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats):
+def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True, cut=None):
     """Carry the cloth along with the body from X_from to the body pose of X_goal
     (SimSettings.follow_body). Returns (X, reached): X_goal's body with the carried cloth
     when every leg of the move is collision-free (reached = True), else X_from moved by
@@ -105,7 +105,9 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
     Cloth in an active contact (within d̂, from the barrier's collision set) is also lifted
     off along the triangle normal, up to ``follow_lift`` × d̂ by the end: those gaps would
     not survive the small non-rigid distortions of the carry; the free phase settles it
-    back in a few iterations.
+    back in a few iterations. ``lift_still=False``: not where the carrying triangle stays put
+    nor carried (sim.lag: cloth pinched where the body is held back stays exactly where it is).
+    ``cut``: a list that gets the leg (X_seg, X_next) whose CCD cut the move.
     """
     s = settings
     n = len(free)
@@ -127,6 +129,10 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
             gap[cloth] = np.minimum(gap[cloth], np.sqrt(max(c.compute_distance(X_from[ids].ravel()), 0.0)))
     gap = np.minimum(gap[free], carry.distance)
     lift = np.clip(s.follow_lift * s.dhat - gap, 0.0, None) * carry.side
+    if not lift_still:
+        moves = np.linalg.norm(X_goal[n:] - b0, axis=1)[carry.F[carry.face]].max(axis=1)
+        lift = np.where(moves > 0, lift, 0.0)
+        weight = np.where(moves[:, None] > 0, weight, 0.0)  # exactly where it is (a carry rounds)
     stats.time["contact"] += time.perf_counter() - tq
     X_seg = X_from
     K = max(1, int(s.follow_segments))
@@ -139,6 +145,8 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
         alpha = scene.collision_free_stepsize(X_seg, X_next)
         stats.time["ccd"] += time.perf_counter() - tc
         if alpha < 1.0:
+            if cut is not None:
+                cut.append((X_seg, X_next))
             return X_seg + alpha * (X_next - X_seg), False
         X_seg = X_next
     return X_seg, True
