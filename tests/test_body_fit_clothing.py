@@ -18,7 +18,8 @@ from physavatar.geometry.mesh import vertex_normals
 
 def test_fingerless_clothing_keeps_the_true_arms():
     from physavatar.body.differentiable import DTYPE
-    from physavatar.stages.prepare.body_fit import BodyFitConfig, _extremities, _Fitter
+    from physavatar.stages.prepare.body_fit import BodyFitConfig, _Fitter
+    from physavatar.stages.prepare.fit_model import _extremities
 
     cfg = BodyFitConfig(keypoints="none")
     fitter = _Fitter(cfg, None, None, 25.0)

@@ -19,7 +19,8 @@ from physavatar.camera import ring_rig
 
 def _fit_arm(kp_sigma: float, iters: int = 150) -> float:
     from physavatar.body.fit_terms import keypoint_term
-    from physavatar.stages.prepare.body_fit import BodyFitConfig, _Model
+    from physavatar.stages.prepare.body_fit import BodyFitConfig
+    from physavatar.stages.prepare.fit_model import _Model
 
     cfg = BodyFitConfig(keypoints="none")
     model = _Model(cfg)

@@ -356,15 +356,12 @@ def push_clear(V: np.ndarray, F: np.ndarray, body_V: np.ndarray, body_F: np.ndar
     edge through a garment triangle whose corners are clear) by
     :func:`~physavatar.geometry.push_out_crossings`. Returns the vertices and the number of
     garment-body crossing pairs left (0: a valid start)."""
-    from ..geometry import count_intersections, push_out_crossings
+    from ..geometry import push_out_crossings
 
     moved, _ = push_out(V, F, [(body_V, body_F)], clearance)
     if fixed is not None:
         moved[fixed] = np.asarray(V)[fixed]
-    left = count_intersections(moved, F, body_V, body_F)
-    if left:
-        moved, left = push_out_crossings(moved, F, body_V, body_F, clearance, fixed=fixed)
-    return moved, left
+    return push_out_crossings(moved, F, body_V, body_F, clearance, fixed=fixed)
 
 
 def body_clearance(V: np.ndarray, F: np.ndarray, body_V: np.ndarray, body_F: np.ndarray, reach: float = 0.02) -> float:

@@ -101,7 +101,8 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
         # cuts it by a millimetre or two, push it out as fit-physics does (docs/physics.md)
         from ..garment.garment import push_clear
 
-        moved, left = push_clear(part.vertices, part.faces, posed.vertices[0], body.faces, 1e-3,
+        dhat = (settings or SimSettings()).dhat  # the simulation's own barrier distance
+        moved, left = push_clear(part.vertices, part.faces, posed.vertices[0], body.faces, dhat,
                                  fixed=part.boundary)
         if left:
             raise PhysavatarError(avatar.root / "template.ply",

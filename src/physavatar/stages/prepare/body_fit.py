@@ -37,7 +37,7 @@ from ...errors import PhysavatarError
 from ...files import read_json
 from ..base import option, setting
 from .body_check import check
-from .fit_model import _extremities, _keypoint_vertices, _Model  # noqa: F401 (tests import them here)
+from .fit_model import _extremities, _Model
 from .keypoints import make_detector, triangulate
 
 # The bones a fit moves (the rest follow their parents): trunk, neck and head, arms to the

@@ -23,7 +23,7 @@ import numpy as np
 from ...camera import Camera
 
 # MediaPipe Pose landmark index -> what it is on the Anny body: ("bone", head of that bone) or
-# ("vertex", a named surface point picked on the rest body, see body_fit._keypoint_vertices).
+# ("vertex", a named surface point picked on the rest body, see fit_model._keypoint_vertices).
 MEDIAPIPE_TO_ANNY: dict[int, tuple[str, str]] = {
     0: ("vertex", "nose"),
     7: ("vertex", "ear.L"), 8: ("vertex", "ear.R"),

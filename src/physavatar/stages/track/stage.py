@@ -296,7 +296,7 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                                              "plain_texture": cfg.flow.plain_texture, "decision": decision})
         if starts.garment_texture is not None:
             logger.info("track: garment texture %.2f (threshold %.2f): %s", starts.garment_texture,
-                     cfg.flow.plain_texture, decision)
+                        cfg.flow.plain_texture, decision)
     V = np.stack(verts).astype(np.float32)
     C = np.stack(cols).astype(np.float32)
     TrackedSequence(V, t.faces, t.labels, t.boundary, C, np.asarray(frames, np.int64),
