@@ -472,38 +472,77 @@ def _avatar(scene: Scene, root: Path) -> None:
     scene.panels["material"] = read_json(root / "material.json")
     if av.light_path is not None:
         scene.panels["light"] = read_json(av.light_path)
-        scene.lights = _viser_lights(scene.panels["light"], tpl.vertices, scene.notes)
+        scene.lights = _viser_lights(scene.panels["light"], tpl.vertices, scene.notes, av.light_path.parent)
 
 
-def _viser_lights(data: dict, vertices, notes: list[str]) -> list[dict]:
-    """light.json's lights (``render.lights``' JSON) as viser light nodes: Ambient -> ambient,
-    SunLight -> directional from ``to_sun``, PointLight -> point, AreaLight -> a point light at its
-    centre; an EnvMap is left out (a note). Colour: the linear RGB radiance over its largest
-    channel, to sRGB; intensity: that largest channel (three.js's units, not the renderer's: a
-    preview of the fit, not a re-rendering)."""
+ENV_LIGHTS = 16  # directional lights an environment map is drawn with (median cut)
+
+
+def _viser_lights(data: dict, vertices, notes: list[str], root: Path | None = None) -> list[dict]:
+    """light.json's lights (``render.lights``' JSON) as viser (three.js) light nodes: Ambient ->
+    ambient, SunLight -> directional from ``to_sun``, PointLight -> point, AreaLight -> a point light
+    at its centre, EnvMap -> its median cut (``render.median_cut``): its floor as ambient and
+    ``ENV_LIGHTS`` directional lights. Colour: the linear RGB value over its largest channel, to
+    sRGB; intensity: that largest channel, in three.js's units, where a diffuse surface gets
+    ``intensity`` from a directional light and π × radiance from an ambient one (so Mitsuba's ambient
+    radiance L is three.js's ambient intensity πL). A preview of the fit, not a re-rendering: no
+    shadows, and three.js's tone mapping."""
     V = np.asarray(vertices, np.float64)
-    centre, size = (V.min(0) + V.max(0)) / 2, float(np.ptp(V, axis=0).max()) or 1.0
+    size = float(np.ptp(V, axis=0).max()) or 1.0
+    far = 10.0 * (size + float(np.linalg.norm((V.min(0) + V.max(0)) / 2)))
     out = []
     for i, L in enumerate(data.get("lights", [])):
         kind = L.get("type")
+        if kind == "EnvMap":
+            for sub in _envmap_lights(L, root, notes):
+                out += _viser_lights({"lights": [sub]}, vertices, notes)
+            continue
         value = L.get("radiance", L.get("irradiance", L.get("intensity", 1.0)))
         rgb = np.broadcast_to(np.asarray(value, np.float64), (3,))
+        if kind == "Ambient":
+            rgb = np.pi * rgb
         peak = float(rgb.max()) if rgb.max() > 0 else 1.0
         srgb = np.where(rgb / peak <= 0.0031308, 12.92 * rgb / peak, 1.055 * (rgb / peak) ** (1 / 2.4) - 0.055)
         spec = {"name": str(L.get("name", f"light{i}")), "color": tuple(int(c) for c in np.clip(srgb * 255, 0, 255)),
                 "intensity": peak}
         if kind == "Ambient":
             spec["kind"] = "ambient"
-        elif kind == "SunLight":
+        elif kind == "SunLight":  # three.js aims a directional light from its position at the origin
             d = np.asarray(L.get("to_sun", (0.3, -0.5, 0.8)), np.float64)
-            spec |= {"kind": "directional", "position": tuple(centre + 3 * size * d / (np.linalg.norm(d) or 1.0))}
+            spec |= {"kind": "directional", "position": tuple(float(x) for x in far * d / (np.linalg.norm(d) or 1.0))}
         elif kind in ("PointLight", "AreaLight"):
-            spec |= {"kind": "point", "position": tuple(map(float, L.get("position", L.get("center", centre))))}
+            spec |= {"kind": "point", "position": tuple(map(float, L.get("position", L.get("center", V.mean(0)))))}
         else:
             notes.append(f"light {spec['name']} ({kind}): not drawn (its values are in the light panel)")
             continue
         out.append(spec)
     return out
+
+
+def _envmap_lights(L: dict, root: Path | None, notes: list[str]) -> list[dict]:
+    """An EnvMap entry of light.json as the JSON of its median-cut lights (an inline map, or its
+    .hdr/.exr file read by Mitsuba's bitmap reader, relative to ``root``)."""
+    from ..render.lights import light_to_json
+    from ..render.median_cut import median_cut_lights
+
+    name = str(L.get("name", "envmap"))
+    image = L.get("image")
+    try:
+        if isinstance(image, list):
+            img = np.asarray(image, np.float64)
+        else:
+            from ..render.backend import mitsuba
+
+            path = Path(image)
+            path = path if path.is_absolute() or root is None else root / path
+            img = np.asarray(mitsuba().Bitmap(str(path)).convert(srgb_gamma=False), np.float64)[..., :3]
+        lights = median_cut_lights(img, ENV_LIGHTS, rotation_deg=float(L.get("rotation_deg", 0.0)),
+                                   scale=float(L.get("scale", 1.0)), name=name)
+    except Exception as e:  # noqa: BLE001 - a light the viewer cannot draw is a note, not a failure
+        notes.append(f"light {name} (EnvMap): not drawn ({e})")
+        return []
+    notes.append(f"light {name} (EnvMap): drawn as its median cut, {len(lights)} lights")
+    return [light_to_json(x) for x in lights]
 
 
 def _npz(scene: Scene, path: Path) -> None:
