@@ -269,71 +269,65 @@ def membrane_hessian(x, tri, G, area, mu, lam, model, project):
     R = np.empty((6, 6))
     Kh = np.empty((6, 6))
     for f in range(nf):
-        membrane_block(x, tri, G, area, mu, lam, model, project, f, R, Kh, out[f])
-    return out
-
-
-@numba.njit(cache=True, inline="always")
-def membrane_block(x, tri, G, area, mu, lam, model, project, f, R, Kh, block):
-    """Triangle f's [9, 9] block of membrane_hessian into ``block`` (R, Kh: 6×6 scratch)."""
-    F = np.empty((3, 2))
-    S = np.empty((2, 2))
-    C = np.empty((2, 2))
-    Cinv = np.empty((2, 2))
-    dC = np.empty((2, 2))
-    dS = np.empty((2, 2))
-    K = np.empty((6, 6))
-    Q = np.empty((6, 6))
-    _deformation_gradient(x, tri, G, f, F)
-    logJ = _second_piola(F, mu, lam, model, S, C, Cinv)
-    for b in range(6):  # column b: δF = e_k e_lᵀ, b = 2k + l
-        k, l = b // 2, b % 2
-        for i in range(2):  # δC = FᵀδF + δFᵀF
-            for j in range(2):
-                dC[i, j] = (F[k, i] if j == l else 0.0) + (F[k, j] if i == l else 0.0)
-        if model == MODEL_STVK:
-            tr = dC[0, 0] + dC[1, 1]
-            for i in range(2):
+        F = np.empty((3, 2))
+        S = np.empty((2, 2))
+        C = np.empty((2, 2))
+        Cinv = np.empty((2, 2))
+        dC = np.empty((2, 2))
+        dS = np.empty((2, 2))
+        K = np.empty((6, 6))
+        Q = np.empty((6, 6))
+        _deformation_gradient(x, tri, G, f, F)
+        logJ = _second_piola(F, mu, lam, model, S, C, Cinv)
+        for b in range(6):  # column b: δF = e_k e_lᵀ, b = 2k + l
+            k, l = b // 2, b % 2
+            for i in range(2):  # δC = FᵀδF + δFᵀF
                 for j in range(2):
-                    dS[i, j] = mu * dC[i, j] + (0.5 * lam * tr if i == j else 0.0)
-        else:
-            tr = 0.0
-            for i in range(2):
-                for j in range(2):
-                    tr += Cinv[i, j] * dC[j, i]
-            c = mu - lam * logJ
-            for i in range(2):
-                for j in range(2):
-                    s = 0.0
-                    for p in range(2):
-                        for q in range(2):
-                            s += Cinv[i, p] * dC[p, q] * Cinv[q, j]
-                    dS[i, j] = c * s + 0.5 * lam * tr * Cinv[i, j]
-        for i in range(3):  # δP = δF S + F δS
-            for j in range(2):
-                v = S[l, j] if i == k else 0.0
-                v += F[i, 0] * dS[0, j] + F[i, 1] * dS[1, j]
-                K[2 * i + j, b] = v
-    for i in range(6):
-        for j in range(i + 1, 6):
-            s = 0.5 * (K[i, j] + K[j, i])
-            K[i, j] = s
-            K[j, i] = s
-    if project == 3:  # reference path of the tests: the eigendecomposition clamp
-        _project_psd(K, 6, Q)
-    elif project and not _is_positive_definite(K, 6, Q):
-        if not _project_psd_isotropic(K, F, R, Kh, project == 2):
-            _clamp_eigenvalues(K, 6, Q, project == 2)
-    # H[(a,i),(c,k)] = A Σ_{j,l} G[a,j] K[(i,j),(k,l)] G[c,l]
-    for a in range(3):
-        for i in range(3):
-            for c in range(3):
-                for kk in range(3):
-                    s = 0.0
+                    dC[i, j] = (F[k, i] if j == l else 0.0) + (F[k, j] if i == l else 0.0)
+            if model == MODEL_STVK:
+                tr = dC[0, 0] + dC[1, 1]
+                for i in range(2):
                     for j in range(2):
-                        for l in range(2):
-                            s += G[f, a, j] * K[2 * i + j, 2 * kk + l] * G[f, c, l]
-                    block[3 * a + i, 3 * c + kk] = area[f] * s
+                        dS[i, j] = mu * dC[i, j] + (0.5 * lam * tr if i == j else 0.0)
+            else:
+                tr = 0.0
+                for i in range(2):
+                    for j in range(2):
+                        tr += Cinv[i, j] * dC[j, i]
+                c = mu - lam * logJ
+                for i in range(2):
+                    for j in range(2):
+                        s = 0.0
+                        for p in range(2):
+                            for q in range(2):
+                                s += Cinv[i, p] * dC[p, q] * Cinv[q, j]
+                        dS[i, j] = c * s + 0.5 * lam * tr * Cinv[i, j]
+            for i in range(3):  # δP = δF S + F δS
+                for j in range(2):
+                    v = S[l, j] if i == k else 0.0
+                    v += F[i, 0] * dS[0, j] + F[i, 1] * dS[1, j]
+                    K[2 * i + j, b] = v
+        for i in range(6):
+            for j in range(i + 1, 6):
+                s = 0.5 * (K[i, j] + K[j, i])
+                K[i, j] = s
+                K[j, i] = s
+        if project == 3:  # reference path of the tests: the eigendecomposition clamp
+            _project_psd(K, 6, Q)
+        elif project and not _is_positive_definite(K, 6, Q):
+            if not _project_psd_isotropic(K, F, R, Kh, project == 2):
+                _clamp_eigenvalues(K, 6, Q, project == 2)
+        # H[(a,i),(c,k)] = A Σ_{j,l} G[a,j] K[(i,j),(k,l)] G[c,l]
+        for a in range(3):
+            for i in range(3):
+                for c in range(3):
+                    for kk in range(3):
+                        s = 0.0
+                        for j in range(2):
+                            for l in range(2):
+                                s += G[f, a, j] * K[2 * i + j, 2 * kk + l] * G[f, c, l]
+                        out[f, 3 * a + i, 3 * c + kk] = area[f] * s
+    return out
 
 
 # -- bending -------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ except ImportError:  # pragma: no cover - cholespy is a dependency
     cholespy = None
 
 from . import _kernels
-from .terms import Blocks, Diagonal, FusedBlocks, as_hessian
+from .terms import Blocks, Diagonal, as_hessian
 
 
 def unique_int(a: np.ndarray) -> np.ndarray:
@@ -160,9 +160,7 @@ class Assembler:
         for h in hessians:
             for b in as_hessian(h).parts():
                 slot = self.scatter.get(id(b.index)) if isinstance(b, Blocks) else None
-                if slot is not None and isinstance(b, FusedBlocks):
-                    b.add_into(data, slot)  # computed and added in one pass (sim._fused), same bits
-                elif slot is not None:
+                if slot is not None:
                     _kernels.scatter_add(data, slot, np.ascontiguousarray(b.values, dtype=np.float64).ravel())
                 elif isinstance(b, Diagonal):
                     keep = self.dof_map[: len(b.values)] >= 0

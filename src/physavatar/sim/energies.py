@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _fused, _kernels
+from . import _kernels
 from .mesh import ClothTopology
-from .terms import Blocks, Diagonal, FusedBlocks, HessianSum, StepState, StepTangent, Term
+from .terms import Blocks, Diagonal, HessianSum, StepState, StepTangent, Term
 
 GRAVITY = np.array([0.0, 0.0, -9.81])  # DESIGN.md: z up, m/s²
 
@@ -296,11 +296,8 @@ class Membrane(Term):
         return _kernels.membrane_gradient(*self._kernel_args(x), len(x)).ravel()
 
     def hessian(self, x, project=True):
-        """Blocks [F, 9, 9] (numba kernel; :meth:`hessian_numpy` is its reference twin), computed
-        when read or added straight into an assembler's matrix (terms.FusedBlocks)."""
-        args = self._kernel_args(np.array(x, dtype=np.float64))  # a copy: the values may be read later
-        return FusedBlocks(self.index, lambda: _kernels.membrane_hessian(*args, bool(project)),
-                           lambda data, slot: _fused.membrane_hessian_into(data, slot, *args, bool(project)))
+        """Blocks [F, 9, 9] (numba kernel; :meth:`hessian_numpy` is its reference twin)."""
+        return Blocks(self.index, _kernels.membrane_hessian(*self._kernel_args(x), bool(project)))
 
     def gradient_numpy(self, x):
         F = self.deformation_gradient(x)
@@ -464,12 +461,6 @@ class Bending(Term):
         mode = {False: _kernels.BENDING_EXACT, "eigen": _kernels.BENDING_EIGEN,
                 "gauss_newton": _kernels.BENDING_GAUSS_NEWTON}[project]
         x = np.ascontiguousarray(x, dtype=np.float64)
-        if mode == _kernels.BENDING_GAUSS_NEWTON:  # the solver's default: added straight into the matrix
-            x = x.copy()  # the values may be read later
-            return FusedBlocks(
-                self.index,
-                lambda: _kernels.bending_hessian(x, self.index, self.weight, self.rest_angle, self.scale, mode),
-                lambda data, slot: _fused.bending_gauss_newton_into(data, slot, x, self.index, self.weight, self.scale))
         H = _kernels.bending_hessian(x, self.index, self.weight, self.rest_angle, self.scale, mode)
         return Blocks(self.index, H)
 

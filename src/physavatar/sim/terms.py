@@ -113,22 +113,6 @@ class Blocks(Hessian):
         return sp.csr_matrix((self.values.ravel(), (r, c)), shape=(n_dofs, n_dofs))
 
 
-class FusedBlocks(Blocks):
-    """:class:`Blocks` whose ``values`` are computed only when read: an assembler that knows
-    the element set's CSR slots calls ``add_into(data, slot)`` instead, which adds the same
-    values into the matrix data in the same order without materialising them (sim._fused)."""
-
-    def __init__(self, index, compute, add_into):
-        self.index = index
-        self._compute, self.add_into, self._values = compute, add_into, None
-
-    @property
-    def values(self):
-        if self._values is None:
-            self._values = self._compute()
-        return self._values
-
-
 @dataclasses.dataclass
 class Diagonal(Hessian):
     """A diagonal Hessian: ``values`` [3n]."""
