@@ -165,7 +165,11 @@ def frame_report(frame: int, stats: list, substeps: int, attempts: int, seconds:
             "newton_iterations": int(sum(s.newton_iterations for s in stats)),
             "contacts": int(stats[-1].n_contacts) if stats else 0,
             "lag_m": float(gap), "lagged": bool(gap > 0),
-            "lag_vertices": int(max((s.lag_vertices for s in stats), default=0)), "body_move_m": round(float(move), 5),
+            "lag_vertices": int(max((s.lag_vertices for s in stats), default=0)),
+            # the body's own creases (sim.crease): body vertices left out of contact, cloth released
+            "buried_vertices": int(max((s.buried_vertices for s in stats), default=0)),
+            "released_vertices": int(max((s.released_vertices for s in stats), default=0)),
+            "body_move_m": round(float(move), 5),
             "seconds": round(float(seconds), 3)}
 
 
