@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from physavatar.sim import ClothSim, Material, SimSettings
+from physavatar.sim import ClothSim, Material, SimSettings, simulate
 from physavatar.sim.crease import buried_vertices, winding_numbers
 
 
@@ -78,3 +78,22 @@ def test_cloth_between_two_body_parts_that_close_is_not_pinched():
         mesh.can_collide = ipctk.make_static_obstacle_filter(len(V))
         assert not ipctk.has_intersections(mesh, np.vstack([x, B2]))
     assert gaps[-1] > 5e-3 and gaps[SimSettings().crease_ring] == 0.0
+
+
+def test_simulate_retries_a_frame_that_lags_with_the_outer_surface_only():
+    """sim.simulate uses the rule only for a frame that lagged without it: the pinch of the test
+    above as a two-frame sequence lags with the rule off (crease_ring -1; one step a frame)
+    and not with it (a second attempt of one step, with the rule)."""
+    V, F = cloth_grid.grid(6, 0.08, 0.005, center=True)
+    V = V + [0.09, 0.0, 0.0]
+    B0, Fb = two_parts(0.0)
+    B1, _ = two_parts(-0.02)
+    reports = {}
+    for ring in (-1, 1):
+        rep = []
+        simulate(V, F, Material(), np.stack([B0, B1]), Fb, fps=25.0, max_substeps=1,
+                 settings=SimSettings(friction=0.0, crease_ring=ring), on_frame=lambda c, r: rep.append(r))
+        reports[ring] = rep[0]
+    assert reports[-1]["lagged"] and reports[-1]["buried_vertices"] == 0
+    assert not reports[1]["lagged"] and reports[1]["attempts"] == 2 and reports[1]["substeps"] == 1
+    assert reports[1]["buried_vertices"] > 0

@@ -7,7 +7,10 @@ nothing, no intersection-free cloth position has the body at its pose, and the s
 (the body lags, sim.lag). The body's real surface there is the *union* of its parts: a triangle
 that lies inside the body is not surface at all.
 
-So, per step (:func:`outer_surface`, called by ``ClothSim.step`` before the step's start):
+So, per step (:func:`outer_surface`, called by ``ClothSim.step`` before the step's start) while
+``ClothSim.crease_on`` (True for a sim stepped directly; ``sim.simulate`` turns it on only for
+the attempts after one of the frame lagged without it: a frame that does not pinch is simulated
+as before):
 
 - a body vertex is *buried* when it lies inside the body mesh at the step's start or at its end:
   the generalised winding number of the body mesh at the vertex (Jacobson et al. 2013; its own
@@ -74,6 +77,12 @@ def _kernel():
         return out
 
     return kernel
+
+
+def recheck(sim):
+    """Check the cloth for vertices inside the body at the next step's start, whatever the last
+    step found (after ``ClothSim.set_state`` took the sim back to an earlier state)."""
+    sim._crease_check = True
 
 
 def winding_numbers(points, vertices, faces, vertex_ids=None) -> np.ndarray:
@@ -145,20 +154,21 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
     if base is None:
         base = scene.base_filter = scene.mesh.can_collide
     s = sim.settings
+    scene.mesh.can_collide, scene.outer_faces = base, None
     if s.crease_ring < 0 or not sim.nb:  # off: the body as it is, every triangle collides
-        scene.mesh.can_collide, scene.outer_faces = base, None
         return 0, 0
     faces = sim._body_faces
     cloth = X_start[:n]
-    # only the body within reach of the cloth in this step can matter
-    from scipy.spatial import cKDTree
-
     B0, B1 = X_start[n:], X_goal[n:]
-    reach = np.linalg.norm(B1 - B0, axis=1) + s.follow_body + 2 * s.dhat
-    tree = cKDTree(cloth)
-    d0, _ = tree.query(B0, distance_upper_bound=float(reach.max()))
-    near = d0 <= reach
     buried0 = buried1 = np.zeros(sim.nb, bool)
+    near = np.zeros(sim.nb, bool)
+    if sim.crease_on:
+        # only the body within reach of the cloth in this step can matter
+        from scipy.spatial import cKDTree
+
+        reach = np.linalg.norm(B1 - B0, axis=1) + s.follow_body + 2 * s.dhat
+        d0, _ = cKDTree(cloth).query(B0, distance_upper_bound=float(reach.max()))
+        near = d0 <= reach
     if np.any(near):
         buried0, buried1 = buried_vertices(B0, faces, near), buried_vertices(B1, faces, near)
     buried = buried0 | buried1
@@ -204,9 +214,7 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
         released = np.flatnonzero(grow(inside, sim.topo.faces, RELEASE_RING) & free)
     elif pull in sim.terms:
         sim.terms.remove(pull)
-    if not len(hidden_body) and not len(released):
-        scene.mesh.can_collide = base
-    else:
+    if len(hidden_body) or len(released):
         scene.mesh.can_collide = base & outer_filter(n, sim.nb, np.r_[released, n + hidden_body])
     return int(buried.sum()), len(released)
 

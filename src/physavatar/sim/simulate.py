@@ -28,6 +28,7 @@ from ..files import load_npz, save_npz_atomic
 from ..progress import ProgressLike, resolve
 from .material import Material
 from .settings import SimSettings
+from .crease import recheck
 from .solver import ClothSim
 
 
@@ -242,32 +243,38 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         sim.set_state(resume.solver)
     out[start - 1] = x
     stuck = bool(resume is not None and resume.solver.get("stuck", False))
+    # the body's own creases (sim.crease): on only for an attempt after one that lagged without
+    # it, so a frame that does not pinch is simulated as before
     with resolve(progress).task("simulating", total=T - start, log_every=5) as task:
         for f in range(start, T):
             t0 = time.perf_counter()
             tb0, tb1 = targets(f - 1), targets(f)
             n, move = substep_count(bodies[f - 1], bodies[f], x, settings, substeps, max_substeps)
             saved = (x, v, sim.get_state())
-            attempts = 0
+            attempts, crease = 0, False
             while True:
                 attempts += 1
                 # an attempt that a retry in shorter steps would follow ends at its first lagging
                 # step (no change: a lagged attempt is retried) and gives up a stalled penalty
                 # phase early (ClothSim.stall_exit; the last attempt keeps the full budget)
-                last = n >= max_substeps or stuck
+                last = (n >= max_substeps or stuck) and (crease or settings.crease_ring < 0)
                 sim.stall_exit = not last
+                sim.crease_on = crease
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
                                            stop_on_lag=not last)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
                 # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
                 # the body's pose) is not undone by shorter steps: no retries until a frame passes
-                if n >= max_substeps or not lagged or stuck:
+                if not lagged or last:
                     stuck = lagged and (stuck or n >= max_substeps)
                     break
-                # the body could not reach its pose: the frame again, from its start, in shorter steps
-                n = min(2 * n, max_substeps)
+                if not crease and settings.crease_ring >= 0:  # a pinch: again with the outer surface only
+                    crease = True
+                else:  # the body could not reach its pose: the frame again, in shorter steps
+                    n = min(2 * n, max_substeps)
                 x, v = saved[0], saved[1]
                 sim.set_state(saved[2])
+                recheck(sim)  # (cloth inside the body at the frame's start is found again)
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
             if on_frame is not None:
