@@ -85,6 +85,21 @@ def recheck(sim):
     sim._crease_check = True
 
 
+def body_creases(s, body0, body1, faces, cloth) -> bool:
+    """Whether the body passes through itself within reach of the cloth at the start or the end
+    of a frame (body0 → body1 [Nb, 3], faces [Fb, 3], cloth [N, 3]; ``s``: SimSettings): whether the outer-surface rule would
+    leave anything out (sim.simulate retries a frame that lagged with it only then)."""
+    from scipy.spatial import cKDTree
+
+    if s.crease_ring < 0 or body0 is None or not len(body0):
+        return False
+    B0, B1 = np.asarray(body0, np.float64), np.asarray(body1, np.float64)
+    reach = np.linalg.norm(B1 - B0, axis=1) + s.follow_body + 2 * s.dhat
+    d0, _ = cKDTree(np.asarray(cloth, np.float64)).query(B0, distance_upper_bound=float(reach.max()))
+    near = d0 <= reach
+    return bool(near.any() and (buried_vertices(B0, faces, near).any() or buried_vertices(B1, faces, near).any()))
+
+
 def winding_numbers(points, vertices, faces, vertex_ids=None) -> np.ndarray:
     """Generalised winding number of the mesh (vertices [V, 3], faces [F, 3]) at points [M, 3]
     (serial numba loop; a point that is mesh vertex ``vertex_ids[i]`` leaves out its own

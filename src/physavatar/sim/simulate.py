@@ -28,7 +28,7 @@ from ..files import load_npz, save_npz_atomic
 from ..progress import ProgressLike, resolve
 from .material import Material
 from .settings import SimSettings
-from .crease import recheck
+from .crease import body_creases, recheck
 from .solver import ClothSim
 
 
@@ -251,13 +251,15 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             tb0, tb1 = targets(f - 1), targets(f)
             n, move = substep_count(bodies[f - 1], bodies[f], x, settings, substeps, max_substeps)
             saved = (x, v, sim.get_state())
-            attempts, crease = 0, False
+            attempts, crease, creasable = 0, False, settings.crease_ring >= 0 and None
             while True:
                 attempts += 1
                 # an attempt that a retry in shorter steps would follow ends at its first lagging
                 # step (no change: a lagged attempt is retried) and gives up a stalled penalty
                 # phase early (ClothSim.stall_exit; the last attempt keeps the full budget)
-                last = (n >= max_substeps or stuck) and (crease or settings.crease_ring < 0)
+                if creasable is None and (n >= max_substeps or stuck):
+                    creasable = body_creases(sim.settings, bodies[f - 1], bodies[f], collider_faces, saved[0])
+                last = (n >= max_substeps or stuck) and (crease or not creasable)
                 sim.stall_exit = not last
                 sim.crease_on = crease
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
@@ -268,8 +270,10 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 if not lagged or last:
                     stuck = lagged and (stuck or n >= max_substeps)
                     break
-                if not crease and settings.crease_ring >= 0:  # a pinch: again with the outer surface only
-                    crease = True
+                if creasable is None:
+                    creasable = body_creases(sim.settings, bodies[f - 1], bodies[f], collider_faces, saved[0])
+                if not crease and creasable:  # a pinch where the body passes through itself:
+                    crease = True  # again, with the body's outer surface only (sim.crease)
                 else:  # the body could not reach its pose: the frame again, in shorter steps
                     n = min(2 * n, max_substeps)
                 x, v = saved[0], saved[1]
