@@ -16,14 +16,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-from physavatar.stages import simulate as S
-from physavatar.sim import SimSettings
-from physavatar.sim.simulate import Checkpoint
-from physavatar.garment_sim import simulate_on_body
+
 from physavatar.data.material import resolve_material
+from physavatar.garment_sim import simulate_on_body
+from physavatar.sim import SimSettings
 from physavatar.sim.contact import ContactScene
 from physavatar.sim.crease import buried_vertices, winding_numbers
-import ipctk
+from physavatar.sim.simulate import Checkpoint
+from physavatar.stages import simulate as S
 
 clip, f0, f1, ring, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 src = os.environ.get("CLIP_RUNS", "/tmp/w18clip-full") + f"/{clip}"
@@ -54,7 +54,7 @@ def on_frame(c, r):
     r["buried_body_vertices"] = int(bur.sum())
     rows.append(r); print(json.dumps(r), flush=True)
     np.save(out.replace(".json", f"_x{c.frame}.npy"), c.x)
-    json.dump({"clip": clip, "crease_ring": ring, "rows": rows}, open(out, "w"), indent=1)
+    Path(out).write_text(json.dumps({"clip": clip, "crease_ring": ring, "rows": rows}, indent=1))
 t = time.time()
 simulate_on_body(part, bodies[:T], bf, mat, 25.0, settings=ss, substeps=1, max_substeps=16, resume=ck, on_frame=on_frame)
 print("total", time.time() - t)

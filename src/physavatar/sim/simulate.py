@@ -26,9 +26,9 @@ import numpy as np
 
 from ..files import load_npz, save_npz_atomic
 from ..progress import ProgressLike, resolve
+from .crease import body_creases, recheck
 from .material import Material
 from .settings import SimSettings
-from .crease import body_creases, recheck
 from .solver import ClothSim
 
 
