@@ -86,6 +86,12 @@ class SimSettings:
             the distance; doubled while the cloth cannot be carried along), the rest reach
             their pose (sim.lag.confine_lag); 0 = the whole body lags. Changes nothing in a step
             that does not give up.
+        crease_ring: the cloth collides with the body's outer surface only: body vertices
+            inside another part of the body at a step's start or end (its own creases, where
+            Anny's collider passes through itself: groin, back of the knee), grown by this many
+            rings, are left out of cloth–body contact for that step, and cloth vertices inside
+            the body at its start are released (sim.crease.outer_surface). 1: every triangle
+            with a buried corner goes; 0: only triangles with all corners buried; -1: off.
         gravity: [3] m/s².
     """
 
@@ -122,6 +128,7 @@ class SimSettings:
     ccd_threads: int = 1
     max_body_move: float = 0.08
     lag_radius: float = 0.05
+    crease_ring: int = 1
     gravity: tuple = (0.0, 0.0, -9.81)
 
 
@@ -139,6 +146,8 @@ class StepStats:
     body_lagged: bool = False  # the step started from where the last step's body got to
     lag_vertices: int = 0  # prescribed vertices (body, attached cloth) short of their pose
     lag_radius: float = 0.0  # [m] the lag was confined to this distance of the pinch (sim.lag); 0: not
+    buried_vertices: int = 0  # body vertices inside another body part, left out of contact (sim.crease)
+    released_vertices: int = 0  # cloth vertices inside the body at the start, released (sim.crease)
     barrier_stiffness: float = 0.0
     min_distance: float = float("inf")  # closest cloth–body (or cloth–cloth) distance [m]
     n_contacts: int = 0

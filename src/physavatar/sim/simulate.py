@@ -26,6 +26,7 @@ import numpy as np
 
 from ..files import load_npz, save_npz_atomic
 from ..progress import ProgressLike, resolve
+from .crease import body_creases, recheck
 from .material import Material
 from .settings import SimSettings
 from .solver import ClothSim
@@ -165,7 +166,11 @@ def frame_report(frame: int, stats: list, substeps: int, attempts: int, seconds:
             "newton_iterations": int(sum(s.newton_iterations for s in stats)),
             "contacts": int(stats[-1].n_contacts) if stats else 0,
             "lag_m": float(gap), "lagged": bool(gap > 0),
-            "lag_vertices": int(max((s.lag_vertices for s in stats), default=0)), "body_move_m": round(float(move), 5),
+            "lag_vertices": int(max((s.lag_vertices for s in stats), default=0)),
+            # the body's own creases (sim.crease): body vertices left out of contact, cloth released
+            "buried_vertices": int(max((s.buried_vertices for s in stats), default=0)),
+            "released_vertices": int(max((s.released_vertices for s in stats), default=0)),
+            "body_move_m": round(float(move), 5),
             "seconds": round(float(seconds), 3)}
 
 
@@ -238,32 +243,42 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         sim.set_state(resume.solver)
     out[start - 1] = x
     stuck = bool(resume is not None and resume.solver.get("stuck", False))
+    # the body's own creases (sim.crease): on only for an attempt after one that lagged without
+    # it, so a frame that does not pinch is simulated as before
     with resolve(progress).task("simulating", total=T - start, log_every=5) as task:
         for f in range(start, T):
             t0 = time.perf_counter()
             tb0, tb1 = targets(f - 1), targets(f)
             n, move = substep_count(bodies[f - 1], bodies[f], x, settings, substeps, max_substeps)
             saved = (x, v, sim.get_state())
-            attempts = 0
+            attempts, crease, creasable = 0, False, settings.crease_ring >= 0 and None
             while True:
                 attempts += 1
                 # an attempt that a retry in shorter steps would follow ends at its first lagging
                 # step (no change: a lagged attempt is retried) and gives up a stalled penalty
                 # phase early (ClothSim.stall_exit; the last attempt keeps the full budget)
-                last = n >= max_substeps or stuck
+                if creasable is None and (n >= max_substeps or stuck):
+                    creasable = body_creases(sim.settings, bodies[f - 1], bodies[f], collider_faces, saved[0])
+                last = (n >= max_substeps or stuck) and (crease or not creasable)
                 sim.stall_exit = not last
+                sim.crease_on = crease
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
                                            stop_on_lag=not last)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
                 # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
                 # the body's pose) is not undone by shorter steps: no retries until a frame passes
-                if n >= max_substeps or not lagged or stuck:
+                if not lagged or last:
                     stuck = lagged and (stuck or n >= max_substeps)
                     break
-                # the body could not reach its pose: the frame again, from its start, in shorter steps
-                n = min(2 * n, max_substeps)
+                if creasable is None:
+                    creasable = body_creases(sim.settings, bodies[f - 1], bodies[f], collider_faces, saved[0])
+                if not crease and creasable:  # a pinch where the body passes through itself:
+                    crease = True  # again, with the body's outer surface only (sim.crease)
+                else:  # the body could not reach its pose: the frame again, in shorter steps
+                    n = min(2 * n, max_substeps)
                 x, v = saved[0], saved[1]
                 sim.set_state(saved[2])
+                recheck(sim)  # (cloth inside the body at the frame's start is found again)
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
             if on_frame is not None:

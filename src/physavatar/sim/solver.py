@@ -33,6 +33,7 @@ import numpy as np
 
 from .assembly import Assembler, Linearization, NewtonLinearSolver
 from .contact import Barrier, Friction, KinematicPenalty
+from .crease import outer_surface
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
 from .kappa import adapt_stiffness, initial_stiffness
 from .lag import confine_lag
@@ -83,6 +84,7 @@ class ClothSim:
 
     predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
     stall_exit, stall_window, stall_progress = False, 8, 0.1  # give up a penalty phase: gap -10 % in 8 (simulate)
+    crease_on = True  # cloth collides with the body's outer surface only (crease.py; simulate: after a lag)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
                  boundary_indices=(), extra_terms=(), contact_exclude=None):
@@ -271,6 +273,8 @@ class ClothSim:
         v = np.asarray(v, dtype=np.float64)
         state, x_pred = self._begin_step(x, v, collider_vertices_t, collider_vertices_t1, collider_faces,
                                          boundary_targets, history, stats)
+        free = self.inertia.unit_mass[: self.n] > 0  # the body's own creases (crease.py)
+        stats.buried_vertices, stats.released_vertices = outer_surface(self, state.x_prev, state.x_goal, free)
         solve = self._start(state, x, x_pred, stats)
         self._newton(solve, stats)
         # (not in an attempt that simulate retries in shorter steps if it lags: stall_exit)

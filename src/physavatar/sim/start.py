@@ -116,7 +116,8 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
     x = X_from[:n][free]
     x_end = x if x_pred is None else x_pred[free]
     tq = time.perf_counter()
-    carry = SurfaceCarry(b0, body_faces, x)
+    outer = getattr(scene, "outer_faces", None)  # this step's collision surface (crease.outer_surface)
+    carry = SurfaceCarry(b0, body_faces if outer is None else outer, x)
     weight = np.clip(2.0 - carry.distance / s.follow_body, 0.0, 1.0)[:, None]
     gap = np.full(n, np.inf)  # per cloth vertex: the closest active contact it is part of
     scene.prepare_static(X_from)

@@ -1,0 +1,339 @@
+"""The body's own creases: cloth collides with the body's outer surface only.
+
+Anny's collider passes through itself where two of its parts press together (the groin on the
+CMU walk, the back of the knee on the hop, the armpits and fingers at rest): a belly triangle
+and a thigh triangle cross. Cloth between two such parts is caught in a wedge that closes to
+nothing, no intersection-free cloth position has the body at its pose, and the step gives up
+(the body lags, sim.lag). The body's real surface there is the *union* of its parts: a triangle
+that lies inside the body is not surface at all.
+
+So, per step (:func:`outer_surface`, called by ``ClothSim.step`` before the step's start) while
+``ClothSim.crease_on`` (True for a sim stepped directly; ``sim.simulate`` turns it on only for
+the attempts after one of the frame lagged without it: a frame that does not pinch is simulated
+as before):
+
+- a body vertex is *buried* when it lies inside the body mesh at the step's start or at its end:
+  the generalised winding number of the body mesh at the vertex (Jacobson et al. 2013; its own
+  incident triangles subtend no solid angle, the rest of its own part about ½) is above 1, i.e.
+  another part encloses it. The buried set is grown by one ring (``SimSettings.crease_ring``), so
+  that every triangle with a buried corner has all three corners buried: ipctk skips a primitive
+  pair only when every pair of its vertices is filtered, so a triangle that straddles the
+  intersection curve (the wedge's sides) goes only when all its corners do;
+- a free cloth vertex is *released* when it lies inside the body at the step's start (winding
+  number of the body mesh above ½): cloth that an earlier step left inside a part (it crossed a
+  triangle that was buried then) moves out under its own elasticity and gravity, unhindered by
+  the triangles it is behind;
+- contact leaves out every cloth–body vertex pair with a buried body vertex or a released cloth
+  vertex (an ipctk CollisionFilter composed with the scene's own, in C++). Cloth–cloth contact is
+  unchanged.
+
+A step without buried body vertices near the cloth or released cloth vertices keeps the scene's
+own filter object: on a body that does not pass through itself near the cloth the simulation is
+bit-identical. The step stays intersection-free (CCD) against every pair it does collide with;
+the body's buried triangles are inside the body, so cloth crossing them does not show.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import ipctk
+import numpy as np
+
+from .terms import Diagonal, Term
+
+BURIED = 1.0  # winding number above which a body vertex is inside another part (its own: ~0.5)
+INSIDE = 0.5  # above which a cloth vertex is inside the body
+RELEASE_RING = 0  # rings of cloth around a released vertex released with it (no pull)
+
+
+@lru_cache(maxsize=1)
+def _kernel():
+    import numba
+
+    @numba.njit(cache=True, fastmath=False)
+    def kernel(p, tri, skip_vertex, faces):  # pragma: no cover - compiled
+        # winding number of the triangles at each point; a point that is vertex k of the mesh
+        # (skip_vertex[i] = k ≥ 0) leaves out the triangles incident to it (no solid angle anyway)
+        out = np.empty(p.shape[0])
+        for i in range(p.shape[0]):
+            px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+            k = skip_vertex[i]
+            total = 0.0
+            for f in range(tri.shape[0]):
+                if k >= 0 and (faces[f, 0] == k or faces[f, 1] == k or faces[f, 2] == k):
+                    continue
+                ax, ay, az = tri[f, 0, 0] - px, tri[f, 0, 1] - py, tri[f, 0, 2] - pz
+                bx, by, bz = tri[f, 1, 0] - px, tri[f, 1, 1] - py, tri[f, 1, 2] - pz
+                cx, cy, cz = tri[f, 2, 0] - px, tri[f, 2, 1] - py, tri[f, 2, 2] - pz
+                la = np.sqrt(ax * ax + ay * ay + az * az)
+                lb = np.sqrt(bx * bx + by * by + bz * bz)
+                lc = np.sqrt(cx * cx + cy * cy + cz * cz)
+                det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+                den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
+                       + (bx * cx + by * cy + bz * cz) * la + (cx * ax + cy * ay + cz * az) * lb)
+                total += np.arctan2(det, den)
+            out[i] = total / (2.0 * np.pi)
+        return out
+
+    return kernel
+
+
+def recheck(sim):
+    """Check the cloth for vertices inside the body at the next step's start, whatever the last
+    step found (after ``ClothSim.set_state`` took the sim back to an earlier state)."""
+    sim._crease_check = True
+
+
+def body_creases(s, body0, body1, faces, cloth) -> bool:
+    """Whether the body passes through itself within reach of the cloth at the start or the end
+    of a frame (body0 → body1 [Nb, 3], faces [Fb, 3], cloth [N, 3]; ``s``: SimSettings): whether the outer-surface rule would
+    leave anything out (sim.simulate retries a frame that lagged with it only then)."""
+    from scipy.spatial import cKDTree
+
+    if s.crease_ring < 0 or body0 is None or not len(body0):
+        return False
+    B0, B1 = np.asarray(body0, np.float64), np.asarray(body1, np.float64)
+    reach = np.linalg.norm(B1 - B0, axis=1) + s.follow_body + 2 * s.dhat
+    d0, _ = cKDTree(np.asarray(cloth, np.float64)).query(B0, distance_upper_bound=float(reach.max()))
+    near = d0 <= reach
+    return bool(near.any() and (buried_vertices(B0, faces, near).any() or buried_vertices(B1, faces, near).any()))
+
+
+def winding_numbers(points, vertices, faces, vertex_ids=None) -> np.ndarray:
+    """Generalised winding number of the mesh (vertices [V, 3], faces [F, 3]) at points [M, 3]
+    (serial numba loop; a point that is mesh vertex ``vertex_ids[i]`` leaves out its own
+    triangles). 1 inside a closed outward-oriented mesh, 0 outside, 2 where two parts overlap."""
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    F = np.ascontiguousarray(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
+    tri = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64)[F])
+    skip = np.full(len(p), -1, np.int64) if vertex_ids is None else np.asarray(vertex_ids, np.int64)
+    if not len(p) or not len(F):
+        return np.zeros(len(p))
+    return _kernel()(p, tri, skip, F)
+
+
+def buried_vertices(vertices, faces, near=None, seeds=None) -> np.ndarray:
+    """bool [V]: the body vertices inside another part of the body (winding number > BURIED),
+    among those ``near`` (bool [V]; default all). With ``seeds`` (bool [V]) only the seeds are
+    tested, and then, ring by ring, the neighbours of every vertex found buried (a buried region
+    is bounded by the curve where the parts cross, next to which the seeds must lie)."""
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    near = np.ones(len(V), bool) if near is None else np.asarray(near, bool)
+    out = np.zeros(len(V), bool)
+    test = near.copy() if seeds is None else (near & seeds)
+    done = np.zeros(len(V), bool)
+    while test.any():
+        ids = np.flatnonzero(test)
+        done[ids] = True
+        out[ids] = winding_numbers(V[ids], V, F, ids) > BURIED
+        if seeds is None:
+            break
+        ring = np.zeros(len(V), bool)
+        hit = out[F].any(axis=1)
+        ring[F[hit].ravel()] = True
+        test = ring & near & ~done
+    return out
+
+
+def grow(mask, faces, rings: int) -> np.ndarray:
+    """``mask`` grown by ``rings`` rings of the mesh ``faces``: a vertex joins when one of its
+    triangles has a vertex in the mask."""
+    F = np.asarray(faces, dtype=np.int64)
+    out = np.asarray(mask, bool).copy()
+    for _ in range(rings):
+        hit = out[F].any(axis=1)
+        out[F[hit].ravel()] = True
+    return out
+
+
+def outer_filter(n_cloth: int, n_body: int, hidden) -> ipctk.CollisionFilter:
+    """ipctk filter rejecting every cloth–body vertex pair with a vertex in ``hidden`` (stacked
+    ids [cloth; body]), allowing the rest (cloth–cloth and body–body pairs included)."""
+    side = np.r_[np.zeros(n_cloth), np.ones(n_body)].astype(np.int32)
+    cross = ipctk.make_vertex_patches_filter(side)  # one cloth and one body vertex
+    patch = np.zeros(n_cloth + n_body, np.int32)
+    hidden = np.asarray(hidden, dtype=np.int64)
+    patch[hidden] = np.arange(1, len(hidden) + 1)
+    either = ipctk.make_vertex_patches_filter(patch)  # at least one of the two is hidden
+    return ~(cross & either)
+
+
+def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
+    """Set the scene's contact filter for one step (module docstring): (buried body vertices,
+    released cloth vertices). ``X_start``, ``X_goal``: the stacked [cloth; body] positions at the
+    step's start and the prescribed ones at its end; ``free``: bool [N], the free cloth vertices."""
+    scene, n = sim.scene, sim.n
+    base = getattr(scene, "base_filter", None)
+    if base is None:
+        base = scene.base_filter = scene.mesh.can_collide
+    s = sim.settings
+    scene.mesh.can_collide, scene.outer_faces = base, None
+    if s.crease_ring < 0 or not sim.nb:  # off: the body as it is, every triangle collides
+        return 0, 0
+    faces = sim._body_faces
+    cloth = X_start[:n]
+    B0, B1 = X_start[n:], X_goal[n:]
+    buried0 = buried1 = np.zeros(sim.nb, bool)
+    near = np.zeros(sim.nb, bool)
+    if sim.crease_on:
+        # only the body within reach of the cloth in this step can matter
+        from scipy.spatial import cKDTree
+
+        reach = np.linalg.norm(B1 - B0, axis=1) + s.follow_body + 2 * s.dhat
+        d0, _ = cKDTree(cloth).query(B0, distance_upper_bound=float(reach.max()))
+        near = d0 <= reach
+    if np.any(near):
+        buried0, buried1 = buried_vertices(B0, faces, near), buried_vertices(B1, faces, near)
+    buried = buried0 | buried1
+    hidden_body = np.flatnonzero(grow(buried, faces, s.crease_ring)) if buried.any() else np.zeros(0, np.int64)
+    F = np.asarray(faces, np.int64)
+    # the body's collision surface this step: its triangles without a hidden corner (follow_body
+    # carries cloth with these only)
+    scene.outer_faces = F[~np.isin(F, hidden_body).any(axis=1)] if len(hidden_body) else None
+    # released: free cloth inside the body at the start
+    # (only while a crease is near or the last step released cloth: otherwise the last step
+    # collided with the whole surface from a start outside it, and no cloth can be inside; a
+    # new sim checks once, so a resumed run is the same)
+    inside = crossing = np.zeros(n, bool)
+    ids = np.flatnonzero(free)
+    if len(ids) and (getattr(sim, "_crease_check", True) or len(hidden_body)):
+        inside[ids] = winding_numbers(cloth[ids], B0, faces) > INSIDE
+    lift = None
+    if len(ids) and (getattr(sim, "_crease_check", True) or len(hidden_body)):
+        # and the cloth that crosses the body's outer surface with its corners outside (a body
+        # edge through a cloth triangle, a cloth edge through a body triangle between its
+        # corners): lifted above the crossing
+        outer = F if scene.outer_faces is None else scene.outer_faces
+        lift = crossing_cloth(cloth, sim.topo.faces, B0, outer, s.dhat)
+        crossing = np.all(np.isfinite(lift), axis=1) & free & ~inside
+        inside = inside | crossing
+    released = np.flatnonzero(inside)
+    sim._crease_check = bool(len(hidden_body) or len(released))
+    pull = _release_term(sim)
+    if len(released):
+        # pulled out to the outer surface at the step's end; their one-ring is released from the
+        # body too (an edge from a vertex inside to one outside crosses the body surface: its
+        # edge–edge pairs with body edges would stop the vertex at the first body edge)
+        # (the outer surface at the end: without the triangles buried there)
+        at_end = np.flatnonzero(grow(buried1, faces, s.crease_ring)) if buried1.any() else np.zeros(0, np.int64)
+        target = np.empty((len(released), 3))
+        deep = ~crossing[released]
+        target[deep] = _outside_targets(cloth[released[deep]], B1, faces, at_end, s.dhat)
+        target[~deep] = lift[released[~deep]]
+        pull.set(released, target,
+                 sim.inertia.unit_mass[released] * sim.material.density / sim.h_implicit**2)
+        if pull not in sim.terms:
+            sim.terms.append(pull)
+        released = np.flatnonzero(grow(inside, sim.topo.faces, RELEASE_RING) & free)
+    elif pull in sim.terms:
+        sim.terms.remove(pull)
+    if len(hidden_body) or len(released):
+        scene.mesh.can_collide = base & outer_filter(n, sim.nb, np.r_[released, n + hidden_body])
+    return int(buried.sum()), len(released)
+
+
+RELEASE_PULL = 1e3  # the pull's weight on a released cloth vertex, × its mass / h² (the inertia's)
+
+
+class ReleasePull(Term):
+    """(w_i/2) Σ ‖x_i − t_i‖² over the released cloth vertices (inside the body at the step's
+    start): pulls each to ``t_i``, 2 d̂ outside the closest point of the body's outer surface.
+    The body cannot push them out (they are released from its contact), so this does, as a
+    soft penalty (w_i = RELEASE_PULL × m_i / h²); in the solver's terms only while there are any."""
+
+    parameter = "density"
+
+    def __init__(self, n_total: int):
+        self.n_total = n_total
+        self.ids = np.zeros(0, np.int64)
+        self.target = np.zeros((0, 3))
+        self.weight = np.zeros(0)
+
+    def set(self, ids, target, mass_over_h2):
+        self.ids, self.target = np.asarray(ids, np.int64), np.asarray(target, np.float64)
+        self.weight = RELEASE_PULL * np.asarray(mass_over_h2, np.float64)
+
+    def energy(self, X):
+        d = X[self.ids] - self.target
+        return 0.5 * float(np.sum(self.weight[:, None] * d * d))
+
+    def gradient(self, X):
+        out = np.zeros((self.n_total, 3))
+        out[self.ids] = self.weight[:, None] * (X[self.ids] - self.target)
+        return out.ravel()
+
+    def hessian(self, X, project=True):
+        diag = np.zeros((self.n_total, 3))
+        diag[self.ids] = self.weight[:, None]
+        return Diagonal(diag.ravel())
+
+
+def _release_term(sim) -> ReleasePull:
+    n_total = sim.n + sim.nb
+    term = getattr(sim, "_release_pull", None)
+    if term is None or term.n_total != n_total:
+        if term is not None and term in sim.terms:
+            sim.terms.remove(term)
+        term = sim._release_pull = ReleasePull(n_total)
+    return term
+
+
+def _outside_targets(points, body, faces, hidden, dhat):
+    """2 d̂ outside the closest point of the body's outer surface (its triangles without a
+    hidden corner) to each point (geometry.MeshQuery), along that triangle's normal."""
+    from ..geometry.closest import MeshQuery
+
+    F = np.asarray(faces, np.int64)
+    keep = np.ones(len(body), bool)
+    keep[hidden] = False
+    F = F[keep[F].all(axis=1)]
+    _, face, _, q = MeshQuery(body, F, spacing=0.02).closest(points)
+    tri = np.asarray(body)[F[face]]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+    return q + 2.0 * dhat * nrm
+
+
+def crossing_cloth(cloth, cloth_faces, body, body_faces, dhat) -> np.ndarray:
+    """[N, 3]: per cloth vertex, where it must go so that the cloth no longer crosses the body's
+    surface with its corners outside (NaN: nowhere). ipctk's broad phase on the two meshes
+    stacked, then its exact edge–triangle test: a cloth edge through a body triangle, a body
+    edge through a cloth triangle. At a crossing point p with the body's outward normal there
+    (the triangle's, or the mean of the edge's two triangles') each vertex of the cloth
+    primitive that lies below 2 d̂ above p's tangent plane is lifted to 2 d̂ above it."""
+    n = len(cloth)
+    X = np.vstack([cloth, body])
+    Fc = np.asarray(cloth_faces, np.int32)
+    Fb = np.asarray(body_faces, np.int32) + n
+    tri = X[Fb]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
+    out = np.full((n, 3), np.nan)
+    Eb = np.asarray(ipctk.edges(Fb), np.int32)
+    # each body edge's outward normal: the mean of its two triangles'
+    edge_of = {tuple(sorted(e)): k for k, e in enumerate(Eb.tolist())}
+    en = np.zeros((len(Eb), 3))
+    for f, t in enumerate(Fb.tolist()):
+        for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
+            en[edge_of[(min(a, b), max(a, b))]] += fn[f]
+    en /= np.maximum(np.linalg.norm(en, axis=1, keepdims=True), 1e-30)
+    for cloth_edges, E, F in ((True, np.asarray(ipctk.edges(Fc), np.int32), Fb), (False, Eb, Fc)):
+        bp = ipctk.LBVH()
+        bp.build(X, E, F, 0.0)
+        for c in bp.detect_edge_face_candidates():
+            e, f = E[c.edge_id], F[c.face_id]
+            a, b, t0, t1, t2 = X[e[0]], X[e[1]], X[f[0]], X[f[1]], X[f[2]]
+            if not ipctk.is_edge_intersecting_triangle(a, b, t0, t1, t2):
+                continue
+            normal = fn[c.face_id] if cloth_edges else en[c.edge_id]
+            tn = np.cross(t1 - t0, t2 - t0)
+            s_ = float(np.dot(t0 - a, tn) / np.dot(b - a, tn))  # the crossing point a + s (b − a)
+            p = a + s_ * (b - a)
+            for i in ((e[0], e[1]) if cloth_edges else (f[0], f[1], f[2])):
+                x = out[i] if np.all(np.isfinite(out[i])) else X[i]
+                depth = 2.0 * dhat - float(np.dot(x - p, normal))
+                if depth > 0:
+                    out[i] = x + depth * normal
+    return out

@@ -1,0 +1,98 @@
+"""The body's own creases (sim.crease): cloth collides with the body's outer surface only."""
+
+import cloth_grid
+import ipctk
+import numpy as np
+import trimesh
+
+from physavatar.sim import ClothSim, Material, SimSettings, simulate
+from physavatar.sim.crease import buried_vertices, winding_numbers
+
+
+def box(center, extents=(0.3, 0.3, 0.2), subdivisions=3):
+    """A closed, outward-oriented box (trimesh), subdivided so that its faces are ~2-4 cm."""
+    m = trimesh.creation.box(extents=extents)
+    V, F = m.vertices, m.faces
+    for _ in range(subdivisions):
+        V, F = trimesh.remesh.subdivide(V, F)
+    return np.asarray(V) + center, np.asarray(F)
+
+
+def two_parts(dz):
+    """Part A (0.3 m square, top face at z = 0) and part B (0.3 × 0.2 m, bottom face at
+    z = 0.01 + dz), B shifted 0.18 m in x: where they overlap (0.03 < x < 0.15) B's bottom passes
+    into A once dz < -0.01. One mesh."""
+    VA, FA = box([0.0, 0.0, -0.1])
+    VB, FB = box([0.18, 0.0, 0.11 + dz], (0.3, 0.2, 0.2))
+    return np.vstack([VA, VB]), np.vstack([FA, FB + len(VA)])
+
+
+def test_winding_numbers_find_the_vertices_one_part_buries_in_the_other():
+    B, F = two_parts(-0.03)  # B's bottom 2 cm into A
+    w = winding_numbers(B, B, F, np.arange(len(B)))
+    buried = buried_vertices(B, F)
+    n = len(B) // 2
+    inside_a = (B[n:, 2] < 0.0) & (B[n:, 0] < 0.15)  # B's vertices inside A
+    inside_b = (B[:n, 2] > -0.02) & (B[:n, 0] > 0.03) & (np.abs(B[:n, 1]) < 0.1)  # A's inside B
+    assert inside_a.sum() > 10 and inside_b.sum() > 10
+    np.testing.assert_array_equal(buried, np.r_[inside_b, inside_a])
+    # a vertex's own part: its solid angle, 1/8 at a box corner, 1/2 on a face; another part adds 1
+    assert np.all((w[~buried] > 0.1) & (w[~buried] < 0.9)) and np.all((w[buried] > 1.1) & (w[buried] < 1.9))
+    # points: inside one part 1, inside both 2, outside 0
+    w = winding_numbers([[0.0, 0.0, -0.1], [0.1, 0.0, -0.005], [0.0, 0.0, 0.5]], B, F)
+    np.testing.assert_allclose(w, [1.0, 2.0, 0.0], atol=1e-9)
+
+
+def test_cloth_between_two_body_parts_that_close_is_not_pinched():
+    """A cloth lies between two parts of one body mesh that pass into each other (B's bottom
+    moves 2 cm down, 1 cm into A, over the cloth). With the outer-surface rule off
+    (crease_ring -1) the cloth is pinched: no room, the step gives up and the body lags. With it,
+    the triangles each part buries in the other are not collision surface: the body reaches its
+    pose, with no intersection against the surface the cloth collides with. (The cloth falls
+    into A there: A's top is inside B at the step's end.) When B lifts off again the cloth, left
+    inside A, is released and pulled out: within four steps no vertex is inside the body and
+    nothing crosses the whole body mesh."""
+    V, F = cloth_grid.grid(6, 0.08, 0.005, center=True)
+    V = V + [0.09, 0.0, 0.0]
+    B0, Fb = two_parts(0.0)
+    B1, _ = two_parts(-0.02)
+    B2, _ = two_parts(0.02)
+    gaps = {}
+    for ring in (-1, SimSettings().crease_ring):
+        sim = ClothSim(V, F, Material(), SimSettings(friction=0.0, crease_ring=ring), [])
+        x, v, st = sim.step(V, np.zeros_like(V), B0, B1, Fb)
+        gaps[ring] = st.body_gap
+        body = B1 if sim._body_lag is None else sim._body_lag[1]
+        assert not sim.scene.has_intersections(np.vstack([x, body]))  # the surface it collides with
+        if ring < 0:
+            continue
+        assert st.buried_vertices > 0 and st.body_gap == 0.0
+        x, v, st = sim.step(x, v, B1, B2, Fb)
+        assert st.released_vertices > 0 and st.body_gap == 0.0
+        for _ in range(3):
+            x, v, st = sim.step(x, v, B2, B2, Fb)
+        assert np.all(winding_numbers(x, B2, Fb) < 0.5)  # all of the cloth outside the body
+        mesh = ipctk.CollisionMesh(np.vstack([x, B2]), ipctk.edges(np.vstack([F, Fb + len(V)])),
+                                   np.vstack([F, Fb + len(V)]))
+        mesh.can_collide = ipctk.make_static_obstacle_filter(len(V))
+        assert not ipctk.has_intersections(mesh, np.vstack([x, B2]))
+    assert gaps[-1] > 5e-3 and gaps[SimSettings().crease_ring] == 0.0
+
+
+def test_simulate_retries_a_frame_that_lags_with_the_outer_surface_only():
+    """sim.simulate uses the rule only for a frame that lagged without it: the pinch of the test
+    above as a two-frame sequence lags with the rule off (crease_ring -1; one step a frame)
+    and not with it (a second attempt of one step, with the rule)."""
+    V, F = cloth_grid.grid(6, 0.08, 0.005, center=True)
+    V = V + [0.09, 0.0, 0.0]
+    B0, Fb = two_parts(0.0)
+    B1, _ = two_parts(-0.02)
+    reports = {}
+    for ring in (-1, 1):
+        rep = []
+        simulate(V, F, Material(), np.stack([B0, B1]), Fb, fps=25.0, max_substeps=1,
+                 settings=SimSettings(friction=0.0, crease_ring=ring), on_frame=lambda c, r, rep=rep: rep.append(r))
+        reports[ring] = rep[0]
+    assert reports[-1]["lagged"] and reports[-1]["buried_vertices"] == 0
+    assert not reports[1]["lagged"] and reports[1]["attempts"] == 2 and reports[1]["substeps"] == 1
+    assert reports[1]["buried_vertices"] > 0
