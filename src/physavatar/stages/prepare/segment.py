@@ -225,7 +225,7 @@ def graph_cut(cost_fg: np.ndarray, cost_bg: np.ndarray, edges: np.ndarray, weigh
 
 def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray,
             cameras: list, images: dict[str, np.ndarray], cfg: SegmentConfig, spacing: float,
-            colour_vertices: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+            colour_vertices: np.ndarray | None = None, photo: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """[V] labels (0 body, 1.. garment) of the first-frame mesh, and the numbers behind them.
     ``colour_vertices``: the same vertices where the images are sampled (a refined surface's),
     when not ``vertices``."""
@@ -237,7 +237,7 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
     # where the hull bulges out between limbs, the colour must be able to overrule it
     logit = np.clip(z, -cfg.distance_cap, cfg.distance_cap)
     colour, seen = vertex_colours(vertices if colour_vertices is None else colour_vertices, faces, cameras, images,
-                                  spacing)
+                                  cfg.visibility * spacing)
     g_seed, b_seed = (z > 2) & (seen > 0), (z < -2) & (seen > 0)
     info = {"distance_garment": int((z > 0).sum()), "colour_used": False}
     if cfg.colour_weight > 0 and g_seed.sum() >= 20 and b_seed.sum() >= 20:
@@ -263,6 +263,8 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
                 # only above the body: on it the body point is the vertex itself (colour decides)
                 logit = logit + cfg.under_weight * np.where(ok & (sd > cfg.margin), llr_u, 0.0)
                 info["under_body_votes"] = int(((llr_u < 0) & ok & (sd > cfg.margin)).sum())
+    if photo is not None and cfg.photo_weight > 0:
+        logit, info["photo"] = _photo_term(logit, photo, faces, cfg)
     N = vertex_normals(vertices, faces)
     # unseen and facing down: the hull closing a gap no camera looks into (a hem to the legs)
     bridge = (seen == 0) & (N[:, 2] < cfg.bridge_normal)
@@ -287,6 +289,28 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
         labels = _split_by_colour(labels, colour, faces, cfg.garments)
     info["garment_vertices"] = int((labels > 0).sum())
     return labels, info | {"signed_distance": sd, "colour": colour, "bridge_mask": bridge}
+
+
+def _photo_term(logit: np.ndarray, photo: np.ndarray, faces: np.ndarray, cfg: SegmentConfig) -> tuple[np.ndarray, dict]:
+    """``logit`` plus the log-likelihood ratio of each vertex's photo-consistency evidence (``photo``
+    [V]: 1 where the cameras agree on a textured surface point at the vertex, 0 where two or more
+    cameras see it and they do not, NaN where fewer see it: refine.photo_depths), the two rates
+    counted on the vertices the other terms already decide (``|logit| > 2``), with one pseudo-count
+    each way. A patterned garment is photo-consistent where it is; plain skin, and the empty space a
+    visual hull bridges over bare skin (between a dress's straps, under the arms), are not. For a
+    plain garment the two rates agree and the term vanishes."""
+    ok = np.isfinite(photo)
+    e = ok & (photo > 0.5)
+    for _ in range(cfg.photo_rings):  # evidence within this many rings: a strap's patches straddle its edges
+        e = ok & (e | (adjacency(faces, len(e)) @ e.astype(np.float64) > 0))
+    g, b = ok & (logit > 2), ok & (logit < -2)
+    info = {"evidence": int(e.sum()), "seen_by_two": int(ok.sum())}
+    if g.sum() < 20 or b.sum() < 20:
+        return logit, info
+    pg, pb = (e[g].sum() + 1) / (g.sum() + 2), (e[b].sum() + 1) / (b.sum() + 2)
+    llr = np.where(e, np.log(pg / pb), np.log((1 - pg) / (1 - pb)))
+    llr = cfg.photo_weight * np.clip(np.where(ok, llr, 0.0), -cfg.photo_cap, cfg.photo_cap)
+    return logit + llr, info | {"garment_rate": round(float(pg), 3), "body_rate": round(float(pb), 3)}
 
 
 def _components(mask: np.ndarray, faces: np.ndarray, n: int):
