@@ -104,7 +104,6 @@ class SegmentConfig:
     refined_footprint: float = setting(1.0)  # and at least this many pixel footprints
     distance_cap: float = setting(3.0)  # the distance term's log-odds are capped at this
     bridge_normal: float = setting(-0.8)  # unseen vertices facing further down than this are body (hull bridges)
-    visibility: float = setting(0.5)  # z-buffer splat radius (depth tolerance: twice it) in edge lengths
     colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term
     under_weight: float = setting(1.0)  # weight of the cameras' agreement on the body under a vertex (bare skin)
     under_cap: float = setting(1.5)  # and its log-odds cap

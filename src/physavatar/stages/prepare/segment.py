@@ -237,7 +237,7 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
     # where the hull bulges out between limbs, the colour must be able to overrule it
     logit = np.clip(z, -cfg.distance_cap, cfg.distance_cap)
     colour, seen = vertex_colours(vertices if colour_vertices is None else colour_vertices, faces, cameras, images,
-                                  cfg.visibility * spacing)
+                                  spacing)
     g_seed, b_seed = (z > 2) & (seen > 0), (z < -2) & (seen > 0)
     info = {"distance_garment": int((z > 0).sum()), "colour_used": False}
     if cfg.colour_weight > 0 and g_seed.sum() >= 20 and b_seed.sum() >= 20:
