@@ -421,7 +421,7 @@ def user_labels(path: Path, vertices: np.ndarray, source: tuple[np.ndarray, np.n
 
 def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, body_vertices: np.ndarray,
                    body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05,
-                   exclude: np.ndarray | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
+                   exclude: np.ndarray | None = None, cut_outline: bool = True) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """[(label, vertices [n, 3], faces [m, 3])] one open surface per garment label: the faces
     at least two of whose corners carry it (a strap one or two vertices wide stays joined; a
     vertex of another label between two separate parts of it joins them, :func:`join_parts`) and
@@ -450,6 +450,8 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
             continue
         ids, F = _face_submesh(faces, keep)
         V = vertices[ids].copy()
+        if cut_outline:
+            V = _cut_outline(V, F, lab_g[ids])
         k, lab = _components(np.ones(len(V), bool), F, len(V))
         sizes = np.bincount(lab, minlength=k)
         big = sizes >= min_share * sizes.sum()
@@ -463,6 +465,25 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
         if problems:
             continue
         out.append((g, V, F))
+    return out
+
+
+def _cut_outline(V: np.ndarray, F: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """``V`` with each vertex of the piece not labelled garment (``~inner``: the third corner of a
+    face two of whose corners are) moved to the mean of the midpoints of its edges to garment
+    vertices: the label changes somewhere along those edges, so the cloth ends half way, not a
+    whole edge out on the skin."""
+    E = mesh_edges(F)
+    E = np.concatenate([E, E[:, ::-1]])
+    E = E[~inner[E[:, 0]] & inner[E[:, 1]]]
+    if not len(E):
+        return V
+    out = V.copy()
+    acc = np.zeros_like(V)
+    cnt = np.bincount(E[:, 0], minlength=len(V)).astype(np.float64)
+    np.add.at(acc, E[:, 0], 0.5 * (V[E[:, 0]] + V[E[:, 1]]))
+    m = cnt > 0
+    out[m] = acc[m] / cnt[m, None]
     return out
 
 
