@@ -96,3 +96,24 @@ def test_a_hull_bridge_over_bare_skin_without_evidence_is_body():
     assert (new[inner] == 0).all() and (new[bridge] == 0).mean() > 0.8, (new[bridge] > 0).sum()
     assert (new[garment] > 0).mean() > 0.95 and (new[body] == 0).all()
     assert info["photo"]["garment_rate"] > 0.9 and info["photo"]["body_rate"] < 0.1, info["photo"]
+
+
+def test_a_garment_piece_ends_half_way_to_the_body_vertices():
+    """garment_pieces keeps the faces two of whose corners are garment (a strap one vertex wide
+    stays joined), so its third, body, corners come with it: a row of cloth a whole edge out on
+    the skin. They move to the midpoints of their edges to the garment (segment._cut_outline),
+    where the label changes."""
+    from physavatar.stages.prepare.segment import garment_pieces
+
+    BV, BF = _grid(31, 0.3, 0.0)
+    V, F = _grid(11, 0.1, 0.05)  # 2 cm edges, a column at x = 0
+    labels = (V[:, 0] < -0.01).astype(np.int64)  # garment up to the column x = -0.02
+    (g, Vo, Fo), = garment_pieces(V, F, labels, BV, BF, cut_outline=False)
+    (_, Vc, Fc), = garment_pieces(V, F, labels, BV, BF)
+    assert np.array_equal(Fo, Fc) and abs(Vo[:, 0].max()) < 1e-9  # before: out to the body column
+    edge = np.isclose(Vo[:, 0], 0.0)
+    assert edge.sum() >= 9
+    # the body column half way back (its edges to the garment: one straight, one diagonal, both
+    # ending on x = -0.02), the rest unmoved
+    assert np.allclose(Vc[edge, 0], -0.01), Vc[edge, 0]
+    assert np.allclose(Vc[~edge], Vo[~edge])
