@@ -263,20 +263,26 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
                 # only above the body: on it the body point is the vertex itself (colour decides)
                 logit = logit + cfg.under_weight * np.where(ok & (sd > cfg.margin), llr_u, 0.0)
                 info["under_body_votes"] = int(((llr_u < 0) & ok & (sd > cfg.margin)).sum())
-    if photo is not None and cfg.photo_weight > 0:
-        logit, info["photo"] = _photo_term(logit, photo, faces, cfg)
     N = vertex_normals(vertices, faces)
     # unseen and facing down: the hull closing a gap no camera looks into (a hem to the legs)
     bridge = (seen == 0) & (N[:, 2] < cfg.bridge_normal)
-    logit = np.where(bridge, -cfg.distance_cap, logit)
     info["bridge"] = int(bridge.sum())
-    p = 1 / (1 + np.exp(-np.clip(logit, -30, 30)))
-    cost_g, cost_b = -np.log(np.maximum(p, 1e-6)), -np.log(np.maximum(1 - p, 1e-6))
     E = mesh_edges(faces)
     dc = np.linalg.norm(colour[E[:, 0]] - colour[E[:, 1]], axis=1)
     sigma = max(float(np.median(dc)), 1e-3)
     w = cfg.smoothness * np.exp(-(dc / (2 * sigma)) ** 2)
-    garment = graph_cut(cost_g, cost_b, E, w) if cfg.smoothness > 0 else p > 0.5
+
+    def cut(logit):
+        p = 1 / (1 + np.exp(-np.clip(np.where(bridge, -cfg.distance_cap, logit), -30, 30)))
+        cost_g, cost_b = -np.log(np.maximum(p, 1e-6)), -np.log(np.maximum(1 - p, 1e-6))
+        return graph_cut(cost_g, cost_b, E, w) if cfg.smoothness > 0 else p > 0.5
+
+    if photo is not None and cfg.photo_weight > 0:
+        logit_p, info["photo"] = _photo_term(logit, photo, faces, cfg)
+        before = cut(logit)
+        garment, info["photo"]["kept_for_topology"] = keep_topology(before, cut(logit_p), faces, np.argsort(logit_p))
+    else:
+        garment = cut(logit)
     if bridge.any() and (garment & ~bridge).any():
         # a bridge is split where it is nearer the seen garment than the body
         from scipy.spatial import cKDTree
@@ -311,6 +317,57 @@ def _photo_term(logit: np.ndarray, photo: np.ndarray, faces: np.ndarray, cfg: Se
     llr = np.where(e, np.log(pg / pb), np.log((1 - pg) / (1 - pb)))
     llr = cfg.photo_weight * np.clip(np.where(ok, llr, 0.0), -cfg.photo_cap, cfg.photo_cap)
     return logit + llr, info | {"garment_rate": round(float(pg), 3), "body_rate": round(float(pb), 3)}
+
+
+def keep_topology(before: np.ndarray, after: np.ndarray, faces: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, int]:
+    """``after`` (a garment mask) reached from ``before`` by taking away, one vertex at a time in
+    ``order`` (the surest body first), only vertices whose removal does not change the garment's
+    topology: simple vertices, whose garment neighbours form one arc of their ring (not none: a
+    piece would vanish; not the whole ring: a hole; not two or more: a cut), repeated until none
+    is left (topology-preserving thinning; Bertrand's simple points on a surface mesh). Evidence
+    may trim a garment's edge (skin the hull bridged above a neckline) but not cut through it (a
+    strap, whose patches straddle its edges and find less photo-consistency) or punch a hole in
+    it. Vertices ``after`` adds are added. Returns the mask and how many were kept."""
+    lost = before & ~after
+    out = before | after
+    if not lost.any():
+        return after, 0
+    # each vertex's ring: the edges opposite it in its faces
+    opp = {}
+    for f in faces[lost[faces].any(1)]:
+        for i in range(3):
+            v = int(f[i])
+            if lost[v]:
+                opp.setdefault(v, []).append((int(f[(i + 1) % 3]), int(f[(i + 2) % 3])))
+
+    def simple(v: int) -> bool:
+        ring = opp.get(v, [])
+        nodes = {a for e in ring for a in e}
+        inside = {a for a in nodes if out[a]}
+        if not inside or len(inside) == len(nodes):
+            return False
+        parent = {a: a for a in inside}
+
+        def find(a):
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            return a
+
+        for a, b in ring:
+            if a in inside and b in inside:
+                parent[find(a)] = find(b)
+        return len({find(a) for a in inside}) == 1
+
+    cand = [int(v) for v in order if lost[v]]
+    changed = True
+    while changed:
+        changed = False
+        for v in cand:
+            if out[v] and simple(v):
+                out[v] = False
+                changed = True
+    return out, int((out & lost).sum())
 
 
 def _components(mask: np.ndarray, faces: np.ndarray, n: int):
