@@ -117,3 +117,24 @@ def test_a_garment_piece_ends_half_way_to_the_body_vertices():
     # ending on x = -0.02), the rest unmoved
     assert np.allclose(Vc[edge, 0], -0.01), Vc[edge, 0]
     assert np.allclose(Vc[~edge], Vo[~edge])
+
+
+def test_evidence_trims_a_garment_but_does_not_cut_its_strap():
+    """keep_topology: a garment of two blocks joined by a strap two vertices wide (a grid mesh).
+    The evidence takes away the strap and a flap on one block's edge; the flap goes (trimming
+    keeps the topology), the strap is thinned but stays, so the garment stays one piece."""
+    from physavatar.stages.prepare.segment import _components, keep_topology
+
+    n = 21
+    V, F = _grid(n, 0.2, 0.0)
+    i, j = np.divmod(np.arange(n * n), n)  # row (x) and column (y) of each vertex
+    a = (i >= 2) & (i <= 7) & (j >= 2) & (j <= 18)
+    b = (i >= 13) & (i <= 18) & (j >= 2) & (j <= 18)
+    strap = (i > 7) & (i < 13) & (j >= 9) & (j <= 10)
+    flap = a & (j >= 15)
+    before = a | b | strap
+    after = before & ~strap & ~flap
+    assert _components(after, F, n * n)[0] == 2  # what the evidence alone would do
+    out, kept = keep_topology(before, after, F, np.arange(n * n))
+    assert _components(out, F, n * n)[0] == 1 and kept >= 5 and (out & strap).sum() == kept
+    assert not (out & flap).any() and np.array_equal(out & ~strap, after)
