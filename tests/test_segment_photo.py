@@ -108,7 +108,7 @@ def test_a_garment_piece_ends_half_way_to_the_body_vertices():
     BV, BF = _grid(31, 0.3, 0.0)
     V, F = _grid(11, 0.1, 0.05)  # 2 cm edges, a column at x = 0
     labels = (V[:, 0] < -0.01).astype(np.int64)  # garment up to the column x = -0.02
-    (g, Vo, Fo), = garment_pieces(V, F, labels, BV, BF, cut_outline=False)
+    (_, Vo, Fo), = garment_pieces(V, F, labels, BV, BF, cut_outline=False)
     (_, Vc, Fc), = garment_pieces(V, F, labels, BV, BF)
     assert np.array_equal(Fo, Fc) and abs(Vo[:, 0].max()) < 1e-9  # before: out to the body column
     edge = np.isclose(Vo[:, 0], 0.0)
@@ -123,7 +123,8 @@ def test_evidence_trims_a_garment_but_does_not_cut_its_strap():
     """keep_topology: a garment of two blocks joined by a strap two vertices wide (a grid mesh).
     The evidence takes away the strap and a flap on one block's edge; the flap goes (trimming
     keeps the topology), the strap is thinned but stays, so the garment stays one piece."""
-    from physavatar.stages.prepare.segment import _components, keep_topology
+    from physavatar.stages.prepare.evidence import keep_topology
+    from physavatar.stages.prepare.segment import _components
 
     n = 21
     V, F = _grid(n, 0.2, 0.0)
