@@ -10,6 +10,9 @@ Automatic labels (:func:`segment`), per vertex:
   vertex a colour log-likelihood ratio;
 * **bridges**: vertices no camera sees that face down (the hull closing the gap between a hem
   and the legs) are split between the garment and the body by which is nearer;
+* **photo-consistency** (evidence.py): where the hull refinement found a textured surface the
+  cameras agree on; a patterned garment has it, bare skin under a hull's bridge has not. It may
+  trim the garment the other terms give, not change its topology;
 * a **graph cut** on the mesh (scipy's maximum flow): the two terms as unary costs, and a
   smoothness cost on every mesh edge, lower between vertices of different colours, so the
   cut follows the garment's edge.
@@ -229,7 +232,8 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
             colour_vertices: np.ndarray | None = None, photo: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """[V] labels (0 body, 1.. garment) of the first-frame mesh, and the numbers behind them.
     ``colour_vertices``: the same vertices where the images are sampled (a refined surface's),
-    when not ``vertices``."""
+    when not ``vertices``; ``photo`` [V]: the refinement's photo-consistency evidence (1 found, 0
+    not, NaN: seen by fewer than two cameras; evidence.photo_term), when it ran."""
     from ...geometry.closest import MeshQuery
 
     sd, _, _ = MeshQuery(body_vertices, body_faces, spacing=0.02).signed_distance(vertices)
