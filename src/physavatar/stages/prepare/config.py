@@ -107,6 +107,9 @@ class SegmentConfig:
     colour_weight: float = setting(1.0)  # weight of the colour likelihood against the distance term
     under_weight: float = setting(1.0)  # weight of the cameras' agreement on the body under a vertex (bare skin)
     under_cap: float = setting(1.5)  # and its log-odds cap
+    photo_weight: float = setting(1.0)  # weight of the photo-consistency evidence at each vertex (refine.py)
+    photo_cap: float = setting(3.0)  # and its log-odds cap
+    photo_rings: int = setting(1)  # evidence counts within this many mesh rings of a vertex
     under_occlusion: bool = setting(True)  # cameras seeing other garment in front of the body point are left out
     smoothness: float = option(1.5, "graph-cut smoothness between neighbouring vertices", flag="--segment-smoothness",
                                check=lambda v: None if v >= 0 else "must be at least 0")

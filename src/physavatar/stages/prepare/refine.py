@@ -159,6 +159,7 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
         d = np.clip(d, 0.0, None)  # the hull contains the surface: inward only
         target[has] = V[has] - d[has, None] * N[has]
         conf[has] = cfg.w_photo * s[has]
+        info["_photo"] = np.where(used >= 2, has.astype(np.float64), np.nan)
         info["photo"] = {"vertices_with_evidence": int(has.sum()), "seen_by_two": int((used >= 2).sum()),
                          "moved_mean_mm": round(float(d[has].mean() * 1000), 2) if has.any() else 0.0}
     unseen = np.zeros(len(V), bool)

@@ -10,6 +10,9 @@ Automatic labels (:func:`segment`), per vertex:
   vertex a colour log-likelihood ratio;
 * **bridges**: vertices no camera sees that face down (the hull closing the gap between a hem
   and the legs) are split between the garment and the body by which is nearer;
+* **photo-consistency** (evidence.py): where the hull refinement found a textured surface the
+  cameras agree on; a patterned garment has it, bare skin under a hull's bridge has not. It may
+  trim the garment the other terms give, not change its topology;
 * a **graph cut** on the mesh (scipy's maximum flow): the two terms as unary costs, and a
   smoothness cost on every mesh edge, lower between vertices of different colours, so the
   cut follows the garment's edge.
@@ -29,6 +32,7 @@ from ...errors import PhysavatarError
 from ...geometry.mesh import adjacency, mesh_edges, vertex_normals
 from ...labels import LABEL_BODY, MAX_LABEL
 from .config import SegmentConfig
+from .evidence import keep_topology, photo_term
 
 SCALE = 1000  # capacities are integers for scipy's maximum flow
 
@@ -225,10 +229,11 @@ def graph_cut(cost_fg: np.ndarray, cost_bg: np.ndarray, edges: np.ndarray, weigh
 
 def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray,
             cameras: list, images: dict[str, np.ndarray], cfg: SegmentConfig, spacing: float,
-            colour_vertices: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+            colour_vertices: np.ndarray | None = None, photo: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """[V] labels (0 body, 1.. garment) of the first-frame mesh, and the numbers behind them.
     ``colour_vertices``: the same vertices where the images are sampled (a refined surface's),
-    when not ``vertices``."""
+    when not ``vertices``; ``photo`` [V]: the refinement's photo-consistency evidence (1 found, 0
+    not, NaN: seen by fewer than two cameras; evidence.photo_term), when it ran."""
     from ...geometry.closest import MeshQuery
 
     sd, _, _ = MeshQuery(body_vertices, body_faces, spacing=0.02).signed_distance(vertices)
@@ -266,15 +271,23 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
     N = vertex_normals(vertices, faces)
     # unseen and facing down: the hull closing a gap no camera looks into (a hem to the legs)
     bridge = (seen == 0) & (N[:, 2] < cfg.bridge_normal)
-    logit = np.where(bridge, -cfg.distance_cap, logit)
     info["bridge"] = int(bridge.sum())
-    p = 1 / (1 + np.exp(-np.clip(logit, -30, 30)))
-    cost_g, cost_b = -np.log(np.maximum(p, 1e-6)), -np.log(np.maximum(1 - p, 1e-6))
     E = mesh_edges(faces)
     dc = np.linalg.norm(colour[E[:, 0]] - colour[E[:, 1]], axis=1)
     sigma = max(float(np.median(dc)), 1e-3)
     w = cfg.smoothness * np.exp(-(dc / (2 * sigma)) ** 2)
-    garment = graph_cut(cost_g, cost_b, E, w) if cfg.smoothness > 0 else p > 0.5
+
+    def cut(logit):
+        p = 1 / (1 + np.exp(-np.clip(np.where(bridge, -cfg.distance_cap, logit), -30, 30)))
+        cost_g, cost_b = -np.log(np.maximum(p, 1e-6)), -np.log(np.maximum(1 - p, 1e-6))
+        return graph_cut(cost_g, cost_b, E, w) if cfg.smoothness > 0 else p > 0.5
+
+    if photo is not None and cfg.photo_weight > 0:
+        logit_p, info["photo"] = photo_term(logit, photo, faces, cfg)
+        before = cut(logit)
+        garment, info["photo"]["kept_for_topology"] = keep_topology(before, cut(logit_p), faces, np.argsort(logit_p))
+    else:
+        garment = cut(logit)
     if bridge.any() and (garment & ~bridge).any():
         # a bridge is split where it is nearer the seen garment than the body
         from scipy.spatial import cKDTree
@@ -397,7 +410,7 @@ def user_labels(path: Path, vertices: np.ndarray, source: tuple[np.ndarray, np.n
 
 def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, body_vertices: np.ndarray,
                    body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05,
-                   exclude: np.ndarray | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
+                   exclude: np.ndarray | None = None, cut_outline: bool = True) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """[(label, vertices [n, 3], faces [m, 3])] one open surface per garment label: the faces
     at least two of whose corners carry it (a strap one or two vertices wide stays joined; a
     vertex of another label between two separate parts of it joins them, :func:`join_parts`) and
@@ -426,6 +439,8 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
             continue
         ids, F = _face_submesh(faces, keep)
         V = vertices[ids].copy()
+        if cut_outline:
+            V = _cut_outline(V, F, lab_g[ids])
         k, lab = _components(np.ones(len(V), bool), F, len(V))
         sizes = np.bincount(lab, minlength=k)
         big = sizes >= min_share * sizes.sum()
@@ -439,6 +454,25 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
         if problems:
             continue
         out.append((g, V, F))
+    return out
+
+
+def _cut_outline(V: np.ndarray, F: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """``V`` with each vertex of the piece not labelled garment (``~inner``: the third corner of a
+    face two of whose corners are) moved to the mean of the midpoints of its edges to garment
+    vertices: the label changes somewhere along those edges, so the cloth ends half way, not a
+    whole edge out on the skin."""
+    E = mesh_edges(F)
+    E = np.concatenate([E, E[:, ::-1]])
+    E = E[~inner[E[:, 0]] & inner[E[:, 1]]]
+    if not len(E):
+        return V
+    out = V.copy()
+    acc = np.zeros_like(V)
+    cnt = np.bincount(E[:, 0], minlength=len(V)).astype(np.float64)
+    np.add.at(acc, E[:, 0], 0.5 * (V[E[:, 0]] + V[E[:, 1]]))
+    m = cnt > 0
+    out[m] = acc[m] / cnt[m, None]
     return out
 
 

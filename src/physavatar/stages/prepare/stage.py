@@ -173,12 +173,13 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
         seconds["body"] = time.time() - t
 
         # -- the hull refined against the images and the body
-        V_hull, on_body = None, None
+        V_hull, on_body, photo = None, None, None
         if mesh_source == "visual hull" and (cfg.refine.photo or cfg.refine.body_prior):
             t = time.time()
             V_hull = V
             V, info = _refine(raw, cfg, V, F, body, masks_of(first), prog)
             on_body = info.pop("_on_body", None)
+            photo = info.pop("_photo", None)
             numbers["refine"] = info
             steps["mesh"] += "; refined: " + " and ".join(
                 [w for w, on in (("photo-consistency", cfg.refine.photo), ("body where unseen", cfg.refine.body_prior))
@@ -192,7 +193,7 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
                 steps[k] = "given"
         else:
             _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog,
-                      V_hull, on_body)
+                      V_hull, on_body, photo)
 
         if (src / "ground_truth").is_dir():
             t = time.time()
@@ -264,7 +265,7 @@ def _refine(raw, cfg: PrepareConfig, V, F, body, masks, prog):
 
 
 def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, steps, numbers, seconds, prog,
-              V_hull=None, on_body=None):
+              V_hull=None, on_body=None, photo=None):
     """Segmentation, garment pieces, boundary and UVs; writes template/mesh.ply. When the hull
     was refined (``V_hull``: the same vertices before), the segmentation's margin is the refined
     surface's (``refined_margin``) and the boundary's contact test looks at the hull positions
@@ -308,7 +309,7 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
                 seg = replace(seg, margin=max(seg.refined_margin, f), softness=max(seg.refined_softness, f / 3))
             numbers["segmentation_margin"] = round(seg.margin, 4)
         with prog.task("prepare: segmentation", total=1) as task:
-            labels, info = segment(V, F, BV, BF, raw.cameras, images, seg, cfg.mesh.edge_length)
+            labels, info = segment(V, F, BV, BF, raw.cameras, images, seg, cfg.mesh.edge_length, photo=photo)
             task.advance(garment=info["garment_vertices"])
         numbers["segmentation"] = {k: v for k, v in info.items() if not isinstance(v, np.ndarray)}
         numbers["_distance"] = info["signed_distance"]
