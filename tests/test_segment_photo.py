@@ -11,6 +11,7 @@ of that evidence on garment and body are learned from the vertices the other ter
 from __future__ import annotations
 
 import numpy as np
+from cloth_grid import grid
 
 from physavatar.camera import Camera, intrinsics, look_at
 
@@ -18,13 +19,7 @@ SKIN = np.array([0.80, 0.62, 0.52])
 
 
 def _grid(n: int, half: float, z: float):
-    xs = np.linspace(-half, half, n)
-    X, Y = np.meshgrid(xs, xs, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], 1)
-    i = np.arange(n - 1)
-    a = (i[:, None] * n + i[None, :]).ravel()
-    F = np.concatenate([np.stack([a, a + n, a + 1], 1), np.stack([a + 1, a + n, a + n + 1], 1)])
-    return V, F
+    return grid(n, 2 * half, z, center=True)  # n×n vertices on [-half, half]² at height z
 
 
 def _cameras(size: int = 160):

@@ -11,6 +11,7 @@ different parts of its pattern in front of that point and disagree.
 from __future__ import annotations
 
 import numpy as np
+from cloth_grid import grid
 
 from physavatar.camera import Camera, intrinsics, look_at
 
@@ -34,13 +35,7 @@ def _render(cam: Camera) -> np.ndarray:
 
 
 def _grid(n: int, half: float, z: float):
-    xs = np.linspace(-half, half, n)
-    X, Y = np.meshgrid(xs, xs, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], 1)
-    i = np.arange(n - 1)
-    a = (i[:, None] * n + i[None, :]).ravel()
-    F = np.concatenate([np.stack([a, a + n, a + 1], 1), np.stack([a + 1, a + n, a + n + 1], 1)])
-    return V, F
+    return grid(n, 2 * half, z, center=True)  # n×n vertices on [-half, half]² at height z
 
 
 def test_cameras_agree_on_bare_skin_under_the_hull():

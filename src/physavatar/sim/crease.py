@@ -35,48 +35,15 @@ the body's buried triangles are inside the body, so cloth crossing them does not
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import ipctk
 import numpy as np
 
+from ..geometry.winding import winding_number
 from .terms import Diagonal, Term
 
 BURIED = 1.0  # winding number above which a body vertex is inside another part (its own: ~0.5)
 INSIDE = 0.5  # above which a cloth vertex is inside the body
 RELEASE_RING = 0  # rings of cloth around a released vertex released with it (no pull)
-
-
-@lru_cache(maxsize=1)
-def _kernel():
-    import numba
-
-    @numba.njit(cache=True, fastmath=False)
-    def kernel(p, tri, skip_vertex, faces):  # pragma: no cover - compiled
-        # winding number of the triangles at each point; a point that is vertex k of the mesh
-        # (skip_vertex[i] = k ≥ 0) leaves out the triangles incident to it (no solid angle anyway)
-        out = np.empty(p.shape[0])
-        for i in range(p.shape[0]):
-            px, py, pz = p[i, 0], p[i, 1], p[i, 2]
-            k = skip_vertex[i]
-            total = 0.0
-            for f in range(tri.shape[0]):
-                if k >= 0 and (faces[f, 0] == k or faces[f, 1] == k or faces[f, 2] == k):
-                    continue
-                ax, ay, az = tri[f, 0, 0] - px, tri[f, 0, 1] - py, tri[f, 0, 2] - pz
-                bx, by, bz = tri[f, 1, 0] - px, tri[f, 1, 1] - py, tri[f, 1, 2] - pz
-                cx, cy, cz = tri[f, 2, 0] - px, tri[f, 2, 1] - py, tri[f, 2, 2] - pz
-                la = np.sqrt(ax * ax + ay * ay + az * az)
-                lb = np.sqrt(bx * bx + by * by + bz * bz)
-                lc = np.sqrt(cx * cx + cy * cy + cz * cz)
-                det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-                den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
-                       + (bx * cx + by * cy + bz * cz) * la + (cx * ax + cy * ay + cz * az) * lb)
-                total += np.arctan2(det, den)
-            out[i] = total / (2.0 * np.pi)
-        return out
-
-    return kernel
 
 
 def recheck(sim):
@@ -101,16 +68,9 @@ def body_creases(s, body0, body1, faces, cloth) -> bool:
 
 
 def winding_numbers(points, vertices, faces, vertex_ids=None) -> np.ndarray:
-    """Generalised winding number of the mesh (vertices [V, 3], faces [F, 3]) at points [M, 3]
-    (serial numba loop; a point that is mesh vertex ``vertex_ids[i]`` leaves out its own
-    triangles). 1 inside a closed outward-oriented mesh, 0 outside, 2 where two parts overlap."""
-    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
-    F = np.ascontiguousarray(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
-    tri = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64)[F])
-    skip = np.full(len(p), -1, np.int64) if vertex_ids is None else np.asarray(vertex_ids, np.int64)
-    if not len(p) or not len(F):
-        return np.zeros(len(p))
-    return _kernel()(p, tri, skip, F)
+    """Winding number of the mesh at points (``geometry.winding_number``, its serial loop); a
+    point that is mesh vertex ``vertex_ids[i]`` leaves out its own triangles."""
+    return winding_number(points, vertices, faces, vertex_ids)
 
 
 def buried_vertices(vertices, faces, near=None, seeds=None) -> np.ndarray:
