@@ -8,9 +8,9 @@ nothing, no intersection-free cloth position has the body at its pose, and the s
 that lies inside the body is not surface at all.
 
 So, per step (:func:`outer_surface`, called by ``ClothSim.step`` before the step's start) while
-``ClothSim.crease_on`` (True for a sim stepped directly; ``sim.simulate`` turns it on only for
-the attempts after one of the frame lagged without it: a frame that does not pinch is simulated
-as before):
+``ClothSim.crease_on`` (off by default, as the rule in every step lets cloth slide into the body
+where nothing pinches it; ``sim.simulate`` turns it on only for the attempts after one of the
+frame lagged without it, so a frame that does not pinch is simulated as before):
 
 - a body vertex is *buried* when it lies inside the body mesh at the step's start or at its end:
   the generalised winding number of the body mesh at the vertex (Jacobson et al. 2013; its own

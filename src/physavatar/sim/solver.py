@@ -84,7 +84,7 @@ class ClothSim:
 
     predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
     stall_exit, stall_window, stall_progress = False, 8, 0.1  # give up a penalty phase: gap -10 % in 8 (simulate)
-    crease_on = True  # cloth collides with the body's outer surface only (crease.py; simulate: after a lag)
+    crease_on = False  # cloth collides with the body's outer surface only (crease.py; simulate: on a lag's retry)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
                  boundary_indices=(), extra_terms=(), contact_exclude=None):
