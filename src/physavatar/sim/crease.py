@@ -46,12 +46,6 @@ INSIDE = 0.5  # above which a cloth vertex is inside the body
 RELEASE_RING = 0  # rings of cloth around a released vertex released with it (no pull)
 
 
-def recheck(sim):
-    """Check the cloth for vertices inside the body at the next step's start, whatever the last
-    step found (after ``ClothSim.set_state`` took the sim back to an earlier state)."""
-    sim._crease_check = True
-
-
 def body_creases(s, body0, body1, faces, cloth) -> bool:
     """Whether the body passes through itself within reach of the cloth at the start or the end
     of a frame (body0 → body1 [Nb, 3], faces [Fb, 3], cloth [N, 3]; ``s``: SimSettings): whether the outer-surface rule would
@@ -154,14 +148,14 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
     scene.outer_faces = F[~np.isin(F, hidden_body).any(axis=1)] if len(hidden_body) else None
     # released: free cloth inside the body at the start
     # (only while a crease is near or the last step released cloth: otherwise the last step
-    # collided with the whole surface from a start outside it, and no cloth can be inside; a
-    # new sim checks once, so a resumed run is the same)
+    # collided with the whole surface from a start outside it, and no cloth can be inside; the
+    # flag is part of ClothSim.get_state, so a retried or resumed step is the same)
     inside = crossing = np.zeros(n, bool)
     ids = np.flatnonzero(free)
-    if len(ids) and (getattr(sim, "_crease_check", True) or len(hidden_body)):
+    if len(ids) and (sim._crease_check or len(hidden_body)):
         inside[ids] = winding_numbers(cloth[ids], B0, faces) > INSIDE
     lift = None
-    if len(ids) and (getattr(sim, "_crease_check", True) or len(hidden_body)):
+    if len(ids) and (sim._crease_check or len(hidden_body)):
         # and the cloth that crosses the body's outer surface with its corners outside (a body
         # edge through a cloth triangle, a cloth edge through a body triangle between its
         # corners): lifted above the crossing

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..files import load_npz, save_npz_atomic
 from ..progress import ProgressLike, resolve
-from .crease import body_creases, recheck
+from .crease import body_creases
 from .material import Material
 from .settings import SimSettings
 from .solver import ClothSim
@@ -278,7 +278,6 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                     n = min(2 * n, max_substeps)
                 x, v = saved[0], saved[1]
                 sim.set_state(saved[2])
-                recheck(sim)  # (cloth inside the body at the frame's start is found again)
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
             if on_frame is not None:

@@ -85,6 +85,7 @@ class ClothSim:
     predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
     stall_exit, stall_window, stall_progress = False, 8, 0.1  # give up a penalty phase: gap -10 % in 8 (simulate)
     crease_on = False  # cloth collides with the body's outer surface only (crease.py; simulate: on a lag's retry)
+    _crease_check = False  # the last step hid body or released cloth: look for cloth inside the body (crease.py)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
                  boundary_indices=(), extra_terms=(), contact_exclude=None):
@@ -197,7 +198,8 @@ class ClothSim:
         stopped. Arrays and floats (an .npz holds it); :meth:`set_state` restores it, after
         which the next step is bit-identical to the one the captured sim would take."""
         out = {"dt": self.settings.dt, "barrier_stiffness": self.barrier_stiffness,
-               "max_barrier_stiffness": self.max_barrier_stiffness, "kappa_balanced": self._kappa_balanced}
+               "max_barrier_stiffness": self.max_barrier_stiffness, "kappa_balanced": self._kappa_balanced,
+               "crease_check": self._crease_check}
         if self._last_step is not None:
             out["last_step"] = np.stack(self._last_step)
         if self._body_lag is not None:
@@ -210,6 +212,7 @@ class ClothSim:
         self.barrier_stiffness = float(state["barrier_stiffness"])
         self.max_barrier_stiffness = float(state["max_barrier_stiffness"])
         self._kappa_balanced = bool(state["kappa_balanced"])
+        self._crease_check = bool(state.get("crease_check", False))
         if self.scene is not None:
             self.barrier.set_stiffness(max(self.barrier_stiffness, 1e-300))
         last, lag = state.get("last_step"), state.get("body_lag")
