@@ -252,42 +252,30 @@ def _outside_targets(points, body, faces, hidden, dhat):
 
 def crossing_cloth(cloth, cloth_faces, body, body_faces, dhat) -> np.ndarray:
     """[N, 3]: per cloth vertex, where it must go so that the cloth no longer crosses the body's
-    surface with its corners outside (NaN: nowhere). ipctk's broad phase on the two meshes
-    stacked, then its exact edge–triangle test: a cloth edge through a body triangle, a body
-    edge through a cloth triangle. At a crossing point p with the body's outward normal there
-    (the triangle's, or the mean of the edge's two triangles') each vertex of the cloth
-    primitive that lies below 2 d̂ above p's tangent plane is lifted to 2 d̂ above it."""
-    n = len(cloth)
-    X = np.vstack([cloth, body])
-    Fc = np.asarray(cloth_faces, np.int32)
-    Fb = np.asarray(body_faces, np.int32) + n
-    tri = X[Fb]
+    surface with its corners outside (NaN: nowhere). The crossings both ways
+    (``geometry.intersecting_pairs``: a cloth edge through a body triangle, a body edge through a
+    cloth triangle). At a crossing point p with the body's outward normal there (the triangle's,
+    or the mean of the edge's two triangles') each vertex of the cloth primitive that lies below
+    2 d̂ above p's tangent plane is lifted to 2 d̂ above it."""
+    from ..geometry.intersect import intersecting_pairs
+
+    cloth, body = np.asarray(cloth, np.float64), np.asarray(body, np.float64)
+    Fc, Fb = np.asarray(cloth_faces, np.int64), np.asarray(body_faces, np.int64)
+    tri = body[Fb]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
-    out = np.full((n, 3), np.nan)
-    Eb = np.asarray(ipctk.edges(Fb), np.int32)
-    # each body edge's outward normal: the mean of its two triangles'
-    edge_of = {tuple(sorted(e)): k for k, e in enumerate(Eb.tolist())}
-    en = np.zeros((len(Eb), 3))
-    for f, t in enumerate(Fb.tolist()):
-        for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0])):
-            en[edge_of[(min(a, b), max(a, b))]] += fn[f]
-    en /= np.maximum(np.linalg.norm(en, axis=1, keepdims=True), 1e-30)
-    for cloth_edges, E, F in ((True, np.asarray(ipctk.edges(Fc), np.int32), Fb), (False, Eb, Fc)):
-        bp = ipctk.LBVH()
-        bp.build(X, E, F, 0.0)
-        for c in bp.detect_edge_face_candidates():
-            e, f = E[c.edge_id], F[c.face_id]
-            a, b, t0, t1, t2 = X[e[0]], X[e[1]], X[f[0]], X[f[1]], X[f[2]]
-            if not ipctk.is_edge_intersecting_triangle(a, b, t0, t1, t2):
-                continue
-            normal = fn[c.face_id] if cloth_edges else en[c.edge_id]
-            tn = np.cross(t1 - t0, t2 - t0)
-            s_ = float(np.dot(t0 - a, tn) / np.dot(b - a, tn))  # the crossing point a + s (b − a)
-            p = a + s_ * (b - a)
-            for i in ((e[0], e[1]) if cloth_edges else (f[0], f[1], f[2])):
-                x = out[i] if np.all(np.isfinite(out[i])) else X[i]
-                depth = 2.0 * dhat - float(np.dot(x - p, normal))
-                if depth > 0:
-                    out[i] = x + depth * normal
+    out = np.full((len(cloth), 3), np.nan)
+    cloth_edges, body_edges = intersecting_pairs(cloth, Fc, body, Fb)
+    crossings = [(cloth[e], body[Fb[t]], e, fn[t]) for e, t in cloth_edges]
+    for e, t in body_edges:  # the body edge's outward normal: the mean of its triangles'
+        n = fn[(np.isin(Fb, e).sum(axis=1) == 2)].sum(axis=0)
+        crossings.append((body[e], cloth[Fc[t]], Fc[t], n / max(np.linalg.norm(n), 1e-30)))
+    for (a, b), (t0, t1, t2), lifted, normal in crossings:
+        tn = np.cross(t1 - t0, t2 - t0)
+        p = a + float(np.dot(t0 - a, tn) / np.dot(b - a, tn)) * (b - a)  # the crossing point
+        for i in lifted:
+            x = out[i] if np.all(np.isfinite(out[i])) else cloth[i]
+            depth = 2.0 * dhat - float(np.dot(x - p, normal))
+            if depth > 0:
+                out[i] = x + depth * normal
     return out

@@ -251,7 +251,8 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             tb0, tb1 = targets(f - 1), targets(f)
             n, move = substep_count(bodies[f - 1], bodies[f], x, settings, substeps, max_substeps)
             saved = (x, v, sim.get_state())
-            attempts, crease, creasable = 0, False, settings.crease_ring >= 0 and None
+            attempts, crease = 0, False
+            creasable = None if settings.crease_ring >= 0 else False  # None: not yet known
             while True:
                 attempts += 1
                 # an attempt that a retry in shorter steps would follow ends at its first lagging
