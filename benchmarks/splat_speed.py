@@ -8,7 +8,11 @@ and the mean of the later ones; `--track-capture`, default the capture `make dem
 demo_out/capture, when it exists). Writes benchmarks/results/splat_speed.json.
 
     python benchmarks/splat_speed.py [--quick] [--width 512 --height 512] [--sizes 10000 30000 100000]
-        [--track-capture CAPTURE] [--track-frames 4]
+        [--track-capture CAPTURE] [--track-frames 4] [--gsplat]
+
+``--gsplat`` (a CUDA machine with gsplat) also times the ``gsplat`` backend on the same scenes,
+inputs on the GPU, in the same process, and reports its speed-up over the numba kernels on the
+machine's cores.
 """
 
 from __future__ import annotations
@@ -60,13 +64,23 @@ def time_render(params, vm, K, width, height, backend, repeats):
     ps = [p.clone().requires_grad_(True) for p in params]
     g = torch.Generator().manual_seed(0)
     wr = torch.rand(height, width, 3, generator=g, dtype=params[0].dtype)
+    wr = wr.to(params[0].device)
+    cuda = params[0].device.type == "cuda"
+
+    def sync():
+        if cuda:
+            torch.cuda.synchronize()
+
     fw, bw = [], []
     for i in range(repeats + 1):
+        sync()
         t0 = time.perf_counter()
         out = rasterize(*ps, vm, K, width, height, backend=backend)
         loss = (out["rgb"] * wr).sum() + out["alpha"].sum()
+        sync()
         t1 = time.perf_counter()
         loss.backward()
+        sync()
         t2 = time.perf_counter()
         if i:
             fw.append(t1 - t0)
@@ -129,6 +143,30 @@ def tracking_time(capture: Path, frames: int) -> dict:
             "first_frame_s": secs[0], "later_frames_mean_s": float(np.mean(secs[1:])) if len(secs) > 1 else None}
 
 
+def time_gsplat(args, threads, figures, rows) -> str:
+    """The gsplat backend on the numba rows' scenes, inputs on the GPU; its speed-up over the
+    fastest numba row of each size. Returns the GPU's name."""
+    from physavatar.splat import _gsplat
+
+    if not _gsplat.available():
+        raise SystemExit("--gsplat: CUDA and gsplat are needed (torch.cuda.is_available() and import gsplat)")
+    dev = torch.device("cuda")
+    p, vm, K = cylinder_scene(100, 32, 32)
+    time_render([q.to(dev) for q in p], vm.to(dev), K.to(dev), 32, 32, "gsplat", 0)  # JIT build / load
+    for n in args.sizes:
+        params, vm, K = cylinder_scene(n, args.width, args.height)
+        fw, bw, out = time_render([q.to(dev) for q in params], vm.to(dev), K.to(dev), args.width, args.height,
+                                  "gsplat", max(3, args.repeats))
+        best = min(figures[f"n{n}_t{t}"]["forward_ms"] + figures[f"n{n}_t{t}"]["backward_ms"] for t in threads)
+        figures[f"n{n}_gsplat"] = {"forward_ms": 1e3 * fw, "backward_ms": 1e3 * bw,
+                                   "speedup_vs_best_numba": best / (1e3 * (fw + bw)),
+                                   "covered_pixels": int((out["alpha"] > 0.5).sum())}
+        rows.append((n, "gsplat", 1e3 * fw, 1e3 * bw, None))
+        print(f"gsplat N={n:>7d}  forward {1e3 * fw:8.2f} ms  backward {1e3 * bw:8.2f} ms"
+              f"  ({best / (1e3 * (fw + bw)):.0f}x the best numba row)", flush=True)
+    return torch.cuda.get_device_name(0)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="256x256, 10k and 30k Gaussians, 1 repeat")
@@ -141,6 +179,7 @@ def main() -> None:
     ap.add_argument("--track-capture", type=Path, default=Path(__file__).resolve().parent.parent / "demo_out" / "capture",
                     help="capture to time the tracking stage on (skipped when it does not exist)")
     ap.add_argument("--track-frames", type=int, default=4, help="frames tracked for the per-frame time (0 = skip)")
+    ap.add_argument("--gsplat", action="store_true", help="also time the gsplat backend (CUDA machines)")
     args = ap.parse_args()
     if args.quick:
         args.width, args.height, args.sizes, args.repeats = 256, 256, [10_000, 30_000], 1
@@ -169,6 +208,10 @@ def main() -> None:
             print(f"numba  N={n:>7d}  threads={t}  forward {1e3 * fw:8.1f} ms  backward {1e3 * bw:8.1f} ms"
                   f"  ({out['meta']['n_intersections']} tile intersections)", flush=True)
 
+    gpu = None
+    if args.gsplat:
+        gpu = time_gsplat(args, threads, figures, rows)
+
     # Baseline: the dense twin on a case it can hold in memory, same thread count as the best row.
     tb = max(threads)
     numba.set_num_threads(tb)
@@ -188,7 +231,7 @@ def main() -> None:
 
     print(f"\n{'N':>8} {'threads':>7} {'forward ms':>11} {'backward ms':>12} {'total ms':>9}")
     for n, t, fw, bw, _ in rows:
-        print(f"{n:>8d} {t:>7d} {fw:>11.1f} {bw:>12.1f} {fw + bw:>9.1f}")
+        print(f"{n:>8d} {t!s:>7} {fw:>11.1f} {bw:>12.1f} {fw + bw:>9.1f}")
 
     checks = {
         "matches_twin": {"value": diff, "target": "< 1e-4", "unit": "max abs difference", "pass": diff < 1e-4},
@@ -218,7 +261,7 @@ def main() -> None:
     result = {
         "benchmark": "splat_speed",
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
+        "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": gpu,
                     # the cores are shared: a load above ~1 makes the 2-thread figures meaningless
                     "load_average_1min_at_end": os.getloadavg()[0],
                     "load_average_1min_at_start": load_start},

@@ -10,6 +10,7 @@ import torch
 
 from physavatar.camera import intrinsics, look_at
 from physavatar.splat import expected_depth, longest_edge_index, mesh_to_gaussians, rasterize, rasterize_batch
+from physavatar.splat import _gsplat
 from physavatar.splat._torch_impl import quat_to_rotmat
 
 F64 = torch.float64
@@ -237,8 +238,9 @@ def test_thread_count_does_not_change_results():
 def test_float32_inputs_batch_and_auto_backend():
     params, vm, K, bg, w, h = random_scene(4, n=150)
     p32 = [p.float() for p in params]
-    out32 = rasterize(*p32, vm.float(), K.float(), w, h, bg.float(), near=NEAR)  # auto -> numba on CPU
-    assert out32["meta"]["backend"] == "numba"
+    auto = rasterize(*p32, vm.float(), K.float(), w, h, bg.float(), near=NEAR)  # auto -> numba on CPU
+    assert auto["meta"]["backend"] == ("gsplat" if _gsplat.available() else "numba")
+    out32 = rasterize(*p32, vm.float(), K.float(), w, h, bg.float(), near=NEAR, backend="numba")
     assert out32["rgb"].dtype == torch.float32
     ref = render(params, vm, K, bg, w, h, "torch")
     assert (out32["rgb"].double() - ref["rgb"]).abs().mean() < 1e-5
