@@ -348,3 +348,23 @@ def test_rendered_mesh_gaussians_vertex_gradient_matches_finite_differences():
         d = d.view_as(verts)
         fd = float(loss(verts + d) - loss(verts - d)) / (2 * eps)
         assert abs(fd - float(grad.view(-1)[i])) <= 1e-5 * max(1.0, abs(fd)), (i, fd, float(grad.view(-1)[i]))
+
+
+def test_tracker_backend_option_resolves_and_refuses_what_cannot_run():
+    """``track --splat-backend``: "auto" is the numba kernels on a CPU machine (gsplat with CUDA),
+    and asking for gsplat where it cannot run is one clear message, not a CUDA traceback."""
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.base import apply_options
+    from physavatar.stages.track import TrackConfig
+    from physavatar.stages.track.gaussians import MeshGaussians
+
+    verts, faces = wavy_grid()
+    model = MeshGaussians.init(verts.float().numpy(), faces.numpy(), backend=TrackConfig().splat_backend)
+    assert model.backend == ("gsplat" if _gsplat.available() else "numba")
+    cfg = apply_options(TrackConfig(), {"splat_backend": "torch"})
+    assert cfg.splat_backend == "torch"
+    with pytest.raises(PhysavatarError, match="--splat-backend: 'cuda' is not auto, numba, gsplat or torch"):
+        apply_options(TrackConfig(), {"splat_backend": "cuda"})
+    if not _gsplat.available():
+        with pytest.raises(PhysavatarError, match="--splat-backend: gsplat needs a CUDA device"):
+            apply_options(TrackConfig(), {"splat_backend": "gsplat"})

@@ -24,12 +24,16 @@ from ._torch_impl import antialias_compensation, rasterize_dense
 BACKENDS = ("auto", "numba", "torch", "gsplat")
 
 
-def _resolve(backend: str) -> str:
+def resolve_backend(backend: str) -> str:
+    """The backend ``backend`` renders with here: "auto" becomes "gsplat" or "numba"."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
         return "gsplat" if _gsplat.available() else "numba"
     return backend
+
+
+_resolve = resolve_backend
 
 
 def rasterize(

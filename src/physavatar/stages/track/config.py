@@ -12,6 +12,15 @@ from dataclasses import dataclass, field
 from ..base import camera_list, option, setting
 
 
+def _backend_problem(backend: str) -> str | None:
+    """Why ``backend`` cannot render here (None when it can)."""
+    from ...splat import _gsplat
+
+    if backend == "gsplat" and not _gsplat.available():
+        return "gsplat needs a CUDA device and the gsplat package (pip install -e .[gsplat]); use auto or numba"
+    return None
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """The photometric fit of each frame: image pyramid, optimizer and schedule.
@@ -273,6 +282,11 @@ class TrackConfig:
         antialiased: render with the mass-conserving low-pass (:func:`physavatar.splat.rasterize`).
             The plain 3DGS low-pass widens the silhouette of a surface of sub-pixel splats and
             the fit shrinks the garment to undo it.
+        splat_backend: the Gaussian rasterizer of the fit (:func:`physavatar.splat.rasterize`):
+            "auto" (gsplat's CUDA kernels where CUDA and gsplat are present, else the numba
+            kernels), "numba", "gsplat" or "torch" (the dense twin, slow). gsplat renders in
+            float32 with atomics in its backward pass, so its runs match a CPU run only to its
+            documented edge differences and are not bit-reproducible (docs/splatting.md).
         threads: numba and torch threads during the fit (1 is fastest on a small machine: the
             per-view work at these image sizes is too small to pay for thread start-up).
         seed: torch seed (the fit itself uses no randomness; kept for reproducibility).
@@ -288,6 +302,8 @@ class TrackConfig:
     subdivide: int = setting(0)
     opacity: float = setting(0.99)
     antialiased: bool = setting(True)
+    splat_backend: str = option("auto", "Gaussian rasterizer: auto (gsplat on CUDA, else numba), numba, gsplat or torch",
+                                choices=("auto", "numba", "gsplat", "torch"), check=_backend_problem)
     threads: int = setting(1)
     seed: int = setting(0)
 

@@ -1,5 +1,5 @@
 """Mesh-aligned Gaussians: one flat Gaussian per template face (or per face of its midpoint
-subdivision), rendered with the numba rasterizer (:mod:`physavatar.splat`)."""
+subdivision), rendered by :mod:`physavatar.splat` (the numba kernels, or gsplat on CUDA)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import torch
 
 from ...camera import Camera
 from ...splat import longest_edge_index, mesh_to_gaussians, rasterize
+from ...splat.rasterize import resolve_backend
 
 
 @dataclass
@@ -28,10 +29,11 @@ class MeshGaussians:
     opacity_logits: torch.Tensor
     midpoints: list = field(default_factory=list)  # per subdivision level: [E, 2] edge endpoints
     antialiased: bool = False  # mass-conserving low-pass (:func:`physavatar.splat.rasterize`)
+    backend: str = "numba"  # the rasterizer (:func:`physavatar.splat.rasterize`'s ``backend``)
 
     @staticmethod
     def init(vertices: np.ndarray, faces: np.ndarray, subdivide: int = 0, opacity: float = 0.88,
-             antialiased: bool = False) -> MeshGaussians:
+             antialiased: bool = False, backend: str = "numba") -> MeshGaussians:
         """Gaussians of ``faces``, or of their ``subdivide``-times midpoint subdivision (4^k per face),
         all with opacity ``opacity``."""
         faces = np.asarray(faces, np.int64)
@@ -40,7 +42,7 @@ class MeshGaussians:
             faces, m = _midpoint_subdivide(faces, len(vertices) + sum(len(x) for x in mids))
             mids.append(m)
         model = MeshGaussians(torch.from_numpy(faces), torch.zeros(0), torch.zeros(0), torch.zeros(0), torch.zeros(0),
-                              [torch.from_numpy(m) for m in mids], antialiased)
+                              [torch.from_numpy(m) for m in mids], antialiased, resolve_backend(backend))
         V = model.gaussian_vertices(torch.from_numpy(np.asarray(vertices, np.float32)))
         tri = V[model.faces]
         area = 0.5 * torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1)
@@ -79,7 +81,7 @@ class MeshGaussians:
     def rasterize(self, splats: tuple, cam: Camera) -> dict:
         """Rasterize :meth:`splats` into ``cam``: rgb [H, W, 3] linear (over black), alpha [H, W]."""
         return rasterize(*splats, torch.from_numpy(cam.w2c.astype(np.float32)), torch.from_numpy(cam.K.astype(np.float32)),
-                         cam.width, cam.height, backend="numba", antialiased=self.antialiased)
+                         cam.width, cam.height, backend=self.backend, antialiased=self.antialiased)
 
     def render(self, vertices: torch.Tensor, cam: Camera, colors: torch.Tensor | None = None,
                log_scales: torch.Tensor | None = None, opacity_logits: torch.Tensor | None = None) -> dict:

@@ -216,7 +216,8 @@ def track(capture: Capture | str | Path, out: str | Path, config: TrackConfig | 
 def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frames: list[int],
            progress) -> TrackResult:
     t = cap.template
-    model = MeshGaussians.init(t.vertices, t.faces, cfg.subdivide, cfg.opacity, cfg.antialiased)
+    model = MeshGaussians.init(t.vertices, t.faces, cfg.subdivide, cfg.opacity, cfg.antialiased, cfg.splat_backend)
+    logger.info("tracking: splats rendered by the %s backend", model.backend)
     iso = IsometryLoss(t.vertices, t.faces) if cfg.loss.iso_weight > 0 else None
     normal = (NormalLoss(t.faces, t.vertices if cfg.loss.normal_mode == "rest" else None)
               if cfg.loss.normal_weight > 0 else None)
