@@ -18,7 +18,7 @@ try:  # cholespy: supernodal Cholesky (CHOLMOD-derived); scipy's LU is the fallb
 except ImportError:  # pragma: no cover - cholespy is a dependency
     cholespy = None
 
-from . import _kernels
+from . import _kernels, pardiso
 from .terms import Blocks, Diagonal, as_hessian
 
 
@@ -243,21 +243,41 @@ class Assembler:
         return sp.csr_matrix((M.data[keep], (r[keep], c[keep])), shape=(self.n, self.n))
 
 
-class Factorization:
-    """Sparse Cholesky of a symmetric positive-definite CSR matrix (cholespy; scipy fallback).
+BACKENDS = ("auto", "cholespy", "pardiso")
 
-    cholespy redoes the symbolic analysis on every construction (it exposes no separate
-    numeric refactorisation); the analysis is ~1/10 of the numeric cost here, and most Newton
-    iterations need no factorisation at all (NewtonLinearSolver).
+
+class Factorization:
+    """Sparse Cholesky of a symmetric positive-definite CSR matrix.
+
+    ``backend``: "cholespy" (supernodal, its own reference BLAS; redoes the symbolic analysis
+    on every construction), "pardiso" (Intel MKL PARDISO, ``sim.pardiso``; the optional
+    ``mkl`` extra) or "auto" (PARDISO when MKL is installed, else cholespy). scipy's LU is the
+    fallback of either when the matrix is not numerically positive definite. ``reuse`` /
+    ``move``: an earlier factor of the same pattern whose PARDISO analysis is reused
+    (``PardisoCholesky``); ignored by cholespy.
     """
 
-    def __init__(self, H: sp.csr_matrix):
+    def __init__(self, H: sp.csr_matrix, backend: str = "auto", reuse: "Factorization | None" = None,
+                 move: bool = False):
+        if backend not in BACKENDS:
+            raise ValueError(f"linear solver backend {backend!r}: expected one of {BACKENDS}")
         self.n = H.shape[0]
         H = H.tocsr()
         H.sort_indices()
         self._lu = None
         self._chol = None
-        if cholespy is not None:
+        self._pardiso = None
+        indefinite = False
+        if backend == "pardiso" or (backend == "auto" and pardiso.available()):
+            try:
+                old = reuse._pardiso if reuse is not None else None
+                self._pardiso = pardiso.PardisoCholesky(H, old, move and old is not None)
+            except pardiso.PardisoError:
+                indefinite = True  # not positive definite numerically: LU below
+            except ValueError:
+                if backend == "pardiso":
+                    raise
+        if self._pardiso is None and not indefinite and cholespy is not None:
             try:
                 self._chol = cholespy.CholeskySolverD(
                     self.n,
@@ -268,14 +288,20 @@ class Factorization:
                 )
             except (ValueError, RuntimeError):
                 self._chol = None  # not positive definite numerically: fall back to LU
-        if self._chol is None:
+        if self._chol is None and self._pardiso is None:
             import scipy.sparse.linalg as sla
 
             self._lu = sla.splu(H.tocsc())
 
+    @property
+    def backend(self) -> str:
+        return "pardiso" if self._pardiso is not None else "cholespy" if self._chol is not None else "lu"
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         """b: [n] or [n, k]."""
         b = np.ascontiguousarray(b, dtype=np.float64)
+        if self._pardiso is not None:
+            return self._pardiso.solve(b)
         if self._chol is not None:
             x = np.zeros_like(b)
             self._chol.solve(b, x)
@@ -302,10 +328,11 @@ class NewtonLinearSolver:
     ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
     """
 
-    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 20):
+    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 20, backend: str = "auto"):
         self.rtol = float(rtol)
         self.max_cg = int(max_cg)
         self.refresh_cg = int(refresh_cg)
+        self.backend = backend
         self.factorizations = 0
         self.cg_iterations = 0
         self.reset()
@@ -314,14 +341,19 @@ class NewtonLinearSolver:
         self.factor: Factorization | None = None
         self.factor_matrix = None  # the matrix self.factor factorises
         self._stale = True
+        self._given = True
 
     def mark_stale(self):
         """Take a fresh factor at the next solve (a new step: the old factor preconditioned the
-        previous step's matrices, which rarely fit well enough to be worth trying)."""
+        previous step's matrices, which rarely fit well enough to be worth trying). The old
+        factor may be held by the last step's Linearization, so the next one is a new object
+        (within a step a PARDISO factor is refactorised in place: Factorization ``move``)."""
         self._stale = True
+        self._given = True
 
     def _refactor(self, M):
-        self.factor = Factorization(M)
+        self.factor = Factorization(M, self.backend, self.factor, move=not self._given)
+        self._given = False
         self.factor_matrix = M
         self.factorizations += 1
 
