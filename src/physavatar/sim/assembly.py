@@ -244,6 +244,7 @@ class Assembler:
 
 
 BACKENDS = ("auto", "cholespy", "pardiso")
+PRECONDITIONERS = ("auto", "sparsified", "full")
 
 
 class Factorization:
@@ -325,14 +326,26 @@ class NewtonLinearSolver:
     and when CG fails within ``max_cg`` (the state or contacts changed a lot) it is recomputed
     from the current H at once.
 
+    ``preconditioner``: "sparsified" (H₁ above), "full" (a factor of H itself: a fresh one
+    solves exactly, then it ages like H₁'s) or "auto": "full" for systems of at least
+    ``FULL_MIN_ROWS`` rows when the factorisation is PARDISO's (there H₁ needs ~50 CG
+    iterations even when fresh, and PARDISO factorises H in the time of ~25 of them; the
+    demo dress's 10k-row systems need 5; docs/simulation.md "Session 21"), else "sparsified".
+
     ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
     """
 
-    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 20, backend: str = "auto"):
+    FULL_MIN_ROWS = 30000
+
+    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 20, backend: str = "auto",
+                 preconditioner: str = "auto"):
+        if preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"preconditioner {preconditioner!r}: expected one of {PRECONDITIONERS}")
         self.rtol = float(rtol)
         self.max_cg = int(max_cg)
         self.refresh_cg = int(refresh_cg)
         self.backend = backend
+        self.preconditioner = preconditioner
         self.factorizations = 0
         self.cg_iterations = 0
         self.reset()
@@ -351,6 +364,12 @@ class NewtonLinearSolver:
         self._stale = True
         self._given = True
 
+    def _preconditioner_matrix(self, H, assembler):
+        full = self.preconditioner == "full" or (
+            self.preconditioner == "auto" and H.shape[0] >= self.FULL_MIN_ROWS
+            and (self.backend == "pardiso" or (self.backend == "auto" and pardiso.available())))
+        return H if full else assembler.preconditioner_matrix(H)
+
     def _refactor(self, M):
         self.factor = Factorization(M, self.backend, self.factor, move=not self._given)
         self._given = False
@@ -365,12 +384,12 @@ class NewtonLinearSolver:
             self._stale = True
             return self.factor.solve(b)
         if self.factor is None or self._stale or self.factor.n != H.shape[0]:
-            self._refactor(assembler.preconditioner_matrix(H))
+            self._refactor(self._preconditioner_matrix(H, assembler))
             self._stale = False
         x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
         self.cg_iterations += its
         if not ok:  # the old factor no longer fits H: a fresh one
-            self._refactor(assembler.preconditioner_matrix(H))
+            self._refactor(self._preconditioner_matrix(H, assembler))
             x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
             self.cg_iterations += its
             if not ok:  # not expected (H₁ ⪰ H); a direct solve is always right
@@ -395,7 +414,7 @@ class NewtonLinearSolver:
         if ok:
             return x
         if assembler is not None:
-            self._refactor(assembler.preconditioner_matrix(H))
+            self._refactor(self._preconditioner_matrix(H, assembler))
             x, its, ok = pcg(H, b, self.factor.solve, 1e-10, self.max_cg, x0=x)
             self.cg_iterations += its
             if ok:

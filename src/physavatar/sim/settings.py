@@ -60,6 +60,10 @@ class SimSettings:
             "auto" (MKL PARDISO when the optional ``mkl`` extra is installed, else cholespy),
             "pardiso" or "cholespy" (sim.assembly.Factorization; docs/simulation.md "Session
             21"). Both factor the same matrices exactly, so only rounding (the CG path) differs.
+        preconditioner: the matrix whose factor preconditions CG: "sparsified" (the Newton
+            matrix without the hinge-tip couplings, their magnitudes on the diagonal), "full"
+            (the Newton matrix itself) or "auto" ("full" for ≥ 30k unknowns with PARDISO, where
+            the sparsified factor needs ~50 CG iterations; assembly.NewtonLinearSolver).
         newton_forcing: relative CG residual of the Newton directions that do not end the
             solve (inexact Newton; most are cut by CCD anyway). The direction that passes the
             stopping test is always refined to 1e-10, so only the path changes. Penalty-mode
@@ -124,6 +128,7 @@ class SimSettings:
     newton_forcing: float = 1e-3
     max_cg_iterations: int = 100
     linear_solver: str = "auto"
+    preconditioner: str = "auto"
     max_newton_iterations: int = 100
     max_penalty_iterations: int = 40
     barrier_stiffness_scale: float = 1e11
