@@ -255,11 +255,11 @@ class Factorization:
     ``mkl`` extra) or "auto" (PARDISO when MKL is installed, else cholespy). scipy's LU is the
     fallback of either when the matrix is not numerically positive definite. ``reuse`` /
     ``move``: an earlier factor of the same pattern whose PARDISO analysis is reused
-    (``PardisoCholesky``); ignored by cholespy.
+    (``PardisoCholesky``); ignored by cholespy, and so is ``threads`` (PARDISO's).
     """
 
     def __init__(self, H: sp.csr_matrix, backend: str = "auto", reuse: "Factorization | None" = None,
-                 move: bool = False):
+                 move: bool = False, threads: int = 1):
         if backend not in BACKENDS:
             raise ValueError(f"linear solver backend {backend!r}: expected one of {BACKENDS}")
         self.n = H.shape[0]
@@ -272,7 +272,7 @@ class Factorization:
         if backend == "pardiso" or (backend == "auto" and pardiso.available()):
             try:
                 old = reuse._pardiso if reuse is not None else None
-                self._pardiso = pardiso.PardisoCholesky(H, old, move and old is not None)
+                self._pardiso = pardiso.PardisoCholesky(H, old, move and old is not None, threads)
             except pardiso.PardisoError:
                 indefinite = True  # not positive definite numerically: LU below
             except ValueError:
@@ -338,7 +338,7 @@ class NewtonLinearSolver:
     FULL_MIN_ROWS = 30000
 
     def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 20, backend: str = "auto",
-                 preconditioner: str = "auto"):
+                 preconditioner: str = "auto", threads: int = 1):
         if preconditioner not in PRECONDITIONERS:
             raise ValueError(f"preconditioner {preconditioner!r}: expected one of {PRECONDITIONERS}")
         self.rtol = float(rtol)
@@ -346,6 +346,7 @@ class NewtonLinearSolver:
         self.refresh_cg = int(refresh_cg)
         self.backend = backend
         self.preconditioner = preconditioner
+        self.threads = int(threads)
         self.factorizations = 0
         self.cg_iterations = 0
         self.reset()
@@ -371,7 +372,7 @@ class NewtonLinearSolver:
         return H if full else assembler.preconditioner_matrix(H)
 
     def _refactor(self, M):
-        self.factor = Factorization(M, self.backend, self.factor, move=not self._given)
+        self.factor = Factorization(M, self.backend, self.factor, move=not self._given, threads=self.threads)
         self._given = False
         self.factor_matrix = M
         self.factorizations += 1

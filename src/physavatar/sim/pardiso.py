@@ -13,9 +13,10 @@ MKL is a ~220 MB wheel (with intel-openmp and tbb ~700 MB installed), hence an o
 :func:`available` is False and ``assembly.Factorization`` uses cholespy as before.
 
 The routine is MKL's ``pardiso`` (real symmetric positive definite, ``mtype`` 2, upper
-triangle in zero-based CSR). ctypes releases the GIL for the call. Threads: ``THREADS``
-(environment variable ``PHYSAVATAR_PARDISO_THREADS``, default 1: MKL's sequential layer, so a
-factorisation is bit-identical to a repeat and a shared machine's other core is left alone).
+triangle in zero-based CSR). ctypes releases the GIL for the call. Threads: per factor
+(``SimSettings.solver_threads``, default 1: a factorisation is bit-identical to a repeat and a
+shared machine's other core is left alone), MKL's OpenMP layer with ``KMP_BLOCKTIME=0`` (no
+spinning between calls).
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ import sys
 import numpy as np
 import scipy.sparse as sp
 
-THREADS = max(1, int(os.environ.get("PHYSAVATAR_PARDISO_THREADS", "1")))
 _MTYPE_SPD = 2
 _LIB = None  # the loaded mkl_rt, or False when it cannot be loaded
 
@@ -49,18 +49,14 @@ def _lib():
     global _LIB
     if _LIB is None:
         _LIB = False
-        if THREADS > 1:
-            os.environ.setdefault("KMP_BLOCKTIME", "0")  # no spinning between calls
+        os.environ.setdefault("KMP_BLOCKTIME", "0")  # no spinning between calls
         for path in _candidates():
             try:
                 lib = ctypes.CDLL(path)
                 lib.pardiso.restype = None
                 lib.MKL_Set_Threading_Layer.argtypes = [ctypes.c_int]
-                # MKL_THREADING_SEQUENTIAL = 1, MKL_THREADING_INTEL = 0 (must precede any MKL call)
-                lib.MKL_Set_Threading_Layer(1 if THREADS == 1 else 0)
+                lib.MKL_Set_Threading_Layer(0)  # MKL_THREADING_INTEL (before any MKL call)
                 lib.MKL_Domain_Set_Num_Threads.argtypes = [ctypes.c_int, ctypes.c_int]
-                if THREADS > 1:
-                    lib.MKL_Domain_Set_Num_Threads(THREADS, 4)  # MKL_DOMAIN_PARDISO
                 _LIB = lib
                 break
             except (OSError, AttributeError):
@@ -90,7 +86,8 @@ class PardisoCholesky:
     ValueError when MKL is not available or the matrix has an unstored diagonal entry.
     """
 
-    def __init__(self, M, reuse: "PardisoCholesky | None" = None, move: bool = False):
+    def __init__(self, M, reuse: "PardisoCholesky | None" = None, move: bool = False, threads: int = 1):
+        self.threads = max(1, int(threads))
         lib = _lib()
         if lib is None:
             raise ValueError("MKL (mkl_rt) is not available: pip install 'physavatar[mkl]'")
@@ -130,6 +127,7 @@ class PardisoCholesky:
 
     def _call(self, phase, b=None, x=None, nrhs=1):
         lib = _lib()
+        lib.MKL_Domain_Set_Num_Threads(self.threads, 4)  # MKL_DOMAIN_PARDISO
         err = ctypes.c_int32(0)
         one = ctypes.c_int32(1)
         vp = ctypes.c_void_p

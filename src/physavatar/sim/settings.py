@@ -64,6 +64,8 @@ class SimSettings:
             matrix without the hinge-tip couplings, their magnitudes on the diagonal), "full"
             (the Newton matrix itself) or "auto" ("full" for ≥ 30k unknowns with PARDISO, where
             the sparsified factor needs ~50 CG iterations; assembly.NewtonLinearSolver).
+        solver_threads: threads of PARDISO's factorisations and solves (1: bit-identical
+            repeats; cholespy always runs on one).
         newton_forcing: relative CG residual of the Newton directions that do not end the
             solve (inexact Newton; most are cut by CCD anyway). The direction that passes the
             stopping test is always refined to 1e-10, so only the path changes. Penalty-mode
@@ -129,6 +131,7 @@ class SimSettings:
     max_cg_iterations: int = 100
     linear_solver: str = "auto"
     preconditioner: str = "auto"
+    solver_threads: int = 1
     max_newton_iterations: int = 100
     max_penalty_iterations: int = 40
     barrier_stiffness_scale: float = 1e11
