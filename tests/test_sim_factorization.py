@@ -100,3 +100,23 @@ def test_unknown_linear_solver_setting_is_one_clear_error():
     V, F = cloth_grid.grid(3, 1.0)
     with pytest.raises(ValueError, match="linear_solver"):
         ClothSim(V, F, preset("cotton"), SimSettings(linear_solver="mumps"))
+
+
+@pytest.mark.parametrize("backend", ["cholespy", pytest.param("pardiso", marks=needs_mkl)])
+def test_full_preconditioner_is_the_newton_matrix_and_auto_picks_it_by_size(backend, monkeypatch):
+    asm, _, H_of = cloth_system(6)
+    b = np.random.default_rng(3).normal(size=asm.n)
+    H = H_of(1.0)
+    ref = np.linalg.solve(H.toarray(), b)
+    full = NewtonLinearSolver(rtol=1e-10, backend=backend, preconditioner="full")
+    x = full.solve(H, b, asm)
+    assert full.cg_iterations == 0 and full.factor_matrix is H  # a fresh factor of H: exact at once
+    assert np.abs(x - ref).max() <= 1e-10 * np.abs(ref).max()
+    H2 = H_of(1.05)  # the next iteration: the aged factor preconditions CG
+    x2 = full.solve(H2, b, asm)
+    assert full.factorizations == 1 and 0 < full.cg_iterations <= 20
+    assert np.abs(x2 - np.linalg.solve(H2.toarray(), b)).max() <= 1e-8 * np.abs(ref).max()
+    auto = NewtonLinearSolver(backend=backend)
+    assert auto._preconditioner_matrix(H, asm).nnz < H.nnz  # small system: the sparsified matrix
+    monkeypatch.setattr(NewtonLinearSolver, "FULL_MIN_ROWS", asm.n)
+    assert (auto._preconditioner_matrix(H, asm) is H) == (backend == "pardiso")  # full only with PARDISO
