@@ -321,8 +321,10 @@ class NewtonLinearSolver:
     iterates match a direct solve) in a few tens of iterations (docs/simulation.md "The
     step"). The factor is also reused across the Newton iterations of a step while CG
     converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`); after a
-    solve that needed more than ``refresh_cg`` iterations (20: a factorisation costs ~30–60 CG
-    iterations of CPU time; docs/simulation.md "Session 15") it is recomputed from the next H,
+    solve that needed more than ``refresh_cg`` iterations (default by backend, REFRESH_CG:
+    cholespy 20, a factorisation costs ~30–60 CG iterations of CPU time, docs/simulation.md
+    "Session 15"; PARDISO 10, its numeric factorisation ~8× cheaper, "Session 21") it is
+    recomputed from the next H,
     and when CG fails within ``max_cg`` (the state or contacts changed a lot) it is recomputed
     from the current H at once.
 
@@ -337,13 +339,15 @@ class NewtonLinearSolver:
 
     FULL_MIN_ROWS = 30000
 
-    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 20, backend: str = "auto",
+    REFRESH_CG = {"cholespy": 20, "pardiso": 10, "lu": 20}
+
+    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int | None = None, backend: str = "auto",
                  preconditioner: str = "auto", threads: int = 1):
         if preconditioner not in PRECONDITIONERS:
             raise ValueError(f"preconditioner {preconditioner!r}: expected one of {PRECONDITIONERS}")
         self.rtol = float(rtol)
         self.max_cg = int(max_cg)
-        self.refresh_cg = int(refresh_cg)
+        self.refresh_cg = refresh_cg  # None: by the factor's backend (REFRESH_CG)
         self.backend = backend
         self.preconditioner = preconditioner
         self.threads = int(threads)
@@ -397,7 +401,8 @@ class NewtonLinearSolver:
                 self._refactor(H)
                 self._stale = True
                 return self.factor.solve(b)
-        self._stale = its > self.refresh_cg
+        refresh = self.REFRESH_CG[self.factor.backend] if self.refresh_cg is None else self.refresh_cg
+        self._stale = its > refresh
         return x
 
     def refine(self, H: sp.csr_matrix, b: np.ndarray, x: np.ndarray, assembler=None) -> np.ndarray:
