@@ -14,9 +14,9 @@ MKL is a ~220 MB wheel (with intel-openmp and tbb ~700 MB installed), hence an o
 
 The routine is MKL's ``pardiso`` (real symmetric positive definite, ``mtype`` 2, upper
 triangle in zero-based CSR). ctypes releases the GIL for the call. Threads: per factor
-(``SimSettings.solver_threads``, default 1: a factorisation is bit-identical to a repeat and a
-shared machine's other core is left alone), MKL's OpenMP layer with ``KMP_BLOCKTIME=0`` (no
-spinning between calls).
+(``SimSettings.solver_threads``, default 1: a shared machine's other core is left alone), on
+MKL's GNU OpenMP layer (the runtime torch and numba use; MKL's own Intel runtime beside it
+crashed), or sequential where libgomp cannot be loaded.
 """
 
 from __future__ import annotations
@@ -45,17 +45,34 @@ def _candidates():
         yield found
 
 
+_INTEL, _SEQUENTIAL, _GNU = 0, 1, 3  # MKL_THREADING_*
+_GOMP = None
+
+
+def _load_gomp() -> bool:
+    """libgomp with its symbols global (MKL's GNU threading layer resolves them from there)."""
+    global _GOMP
+    if _GOMP is None:
+        try:
+            _GOMP = ctypes.CDLL(ctypes.util.find_library("gomp") or "libgomp.so.1", mode=ctypes.RTLD_GLOBAL)
+        except OSError:
+            _GOMP = False
+    return bool(_GOMP)
+
+
 def _lib():
     global _LIB
     if _LIB is None:
         _LIB = False
-        os.environ.setdefault("KMP_BLOCKTIME", "0")  # no spinning between calls
         for path in _candidates():
             try:
                 lib = ctypes.CDLL(path)
                 lib.pardiso.restype = None
                 lib.MKL_Set_Threading_Layer.argtypes = [ctypes.c_int]
-                lib.MKL_Set_Threading_Layer(0)  # MKL_THREADING_INTEL (before any MKL call)
+                # (before any MKL call) GNU OpenMP, the runtime torch and numba load too: MKL's
+                # own (Intel) runtime beside torch's libgomp crashed in the first threaded
+                # factorisation; without libgomp, sequential (one thread whatever is asked)
+                lib.MKL_Set_Threading_Layer(_GNU if _load_gomp() else _SEQUENTIAL)
                 lib.MKL_Domain_Set_Num_Threads.argtypes = [ctypes.c_int, ctypes.c_int]
                 _LIB = lib
                 break
