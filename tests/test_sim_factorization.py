@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from physavatar.sim import pardiso
+from physavatar.sim import assembly, pardiso
 from physavatar.sim.assembly import Assembler, Factorization, NewtonLinearSolver
 from physavatar.sim.energies import Bending, Membrane
 from physavatar.sim.mesh import ClothTopology
@@ -33,6 +33,7 @@ def test_pardiso_factor_solves_like_a_dense_solve():
     B = rng.normal(size=(asm.n, 3))
     f = Factorization(H_of(1.0), "pardiso")
     assert f.backend == "pardiso"
+    assert Factorization(H_of(1.0), "auto").backend == "cholespy"  # "auto": small systems keep cholespy
     for k, s in enumerate((1.0, 1.3, 7.0)):
         H = H_of(s)
         # the same pattern: the numeric phase on f's handle (move), or a new handle with f's ordering
@@ -119,4 +120,5 @@ def test_full_preconditioner_is_the_newton_matrix_and_auto_picks_it_by_size(back
     auto = NewtonLinearSolver(backend=backend)
     assert auto._preconditioner_matrix(H, asm).nnz < H.nnz  # small system: the sparsified matrix
     monkeypatch.setattr(NewtonLinearSolver, "FULL_MIN_ROWS", asm.n)
+    monkeypatch.setattr(assembly, "PARDISO_MIN_ROWS", asm.n)
     assert (auto._preconditioner_matrix(H, asm) is H) == (backend == "pardiso")  # full only with PARDISO

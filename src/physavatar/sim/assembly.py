@@ -244,6 +244,7 @@ class Assembler:
 
 
 BACKENDS = ("auto", "cholespy", "pardiso")
+PARDISO_MIN_ROWS = 3000  # "auto": PARDISO from this size on (the demo dress: 10k rows)
 PRECONDITIONERS = ("auto", "sparsified", "full")
 
 
@@ -252,7 +253,9 @@ class Factorization:
 
     ``backend``: "cholespy" (supernodal, its own reference BLAS; redoes the symbolic analysis
     on every construction), "pardiso" (Intel MKL PARDISO, ``sim.pardiso``; the optional
-    ``mkl`` extra) or "auto" (PARDISO when MKL is installed, else cholespy). scipy's LU is the
+    ``mkl`` extra) or "auto" (PARDISO for matrices of at least PARDISO_MIN_ROWS rows when MKL
+    is installed, else cholespy: below that neither is faster, and small systems keep their
+    results bit-identical to cholespy's; docs/simulation.md "Session 21"). scipy's LU is the
     fallback of either when the matrix is not numerically positive definite. ``reuse`` /
     ``move``: an earlier factor of the same pattern whose PARDISO analysis is reused
     (``PardisoCholesky``); ignored by cholespy, and so is ``threads`` (PARDISO's).
@@ -269,7 +272,7 @@ class Factorization:
         self._chol = None
         self._pardiso = None
         indefinite = False
-        if backend == "pardiso" or (backend == "auto" and pardiso.available()):
+        if backend == "pardiso" or (backend == "auto" and self.n >= PARDISO_MIN_ROWS and pardiso.available()):
             try:
                 old = reuse._pardiso if reuse is not None else None
                 self._pardiso = pardiso.PardisoCholesky(H, old, move and old is not None, threads)
@@ -372,7 +375,8 @@ class NewtonLinearSolver:
     def _preconditioner_matrix(self, H, assembler):
         full = self.preconditioner == "full" or (
             self.preconditioner == "auto" and H.shape[0] >= self.FULL_MIN_ROWS
-            and (self.backend == "pardiso" or (self.backend == "auto" and pardiso.available())))
+            and (self.backend == "pardiso"
+                 or (self.backend == "auto" and H.shape[0] >= PARDISO_MIN_ROWS and pardiso.available())))
         return H if full else assembler.preconditioner_matrix(H)
 
     def _refactor(self, M):

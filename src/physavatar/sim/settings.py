@@ -57,7 +57,8 @@ class SimSettings:
             residual linear_rtol; max_cg_iterations bounds CG before a fresh factor is taken
             (0 = factorise the Newton matrix itself every iteration, a direct solve).
         linear_solver: the sparse Cholesky behind the CG preconditioner and the direct solves:
-            "auto" (MKL PARDISO when the optional ``mkl`` extra is installed, else cholespy),
+            "auto" (MKL PARDISO for ≥ 3,000 unknowns when the optional ``mkl`` extra is
+            installed, else cholespy),
             "pardiso" or "cholespy" (sim.assembly.Factorization; docs/simulation.md "Session
             21"). Both factor the same matrices exactly, so only rounding (the CG path) differs.
         preconditioner: the matrix whose factor preconditions CG: "sparsified" (the Newton
