@@ -10,7 +10,9 @@ matrices with one fixed pattern pay only the numeric phase.
 
 MKL is a ~220 MB wheel (with intel-openmp and tbb ~700 MB installed), hence an optional extra
 (``pip install physavatar[mkl]``; ``scripts/setup_env.sh`` installs it): without it
-:func:`available` is False and ``assembly.Factorization`` uses cholespy as before.
+:func:`available` is False and ``assembly.Factorization`` uses cholespy as before. ``mkl_rt``
+is the file ``PHYSAVATAR_MKL_RT`` names, else the environment's ``lib/libmkl_rt.so*`` (where the
+wheel puts it), else the loader's.
 
 The routine is MKL's ``pardiso`` (real symmetric positive definite, ``mtype`` 2, upper
 triangle in zero-based CSR). ctypes releases the GIL for the call. Threads: per factor
