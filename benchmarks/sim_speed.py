@@ -20,8 +20,7 @@ step, measured in the same process, so "step / factorisation" survives a loaded 
 ``--large``: a finer dress (``--large-edge``, default 9.3 mm: > 15k vertices) on Anny's full-
 resolution body (> 12k vertices), a few frames of the walk, new code only (the baseline took
 > 3 min a frame on this size; ``--large-baseline`` runs it too), no untimed warm-up (the
-first frame includes the simulator's setup): frames/s and peak memory (resource.getrusage of
-the worker).
+first frame includes the simulator's setup): frames/s and peak memory (the worker's VmHWM).
 
 Writes benchmarks/results/sim_speed.json (DESIGN.md "Benchmarks"): per code, frames/s, Newton
 iterations, factorisations and CG iterations per frame, the split of a frame's time, step /
@@ -93,6 +92,19 @@ def _emit(kind, payload=None):
     print("@@" + json.dumps({"kind": kind, "payload": payload}), flush=True)
 
 
+def peak_rss_mb(resource) -> float:
+    """The worker's own peak resident memory [MB]: /proc's VmHWM (reset at exec), not
+    ru_maxrss, which on Linux also counts the parent's memory at the fork (the parent holds the
+    Anny model that built the scene: ~3.2 GB on the large case)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def worker(scene_file: str, spec: dict):
     """Simulate the scene with whatever ``physavatar`` is on the path, in lockstep with the
     parent: after each frame, report and wait for a line on stdin."""
@@ -138,7 +150,7 @@ def worker(scene_file: str, spec: dict):
     t0 = time.perf_counter()
     traj = simulate_on_body(part, bodies, body_faces, material, spec["fps"], settings=settings, callback=callback)
     wall = time.perf_counter() - t0
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_mb = peak_rss_mb(resource)
     # every frame intersection-free (cloth–body and, with self-contact, cloth–cloth) and finite
     scene = ContactScene(part.vertices, part.faces, bodies[0], body_faces, settings.dhat,
                          self_contact=settings.self_contact)
@@ -156,14 +168,25 @@ def worker(scene_file: str, spec: dict):
     H = sim.assembler_free.assemble([t.hessian(X, project=True) for t in sim.active_terms()])
     P = sim.assembler_free.preconditioner_matrix(H)
     fact = []
+
+    def factorise(M, backend):  # cholespy: the unit of "step / factorisation" since session 3
+        try:
+            return Factorization(M, backend)
+        except TypeError:  # code before session 21: cholespy only
+            return Factorization(M)
+
     for M in (H, P):
-        Factorization(M)
+        factorise(M, "cholespy")
         t1 = time.perf_counter()
         for _ in range(3):
-            Factorization(M)
+            factorise(M, "cholespy")
         fact.append((time.perf_counter() - t1) / 3)
+    t1 = time.perf_counter()
+    backend = factorise(P, settings.linear_solver if hasattr(settings, "linear_solver") else "cholespy")
+    fact.append(time.perf_counter() - t1)  # the preconditioner's factorisation on the code's own backend
     _emit("done", {"wall": wall, "peak_rss_mb": peak_mb, "bad_frames": bad, "factorization_s": fact[0],
-                   "preconditioner_factorization_s": fact[1], "dofs": int(H.shape[0]), "nnz": int(H.nnz),
+                   "preconditioner_factorization_s": fact[1], "own_backend": getattr(backend, "backend", "cholespy"),
+                   "own_preconditioner_factorization_s": fact[2], "dofs": int(H.shape[0]), "nnz": int(H.nnz),
                    "garment_vertices": len(part.vertices), "body_vertices": int(bodies.shape[1]),
                    "min_distance_m": float(min(s.min_distance for s in stats)),
                    "load_end": os.getloadavg()})
@@ -241,6 +264,8 @@ def figures(w: Worker) -> dict:
         "cg_iterations_per_frame": float(np.mean([f["cg"] for f in fr])),
         "time_split_s_per_frame": split,
         "factorization_s": d["factorization_s"], "preconditioner_factorization_s": d["preconditioner_factorization_s"],
+        "factorization_backend": d.get("own_backend"),
+        "own_backend_preconditioner_factorization_s": d.get("own_preconditioner_factorization_s"),
         "newton_matrix": {"dofs": d["dofs"], "nnz": d["nnz"]},
         "step_over_factorization": step / d["factorization_s"],
         "mean_contacts": float(np.mean([f["contacts"] for f in fr])),

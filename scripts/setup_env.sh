@@ -48,6 +48,13 @@ fi
 
 say "installing physavatar and its test extras"
 "$VENV/bin/python" -m pip install -q -e ".[test]"
+# MKL PARDISO for the simulator's sparse Cholesky (docs/simulation.md "Session 21"); x86-64
+# only, optional: the simulator falls back to cholespy without it.
+if [ "$(uname -m)" = x86_64 ]; then
+  say "installing the mkl extra (MKL PARDISO for the cloth simulator)"
+  "$VENV/bin/python" -m pip install -q -e ".[mkl]" \
+    || say "WARNING: could not install mkl; the simulator uses cholespy"
+fi
 
 # Anny builds its model data once (about a minute) and caches it; do it now so the first
 # command does not look stuck.

@@ -97,3 +97,24 @@ def test_simulate_retries_a_frame_that_lags_with_the_outer_surface_only():
     assert reports[-1]["lagged"] and reports[-1]["buried_vertices"] == 0
     assert not reports[1]["lagged"] and reports[1]["attempts"] == 2 and reports[1]["substeps"] == 1
     assert reports[1]["buried_vertices"] > 0
+
+
+def test_kept_and_parallel_winding_numbers_are_the_same_bits(monkeypatch):
+    """The body's winding numbers kept per pose (asked again, for more vertices, for another
+    pose) and the parallel loop (used above crease.PARALLEL_WORK) equal the serial loop's bits."""
+    from physavatar.sim import crease
+
+    B, F = two_parts(-0.03)
+    ref = winding_numbers(B, B, F, np.arange(len(B)))
+    kept = crease._BodyWinding(size=2)
+    rng = np.random.default_rng(0)
+    part = np.flatnonzero(rng.random(len(B)) < 0.3)
+    np.testing.assert_array_equal(kept.at(B, F, part), ref[part])
+    B2 = B + np.array([0.0, 0.0, 0.05])  # another pose: its own numbers
+    ref2 = winding_numbers(B2, B2, F, np.arange(len(B2)))
+    np.testing.assert_array_equal(kept.at(B2, F, np.arange(len(B))), ref2)
+    np.testing.assert_array_equal(kept.at(B, F, np.arange(len(B))), ref)  # the rest filled in
+    assert len(kept.entries) == 2
+    monkeypatch.setattr(crease, "PARALLEL_WORK", 0)
+    np.testing.assert_array_equal(winding_numbers(B, B, F, np.arange(len(B))), ref)
+    np.testing.assert_array_equal(buried_vertices(B2, F), ref2 > crease.BURIED)

@@ -18,7 +18,7 @@ try:  # cholespy: supernodal Cholesky (CHOLMOD-derived); scipy's LU is the fallb
 except ImportError:  # pragma: no cover - cholespy is a dependency
     cholespy = None
 
-from . import _kernels
+from . import _kernels, pardiso
 from .terms import Blocks, Diagonal, as_hessian
 
 
@@ -243,21 +243,45 @@ class Assembler:
         return sp.csr_matrix((M.data[keep], (r[keep], c[keep])), shape=(self.n, self.n))
 
 
-class Factorization:
-    """Sparse Cholesky of a symmetric positive-definite CSR matrix (cholespy; scipy fallback).
+BACKENDS = ("auto", "cholespy", "pardiso")
+PARDISO_MIN_ROWS = 3000  # "auto": PARDISO from this size on (the demo dress: 10k rows)
+PRECONDITIONERS = ("auto", "sparsified", "full")
 
-    cholespy redoes the symbolic analysis on every construction (it exposes no separate
-    numeric refactorisation); the analysis is ~1/10 of the numeric cost here, and most Newton
-    iterations need no factorisation at all (NewtonLinearSolver).
+
+class Factorization:
+    """Sparse Cholesky of a symmetric positive-definite CSR matrix.
+
+    ``backend``: "cholespy" (supernodal, its own reference BLAS; redoes the symbolic analysis
+    on every construction), "pardiso" (Intel MKL PARDISO, ``sim.pardiso``; the optional
+    ``mkl`` extra) or "auto" (PARDISO for matrices of at least PARDISO_MIN_ROWS rows when MKL
+    is installed, else cholespy: below that neither is faster, and small systems keep their
+    results bit-identical to cholespy's; docs/simulation.md "Session 21"). scipy's LU is the
+    fallback of either when the matrix is not numerically positive definite. ``reuse`` /
+    ``move``: an earlier factor of the same pattern whose PARDISO analysis is reused
+    (``PardisoCholesky``); ignored by cholespy, and so is ``threads`` (PARDISO's).
     """
 
-    def __init__(self, H: sp.csr_matrix):
+    def __init__(self, H: sp.csr_matrix, backend: str = "auto", reuse: "Factorization | None" = None,
+                 move: bool = False, threads: int = 1):
+        if backend not in BACKENDS:
+            raise ValueError(f"linear solver backend {backend!r}: expected one of {BACKENDS}")
         self.n = H.shape[0]
         H = H.tocsr()
         H.sort_indices()
         self._lu = None
         self._chol = None
-        if cholespy is not None:
+        self._pardiso = None
+        indefinite = False
+        if backend == "pardiso" or (backend == "auto" and self.n >= PARDISO_MIN_ROWS and pardiso.available()):
+            try:
+                old = reuse._pardiso if reuse is not None else None
+                self._pardiso = pardiso.PardisoCholesky(H, old, move and old is not None, threads)
+            except pardiso.PardisoError:
+                indefinite = True  # not positive definite numerically: LU below
+            except ValueError:
+                if backend == "pardiso":
+                    raise
+        if self._pardiso is None and not indefinite and cholespy is not None:
             try:
                 self._chol = cholespy.CholeskySolverD(
                     self.n,
@@ -268,14 +292,20 @@ class Factorization:
                 )
             except (ValueError, RuntimeError):
                 self._chol = None  # not positive definite numerically: fall back to LU
-        if self._chol is None:
+        if self._chol is None and self._pardiso is None:
             import scipy.sparse.linalg as sla
 
             self._lu = sla.splu(H.tocsc())
 
+    @property
+    def backend(self) -> str:
+        return "pardiso" if self._pardiso is not None else "cholespy" if self._chol is not None else "lu"
+
     def solve(self, b: np.ndarray) -> np.ndarray:
         """b: [n] or [n, k]."""
         b = np.ascontiguousarray(b, dtype=np.float64)
+        if self._pardiso is not None:
+            return self._pardiso.solve(b)
         if self._chol is not None:
             x = np.zeros_like(b)
             self._chol.solve(b, x)
@@ -294,18 +324,36 @@ class NewtonLinearSolver:
     iterates match a direct solve) in a few tens of iterations (docs/simulation.md "The
     step"). The factor is also reused across the Newton iterations of a step while CG
     converges quickly (ClothSim marks it stale at each new step: :meth:`mark_stale`); after a
-    solve that needed more than ``refresh_cg`` iterations (20: a factorisation costs ~30–60 CG
-    iterations of CPU time; docs/simulation.md "Session 15") it is recomputed from the next H,
+    solve that needed more than ``refresh_cg`` iterations (default by backend, REFRESH_CG:
+    cholespy 20, a factorisation costs ~30–60 CG iterations of CPU time, docs/simulation.md
+    "Session 15"; PARDISO 10, its numeric factorisation ~8× cheaper, "Session 21") it is
+    recomputed from the next H,
     and when CG fails within ``max_cg`` (the state or contacts changed a lot) it is recomputed
     from the current H at once.
+
+    ``preconditioner``: "sparsified" (H₁ above), "full" (a factor of H itself: a fresh one
+    solves exactly, then it ages like H₁'s) or "auto": "full" for systems of at least
+    ``FULL_MIN_ROWS`` rows when the factorisation is PARDISO's (there H₁ needs ~50 CG
+    iterations even when fresh, and PARDISO factorises H in the time of ~25 of them; the
+    demo dress's 10k-row systems need 5; docs/simulation.md "Session 21"), else "sparsified".
 
     ``max_cg=0`` factorises H itself every call (plain Newton; the reference behaviour).
     """
 
-    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int = 20):
+    FULL_MIN_ROWS = 30000
+
+    REFRESH_CG = {"cholespy": 20, "pardiso": 10, "lu": 20}
+
+    def __init__(self, rtol: float = 1e-6, max_cg: int = 100, refresh_cg: int | None = None, backend: str = "auto",
+                 preconditioner: str = "auto", threads: int = 1):
+        if preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"preconditioner {preconditioner!r}: expected one of {PRECONDITIONERS}")
         self.rtol = float(rtol)
         self.max_cg = int(max_cg)
-        self.refresh_cg = int(refresh_cg)
+        self.refresh_cg = refresh_cg  # None: by the factor's backend (REFRESH_CG)
+        self.backend = backend
+        self.preconditioner = preconditioner
+        self.threads = int(threads)
         self.factorizations = 0
         self.cg_iterations = 0
         self.reset()
@@ -314,14 +362,26 @@ class NewtonLinearSolver:
         self.factor: Factorization | None = None
         self.factor_matrix = None  # the matrix self.factor factorises
         self._stale = True
+        self._given = True
 
     def mark_stale(self):
         """Take a fresh factor at the next solve (a new step: the old factor preconditioned the
-        previous step's matrices, which rarely fit well enough to be worth trying)."""
+        previous step's matrices, which rarely fit well enough to be worth trying). The old
+        factor may be held by the last step's Linearization, so the next one is a new object
+        (within a step a PARDISO factor is refactorised in place: Factorization ``move``)."""
         self._stale = True
+        self._given = True
+
+    def _preconditioner_matrix(self, H, assembler):
+        full = self.preconditioner == "full" or (
+            self.preconditioner == "auto" and H.shape[0] >= self.FULL_MIN_ROWS
+            and (self.backend == "pardiso"
+                 or (self.backend == "auto" and H.shape[0] >= PARDISO_MIN_ROWS and pardiso.available())))
+        return H if full else assembler.preconditioner_matrix(H)
 
     def _refactor(self, M):
-        self.factor = Factorization(M)
+        self.factor = Factorization(M, self.backend, self.factor, move=not self._given, threads=self.threads)
+        self._given = False
         self.factor_matrix = M
         self.factorizations += 1
 
@@ -333,19 +393,20 @@ class NewtonLinearSolver:
             self._stale = True
             return self.factor.solve(b)
         if self.factor is None or self._stale or self.factor.n != H.shape[0]:
-            self._refactor(assembler.preconditioner_matrix(H))
+            self._refactor(self._preconditioner_matrix(H, assembler))
             self._stale = False
         x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
         self.cg_iterations += its
         if not ok:  # the old factor no longer fits H: a fresh one
-            self._refactor(assembler.preconditioner_matrix(H))
+            self._refactor(self._preconditioner_matrix(H, assembler))
             x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
             self.cg_iterations += its
             if not ok:  # not expected (H₁ ⪰ H); a direct solve is always right
                 self._refactor(H)
                 self._stale = True
                 return self.factor.solve(b)
-        self._stale = its > self.refresh_cg
+        refresh = self.REFRESH_CG[self.factor.backend] if self.refresh_cg is None else self.refresh_cg
+        self._stale = its > refresh
         return x
 
     def refine(self, H: sp.csr_matrix, b: np.ndarray, x: np.ndarray, assembler=None) -> np.ndarray:
@@ -363,7 +424,7 @@ class NewtonLinearSolver:
         if ok:
             return x
         if assembler is not None:
-            self._refactor(assembler.preconditioner_matrix(H))
+            self._refactor(self._preconditioner_matrix(H, assembler))
             x, its, ok = pcg(H, b, self.factor.solve, 1e-10, self.max_cg, x0=x)
             self.cg_iterations += its
             if ok:

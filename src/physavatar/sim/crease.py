@@ -61,10 +61,43 @@ def body_creases(s, body0, body1, faces, cloth) -> bool:
     return bool(near.any() and (buried_vertices(B0, faces, near).any() or buried_vertices(B1, faces, near).any()))
 
 
+PARALLEL_WORK = 2e7  # point-triangle pairs (~0.35 s serial) above which the winding loop runs on every core
+
+
 def winding_numbers(points, vertices, faces, vertex_ids=None) -> np.ndarray:
-    """Winding number of the mesh at points (``geometry.winding_number``, its serial loop); a
-    point that is mesh vertex ``vertex_ids[i]`` leaves out its own triangles."""
-    return winding_number(points, vertices, faces, vertex_ids)
+    """Winding number of the mesh at points (``geometry.winding_number``); a point that is mesh
+    vertex ``vertex_ids[i]`` leaves out its own triangles. Serial, or numba's parallel loop
+    over the points once there are more than PARALLEL_WORK point–triangle pairs (each point's
+    sum in the same order either way: the same bits; ~1 s a call on the 13.7k-vertex full
+    body, docs/simulation.md "Session 21")."""
+    work = len(points) * len(faces)
+    return winding_number(points, vertices, faces, vertex_ids, parallel=work > PARALLEL_WORK)
+
+
+class _BodyWinding:
+    """The winding numbers of a body mesh at its own vertices, kept for the last few body
+    poses (a frame's end pose is the next frame's start: ``body_creases`` and
+    ``outer_surface`` ask for both), computed only for the vertices not asked before."""
+
+    def __init__(self, size=4):
+        self.size, self.entries = size, {}
+
+    def at(self, V, F, ids):
+        key = (V.shape, F.shape, hash(V.tobytes()), hash(F.tobytes()))
+        entry = self.entries.pop(key, None)
+        if entry is None or not (np.array_equal(entry[0], V) and np.array_equal(entry[1], F)):
+            entry = (V.copy(), F.copy(), np.full(len(V), np.nan))
+        self.entries[key] = entry  # most recent last
+        w = entry[2]
+        while len(self.entries) > self.size:
+            self.entries.pop(next(iter(self.entries)))
+        todo = ids[np.isnan(w[ids])]
+        if len(todo):
+            w[todo] = winding_numbers(V[todo], V, F, todo)
+        return w[ids]
+
+
+_BODY_WINDING = _BodyWinding()
 
 
 def buried_vertices(vertices, faces, near=None, seeds=None) -> np.ndarray:
@@ -81,7 +114,7 @@ def buried_vertices(vertices, faces, near=None, seeds=None) -> np.ndarray:
     while test.any():
         ids = np.flatnonzero(test)
         done[ids] = True
-        out[ids] = winding_numbers(V[ids], V, F, ids) > BURIED
+        out[ids] = _BODY_WINDING.at(V, F, ids) > BURIED
         if seeds is None:
             break
         ring = np.zeros(len(V), bool)

@@ -56,6 +56,17 @@ class SimSettings:
             with the Cholesky factor of a sparsified (1-ring) Newton matrix, to relative
             residual linear_rtol; max_cg_iterations bounds CG before a fresh factor is taken
             (0 = factorise the Newton matrix itself every iteration, a direct solve).
+        linear_solver: the sparse Cholesky behind the CG preconditioner and the direct solves:
+            "auto" (MKL PARDISO for ≥ 3,000 unknowns when the optional ``mkl`` extra is
+            installed, else cholespy),
+            "pardiso" or "cholespy" (sim.assembly.Factorization; docs/simulation.md "Session
+            21"). Both factor the same matrices exactly, so only rounding (the CG path) differs.
+        preconditioner: the matrix whose factor preconditions CG: "sparsified" (the Newton
+            matrix without the hinge-tip couplings, their magnitudes on the diagonal), "full"
+            (the Newton matrix itself) or "auto" ("full" for ≥ 30k unknowns with PARDISO, where
+            the sparsified factor needs ~50 CG iterations; assembly.NewtonLinearSolver).
+        solver_threads: threads of PARDISO's factorisations and solves (1: bit-identical
+            repeats; cholespy always runs on one).
         newton_forcing: relative CG residual of the Newton directions that do not end the
             solve (inexact Newton; most are cut by CCD anyway). The direction that passes the
             stopping test is always refined to 1e-10, so only the path changes. Penalty-mode
@@ -119,6 +130,9 @@ class SimSettings:
     linear_rtol: float = 1e-6
     newton_forcing: float = 1e-3
     max_cg_iterations: int = 100
+    linear_solver: str = "auto"
+    preconditioner: str = "auto"
+    solver_threads: int = 1
     max_newton_iterations: int = 100
     max_penalty_iterations: int = 40
     barrier_stiffness_scale: float = 1e11

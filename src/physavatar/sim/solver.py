@@ -31,7 +31,7 @@ import time
 import ipctk
 import numpy as np
 
-from .assembly import Assembler, Linearization, NewtonLinearSolver
+from .assembly import BACKENDS, Assembler, Linearization, NewtonLinearSolver
 from .contact import Barrier, Friction, KinematicPenalty
 from .crease import outer_surface
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
@@ -111,12 +111,16 @@ class ClothSim:
         self.linearization = None
         self.step_state: StepState | None = None  # the last step's state (StepState)
         self._body_faces = None
-        self.linear_solver = NewtonLinearSolver(settings.linear_rtol, settings.max_cg_iterations)
+        if settings.linear_solver not in BACKENDS:
+            raise ValueError(f"linear_solver {settings.linear_solver!r}: expected one of {BACKENDS}")
+        solver_kw = dict(backend=settings.linear_solver, preconditioner=settings.preconditioner,
+                         threads=settings.solver_threads)
+        self.linear_solver = NewtonLinearSolver(settings.linear_rtol, settings.max_cg_iterations, **solver_kw)
         # The penalty-mode system (body DOFs unknown too) keeps its own preconditioner, so
         # switching between the two systems within a step costs no refactorisation. Its path
         # decides where the body is snapped and friction re-lagged, so it is solved to 1e-10
         # (as exact as a direct solve: the ρ-scaling invariance test holds to 1e-5 only then).
-        self.linear_solver_all = NewtonLinearSolver(1e-10, settings.max_cg_iterations)
+        self.linear_solver_all = NewtonLinearSolver(1e-10, settings.max_cg_iterations, **solver_kw)
 
     # -- setup ---------------------------------------------------------------------------------
 
