@@ -76,6 +76,12 @@ class SimSettings:
             result is a minimum over the candidates, the same bits on any number of threads;
             1 by default: two were slower on a loaded 2-core machine, and process pools run
             one simulation per core (docs/simulation.md "Speed").
+        contact_preview: r > 0: the Newton directions of a step's first iteration and of those
+            after a CCD-cut step take, in their matrix, the Hessian of the barrier with d̂₂ = r d̂
+            (r ≤ 2, pairs within d̂₂, the same κ) in place of the barrier's own (Barrier.
+            preview_hessian): stiffer at every gap, and it sees pairs up to d̂₂, so fewer steps
+            are cut by CCD. The energy and the stopping test are unchanged: it changes the path to
+            the minimiser, not the minimiser. 0 = off.
         max_body_move: with sub-stepping decided per frame (``simulate(max_substeps=...)``), a
             frame in which a body vertex within reach of the cloth moves farther than this [m]
             is split into ceil(move / max_body_move) implicit steps (sim.simulate.substep_count).
@@ -126,6 +132,7 @@ class SimSettings:
     keep_linearization: bool = False
     deterministic: bool = True
     ccd_threads: int = 1
+    contact_preview: float = 0.0
     max_body_move: float = 0.08
     lag_radius: float = 0.05
     crease_ring: int = 1
