@@ -216,8 +216,11 @@ def test_rms_stopping_rule_changes_where_newton_stops_not_the_solution():
     vertices of ‖Δx_i‖ / h, step taken) ends at the states of the ∞-norm rule when both are
     tight, and its residual is that formula."""
     m = Material(density=0.15, stretch_stiffness=30.0, bend_stiffness=1e-5)
-    rms, sim = moving_body_case(m, newton_tol=1e-6, newton_norm="rms")
-    ref, _ = moving_body_case(m, newton_tol=1e-7, newton_norm="max")
+    # without the contact preview: with it, the two paths reach different nearby minima of the
+    # first contact step on the faceted sphere (0.36 mm apart, energies 1e-4 apart relative;
+    # docs/simulation.md "Session 21")
+    rms, sim = moving_body_case(m, newton_tol=1e-6, newton_norm="rms", contact_preview=0.0)
+    ref, _ = moving_body_case(m, newton_tol=1e-7, newton_norm="max", contact_preview=0.0)
     assert np.abs(rms - ref).max() < 1e-6
     step = np.random.default_rng(0).normal(size=(sim.n + sim.nb, 3))
     step[sim.boundary] = 0.0  # prescribed vertices do not move outside penalty mode
@@ -545,3 +548,8 @@ def test_contact_preview_changes_the_path_not_the_solution():
     assert x[:, 2].max() > 0.03  # the plane did push the cloth up
     assert changed and max(diffs) < 1e-6, diffs
     assert its[1] < its[0], its
+
+
+def test_contact_preview_beyond_the_candidates_reach_is_refused():
+    with pytest.raises(ValueError, match="contact_preview"):
+        SimSettings(contact_preview=2.5)

@@ -187,8 +187,8 @@ class Barrier(Term):
     def preview_hessian(self, X, distance):
         """The contact preview (SimSettings.contact_preview): the PSD-projected Hessian of ipctk's
         barrier with activation distance ``distance`` (d̂₂ > d̂) and this κ, over the pairs within
-        d̂₂ at X. The solver puts it in place of :meth:`hessian` in the Newton matrix of directions
-        after a CCD-cut step (the energy, gradient and line search keep d̂, so the step's minimiser
+        d̂₂ at X. The solver puts it in place of :meth:`hessian` in the Newton matrix of a step's
+        first direction and of those after a CCD-cut step (the energy, gradient and line search keep d̂, so the step's minimiser
         is unchanged): IPC's log barrier has no curvature at d̂ and little just inside it, so a
         Newton direction carries pressed cloth through pairs that CCD then cuts the whole step at
         (docs/simulation.md "Session 20"); the d̂₂ barrier is stiffer at every gap and sees pairs
