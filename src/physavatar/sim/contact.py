@@ -51,6 +51,10 @@ class ContactScene:
             self.mesh.can_collide = self.mesh.can_collide & prescribed_filter(self.n_cloth, self.n_body, prescribed)
         self.dhat = float(dhat)
         self.dmin = float(dmin)
+        # ipctk inflates every primitive's box by this radius, so a build holds every pair
+        # within twice it (ipctk's own NormalCollisions.build inflates by (d̂ + dmin) / 2)
+        self.inflation = self.dhat + self.dmin
+        self._preview = (None, None)  # (X, NormalCollisions within the preview distance) of the last call
         # AdditiveCCD (C-IPC's CCD; far faster than Tight Inclusion on cloth sliding along the
         # body, docs/simulation.md "The step"), with a conservative 10% margin of the initial
         # separation.
@@ -66,13 +70,15 @@ class ContactScene:
 
     def prepare_static(self, X):
         """Candidates around one configuration (inflated by d̂): valid for X only."""
-        self.candidates.build(self.mesh, X, self.dhat + self.dmin, self.broad_phase)
+        self.candidates.build(self.mesh, X, self.inflation, self.broad_phase)
         self._collisions_at = None
+        self._preview = (None, None)
 
     def prepare_segment(self, X0, X1):
         """Candidates for the whole segment X0 → X1: valid for every point on it."""
-        self.candidates.build(self.mesh, X0, X1, self.dhat + self.dmin, self.broad_phase)
+        self.candidates.build(self.mesh, X0, X1, self.inflation, self.broad_phase)
         self._collisions_at = None
+        self._preview = (None, None)
 
     def collisions_at(self, X):
         """The active barrier set at X (from the current candidates; cached for repeated X)."""
@@ -80,6 +86,17 @@ class ContactScene:
             self.collisions.build(self.candidates, self.mesh, X, self.dhat, self.dmin)
             self._collisions_at = X.copy()
         return self.collisions
+
+    def preview_collisions(self, X, distance):
+        """The pairs within ``distance`` (≤ 2 :attr:`inflation` − dmin) of each other at X, from the
+        current candidates (a build that covers X), as an ipctk NormalCollisions with d̂ =
+        ``distance`` (cached for X): the solver's contact preview (ClothSim._newton_direction)."""
+        X0, c = self._preview
+        if c is None or not np.array_equal(X0, X):
+            c = ipctk.NormalCollisions()
+            c.build(self.candidates, self.mesh, X, distance, self.dmin)
+            self._preview = (X.copy(), c)
+        return c
 
     def collision_free_stepsize(self, X0, X1):
         """Largest α ∈ [0, 1] such that X0 + α (X1 − X0) stays intersection-free (ipctk CCD).
@@ -166,6 +183,21 @@ class Barrier(Term):
             return HessianSum()
         method = ipctk.PSDProjectionMethod.CLAMP if project else ipctk.PSDProjectionMethod.NONE
         return SparseHessian(self.potential.hessian(c, self.scene.mesh, X, method))
+
+    def preview_hessian(self, X, distance):
+        """The contact preview (SimSettings.contact_preview): the PSD-projected Hessian of ipctk's
+        barrier with activation distance ``distance`` (d̂₂ > d̂) and this κ, over the pairs within
+        d̂₂ at X. The solver puts it in place of :meth:`hessian` in the Newton matrix of a step's
+        first direction and of those after a CCD-cut step (the energy, gradient and line search keep d̂, so the step's minimiser
+        is unchanged): IPC's log barrier has no curvature at d̂ and little just inside it, so a
+        Newton direction carries pressed cloth through pairs that CCD then cuts the whole step at
+        (docs/simulation.md "Session 20"); the d̂₂ barrier is stiffer at every gap and sees pairs
+        up to d̂₂. From the current candidates (ContactScene.preview_collisions): d̂₂ ≤ 2 d̂."""
+        c = self.scene.preview_collisions(X, distance)
+        if not len(c):
+            return HessianSum()
+        potential = ipctk.BarrierPotential(distance, self.scale)
+        return SparseHessian(potential.hessian(c, self.scene.mesh, X, ipctk.PSDProjectionMethod.CLAMP))
 
 
 class Friction(Term):

@@ -62,6 +62,7 @@ class _Solve:
     penalty_iters: int = 0
     gaps: list = dataclasses.field(default_factory=list)  # the penalty phase's gap per iteration
     cut: bool = False  # the last step was cut by CCD (α < 1): the next direction may be looser
+    first: bool = True  # no step taken yet in this step's solve
     confined: bool = False  # a given-up penalty phase left only the body near the pinch behind (lag.py)
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
@@ -426,11 +427,16 @@ class ClothSim:
         initial_stiffness(self, sv.X)
         ta = time.perf_counter()
         grads_el, hess_el, grads_c, hess_c = [], [], [], []
+        # the contact preview (SimSettings.contact_preview) on a step's first direction and after a CCD-cut one
+        preview = s.contact_preview > 0 and not penalty and (sv.first or sv.cut)
         for t in self.active_terms(penalty):
             contact = t is self.barrier or t is self.friction
             tt = time.perf_counter()
             g = t.gradient(sv.X)
-            H = t.hessian(sv.X, project=True)
+            if preview and t is self.barrier:  # in the matrix only: E, ∇E and the line search keep d̂
+                H = t.preview_hessian(sv.X, s.contact_preview * s.dhat)
+            else:
+                H = t.hessian(sv.X, project=True)
             if contact:
                 grads_c.append(g)
                 hess_c.append(H)
@@ -455,6 +461,9 @@ class ClothSim:
         residual, res_stop = self._residuals(step, h)
         if not penalty and res_stop < s.newton_tol:  # about to stop: make dx exact first
             tl = time.perf_counter()
+            if preview:  # the stopping test is on the Newton matrix itself: the barrier's own Hessian
+                hess_c[0] = self.barrier.hessian(sv.X, project=True)
+                Hm = sv.matrix = assembler.assemble(hess_el + hess_c)
             dx = -self.linear_solver.refine(Hm, grad, -dx, assembler)
             stats.time["linear_solve"] += time.perf_counter() - tl
             step = assembler.expand(dx).reshape(-1, 3)
@@ -468,6 +477,7 @@ class ClothSim:
         X_new, E1, alpha = backtrack(self.scene, lambda Y: self._energy(Y, sv.penalty), sv.X, step, stats, E0)
         sv.memo.set(EnergyMemo.key(self, X_new, sv.penalty), E1)
         sv.cut = alpha < 1.0
+        sv.first = False
         if (self.settings.step_expansion and not sv.penalty and alpha == 1.0
                 and residual > 0.7 * sv.prev_residual):
             tls = time.perf_counter()
