@@ -1,6 +1,6 @@
 """Confined lag: when a step's penalty phase gives up, only the body near the pinch lags.
 
-The kinematic-penalty phase (solver.ClothSim._penalty_phase) moves every prescribed vertex
+The kinematic-penalty phase (:func:`penalty_phase`, called by solver.ClothSim._newton) moves every prescribed vertex
 (the body, the Dirichlet cloth vertices) with one line-search step length, so a single pinch —
 cloth caught where Anny's collider passes through itself (the groin, the back of the knee:
 docs/simulation.md "Why the whole clips stalled") — holds back the whole body: on the CMU walk
@@ -23,6 +23,7 @@ starts from where the body got to (ClothSim._body_lag), as before.
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 
@@ -102,3 +103,55 @@ def confine_lag(sim, sv, stats) -> bool:
     sim.friction.lag(sv.X, sim.barrier)
     stats.lag_radius = radius
     return True
+
+
+def penalty_phase(sim, sv, stats):
+    """The kinematic-penalty phase of ``sim`` (solver.ClothSim) after a penalty-mode iteration of
+    its solve ``sv``: snap the prescribed vertices to their targets once
+    they are close and the rest of the move is collision-free (back to the free system),
+    retry carrying the cloth with the body, or stiffen the penalty when the targets stall.
+    Returns "break" (give up: the body lags), "continue" (next iteration at once) or None."""
+    s, X = sim.settings, sv.X
+    sv.penalty_iters += 1
+    gap = np.max(np.abs(X[sim.penalty.kinematic] - sim.penalty.target))
+    sv.gaps.append(gap)
+    if sim.stall_exit and gap >= 1e-2 * s.dhat and len(sv.gaps) > sim.stall_window:
+        if gap > (1 - sim.stall_progress) * sv.gaps[~sim.stall_window]:  # a pinch: shorter steps do better
+            return "break"
+    if gap < 1e-2 * s.dhat:
+        X_snap = X.copy()
+        X_snap[sim.penalty.kinematic] = sim.penalty.target
+        tcd = time.perf_counter()
+        ok = sim.scene.collision_free_stepsize(X, X_snap) >= 1.0
+        stats.time["ccd"] += time.perf_counter() - tcd
+        if ok:
+            sv.X = X_snap
+            sv.penalty = False
+            sim.scene.prepare_static(sv.X)
+            sim.friction.lag(sv.X, sim.barrier)
+        else:
+            # The cloth sits closer to the body than the body's remaining gap: the barrier
+            # holds the body short of its target at this penalty weight, and more
+            # iterations at the same weight do not move it. A stiffer penalty pushes the
+            # cloth on.
+            sim.penalty.weight *= 10.0
+            if sv.penalty_iters >= s.max_penalty_iterations:
+                return "break"
+            return "continue"
+    elif s.follow_body > 0 and sim.nb and s.follow_retry > 0 and sv.penalty_iters % s.follow_retry == 0:
+        # try again to carry the cloth the rest of the way (the pairs that cut the
+        # first try may have separated)
+        free = sim.inertia.unit_mass[: sim.n] > 0
+        X_f, reached = follow_body(sim.scene, sim._body_faces, free, s, X, sv.X_goal, None, stats)
+        sim.scene.prepare_static(X_f if reached else X)
+        if reached:
+            sv.X = X_f
+            sv.penalty = False
+            stats.body_follows += 1
+            sim.friction.lag(sv.X, sim.barrier)
+    if sv.penalty and sv.penalty_iters >= s.max_penalty_iterations:
+        return "break"  # no room for the cloth at the body's pose: keep what was reached
+    if sv.penalty and sv.penalty_iters % 10 == 0:
+        sim.penalty.weight *= 10.0  # AL-style escalation when targets stall
+        return "continue"
+    return None

@@ -12,7 +12,7 @@ backtracking line search that starts from ipctk's collision-free step size (Addi
 :meth:`ClothSim.step` is made of named parts: ``_begin_step`` (the step's state, handed to
 every term's ``begin_step``), ``_start`` (the prescribed motion; start.py), then Newton
 iterations of ``_newton_direction``, ``_line_search``, the barrier stiffness's update (kappa.py) and, while
-the body is not at its pose, ``_penalty_phase``; ``_finish_step`` reports and keeps the
+the body is not at its pose, ``lag.penalty_phase``; ``_finish_step`` reports and keeps the
 linearization that sensitivity.py differentiates.
 
 Moving body (docs/simulation.md "Moving collider"): the prescribed motion (body t → t+1,
@@ -31,12 +31,12 @@ import time
 import ipctk
 import numpy as np
 
-from .assembly import BACKENDS, Assembler, Linearization, NewtonLinearSolver
+from .assembly import Assembler, Linearization, NewtonLinearSolver
 from .contact import Barrier, Friction, KinematicPenalty
 from .crease import outer_surface
 from .energies import Bending, Gravity, Inertia, MassDamping, Membrane, StiffnessDamping
 from .kappa import adapt_stiffness, initial_stiffness
-from .lag import confine_lag
+from .lag import confine_lag, penalty_phase
 from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
@@ -112,8 +112,6 @@ class ClothSim:
         self.linearization = None
         self.step_state: StepState | None = None  # the last step's state (StepState)
         self._body_faces = None
-        if settings.linear_solver not in BACKENDS:
-            raise ValueError(f"linear_solver {settings.linear_solver!r}: expected one of {BACKENDS}")
         solver_kw = dict(backend=settings.linear_solver, preconditioner=settings.preconditioner,
                          threads=settings.solver_threads)
         self.linear_solver = NewtonLinearSolver(settings.linear_rtol, settings.max_cg_iterations, **solver_kw)
@@ -388,7 +386,7 @@ class ClothSim:
             self._line_search(sv, step, residual, stats)
             adapt_stiffness(self, sv, stats)
             if sv.penalty:
-                action = self._penalty_phase(sv, stats)
+                action = penalty_phase(self, sv, stats)
                 if action == "break":
                     break
                 if action == "continue":
@@ -485,56 +483,6 @@ class ClothSim:
             stats.time["line_search"] += time.perf_counter() - tls
         sv.prev_residual = residual
         sv.X = X_new
-
-    def _penalty_phase(self, sv: _Solve, stats):
-        """After a penalty-mode iteration: snap the prescribed vertices to their targets once
-        they are close and the rest of the move is collision-free (back to the free system),
-        retry carrying the cloth with the body, or stiffen the penalty when the targets stall.
-        Returns "break" (give up: the body lags), "continue" (next iteration at once) or None."""
-        s, X = self.settings, sv.X
-        sv.penalty_iters += 1
-        gap = np.max(np.abs(X[self.penalty.kinematic] - self.penalty.target))
-        sv.gaps.append(gap)
-        if self.stall_exit and gap >= 1e-2 * s.dhat and len(sv.gaps) > self.stall_window:
-            if gap > (1 - self.stall_progress) * sv.gaps[~self.stall_window]:  # a pinch: shorter steps do better
-                return "break"
-        if gap < 1e-2 * s.dhat:
-            X_snap = X.copy()
-            X_snap[self.penalty.kinematic] = self.penalty.target
-            tcd = time.perf_counter()
-            ok = self.scene.collision_free_stepsize(X, X_snap) >= 1.0
-            stats.time["ccd"] += time.perf_counter() - tcd
-            if ok:
-                sv.X = X_snap
-                sv.penalty = False
-                self.scene.prepare_static(sv.X)
-                self.friction.lag(sv.X, self.barrier)
-            else:
-                # The cloth sits closer to the body than the body's remaining gap: the barrier
-                # holds the body short of its target at this penalty weight, and more
-                # iterations at the same weight do not move it. A stiffer penalty pushes the
-                # cloth on.
-                self.penalty.weight *= 10.0
-                if sv.penalty_iters >= s.max_penalty_iterations:
-                    return "break"
-                return "continue"
-        elif s.follow_body > 0 and self.nb and s.follow_retry > 0 and sv.penalty_iters % s.follow_retry == 0:
-            # try again to carry the cloth the rest of the way (the pairs that cut the
-            # first try may have separated)
-            free = self.inertia.unit_mass[: self.n] > 0
-            X_f, reached = follow_body(self.scene, self._body_faces, free, s, X, sv.X_goal, None, stats)
-            self.scene.prepare_static(X_f if reached else X)
-            if reached:
-                sv.X = X_f
-                sv.penalty = False
-                stats.body_follows += 1
-                self.friction.lag(sv.X, self.barrier)
-        if sv.penalty and sv.penalty_iters >= s.max_penalty_iterations:
-            return "break"  # no room for the cloth at the body's pose: keep what was reached
-        if sv.penalty and sv.penalty_iters % 10 == 0:
-            self.penalty.weight *= 10.0  # AL-style escalation when targets stall
-            return "continue"
-        return None
 
     def _finish_step(self, sv: _Solve, state: StepState, stats):
         """Report the step, keep its linearization (sensitivities), and return (x_new, v_new)."""
