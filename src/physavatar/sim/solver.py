@@ -88,6 +88,7 @@ class ClothSim:
     predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
     stall_exit, stall_window, stall_progress = False, 8, 0.1  # give up a penalty phase: gap -10 % in 8 (simulate)
     crease_on = False  # cloth collides with the body's outer surface only (crease.py; simulate: on a lag's retry)
+    lag_stall_exit = False  # a lagging step's free solve ends once it stalls (simulate turns it on; _Solve.lag_stall)
     _crease_check = False  # the last step hid body or released cloth: look for cloth inside the body (crease.py)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
@@ -287,10 +288,11 @@ class ClothSim:
         if (solve.penalty and self.settings.lag_radius > 0 and self.nb and not self.stall_exit
                 and confine_lag(self, solve, stats)):
             done = (stats.newton_iterations, stats.factorizations, stats.cg_iterations)
-            # the step lags (reported); its cloth, against the body where it stopped, is solved until
-            # the norm stalls, not for max_newton_iterations (docs/simulation.md "Session 21")
+            # the step lags (reported); in simulate its cloth, against the body where it stopped, is
+            # solved until the norm stalls, not for max_newton_iterations (docs/simulation.md
+            # "Session 21"; a sim stepped directly, as the physics rollout's, solves as before)
             kin = self.penalty.kinematic
-            solve.lag_stall = bool(np.any(solve.X[kin] != self.penalty.target))
+            solve.lag_stall = self.lag_stall_exit and bool(np.any(solve.X[kin] != self.penalty.target))
             self._newton(solve, stats)  # the rest of the step with the body where confine_lag left it
             stats.newton_iterations += done[0]
             stats.factorizations += done[1]
