@@ -24,8 +24,8 @@ frame lagged without it, so a frame that does not pinch is simulated as before):
   triangle that was buried then) moves out under its own elasticity and gravity, unhindered by
   the triangles it is behind;
 - contact leaves out every cloth–body vertex pair with a buried body vertex or a released cloth
-  vertex (an ipctk CollisionFilter composed with the scene's own, in C++). Cloth–cloth contact is
-  unchanged.
+  vertex or one of its neighbours (RELEASE_RING; an ipctk CollisionFilter composed with the
+  scene's own, in C++). Cloth–cloth contact is unchanged.
 
 A step without buried body vertices near the cloth or released cloth vertices keeps the scene's
 own filter object: on a body that does not pass through itself near the cloth the simulation is
