@@ -63,9 +63,8 @@ class _Solve:
     gaps: list = dataclasses.field(default_factory=list)  # the penalty phase's gap per iteration
     cut: bool = False  # the last step was cut by CCD (α < 1): the next direction may be looser
     confined: bool = False  # a given-up penalty phase left only the body near the pinch behind (lag.py)
-    lag_stall: bool = False  # the body lags (confined): the free solve gives up once it stalls (ClothSim.stall_window)
-    best_residual: float = np.inf  # (while lag_stall) the lowest stopping norm so far, and iterations since
-    since_best: int = 0
+    lag_stall: bool = False  # the body lags (confined): the free solve ends once it stalls (ClothSim.lag_stall_exit)
+    lows: list = dataclasses.field(default_factory=list)  # (while lag_stall) the stopping norm per iteration
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
     memo: EnergyMemo = dataclasses.field(default_factory=EnergyMemo)  # E at the last iterate
@@ -288,9 +287,7 @@ class ClothSim:
         if (solve.penalty and self.settings.lag_radius > 0 and self.nb and not self.stall_exit
                 and confine_lag(self, solve, stats)):
             done = (stats.newton_iterations, stats.factorizations, stats.cg_iterations)
-            # the step lags (reported); in simulate its cloth, against the body where it stopped, is
-            # solved until the norm stalls, not for max_newton_iterations (docs/simulation.md
-            # "Session 21"; a sim stepped directly, as the physics rollout's, solves as before)
+            # the step lags (reported): solved until the norm stalls (docs/simulation.md "Session 21")
             kin = self.penalty.kinematic
             solve.lag_stall = self.lag_stall_exit and bool(np.any(solve.X[kin] != self.penalty.target))
             self._newton(solve, stats)  # the rest of the step with the body where confine_lag left it
@@ -391,11 +388,10 @@ class ClothSim:
             stop_after_step = s.newton_norm == "rms" and sv.below_count >= s.newton_window
             self._line_search(sv, step, residual, stats)
             adapt_stiffness(self, sv, stats)
-            if sv.lag_stall:  # a lagging step's cloth: no new low of the norm in stall_window iterations ends it
-                sv.best_residual, sv.since_best = ((res_stop, 0) if res_stop < sv.best_residual
-                                                   else (sv.best_residual, sv.since_best + 1))
-                if sv.since_best >= self.stall_window:
-                    break
+            sv.lows += [res_stop] if sv.lag_stall else []  # no new low in stall_window iterations: done
+            w = self.stall_window
+            if sv.lag_stall and len(sv.lows) > w and min(sv.lows[-w:]) >= min(sv.lows[:-w]):
+                break
             if sv.penalty:
                 action = self._penalty_phase(sv, stats)
                 if action == "break":
