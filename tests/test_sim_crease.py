@@ -133,3 +133,29 @@ def test_released_cloth_does_not_pinch_a_body_that_slides_past_it(monkeypatch):
     assert crease.RELEASE_RING == 1
     assert max(out[0][0]) > 5e-4 and max(out[0][1]) >= SimSettings().max_penalty_iterations
     assert max(out[1][0]) == 0.0 and max(out[1][1]) < SimSettings().max_penalty_iterations
+
+
+def test_a_lagging_steps_free_solve_ends_once_its_norm_stalls(monkeypatch):
+    """The free solve after a confined lag (ClothSim.lag_stall_exit, on in simulate) ends once
+    its stopping norm has made no new low for stall_window iterations; without it the same
+    iterations run to max_newton_iterations (directions and line search stubbed: the norm falls
+    to 0.5, then stays at 0.6)."""
+    from physavatar.sim import solver as S
+    from physavatar.sim.settings import StepStats
+
+    V, F = cloth_grid.grid(5, 0.1)
+    sim = ClothSim(V, F, Material(), SimSettings(), [])
+    x, _, _ = sim.step(V, np.zeros_like(V), None, None, None)
+    monkeypatch.setattr(S, "adapt_stiffness", lambda *a: None)
+    monkeypatch.setattr(ClothSim, "_line_search", lambda self, sv, step, residual, stats: None)
+    iterations = {}
+    for stall in (False, True):
+        norms = iter([1.0, 0.5] + [0.6] * 500)
+        monkeypatch.setattr(ClothSim, "_newton_direction",
+                            lambda self, sv, stats, norms=norms: (np.zeros_like(sv.X), 1.0, next(norms)))
+        sv = S._Solve(X=x.copy(), penalty=False, X_goal=x.copy(), diag=1.0, lag_left=0, prev_min_dist=1.0,
+                      lag_stall=stall)
+        stats = StepStats()
+        sim._newton(sv, stats)
+        iterations[stall] = stats.newton_iterations
+    assert iterations == {False: SimSettings().max_newton_iterations, True: 2 + ClothSim.stall_window}
