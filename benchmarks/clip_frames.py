@@ -4,7 +4,10 @@ from the run's last state (frames/state.npz); then frames F0+1..F1 as ``simulate
 (sub-steps per frame, retries up to 16; ``stuck``: one attempt a frame). Each frame is checked:
 lag, ipctk's intersection test against the whole body and against its outer surface (the
 triangles without a buried corner: sim.crease), cloth vertices inside the body (winding number).
-The runs of session 18 (/tmp/w18clip-full, not in the repository) are the source of the states.
+The runs of session 18 (/tmp/w18clip-full, not in the repository) were the source of the states;
+session 21's is ``motion_suite.py --full --only cmu-walk --work /tmp/w21clip`` (CLIP_RUNS=/tmp/w21clip).
+With CLIP_STATE set to a copy of the run's ``frames/state.npz`` taken right after frame F0 was written,
+the frames start from that exact checkpoint instead (v, κ, BDF2 history and lag as the run had them).
 
     python benchmarks/clip_frames.py cmu-walk 98 102 1 OUT.json [stuck]   # crease_ring 1 (-1: off)
 """
@@ -40,6 +43,11 @@ scal = json.loads(str(st["solver_scalars"]))
 solver = {"dt": 0.04, "barrier_stiffness": scal["barrier_stiffness"], "max_barrier_stiffness": scal["max_barrier_stiffness"],
           "kappa_balanced": scal["kappa_balanced"], "stuck": len(sys.argv) > 6 and sys.argv[6] == "stuck"}
 ck = Checkpoint(f0, x0, (x0 - xm) * 25.0, solver)
+if os.environ.get("CLIP_STATE"):  # the run's own checkpoint after frame f0 (exact)
+    ck = Checkpoint.load(os.environ["CLIP_STATE"])
+    if ck.frame != f0:
+        sys.exit(f"CLIP_STATE holds the state after frame {ck.frame}, not {f0}")
+    ck.solver["stuck"] = solver["stuck"] or bool(ck.solver.get("stuck", False))
 T = f1 + 1
 rows = []
 def on_frame(c, r):

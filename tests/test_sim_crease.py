@@ -118,3 +118,65 @@ def test_kept_and_parallel_winding_numbers_are_the_same_bits(monkeypatch):
     monkeypatch.setattr(crease, "PARALLEL_WORK", 0)
     np.testing.assert_array_equal(winding_numbers(B, B, F, np.arange(len(B))), ref)
     np.testing.assert_array_equal(buried_vertices(B2, F), ref2 > crease.BURIED)
+
+
+def test_released_cloth_does_not_pinch_a_body_that_slides_past_it(monkeypatch):
+    """Cloth pressed into part A (as above, by a cloth wider than the overlap) crosses A's top
+    face: the released vertices inside, their neighbours outside. When A then slides sideways
+    (1 cm a step), A's edges sweep along those crossing cloth edges. Releasing only the vertices
+    inside (crease.RELEASE_RING 0, session 20) leaves the edges' outside ends in contact with A,
+    the sweep is cut by CCD and the body lags; releasing their one-ring too (the default) lets A
+    slide past: no lag, and no step runs out its penalty phase."""
+    from physavatar.sim import crease
+
+    V, F = cloth_grid.grid(12, 0.2, 0.005, center=True)
+    V = V + [0.09, 0.0, 0.0]
+    B0, Fb = two_parts(0.0)
+    B1, _ = two_parts(-0.02)
+    n = len(B0) // 2
+    out = {}
+    for ring in (0, crease.RELEASE_RING):
+        monkeypatch.setattr(crease, "RELEASE_RING", ring)
+        sim = ClothSim(V, F, Material(), SimSettings(friction=0.0), [])
+        sim.crease_on = True
+        x, v, st = sim.step(V, np.zeros_like(V), B0, B1, Fb)
+        assert st.body_gap == 0.0 and np.sum(winding_numbers(x, B1, Fb) > 0.5) > 10  # pressed into A
+        gaps, pen, Bp = [], [], B1
+        for k in range(3):
+            Bn = B1.copy()
+            Bn[:n, 0] -= 0.01 * (k + 1)
+            x, v, st = sim.step(x, v, Bp, Bn, Fb)
+            assert st.released_vertices > 0
+            gaps.append(st.body_gap)
+            pen.append(st.penalty_iterations)
+            Bp = Bn if sim._body_lag is None else sim._body_lag[1]
+        out[ring] = gaps, pen
+    assert crease.RELEASE_RING == 1
+    assert max(out[0][0]) > 5e-4 and max(out[0][1]) >= SimSettings().max_penalty_iterations
+    assert max(out[1][0]) == 0.0 and max(out[1][1]) < SimSettings().max_penalty_iterations
+
+
+def test_a_lagging_steps_free_solve_ends_once_its_norm_stalls(monkeypatch):
+    """The free solve after a confined lag (ClothSim.lag_stall_exit, on in simulate) ends once
+    its stopping norm has made no new low for stall_window iterations; without it the same
+    iterations run to max_newton_iterations (directions and line search stubbed: the norm falls
+    to 0.5, then stays at 0.6)."""
+    from physavatar.sim import solver as S
+    from physavatar.sim.settings import StepStats
+
+    V, F = cloth_grid.grid(5, 0.1)
+    sim = ClothSim(V, F, Material(), SimSettings(), [])
+    x, _, _ = sim.step(V, np.zeros_like(V), None, None, None)
+    monkeypatch.setattr(S, "adapt_stiffness", lambda *a: None)
+    monkeypatch.setattr(ClothSim, "_line_search", lambda self, sv, step, residual, stats: None)
+    iterations = {}
+    for stall in (False, True):
+        norms = iter([1.0, 0.5] + [0.6] * 500)
+        monkeypatch.setattr(ClothSim, "_newton_direction",
+                            lambda self, sv, stats, norms=norms: (np.zeros_like(sv.X), 1.0, next(norms)))
+        sv = S._Solve(X=x.copy(), penalty=False, X_goal=x.copy(), diag=1.0, lag_left=0, prev_min_dist=1.0,
+                      lag_stall=stall)
+        stats = StepStats()
+        sim._newton(sv, stats)
+        iterations[stall] = stats.newton_iterations
+    assert iterations == {False: SimSettings().max_newton_iterations, True: 2 + ClothSim.stall_window}

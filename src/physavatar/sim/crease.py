@@ -24,8 +24,8 @@ frame lagged without it, so a frame that does not pinch is simulated as before):
   triangle that was buried then) moves out under its own elasticity and gravity, unhindered by
   the triangles it is behind;
 - contact leaves out every cloth–body vertex pair with a buried body vertex or a released cloth
-  vertex (an ipctk CollisionFilter composed with the scene's own, in C++). Cloth–cloth contact is
-  unchanged.
+  vertex or one of its neighbours (RELEASE_RING; an ipctk CollisionFilter composed with the
+  scene's own, in C++). Cloth–cloth contact is unchanged.
 
 A step without buried body vertices near the cloth or released cloth vertices keeps the scene's
 own filter object: on a body that does not pass through itself near the cloth the simulation is
@@ -43,7 +43,9 @@ from .terms import Diagonal, Term
 
 BURIED = 1.0  # winding number above which a body vertex is inside another part (its own: ~0.5)
 INSIDE = 0.5  # above which a cloth vertex is inside the body
-RELEASE_RING = 0  # rings of cloth around a released vertex released with it (no pull)
+RELEASE_RING = 1  # rings of cloth around a released vertex released with it (no pull): an edge from a
+# vertex inside to one outside crosses the body surface, and with its outside end still in contact the
+# body's edges sliding along it are cut by CCD (the pinch of walk frame 99: docs/simulation.md "Session 21")
 
 
 def body_creases(s, body0, body1, faces, cloth) -> bool:

@@ -221,6 +221,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     T = len(bodies)
     sim = ClothSim(garment_rest, faces, material, settings, boundary_indices, extra_terms=extra_terms,
                    contact_exclude=contact_exclude)
+    sim.lag_stall_exit = True  # a lagging step's free solve ends once it stalls (a reported lag already)
     order = np.argsort(np.asarray(boundary_indices, dtype=np.int64), kind="stable")
     x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
     v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)

@@ -64,6 +64,8 @@ class _Solve:
     cut: bool = False  # the last step was cut by CCD (α < 1): the next direction may be looser
     first: bool = True  # no step taken yet in this step's solve
     confined: bool = False  # a given-up penalty phase left only the body near the pinch behind (lag.py)
+    lag_stall: bool = False  # the body lags (confined): the free solve ends once it stalls (ClothSim.lag_stall_exit)
+    lows: list = dataclasses.field(default_factory=list)  # (while lag_stall) the stopping norm per iteration
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
     memo: EnergyMemo = dataclasses.field(default_factory=EnergyMemo)  # E at the last iterate
@@ -86,6 +88,7 @@ class ClothSim:
     predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
     stall_exit, stall_window, stall_progress = False, 8, 0.1  # give up a penalty phase: gap -10 % in 8 (simulate)
     crease_on = False  # cloth collides with the body's outer surface only (crease.py; simulate: on a lag's retry)
+    lag_stall_exit = False  # a lagging step's free solve ends once it stalls (simulate turns it on; _Solve.lag_stall)
     _crease_check = False  # the last step hid body or released cloth: look for cloth inside the body (crease.py)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
@@ -287,6 +290,9 @@ class ClothSim:
         if (solve.penalty and self.settings.lag_radius > 0 and self.nb and not self.stall_exit
                 and confine_lag(self, solve, stats)):
             done = (stats.newton_iterations, stats.factorizations, stats.cg_iterations)
+            # the step lags (reported): solved until the norm stalls (docs/simulation.md "Session 21")
+            kin = self.penalty.kinematic
+            solve.lag_stall = self.lag_stall_exit and bool(np.any(solve.X[kin] != self.penalty.target))
             self._newton(solve, stats)  # the rest of the step with the body where confine_lag left it
             stats.newton_iterations += done[0]
             stats.factorizations += done[1]
@@ -385,6 +391,10 @@ class ClothSim:
             stop_after_step = s.newton_norm == "rms" and sv.below_count >= s.newton_window
             self._line_search(sv, step, residual, stats)
             adapt_stiffness(self, sv, stats)
+            sv.lows += [res_stop] if sv.lag_stall else []  # no new low in stall_window iterations: done
+            w = self.stall_window
+            if sv.lag_stall and len(sv.lows) > w and min(sv.lows[-w:]) >= min(sv.lows[:-w]):
+                break
             if sv.penalty:
                 action = penalty_phase(self, sv, stats)
                 if action == "break":
