@@ -180,19 +180,26 @@ def test_acceleration_predictor_changes_the_newton_start_not_the_solution(monkey
     assert max(diffs) < 1e-6, diffs
 
 
-def test_segment_candidates_hold_the_barrier_set_of_every_point_on_the_segment():
-    """The solver reuses the candidates of the line search's CCD segment for the barrier set
-    at the accepted point (no rebuild): the set must equal one built around that point."""
+def sheet_into_sphere(seed, z, dz):
+    """A sheet at height z over the unit-test sphere, moved down by dz with noise: (V, B, scene,
+    X0, X1, alpha) with alpha the move's collision-free step size."""
     from physavatar.sim.contact import ContactScene
 
-    rng = np.random.default_rng(3)
-    V, F = grid(9, 0.3, z=0.1005)
+    rng = np.random.default_rng(seed)
+    V, F = grid(9, 0.3, z=z)
     B, BF = sphere()
     scene = ContactScene(V, F, B, BF, dhat=1e-3)
     X0 = np.vstack([V, B])
     X1 = X0.copy()
-    X1[: len(V)] += rng.normal(scale=2e-3, size=V.shape) + np.array([0.0, 0.0, -0.0015])
-    alpha = scene.collision_free_stepsize(X0, X1)
+    X1[: len(V)] += rng.normal(scale=2e-3, size=V.shape) + np.array([0.0, 0.0, -dz])
+    return V, B, scene, X0, X1, scene.collision_free_stepsize(X0, X1)
+
+
+def test_segment_candidates_hold_the_barrier_set_of_every_point_on_the_segment():
+    """The solver reuses the candidates of the line search's CCD segment for the barrier set
+    at the accepted point (no rebuild): the set must equal one built around that point."""
+
+    V, B, scene, X0, X1, alpha = sheet_into_sphere(3, 0.1005, 0.0015)
     assert 0 < alpha < 1  # the move runs into the sphere: the interesting case
     barrier = ipctk.BarrierPotential(1e-3, 1.0)
 
@@ -491,16 +498,9 @@ def test_contact_preview_pairs_are_ipctks_own_set_at_the_larger_distance():
     within d̂₂ ≤ 2 d̂ from the candidates the solver already has (a CCD segment's, each box
     inflated by d̂): at every point of the segment they must be the set ipctk builds itself
     at d̂₂ with its own broad phase, and the preview Hessian that set's barrier Hessian."""
-    from physavatar.sim.contact import Barrier, ContactScene
+    from physavatar.sim.contact import Barrier
 
-    rng = np.random.default_rng(5)
-    V, F = grid(9, 0.3, z=0.1006)
-    B, BF = sphere()
-    scene = ContactScene(V, F, B, BF, dhat=1e-3)
-    X0 = np.vstack([V, B])
-    X1 = X0.copy()
-    X1[: len(V)] += rng.normal(scale=2e-3, size=V.shape) + np.array([0.0, 0.0, -0.002])
-    alpha = scene.collision_free_stepsize(X0, X1)
+    V, B, scene, X0, X1, alpha = sheet_into_sphere(5, 0.1006, 0.002)
     assert 0 < alpha < 1
     d2 = 2e-3
     potential = ipctk.BarrierPotential(d2, 3.0)
