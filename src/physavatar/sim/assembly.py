@@ -248,6 +248,12 @@ PARDISO_MIN_ROWS = 3000  # "auto": PARDISO from this size on (the demo dress: 10
 PRECONDITIONERS = ("auto", "sparsified", "full")
 
 
+def uses_pardiso(backend: str, n: int) -> bool:
+    """Whether a factorisation of an n-row matrix with ``backend`` is PARDISO's ("auto": from
+    PARDISO_MIN_ROWS rows on, when MKL is installed)."""
+    return backend == "pardiso" or (backend == "auto" and n >= PARDISO_MIN_ROWS and pardiso.available())
+
+
 class Factorization:
     """Sparse Cholesky of a symmetric positive-definite CSR matrix.
 
@@ -272,7 +278,7 @@ class Factorization:
         self._chol = None
         self._pardiso = None
         indefinite = False
-        if backend == "pardiso" or (backend == "auto" and self.n >= PARDISO_MIN_ROWS and pardiso.available()):
+        if uses_pardiso(backend, self.n):
             try:
                 old = reuse._pardiso if reuse is not None else None
                 self._pardiso = pardiso.PardisoCholesky(H, old, move and old is not None, threads)
@@ -374,9 +380,7 @@ class NewtonLinearSolver:
 
     def _preconditioner_matrix(self, H, assembler):
         full = self.preconditioner == "full" or (
-            self.preconditioner == "auto" and H.shape[0] >= self.FULL_MIN_ROWS
-            and (self.backend == "pardiso"
-                 or (self.backend == "auto" and H.shape[0] >= PARDISO_MIN_ROWS and pardiso.available())))
+            self.preconditioner == "auto" and H.shape[0] >= self.FULL_MIN_ROWS and uses_pardiso(self.backend, H.shape[0]))
         return H if full else assembler.preconditioner_matrix(H)
 
     def _refactor(self, M):

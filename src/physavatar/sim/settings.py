@@ -155,8 +155,10 @@ class SimSettings:
     gravity: tuple = (0.0, 0.0, -9.81)
 
     def __post_init__(self):
-        if self.linear_solver not in ("auto", "cholespy", "pardiso"):  # sim.assembly.BACKENDS
-            raise ValueError(f"linear_solver {self.linear_solver!r}: expected one of auto, cholespy, pardiso")
+        from .assembly import BACKENDS
+
+        if self.linear_solver not in BACKENDS:
+            raise ValueError(f"linear_solver {self.linear_solver!r}: expected one of {', '.join(BACKENDS)}")
         if not 0.0 <= self.contact_preview <= 2.0:
             raise ValueError(f"contact_preview {self.contact_preview}: expected 0 (off) or a ratio d̂₂/d̂ in (0, 2] "
                              "(the candidates hold the pairs within 2 d̂ only)")

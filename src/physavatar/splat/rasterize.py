@@ -33,9 +33,6 @@ def resolve_backend(backend: str) -> str:
     return backend
 
 
-_resolve = resolve_backend
-
-
 def rasterize(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -82,7 +79,7 @@ def rasterize(
     (not w.r.t. viewmat and K on the numba backend).
     """
     check_inputs(means, quats, scales, opacities, colors, viewmat, K, background)
-    which = _resolve(backend)
+    which = resolve_backend(backend)
     if which == "gsplat":
         rgb, alpha, depth, meta = _gsplat.rasterize_gsplat(
             means, quats, scales, opacities, colors, viewmat[None], K[None], width, height,
@@ -135,7 +132,7 @@ def rasterize_batch(
         dict with rgb [C, H, W, D], alpha [C, H, W], depth [C, H, W], meta (list of C dicts, or
         gsplat's one dict).
     """
-    which = _resolve(backend)
+    which = resolve_backend(backend)
     if which == "gsplat":
         for c in range(viewmats.shape[0]):
             check_inputs(means, quats, scales, opacities, colors, viewmats[c], Ks[c],
