@@ -106,8 +106,8 @@ class Assembler:
         if self.drop_keys is None:
             return H
         z = self._sparsified
-        if (H.nnz == self.nnz and H.has_canonical_format and np.array_equal(H.indptr, self.indptr)
-                and np.array_equal(H.indices, self.indices)):  # H in the fixed pattern: gathers
+        if (H.nnz == self.nnz and H.has_canonical_format and pardiso.same_or_equal(H.indptr, self.indptr)
+                and pardiso.same_or_equal(H.indices, self.indices)):  # H in the fixed pattern: gathers
             comp = np.bincount(z["drop_row"], weights=np.abs(H.data[z["drop"]]), minlength=self.n)
             data = H.data[z["keep"]]
             data[z["diag"]] += comp
