@@ -153,3 +153,25 @@ def test_full_preconditioner_is_the_newton_matrix_and_auto_picks_it_by_size(back
     monkeypatch.setattr(NewtonLinearSolver, "FULL_MIN_ROWS", asm.n)
     monkeypatch.setattr(assembly, "PARDISO_MIN_ROWS", asm.n)
     assert (auto._preconditioner_matrix(H, asm) is H) == (backend == "pardiso")  # full only with PARDISO
+
+
+@needs_mkl
+def test_a_new_step_without_kept_linearization_refactorises_in_place_to_the_same_bits():
+    """mark_stale(keep=False): the next step's first factor takes over the old PARDISO handle
+    (numeric phase only) instead of a new analysis; the directions are the same bits."""
+    asm, _, H_of = cloth_system(8)
+    b = np.random.default_rng(5).normal(size=asm.n)
+    solvers = {keep: NewtonLinearSolver(backend="pardiso") for keep in (True, False)}
+    for step in range(3):
+        old = {}
+        for keep, ls in solvers.items():
+            old[keep] = ls.factor
+            ls.mark_stale(keep=keep)
+        for s in (1.0 + step, 1.05 + step):
+            x = {keep: ls.solve(H_of(s), b, asm) for keep, ls in solvers.items()}
+            assert np.array_equal(x[True], x[False])
+        if step:
+            assert np.array_equal(old[True].solve(b), old[True].solve(b))  # kept: still solves
+            with pytest.raises(RuntimeError, match="moved"):
+                old[False].solve(b)  # its handle went to this step's factor
+    assert solvers[True].factorizations == solvers[False].factorizations

@@ -370,13 +370,18 @@ class NewtonLinearSolver:
         self._stale = True
         self._given = True
 
-    def mark_stale(self):
+    def mark_stale(self, keep: bool = True):
         """Take a fresh factor at the next solve (a new step: the old factor preconditioned the
-        previous step's matrices, which rarely fit well enough to be worth trying). The old
-        factor may be held by the last step's Linearization, so the next one is a new object
-        (within a step a PARDISO factor is refactorised in place: Factorization ``move``)."""
+        previous step's matrices, which rarely fit well enough to be worth trying).
+
+        ``keep``: the old factor may be held by the last step's Linearization (its
+        sensitivities), so the next one is a new object (a PARDISO factor with a new handle:
+        its symbolic analysis again, with the old ordering). With ``keep=False`` the next
+        factor takes over the old one's PARDISO handle, as the refactorisations within a step
+        do (Factorization ``move``: the numeric phase only; the same factor bits), and the old
+        one can no longer solve."""
         self._stale = True
-        self._given = True
+        self._given = keep
 
     def _preconditioner_matrix(self, H, assembler):
         full = self.preconditioner == "full" or (
