@@ -160,6 +160,21 @@ def test_assembly_matches_numpy_twin(cloth):
         (s1, v1), (s2, v2) = asm._sparse_slots(M), asm._sparse_slots_numpy(M)
         assert (s1 is None) == (s2 is None) and (s1 is None or (np.array_equal(s1, s2) and np.array_equal(v1, v2)))
     assert asm._sparse_slots(outside)[0] is None and asm._sparse_slots(inside)[0] is not None
+    # the pattern and scatter map of the setup (numba kernels) against their numpy twins: a
+    # permuted reduced numbering (not in vertex order) with single eliminated DOFs too
+    perm = np.random.default_rng(7).permutation(3 * n)
+    for dm in (dof_map, np.where(np.arange(3 * n) % 7 == 3, -1, perm)):
+        dm = dm.copy()
+        kept = dm >= 0
+        dm[kept] = np.argsort(np.argsort(dm[kept]))  # 0..n_kept-1
+        a2 = Assembler(dm, [topo.faces, topo.hinges], topo.hinges[:, 2:])
+        keys = np.unique(np.concatenate([np.arange(a2.n) * (a2.n + 1)]
+                                        + [a2._element_keys_numpy(i) for i in (topo.faces, topo.hinges)]))
+        assert np.array_equal(a2.keys, keys)
+        for index in (topo.faces, topo.hinges):
+            assert np.array_equal(a2.scatter[id(index)], a2._element_slots_numpy(index))
+    with pytest.raises(IndexError, match="DOF map"):
+        Assembler(np.arange(9), [np.array([[0, 1, 3]])])
 
 
 def test_cg_solver_matches_direct_solve(cloth):

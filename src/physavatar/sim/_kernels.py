@@ -497,6 +497,65 @@ def scatter_add(data, slot, values):
         data[slot[i]] += values[i]
 
 
+@numba.njit(cache=True, inline="always")
+def _element_dofs(dof_map, index, e, red):
+    for a in range(index.shape[1]):
+        for i in range(3):
+            red[3 * a + i] = dof_map[3 * index[e, a] + i]
+
+
+@numba.njit(cache=True)
+def element_keys(dof_map, index, n):
+    """r·n + c of each entry of the element blocks (index [M, k] vertices, blocks [3k, 3k]) whose
+    reduced row r and column c are both kept (dof_map ≥ 0), element by element: the pattern
+    keys of Assembler (its setup, without [M, 3k, 3k] temporaries)."""
+    nk = 3 * index.shape[1]
+    red = np.empty(nk, np.int64)
+    out = np.empty(index.shape[0] * nk * nk, np.int64)
+    m = 0
+    for e in range(index.shape[0]):
+        _element_dofs(dof_map, index, e, red)
+        for p in range(nk):
+            if red[p] < 0:
+                continue
+            for q in range(nk):
+                if red[q] >= 0:
+                    out[m] = red[p] * n + red[q]
+                    m += 1
+    return out[:m]
+
+
+@numba.njit(cache=True)
+def element_slots(dof_map, index, indptr, indices, dump):
+    """[M·3k·3k] slot in the CSR pattern (sorted rows) of each entry of each element block, in
+    block order, or ``dump`` where its row or column is eliminated (binary search within the
+    row; Assembler._element_slots_numpy is the twin)."""
+    nk = 3 * index.shape[1]
+    red = np.empty(nk, np.int64)
+    out = np.empty(index.shape[0] * nk * nk, np.int64)
+    m = 0
+    for e in range(index.shape[0]):
+        _element_dofs(dof_map, index, e, red)
+        for p in range(nk):
+            r = red[p]
+            for q in range(nk):
+                c = red[q]
+                if r < 0 or c < 0:
+                    out[m] = dump
+                else:
+                    lo, hi = indptr[r], indptr[r + 1]
+                    end = hi
+                    while lo < hi:
+                        mid = (lo + hi) // 2
+                        if indices[mid] < c:
+                            lo = mid + 1
+                        else:
+                            hi = mid
+                    out[m] = lo if lo < end and indices[lo] == c else -1
+                m += 1
+    return out
+
+
 @numba.njit(cache=True)
 def csr_slots(indptr, indices, rows, cols):
     """Position of each entry (rows[k], cols[k]) in a CSR pattern with sorted rows, or -1

@@ -52,13 +52,17 @@ class Assembler:
             self.drop_keys = unique_int(lo.astype(np.int64) * self._nv + hi)
         self.n = int(self.dof_map.max()) + 1 if self.dof_map.size else 0
         n = self.n
+        element_keys = [id(index) for index in element_sets]  # the blocks name their set by identity
         keys = [np.arange(n, dtype=np.int64) * (n + 1)]  # the diagonal is always present
-        rowcols = []
-        for index in element_sets:
-            r, c, valid = self._rows_cols(index)
-            rowcols.append((r, c, valid))
-            keys.append((r * n + c)[valid])
-        keys = unique_int(np.concatenate(keys))
+        element_sets = [np.ascontiguousarray(index, dtype=np.int64) for index in element_sets]
+        for index in element_sets:  # the kernels index dof_map unchecked
+            if index.size and (index.min() < 0 or 3 * index.max() + 2 >= len(self.dof_map)):
+                raise IndexError("an element's vertex is outside the DOF map")
+        for index in element_sets:  # numba, as _element_keys_numpy
+            keys.append(_kernels.element_keys(self.dof_map, index, n))
+        keys = np.concatenate(keys)
+        keys.sort()  # in place (unique_int sorts a copy)
+        keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
         self.indptr = np.searchsorted(keys // n, np.arange(n + 1)).astype(np.int32)
         self.indices = (keys % n).astype(np.int32)
         self.nnz = len(keys)
@@ -66,10 +70,20 @@ class Assembler:
         self.diag_slot = np.searchsorted(keys, np.arange(n, dtype=np.int64) * (n + 1))
         self._sparsified = self._sparsified_pattern() if self.drop_keys is not None else None
         self.scatter = {}
-        for index, (r, c, valid) in zip(element_sets, rowcols):
-            slot = np.full(r.shape, self.nnz, dtype=np.int64)  # invalid -> dump slot
-            slot[valid] = np.searchsorted(keys, (r * n + c)[valid])
-            self.scatter[id(index)] = slot.ravel()
+        for index, key in zip(element_sets, element_keys):  # invalid -> dump slot (numba, as _element_slots_numpy)
+            self.scatter[key] = _kernels.element_slots(self.dof_map, index, self.indptr, self.indices, self.nnz)
+
+    def _element_keys_numpy(self, index):
+        """Reference twin of ``_kernels.element_keys``."""
+        r, c, valid = self._rows_cols(index)
+        return (r * self.n + c)[valid]
+
+    def _element_slots_numpy(self, index):
+        """Reference twin of ``_kernels.element_slots`` (a search among all pattern keys)."""
+        r, c, valid = self._rows_cols(index)
+        slot = np.full(r.shape, self.nnz, dtype=np.int64)
+        slot[valid] = np.searchsorted(self.keys, (r * self.n + c)[valid])
+        return slot.ravel()
 
     def _rows_cols(self, index):
         k = index.shape[1]
