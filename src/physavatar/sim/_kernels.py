@@ -498,6 +498,20 @@ def scatter_add(data, slot, values):
 
 
 @numba.njit(cache=True, inline="always")
+def _csr_find(indptr, indices, r, c):
+    """Position of entry (r, c) in a CSR pattern with sorted rows (binary search in row r), or -1."""
+    lo, hi = indptr[r], indptr[r + 1]
+    end = hi
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if indices[mid] < c:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if lo < end and indices[lo] == c else -1
+
+
+@numba.njit(cache=True, inline="always")
 def _element_dofs(dof_map, index, e, red):
     for a in range(index.shape[1]):
         for i in range(3):
@@ -506,9 +520,8 @@ def _element_dofs(dof_map, index, e, red):
 
 @numba.njit(cache=True)
 def element_keys(dof_map, index, n):
-    """r·n + c of each entry of the element blocks (index [M, k] vertices, blocks [3k, 3k]) whose
-    reduced row r and column c are both kept (dof_map ≥ 0), element by element: the pattern
-    keys of Assembler (its setup, without [M, 3k, 3k] temporaries)."""
+    """r·n + c of each entry of the element blocks (index [M, k], blocks [3k, 3k]) whose reduced
+    row r and column c are both kept (dof_map ≥ 0): Assembler's pattern keys."""
     nk = 3 * index.shape[1]
     red = np.empty(nk, np.int64)
     out = np.empty(index.shape[0] * nk * nk, np.int64)
@@ -527,9 +540,8 @@ def element_keys(dof_map, index, n):
 
 @numba.njit(cache=True)
 def element_slots(dof_map, index, indptr, indices, dump):
-    """[M·3k·3k] slot in the CSR pattern (sorted rows) of each entry of each element block, in
-    block order, or ``dump`` where its row or column is eliminated (binary search within the
-    row; Assembler._element_slots_numpy is the twin)."""
+    """[M·3k·3k] slot in the CSR pattern of each entry of each element block, or ``dump`` where
+    its row or column is eliminated (Assembler._element_slots_numpy is the twin)."""
     nk = 3 * index.shape[1]
     red = np.empty(nk, np.int64)
     out = np.empty(index.shape[0] * nk * nk, np.int64)
@@ -540,18 +552,7 @@ def element_slots(dof_map, index, indptr, indices, dump):
             r = red[p]
             for q in range(nk):
                 c = red[q]
-                if r < 0 or c < 0:
-                    out[m] = dump
-                else:
-                    lo, hi = indptr[r], indptr[r + 1]
-                    end = hi
-                    while lo < hi:
-                        mid = (lo + hi) // 2
-                        if indices[mid] < c:
-                            lo = mid + 1
-                        else:
-                            hi = mid
-                    out[m] = lo if lo < end and indices[lo] == c else -1
+                out[m] = dump if r < 0 or c < 0 else _csr_find(indptr, indices, r, c)
                 m += 1
     return out
 
@@ -562,16 +563,7 @@ def csr_slots(indptr, indices, rows, cols):
     (binary search within the row; Assembler._sparse_slots_numpy is the twin)."""
     out = np.empty(rows.shape[0], np.int64)
     for k in range(rows.shape[0]):
-        r, c = rows[k], cols[k]
-        lo, hi = indptr[r], indptr[r + 1]
-        end = hi
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if indices[mid] < c:
-                lo = mid + 1
-            else:
-                hi = mid
-        out[k] = lo if lo < end and indices[lo] == c else -1
+        out[k] = _csr_find(indptr, indices, rows[k], cols[k])
     return out
 
 
