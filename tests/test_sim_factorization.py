@@ -53,6 +53,37 @@ def test_pardiso_factor_solves_like_a_dense_solve():
 
 
 @needs_mkl
+def test_pardiso_factor_of_a_fixed_pattern_gathers_the_upper_triangle_like_triu():
+    """A matrix on the pattern arrays of the last factor's (the Newton solver's fixed patterns)
+    takes its upper triangle by a kept gather: the same values, pattern and factor bits as
+    scipy's triu of a copy (the general path), moved or not."""
+    asm, _, H_of = cloth_system(6)
+    b = np.random.default_rng(4).normal(size=asm.n)
+    f = pardiso.PardisoCholesky(H_of(1.0))
+    for move in (False, True):
+        H = H_of(1.7 if move else 1.3)  # assembled on the assembler's own index arrays
+        g = pardiso.PardisoCholesky(H, f, move=move)
+        assert g._upper is f._upper  # the gather path
+        U = sp.triu(H, format="csr")
+        Hc = sp.csr_matrix((H.data.copy(), H.indices.copy(), H.indptr.copy()), shape=H.shape)
+        ref = pardiso.PardisoCholesky(Hc, pardiso.PardisoCholesky(Hc))  # new arrays: triu, the same ordering
+        assert ref._upper is not f._upper
+        for a in (g, ref):
+            assert np.array_equal(a.indptr, U.indptr) and np.array_equal(a.indices, U.indices)
+            assert np.array_equal(a.data, U.data)  # the same values in the same order, no arithmetic
+        assert np.array_equal(g.solve(b), ref.solve(b))  # bit-identical factors
+        assert np.abs(g.solve(b) - np.linalg.solve(H.toarray(), b)).max() <= 1e-10 * np.abs(g.solve(b)).max()
+        f = g
+    # a matrix with duplicate entries (not canonical) still takes scipy's triu + sum_duplicates
+    H = H_of(1.0)
+    k = H.indptr[1]  # a second (0, 0) entry at the end of row 0
+    D = sp.csr_matrix((np.insert(H.data, k, 0.5), np.insert(H.indices, k, 0), np.r_[0, H.indptr[1:] + 1]), shape=H.shape)
+    assert not D.has_canonical_format
+    d = pardiso.PardisoCholesky(D)
+    assert d._upper is None and np.allclose(d.solve(b), np.linalg.solve(D.toarray(), b), rtol=1e-10)
+
+
+@needs_mkl
 def test_pardiso_falls_back_to_lu_on_an_indefinite_matrix():
     A = sp.csr_matrix(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.5], [0.0, 0.5, 3.0]]))  # eigenvalues of both signs
     f = Factorization(A, "pardiso")
@@ -122,3 +153,25 @@ def test_full_preconditioner_is_the_newton_matrix_and_auto_picks_it_by_size(back
     monkeypatch.setattr(NewtonLinearSolver, "FULL_MIN_ROWS", asm.n)
     monkeypatch.setattr(assembly, "PARDISO_MIN_ROWS", asm.n)
     assert (auto._preconditioner_matrix(H, asm) is H) == (backend == "pardiso")  # full only with PARDISO
+
+
+@needs_mkl
+def test_a_new_step_without_kept_linearization_refactorises_in_place_to_the_same_bits():
+    """mark_stale(keep=False): the next step's first factor takes over the old PARDISO handle
+    (numeric phase only) instead of a new analysis; the directions are the same bits."""
+    asm, _, H_of = cloth_system(8)
+    b = np.random.default_rng(5).normal(size=asm.n)
+    solvers = {keep: NewtonLinearSolver(backend="pardiso") for keep in (True, False)}
+    for step in range(3):
+        old = {}
+        for keep, ls in solvers.items():
+            old[keep] = ls.factor
+            ls.mark_stale(keep=keep)
+        for s in (1.0 + step, 1.05 + step):
+            x = {keep: ls.solve(H_of(s), b, asm) for keep, ls in solvers.items()}
+            assert np.array_equal(x[True], x[False])
+        if step:
+            assert np.array_equal(old[True].solve(b), old[True].solve(b))  # kept: still solves
+            with pytest.raises(RuntimeError, match="moved"):
+                old[False].solve(b)  # its handle went to this step's factor
+    assert solvers[True].factorizations == solvers[False].factorizations

@@ -70,6 +70,48 @@ def test_membrane_closed_form_projection_equals_eigendecomposition(model):
             assert close(_kernels.membrane_hessian(*args, 2), H_abs.reshape(-1, 9, 9), 1e-10)
 
 
+@pytest.mark.parametrize("model", ["stvk", "neohookean"])
+def test_element_kernels_give_each_element_the_bits_of_its_own_call(cloth, model):
+    """The kernels keep their per-element scratch arrays across the loop (allocated once):
+    each element's block is the same bits as the kernel run on that element alone, so nothing
+    leaks from one element into the next. Mixed states: the closed-form clamp, the eigh
+    fallback (a collapsed triangle) and unprojected blocks all occur."""
+    from physavatar.sim import _kernels
+
+    topo, x = cloth
+    x = x.copy()
+    a, b, c = topo.faces[3]
+    x[c] = 0.5 * (x[a] + x[b]) + 1e-5  # a sliver (s₂ ≪ s₁): the eigh fallback
+    m = Membrane(topo, 37.0, 0.3, model)
+    x_, tri, G, area, mu, lam, mdl = m._kernel_args(x)
+    Fd = np.einsum("ai,aj->ij", x_[tri[3]], G[3])
+    e = np.linalg.eigvalsh(Fd.T @ Fd)
+    assert e[0] < 1e-6 * e[1]  # the sliver takes the eigh fallback of the closed-form clamp
+    for project in (False, True, 2):  # 2: flipped eigenvalues
+        batch = _kernels.membrane_hessian(x_, tri, G, area, mu, lam, mdl, project)
+        for f in range(len(tri)):
+            one = _kernels.membrane_hessian(x_, tri[f:f + 1], G[f:f + 1], area[f:f + 1], mu, lam, mdl, project)
+            assert np.array_equal(batch[f], one[0]), (project, f)
+    g = _kernels.membrane_gradient(x_, tri, G, area, mu, lam, mdl, len(x_))
+    g1 = sum(_kernels.membrane_gradient(x_, tri[f:f + 1], G[f:f + 1], area[f:f + 1], mu, lam, mdl, len(x_))
+             for f in range(len(tri)))
+    assert close(g, g1, 1e-14)  # summed in another order: per-element blocks checked above
+    b = Bending(topo, 2e-4)
+    for mode in ("gauss_newton", "eigen", False):
+        batch = b.hessian(x, mode).values
+        for h in range(len(b.index)):
+            one = _kernels.bending_hessian(x, b.index[h:h + 1], b.weight[h:h + 1], b.rest_angle[h:h + 1], b.scale,
+                                           _kernels_mode(mode))
+            assert np.array_equal(batch[h], one[0]), (mode, h)
+
+
+def _kernels_mode(mode):
+    from physavatar.sim import _kernels
+
+    return {"gauss_newton": _kernels.BENDING_GAUSS_NEWTON, "eigen": _kernels.BENDING_EIGEN,
+            False: _kernels.BENDING_EXACT}[mode]
+
+
 def test_neohookean_energy_kernel_is_inf_on_inverted_triangles(cloth):
     topo, x = cloth
     m = Membrane(topo, 37.0, 0.3, "neohookean")
@@ -118,6 +160,21 @@ def test_assembly_matches_numpy_twin(cloth):
         (s1, v1), (s2, v2) = asm._sparse_slots(M), asm._sparse_slots_numpy(M)
         assert (s1 is None) == (s2 is None) and (s1 is None or (np.array_equal(s1, s2) and np.array_equal(v1, v2)))
     assert asm._sparse_slots(outside)[0] is None and asm._sparse_slots(inside)[0] is not None
+    # the pattern and scatter map of the setup (numba kernels) against their numpy twins: a
+    # permuted reduced numbering (not in vertex order) with single eliminated DOFs too
+    perm = np.random.default_rng(7).permutation(3 * n)
+    for dm in (dof_map, np.where(np.arange(3 * n) % 7 == 3, -1, perm)):
+        dm = dm.copy()
+        kept = dm >= 0
+        dm[kept] = np.argsort(np.argsort(dm[kept]))  # 0..n_kept-1
+        a2 = Assembler(dm, [topo.faces, topo.hinges], topo.hinges[:, 2:])
+        keys = np.unique(np.concatenate([np.arange(a2.n) * (a2.n + 1)]
+                                        + [a2._element_keys_numpy(i) for i in (topo.faces, topo.hinges)]))
+        assert np.array_equal(a2.keys, keys)
+        for index in (topo.faces, topo.hinges):
+            assert np.array_equal(a2.scatter[id(index)], a2._element_slots_numpy(index))
+    with pytest.raises(IndexError, match="DOF map"):
+        Assembler(np.arange(9), [np.array([[0, 1, 3]])])
 
 
 def test_cg_solver_matches_direct_solve(cloth):

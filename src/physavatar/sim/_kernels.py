@@ -87,11 +87,11 @@ def membrane_gradient(x, tri, G, area, mu, lam, model, n_vertices):
     """∇Ψ_membrane [n_vertices, 3] (Neo-Hookean on a collapsed triangle: nan, as the twin)."""
     nf = tri.shape[0]
     per = np.empty((nf, 3, 3))
+    F = np.empty((3, 2))  # scratch, overwritten for each triangle (allocated once)
+    S = np.empty((2, 2))
+    C = np.empty((2, 2))
+    Cinv = np.empty((2, 2))
     for f in range(nf):
-        F = np.empty((3, 2))
-        S = np.empty((2, 2))
-        C = np.empty((2, 2))
-        Cinv = np.empty((2, 2))
         _deformation_gradient(x, tri, G, f, F)
         _second_piola(F, mu, lam, model, S, C, Cinv)
         for i in range(3):
@@ -182,7 +182,7 @@ _BLOCKS = ((0, 3), (1, 2), (4, 5))
 
 
 @numba.njit(cache=True, inline="always")
-def _project_psd_isotropic(K, F, R, Kh, absolute):
+def _project_psd_isotropic(K, F, R, Kh, absolute, U, V, T):
     """Eigenvalue clamp of an isotropic energy's ∂²W/∂F² [6, 6] (F [3, 2]) in closed form.
 
     With F = Ū Σ Vᵀ (Ū = [u₁ u₂ n]) and δF = Ū δF̂ Vᵀ, the Hessian of any isotropic W is
@@ -192,6 +192,7 @@ def _project_psd_isotropic(K, F, R, Kh, absolute):
     numerically (no energy-specific formula), clamped as 2×2s and rotated back: the same
     matrix as the clamped eigendecomposition, ~8× cheaper. Returns False (K untouched) for
     near-degenerate triangles or when the blocks do not separate; the caller then uses eigh.
+    U [3, 3], V [2, 2], T [6, 6]: scratch (every entry written before it is read).
     """
     c00 = F[0, 0] * F[0, 0] + F[1, 0] * F[1, 0] + F[2, 0] * F[2, 0]
     c01 = F[0, 0] * F[0, 1] + F[1, 0] * F[1, 1] + F[2, 0] * F[2, 1]
@@ -205,14 +206,12 @@ def _project_psd_isotropic(K, F, R, Kh, absolute):
     v00, v10 = math.cos(t), math.sin(t)  # V = [[v00, v01], [v10, v11]], columns v₁, v₂
     v01, v11 = -v10, v00
     s1, s2 = math.sqrt(e1), math.sqrt(e2)
-    U = np.empty((3, 3))
     for i in range(3):
         U[i, 0] = (F[i, 0] * v00 + F[i, 1] * v10) / s1
         U[i, 1] = (F[i, 0] * v01 + F[i, 1] * v11) / s2
     U[0, 2] = U[1, 0] * U[2, 1] - U[2, 0] * U[1, 1]
     U[1, 2] = U[2, 0] * U[0, 1] - U[0, 0] * U[2, 1]
     U[2, 2] = U[0, 0] * U[1, 1] - U[1, 0] * U[0, 1]
-    V = np.empty((2, 2))
     V[0, 0], V[0, 1], V[1, 0], V[1, 1] = v00, v01, v10, v11
     for i in range(3):  # R[(i, j), (a, b)] = Ū[i, a] V[j, b]
         for j in range(2):
@@ -220,7 +219,6 @@ def _project_psd_isotropic(K, F, R, Kh, absolute):
                 for b in range(2):
                     R[2 * i + j, 2 * a + b] = U[i, a] * V[j, b]
     # Kh = Rᵀ K R (Q-free: T = K R first, into Kh's rows via a small buffer)
-    T = np.empty((6, 6))
     for p in range(6):
         for q in range(6):
             acc = 0.0
@@ -268,15 +266,20 @@ def membrane_hessian(x, tri, G, area, mu, lam, model, project):
     out = np.empty((nf, 9, 9))
     R = np.empty((6, 6))
     Kh = np.empty((6, 6))
+    # scratch, every entry written for each triangle before it is read: allocated once (a
+    # per-triangle allocation was about half the kernel's time; the same arithmetic)
+    F = np.empty((3, 2))
+    S = np.empty((2, 2))
+    C = np.empty((2, 2))
+    Cinv = np.empty((2, 2))
+    dC = np.empty((2, 2))
+    dS = np.empty((2, 2))
+    K = np.empty((6, 6))
+    Q = np.empty((6, 6))
+    U = np.empty((3, 3))
+    V = np.empty((2, 2))
+    T = np.empty((6, 6))
     for f in range(nf):
-        F = np.empty((3, 2))
-        S = np.empty((2, 2))
-        C = np.empty((2, 2))
-        Cinv = np.empty((2, 2))
-        dC = np.empty((2, 2))
-        dS = np.empty((2, 2))
-        K = np.empty((6, 6))
-        Q = np.empty((6, 6))
         _deformation_gradient(x, tri, G, f, F)
         logJ = _second_piola(F, mu, lam, model, S, C, Cinv)
         for b in range(6):  # column b: δF = e_k e_lᵀ, b = 2k + l
@@ -315,7 +318,7 @@ def membrane_hessian(x, tri, G, area, mu, lam, model, project):
         if project == 3:  # reference path of the tests: the eigendecomposition clamp
             _project_psd(K, 6, Q)
         elif project and not _is_positive_definite(K, 6, Q):
-            if not _project_psd_isotropic(K, F, R, Kh, project == 2):
+            if not _project_psd_isotropic(K, F, R, Kh, project == 2, U, V, T):
                 _clamp_eigenvalues(K, 6, Q, project == 2)
         # H[(a,i),(c,k)] = A Σ_{j,l} G[a,j] K[(i,j),(k,l)] G[c,l]
         for a in range(3):
@@ -448,12 +451,12 @@ def bending_hessian(x, hinges, weight, rest_angle, scale, mode):
     """
     nh = hinges.shape[0]
     out = np.empty((nh, 12, 12))
+    X = np.empty((4, 3))  # scratch, overwritten for each hinge (allocated once)
+    g = np.empty(12)
     for h in range(nh):
-        X = np.empty((4, 3))
         for a in range(4):
             for i in range(3):
                 X[a, i] = x[hinges[h, a], i]
-        g = np.empty(12)
         _angle_gradient_real(X, g)
         c = 2.0 * scale * weight[h]
         for i in range(12):
@@ -494,22 +497,73 @@ def scatter_add(data, slot, values):
         data[slot[i]] += values[i]
 
 
+@numba.njit(cache=True, inline="always")
+def _csr_find(indptr, indices, r, c):
+    """Position of entry (r, c) in a CSR pattern with sorted rows (binary search in row r), or -1."""
+    lo, hi = indptr[r], indptr[r + 1]
+    end = hi
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if indices[mid] < c:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if lo < end and indices[lo] == c else -1
+
+
+@numba.njit(cache=True, inline="always")
+def _element_dofs(dof_map, index, e, red):
+    for a in range(index.shape[1]):
+        for i in range(3):
+            red[3 * a + i] = dof_map[3 * index[e, a] + i]
+
+
+@numba.njit(cache=True)
+def element_keys(dof_map, index, n):
+    """r·n + c of each entry of the element blocks (index [M, k], blocks [3k, 3k]) whose reduced
+    row r and column c are both kept (dof_map ≥ 0): Assembler's pattern keys."""
+    nk = 3 * index.shape[1]
+    red = np.empty(nk, np.int64)
+    out = np.empty(index.shape[0] * nk * nk, np.int64)
+    m = 0
+    for e in range(index.shape[0]):
+        _element_dofs(dof_map, index, e, red)
+        for p in range(nk):
+            if red[p] < 0:
+                continue
+            for q in range(nk):
+                if red[q] >= 0:
+                    out[m] = red[p] * n + red[q]
+                    m += 1
+    return out[:m]
+
+
+@numba.njit(cache=True)
+def element_slots(dof_map, index, indptr, indices, dump):
+    """[M·3k·3k] slot in the CSR pattern of each entry of each element block, or ``dump`` where
+    its row or column is eliminated (Assembler._element_slots_numpy is the twin)."""
+    nk = 3 * index.shape[1]
+    red = np.empty(nk, np.int64)
+    out = np.empty(index.shape[0] * nk * nk, np.int64)
+    m = 0
+    for e in range(index.shape[0]):
+        _element_dofs(dof_map, index, e, red)
+        for p in range(nk):
+            r = red[p]
+            for q in range(nk):
+                c = red[q]
+                out[m] = dump if r < 0 or c < 0 else _csr_find(indptr, indices, r, c)
+                m += 1
+    return out
+
+
 @numba.njit(cache=True)
 def csr_slots(indptr, indices, rows, cols):
     """Position of each entry (rows[k], cols[k]) in a CSR pattern with sorted rows, or -1
     (binary search within the row; Assembler._sparse_slots_numpy is the twin)."""
     out = np.empty(rows.shape[0], np.int64)
     for k in range(rows.shape[0]):
-        r, c = rows[k], cols[k]
-        lo, hi = indptr[r], indptr[r + 1]
-        end = hi
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if indices[mid] < c:
-                lo = mid + 1
-            else:
-                hi = mid
-        out[k] = lo if lo < end and indices[lo] == c else -1
+        out[k] = _csr_find(indptr, indices, rows[k], cols[k])
     return out
 
 

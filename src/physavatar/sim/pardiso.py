@@ -33,6 +33,9 @@ import numpy as np
 import scipy.sparse as sp
 
 _MTYPE_SPD = 2
+_ONE = ctypes.byref(ctypes.c_int32(1))  # maxfct, mnum
+_MTYPE = ctypes.byref(ctypes.c_int32(_MTYPE_SPD))
+_ZERO = ctypes.byref(ctypes.c_int32(0))  # msglvl
 _LIB = None  # the loaded mkl_rt, or False when it cannot be loaded
 
 
@@ -88,6 +91,20 @@ def available() -> bool:
     return _lib() is not None
 
 
+def _same_buffer(a: np.ndarray, b: np.ndarray) -> bool:
+    """a is b, or a view of the same memory with the same layout (scipy's csr constructor
+    may keep a view of the index arrays it is given). ``b`` is held by the factor, so its
+    memory cannot have been reused by another array; a pattern array changed in place is not
+    supported."""
+    return a is b or (a.ctypes.data == b.ctypes.data and a.shape == b.shape and a.strides == b.strides
+                      and a.dtype == b.dtype)
+
+
+def same_or_equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """np.array_equal(a, b), without reading them when they are the same memory."""
+    return _same_buffer(a, b) or np.array_equal(a, b)
+
+
 class PardisoError(RuntimeError):
     pass
 
@@ -110,16 +127,22 @@ class PardisoCholesky:
         lib = _lib()
         if lib is None:
             raise ValueError("MKL (mkl_rt) is not available: pip install 'physavatar[mkl]'")
-        U = sp.triu(sp.csr_matrix(M), format="csr")
-        U.sum_duplicates()  # canonical: sorted indices, no duplicates
-        self.n = int(U.shape[0])
-        self.indptr = U.indptr.astype(np.int32)
-        self.indices = U.indices.astype(np.int32)
-        if self.n and np.any(self.indices[self.indptr[:-1]] != np.arange(self.n)):
-            raise ValueError("PARDISO needs every diagonal entry stored")
-        self.data = np.ascontiguousarray(U.data, dtype=np.float64)
-        same = (reuse is not None and reuse.n == self.n and np.array_equal(reuse.indptr, self.indptr)
-                and np.array_equal(reuse.indices, self.indices))
+        M = M if sp.isspmatrix_csr(M) else sp.csr_matrix(M)
+        if (reuse is not None and reuse._src is not None and _same_buffer(M.indptr, reuse._src[0])
+                and _same_buffer(M.indices, reuse._src[1]) and M.has_canonical_format):
+            # the pattern arrays of reuse's matrix (the Newton solver's fixed patterns; scipy
+            # keeps them or views of them): the upper triangle is a gather of the values, the
+            # pattern is reuse's
+            self.n, self.indptr, self.indices = reuse.n, reuse.indptr, reuse.indices
+            self._src, self._upper = reuse._src, reuse._upper
+            self.data = M.data[self._upper]
+            same = True
+        else:
+            self._upper_triangle(M)
+            same = (reuse is not None and reuse.n == self.n and np.array_equal(reuse.indptr, self.indptr)
+                    and np.array_equal(reuse.indices, self.indices))
+        self._err = ctypes.c_int32(0)
+        self._n = ctypes.c_int32(self.n)
         if same and move and reuse._pt is not None:
             self._pt, self.iparm, self.perm = reuse._pt, reuse.iparm, reuse.perm
             reuse._pt = None  # moved
@@ -144,20 +167,41 @@ class PardisoCholesky:
             raise
         ip[4] = 1  # later analyses with this perm (move=False) skip METIS
 
+    def _upper_triangle(self, M):
+        """self.indptr / indices / data: M's upper triangle in canonical zero-based CSR (int32
+        indices, as PARDISO takes them). For a canonical M (sorted, no duplicates) the values
+        are a gather (``_upper``, kept with M's pattern arrays in ``_src``: a later matrix with
+        the same arrays gathers its values the same way); the same values in the same order as
+        ``sp.triu`` + ``sum_duplicates``, the general path."""
+        self.n = int(M.shape[0])
+        self._src = self._upper = None
+        if M.has_canonical_format:
+            row = np.repeat(np.arange(self.n, dtype=np.int32), np.diff(M.indptr))
+            upper = np.flatnonzero(M.indices >= row)
+            self.indptr = np.r_[0, np.cumsum(np.bincount(row[upper], minlength=self.n))].astype(np.int32)
+            self.indices = M.indices[upper].astype(np.int32)
+            self.data = np.ascontiguousarray(M.data[upper], dtype=np.float64)
+            self._src, self._upper = (M.indptr, M.indices), upper
+        else:
+            U = sp.triu(M, format="csr")
+            U.sum_duplicates()  # canonical: sorted indices, no duplicates
+            self.indptr = U.indptr.astype(np.int32)
+            self.indices = U.indices.astype(np.int32)
+            self.data = np.ascontiguousarray(U.data, dtype=np.float64)
+        if self.n and np.any(self.indices[self.indptr[:-1]] != np.arange(self.n)):
+            raise ValueError("PARDISO needs every diagonal entry stored")
+
     def _call(self, phase, b=None, x=None, nrhs=1):
         lib = _lib()
         lib.MKL_Domain_Set_Num_Threads(self.threads, 4)  # MKL_DOMAIN_PARDISO
-        err = ctypes.c_int32(0)
-        one = ctypes.c_int32(1)
+        err = self._err
+        err.value = 0
         vp = ctypes.c_void_p
-        lib.pardiso(self._pt.ctypes.data_as(vp), ctypes.byref(one), ctypes.byref(one),
-                    ctypes.byref(ctypes.c_int32(_MTYPE_SPD)), ctypes.byref(ctypes.c_int32(phase)),
-                    ctypes.byref(ctypes.c_int32(self.n)), self.data.ctypes.data_as(vp),
-                    self.indptr.ctypes.data_as(vp), self.indices.ctypes.data_as(vp),
-                    self.perm.ctypes.data_as(vp), ctypes.byref(ctypes.c_int32(nrhs)),
-                    self.iparm.ctypes.data_as(vp), ctypes.byref(ctypes.c_int32(0)),
-                    None if b is None else b.ctypes.data_as(vp), None if x is None else x.ctypes.data_as(vp),
-                    ctypes.byref(err))
+        lib.pardiso(vp(self._pt.ctypes.data), _ONE, _ONE, _MTYPE, ctypes.byref(ctypes.c_int32(phase)),
+                    ctypes.byref(self._n), vp(self.data.ctypes.data), vp(self.indptr.ctypes.data),
+                    vp(self.indices.ctypes.data), vp(self.perm.ctypes.data), ctypes.byref(ctypes.c_int32(nrhs)),
+                    vp(self.iparm.ctypes.data), _ZERO, None if b is None else vp(b.ctypes.data),
+                    None if x is None else vp(x.ctypes.data), ctypes.byref(err))
         if err.value != 0:
             raise PardisoError(f"MKL PARDISO phase {phase} failed with error {err.value}"
                                + (" (not positive definite)" if err.value == -4 else ""))

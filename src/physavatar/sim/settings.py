@@ -82,6 +82,8 @@ class SimSettings:
         kinematic_penalty: penalty weight of the prescribed vertices, × mean mass / h².
         keep_linearization: also assemble the exact (unprojected) Hessian at the solution and
             keep it with the last factorization in ``ClothSim.linearization`` (for adjoints).
+            Without it the linearization's factors are valid until the next step, which
+            refactorises them in place (PARDISO: no new symbolic analysis each step).
         deterministic: run ipctk single-threaded so results are bit-identical run to run.
         ccd_threads: threads of the CCD narrow phase (ipctk; with ``deterministic``). Its
             result is a minimum over the candidates, the same bits on any number of threads;

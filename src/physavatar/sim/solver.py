@@ -371,8 +371,9 @@ class ClothSim:
         """Newton iterations until the stopping rule (SimSettings.newton_norm) holds."""
         s = self.settings
         solvers = (self.linear_solver, self.linear_solver_all)
-        for ls in solvers:  # the last step's factors no longer fit (body, x̃, contacts moved)
-            ls.mark_stale()
+        for ls in solvers:  # the last step's factors no longer fit (body, x̃, contacts moved);
+            # only the sensitivities (keep_linearization) read the last step's factors afterwards
+            ls.mark_stale(keep=s.keep_linearization)
         sv.linear_solver = self.linear_solver
         n_fact0 = sum(ls.factorizations for ls in solvers)
         n_cg0 = sum(ls.cg_iterations for ls in solvers)
