@@ -6,12 +6,14 @@
   the coarse-to-fine (half-size first) corrections do too;
 - bend_reference="start": a fold the garment formed (the template is flat) and then moved
   rigidly is recovered from half the sheet's projections, where the bending toward the template's
-  hinges pulls it open by centimetres.
+  hinges pulls it open by centimetres; so does the corrections' "previous" reference (the
+  hinges of a given mesh, the tracked frame t-1).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from physavatar.stages.track.flow import (FlowObservation, FlowPrediction, ReferenceAppearance, image_channels,
                                           rasterize, scaled_flow, to_gray8, visible_vertices)
@@ -96,6 +98,13 @@ def test_bending_toward_the_start_keeps_a_fold_the_garment_formed():
     e_start = np.linalg.norm(to_start - truth, axis=1).max()
     assert e_rest > 0.1, e_rest
     assert e_start < 2e-3, e_start
+    # the corrections' "previous" reference: the hinges of a given mesh (here the folded start, as
+    # the tracked frame t-1 would be) held in place of the template's
+    fp = FlowPrediction(F, solve, F, **kw)
+    to_previous = fp.lift(start, obs, bend_rest=fp.hinge_lengths(start))
+    assert np.linalg.norm(to_previous - truth, axis=1).max() < 2e-3
+    with pytest.raises(ValueError, match="previous"):
+        fp.correct(start, [], [], None, bend_reference="previous")
 
 
 def test_patterned_opponents_tells_a_hue_pattern_from_a_plain_colour_with_noise():

@@ -194,7 +194,8 @@ class FlowConfig:
         silhouette: weight of the silhouette term in every correction
             (:mod:`~physavatar.stages.track.silhouette`: the estimate's outline pulled onto each
             training camera's mask outline at full resolution; 0: off). It sees what the flow
-            cannot where the texture is aliased or plain.
+            cannot where the texture is aliased or plain. Default 4 since session 22 (it improved
+            all three foreign captures and the demo's first frames; docs/tracking.md).
         prior: weight of the prediction's pull toward the constant-velocity start (the garment's
             momentum: x_{t-1} + S(x_{t-1} - x_{t-2})) in the flow lift of frame t-1 -> t (0: the
             observations and the regularisers alone decide; a vertex that no flow sees then
@@ -207,6 +208,9 @@ class FlowConfig:
             coarse to fine, for errors of several pixels an aliased texture hides.
         bend_reference: what the bending terms hold: "rest" (the template's hinge distances) or
             "start" (those of the mesh each lift starts from: the previous frame, the estimate).
+        correction_bend_reference: the same for the corrections alone ("": as ``bend_reference``):
+            "rest", "start" or "previous" (the hinges of the tracked frame t-1, fixed through the
+            frame's corrections).
         min_texture: [levels per pixel] a flow observation counts only where the view it is
             measured from has at least this much texture in both directions
             (:func:`~physavatar.stages.track.channels.texture_strength`, per channel; 0: all). On a
@@ -247,12 +251,13 @@ class FlowConfig:
     correction_prior: float = setting(0.01)
     correction_iso: float = setting(10.0)
     correction_bend: float = setting(5.0)
-    silhouette: float = setting(0.0)
+    silhouette: float = setting(4.0)
     bend_huber: float = setting(0.0)
     prior: float = setting(0.0)
     channels: str = setting("colour")
     coarse: int = setting(0)
     bend_reference: str = setting("rest")
+    correction_bend_reference: str = setting("")
     min_texture: float = setting(0.0)
     carry: str = setting("still")
     predict_colour: bool = setting(False)

@@ -92,7 +92,8 @@ class FlowPrediction:
         bend_reference: what the bending term holds: "rest" the template's hinges, "start" those
             of the mesh each lift starts from (the previous frame for the prediction, the estimate
             for a correction): the garment's shape may change from the template's (a skirt that
-            flares out bends without stretching) but not within one lift.
+            flares out bends without stretching) but not within one lift; "previous" as "start" in
+            the prediction, and in :meth:`correct` the hinges of the tracked frame t-1.
         collider_faces: [Fc, 3] faces (over the same vertices, none solved) the solved vertices stay
             outside of, by ``collision_margin`` [m], penalty ``collision_weight``, for vertices
             within ``contact_range`` [m] of it (module docstring, 4). None: no collider.
@@ -124,8 +125,8 @@ class FlowPrediction:
         self.iso_weight = iso_weight
         self.bend_weight = bend_weight
         self.bend_huber = bend_huber
-        if bend_reference not in ("rest", "start"):
-            raise ValueError(f"bend_reference must be 'rest' or 'start', got {bend_reference!r}")
+        if bend_reference not in ("rest", "start", "previous"):
+            raise ValueError(f"bend_reference must be 'rest', 'start' or 'previous', got {bend_reference!r}")
         self.bend_reference = bend_reference
         self._hinges = _hinge_pairs(smooth_faces, self.solve)
         self._rest_lengths = self._rest_hinges = None
@@ -189,7 +190,8 @@ class FlowPrediction:
                 prior_weight: float = 0.1, preset: str = "fine", iso_weight: float | None = None,
                 bend_weight: float | None = None, masks: list[np.ndarray] | None = None,
                 silhouette_weight: float = 0.0, channels: str = "luma", coarse: int = 0,
-                opponent: tuple[bool, bool] = (True, True)) -> np.ndarray:
+                opponent: tuple[bool, bool] = (True, True), bend_reference: str | None = None,
+                previous: np.ndarray | None = None) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
         frame t's images by model-based flow (module docstring): each iteration renders the mesh
         as the reference frame saw it (:class:`ReferenceAppearance`), measures the flow from that
@@ -206,7 +208,17 @@ class FlowPrediction:
         :func:`patterned_opponents`). ``coarse`` > 0 runs that many
         extra iterations first with the flow at half size (:func:`scaled_flow`): coarse to fine, so
         an error of several pixels, which the full-size flow of an aliased texture misses, is
-        corrected before the fine iterations."""
+        corrected before the fine iterations.
+
+        ``bend_reference`` (None: the instance's) is what the bending term holds in these lifts:
+        "rest", "start" (each lift's estimate) or "previous" (the hinges of ``previous`` [V, 3],
+        the tracked frame t-1: a fold may change from frame to frame, not within a frame's lifts)."""
+        ref = self.bend_reference if bend_reference is None else bend_reference
+        bend_rest = None
+        if ref == "previous":
+            if previous is None:
+                raise ValueError("bend_reference 'previous' needs the previous frame's vertices")
+            ref, bend_rest = "rest", self.hinge_lengths(previous)
         X = np.asarray(vertices, np.float64).copy()
         views = [im if channels == "colour" else to_gray8(im) for im in images]
         outlines = ([MaskOutline(cam, m) for cam, m in zip(cameras, masks)]
@@ -223,19 +235,28 @@ class FlowPrediction:
                     obs.append(silhouette_observation(X, self.faces, self.solve, outlines[k], seen,
                                                       weight=silhouette_weight))
             X = self.lift(X, obs, smoothness=smoothness, prior_weight=prior_weight, iso_weight=iso_weight,
-                          bend_weight=bend_weight, huber_px=self.huber_px * factor)
+                          bend_weight=bend_weight, huber_px=self.huber_px * factor, bend_reference=ref,
+                          bend_rest=bend_rest)
         return X
+
+    def hinge_lengths(self, vertices: np.ndarray) -> np.ndarray:
+        """[H] the distances across the interior edges (the bending term's hinges) at ``vertices``."""
+        X = np.asarray(vertices, np.float64)
+        return np.linalg.norm(X[self._hinges[:, 0]] - X[self._hinges[:, 1]], axis=1)
 
     def lift(self, vertices: np.ndarray, observations: list[FlowObservation], start: np.ndarray | None = None,
              smoothness: float | None = None, prior_weight: float | None = None,
              iso_weight: float | None = None, bend_weight: float | None = None,
-             huber_px: float | None = None) -> np.ndarray:
+             huber_px: float | None = None, bend_reference: str | None = None,
+             bend_rest: np.ndarray | None = None) -> np.ndarray:
         """[V, 3] the vertices moved by the observations (module docstring, step 3).
 
         vertices: [V, 3] where the observations were made (frame t-1, or the current estimate of
         frame t for :meth:`correct`). start: [V, 3] where the vertices that are not solved go
         (e.g. skinned to frame t), and the solved ones' start and prior (default: ``vertices``).
-        smoothness, prior_weight, iso_weight, bend_weight, huber_px: override the instance's.
+        smoothness, prior_weight, iso_weight, bend_weight, huber_px, bend_reference ("rest" or
+        "start"): override the instance's; bend_rest: [H] the hinge distances "rest" holds
+        (default: the template's, :meth:`hinge_lengths`).
         """
         huber = self.huber_px if huber_px is None else huber_px
         lam = self.smoothness if smoothness is None else smoothness
@@ -251,9 +272,9 @@ class FlowPrediction:
         rows = (np.arange(n)[:, None, None] * 3 + np.arange(3)[None, :, None]).repeat(3, 2)
         cols = (np.arange(n)[:, None, None] * 3 + np.arange(3)[None, None, :]).repeat(3, 1)
         contact = self._contacts(X0, X)
-        rest_hinges = self._rest_hinges
-        if self.bend_reference == "start" and bend > 0:
-            rest_hinges = np.linalg.norm(X0[self._hinges[:, 0]] - X0[self._hinges[:, 1]], axis=1)
+        rest_hinges = self._rest_hinges if bend_rest is None else bend_rest
+        if (self.bend_reference if bend_reference is None else bend_reference) in ("start", "previous") and bend > 0:
+            rest_hinges = self.hinge_lengths(X0)
         active = np.zeros(n, bool)
         for _ in range(self.iterations):
             A = np.zeros((n, 3, 3))
@@ -369,6 +390,7 @@ class FlowStart:
         self.coarse = coarse  # half-size corrections before the first full-size one (not in refine)
         self.final_corrections = final_corrections
         self.correction = dict(correction or {})
+        self._previous: np.ndarray | None = None  # the tracked frame t-1 of the last call
         colour = self.correction.get("channels", "luma") == "colour"
         if colour:  # only the opponent channels in which the garment shows a pattern (none: the luma alone)
             opponent = patterned_opponents(reference_vertices, flow.faces, flow.solve, cameras, reference_images)
@@ -390,9 +412,10 @@ class FlowStart:
             pc = {"channels": "colour", "opponent": self.correction["opponent"]}
         obs = self.flow.observe(np.asarray(previous, np.float64), self.cameras, previous_grey, grey, **pc)
         X = self.flow.lift(previous if carried is None else carried, obs, start)
+        self._previous = np.asarray(previous, np.float64)  # the corrections' bending may hold its hinges
         if self.corrections > 0:
             X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections, masks=masks,
-                                  coarse=self.coarse, **self.correction)
+                                  coarse=self.coarse, previous=self._previous, **self.correction)
         return X
 
     def refine(self, vertices: np.ndarray, grey: list[np.ndarray], masks: list[np.ndarray] | None = None) -> np.ndarray:
@@ -401,7 +424,7 @@ class FlowStart:
         if self.final_corrections == 0:
             return np.asarray(vertices, np.float64)
         return self.flow.correct(vertices, self.cameras, grey, self.reference, self.final_corrections, masks=masks,
-                                 **self.correction)
+                                 previous=self._previous, **self.correction)
 
 
 class ReferenceAppearance:

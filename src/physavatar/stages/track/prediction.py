@@ -234,7 +234,8 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
     return FlowStart(lift, train, first_vertices, first_grey, cfg.corrections, cfg.final_corrections,
                      dict(smoothness=cfg.correction_smoothness, prior_weight=cfg.correction_prior,
                           iso_weight=cfg.correction_iso, bend_weight=cfg.correction_bend,
-                          silhouette_weight=cfg.silhouette, channels=cfg.channels), cfg.coarse,
+                          silhouette_weight=cfg.silhouette, channels=cfg.channels,
+                          bend_reference=cfg.correction_bend_reference or cfg.bend_reference), cfg.coarse,
                      predict_colour=cfg.predict_colour)
 
 

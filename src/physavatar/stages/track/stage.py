@@ -73,14 +73,18 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"level_iters needs one count >= 1 per level {fit.levels}, got {fit.level_iters}")
     if pred.garment not in ("velocity", "physics", "flow"):
         raise PhysavatarError(None, f"garment_prediction must be 'velocity', 'physics' or 'flow', got {pred.garment!r}")
-    numeric = [f.name for f in fields(flow) if f.name not in ("channels", "bend_reference", "carry", "plain")]
+    numeric = [f.name for f in fields(flow) if f.name not in ("channels", "bend_reference", "correction_bend_reference",
+                                                               "carry", "plain")]
     if min(getattr(flow, k) for k in numeric) < 0:
         raise PhysavatarError(None, "the flow_* settings must be >= 0, got "
                                     + ", ".join(f"flow_{k}={getattr(flow, k)}" for k in numeric))
     if flow.channels not in ("luma", "colour"):
         raise PhysavatarError(None, f"flow.channels must be 'luma' or 'colour', got {flow.channels!r}")
-    if flow.bend_reference not in ("rest", "start"):
-        raise PhysavatarError(None, f"flow.bend_reference must be 'rest' or 'start', got {flow.bend_reference!r}")
+    if flow.bend_reference not in ("rest", "start") or flow.correction_bend_reference not in ("", "rest", "start",
+                                                                                           "previous"):
+        raise PhysavatarError(None, "flow.bend_reference must be 'rest' or 'start' and flow.correction_bend_reference "
+                                    f"'', 'rest', 'start' or 'previous', got {flow.bend_reference!r}, "
+                                    f"{flow.correction_bend_reference!r}")
     if flow.carry not in ("still", "body", "near"):
         raise PhysavatarError(None, f"flow.carry must be 'still', 'body' or 'near', got {flow.carry!r}")
     if flow.plain not in ("auto", "plain", "patterned"):
@@ -144,7 +148,8 @@ def _unhashed(config, prefix: str = "") -> set[str]:
 # settings a run folder's config.json may not record, with the value such a run had: defaults that
 # changed after config.json began to record the setting (flow.channels: grey until session 15),
 # and settings added later (session 18: a run that does not record them ran with them off)
-UNRECORDED = {"flow.channels": "luma", "flow.highpass": 0.0, "flow.texture_blur": 0.0, "flow.plain": "patterned"}
+UNRECORDED = {"flow.channels": "luma", "flow.highpass": 0.0, "flow.texture_blur": 0.0, "flow.plain": "patterned",
+              "flow.silhouette": 0.0}
 
 
 def _check_resume(out: Path, saved: dict, wanted: dict) -> None:
