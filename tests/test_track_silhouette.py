@@ -51,17 +51,23 @@ def _sphere(radius):
     return np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64)
 
 
-def test_silhouettes_recover_a_shrunk_sphere_without_texture():
-    R = 0.2
-    V, F = _sphere(R)
-    cams = ring_rig(4, 1.5, 0.0, [0, 0, 0], 96, 96, 40.0)
-    # masks of the true sphere: the analytic disc of its outline (camera on the sphere's axis)
+def _sphere_masks(cams, R):
+    """The masks of a sphere of radius R at the origin: the analytic disc of its outline in
+    each camera (the camera on the sphere's axis)."""
     masks = []
     for cam in cams:
         d = np.linalg.norm(cam.center)
         c = cam.project(np.zeros((1, 3)))[0][0]
         r_img = cam.K[0, 0] * R / np.sqrt(d * d - R * R)
         masks.append(_disc_mask(cam.height, cam.width, c[0], c[1], r_img).astype(np.float32))
+    return masks
+
+
+def test_silhouettes_recover_a_shrunk_sphere_without_texture():
+    R = 0.2
+    V, F = _sphere(R)
+    cams = ring_rig(4, 1.5, 0.0, [0, 0, 0], 96, 96, 40.0)
+    masks = _sphere_masks(cams, R)
     est = V * 0.96  # 8 mm inside, a radial error no texture flow would see on a plain surface
     solve = np.ones(len(V), bool)
     lift = FlowPrediction(F, solve, F, smoothness=0.1, iterations=3)
@@ -105,12 +111,7 @@ def test_default_corrections_see_an_offset_that_only_the_masks_show():
     R = 0.2
     V, F = _sphere(R)
     cams = ring_rig(4, 1.5, 0.0, [0, 0, 0], 96, 96, 40.0)
-    masks = []
-    for cam in cams:
-        d = np.linalg.norm(cam.center)
-        c = cam.project(np.zeros((1, 3)))[0][0]
-        masks.append(_disc_mask(cam.height, cam.width, c[0], c[1], cam.K[0, 0] * R / np.sqrt(d * d - R * R))
-                     .astype(np.float32))
+    masks = _sphere_masks(cams, R)
     views = [np.full((c.height, c.width, 3), 128, np.uint8) for c in cams]
     template = SimpleNamespace(vertices=V, faces=F, garment_mask=np.ones(len(V), bool))
     est = V + np.array([0.008, -0.006, 0.003])
