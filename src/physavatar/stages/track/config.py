@@ -207,10 +207,15 @@ class FlowConfig:
         coarse: corrections per frame (before the fit) run first with the flow at half size,
             coarse to fine, for errors of several pixels an aliased texture hides.
         bend_reference: what the bending terms hold: "rest" (the template's hinge distances) or
-            "start" (those of the mesh each lift starts from: the previous frame, the estimate).
+            "start" (those of the mesh each lift starts from: the previous frame, the estimate) or
+            "moved" (per hinge: the start's where its distance differs from the template's by more
+            than ``bend_moved``, the template's elsewhere).
         correction_bend_reference: the same for the corrections alone ("": as ``bend_reference``):
-            "rest", "start" or "previous" (the hinges of the tracked frame t-1, fixed through the
-            frame's corrections).
+            "rest", "start", "moved" or "previous" (the hinges of the tracked frame t-1, fixed
+            through the frame's corrections).
+        bend_moved: [m] the threshold of ``bend_reference`` "moved" (session 22's lead: skirt
+            5.38 -> 5.00 mm, demo frames 0-8 1.230 -> 1.207 mm; off by default until measured on
+            the tops and the demo's 48 frames, docs/tracking.md).
         min_texture: [levels per pixel] a flow observation counts only where the view it is
             measured from has at least this much texture in both directions
             (:func:`~physavatar.stages.track.channels.texture_strength`, per channel; 0: all). On a
@@ -258,6 +263,7 @@ class FlowConfig:
     coarse: int = setting(0)
     bend_reference: str = setting("rest")
     correction_bend_reference: str = setting("")
+    bend_moved: float = setting(0.002)
     min_texture: float = setting(0.0)
     carry: str = setting("still")
     predict_colour: bool = setting(False)

@@ -66,6 +66,8 @@ class FlowObservation:
                 np.einsum("nki,nk->ni", Jm, rm) * w[:, None])
 
 
+BEND_REFERENCES = ("rest", "start", "previous", "moved")  # FlowPrediction.bend_reference
+
 class FlowPrediction:
     """Multi-view optical flow lifted to the vertices of a mesh (module docstring).
 
@@ -93,7 +95,10 @@ class FlowPrediction:
             of the mesh each lift starts from (the previous frame for the prediction, the estimate
             for a correction): the garment's shape may change from the template's (a skirt that
             flares out bends without stretching) but not within one lift; "previous" as "start" in
-            the prediction, and in :meth:`correct` the hinges of the tracked frame t-1.
+            the prediction, and in :meth:`correct` the hinges of the tracked frame t-1; "moved"
+            per hinge: the start's distance where it differs from the reference's (the template's)
+            by more than ``bend_moved`` [m], the template's elsewhere (a fold the garment has made
+            is kept, the template's shape holds where the garment still has it).
         collider_faces: [Fc, 3] faces (over the same vertices, none solved) the solved vertices stay
             outside of, by ``collision_margin`` [m], penalty ``collision_weight``, for vertices
             within ``contact_range`` [m] of it (module docstring, 4). None: no collider.
@@ -105,7 +110,7 @@ class FlowPrediction:
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
                  bend_weight: float = 0.0, bend_huber: float = 0.0, bend_reference: str = "rest",
-                 min_texture: float = 0.0, highpass: float = 0.0, texture_blur: float = 0.0):
+                 bend_moved: float = 2e-3, min_texture: float = 0.0, highpass: float = 0.0, texture_blur: float = 0.0):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -125,9 +130,10 @@ class FlowPrediction:
         self.iso_weight = iso_weight
         self.bend_weight = bend_weight
         self.bend_huber = bend_huber
-        if bend_reference not in ("rest", "start", "previous"):
-            raise ValueError(f"bend_reference must be 'rest', 'start' or 'previous', got {bend_reference!r}")
+        if bend_reference not in BEND_REFERENCES:
+            raise ValueError(f"bend_reference must be one of {', '.join(BEND_REFERENCES)}, got {bend_reference!r}")
         self.bend_reference = bend_reference
+        self.bend_moved = bend_moved
         self._hinges = _hinge_pairs(smooth_faces, self.solve)
         self._rest_lengths = self._rest_hinges = None
         if rest is not None:
@@ -254,8 +260,8 @@ class FlowPrediction:
         vertices: [V, 3] where the observations were made (frame t-1, or the current estimate of
         frame t for :meth:`correct`). start: [V, 3] where the vertices that are not solved go
         (e.g. skinned to frame t), and the solved ones' start and prior (default: ``vertices``).
-        smoothness, prior_weight, iso_weight, bend_weight, huber_px, bend_reference ("rest" or
-        "start"): override the instance's; bend_rest: [H] the hinge distances "rest" holds
+        smoothness, prior_weight, iso_weight, bend_weight, huber_px, bend_reference ("rest",
+        "start" or "moved"): override the instance's; bend_rest: [H] the hinge distances "rest" holds
         (default: the template's, :meth:`hinge_lengths`).
         """
         huber = self.huber_px if huber_px is None else huber_px
@@ -273,8 +279,12 @@ class FlowPrediction:
         cols = (np.arange(n)[:, None, None] * 3 + np.arange(3)[None, None, :]).repeat(3, 1)
         contact = self._contacts(X0, X)
         rest_hinges = self._rest_hinges if bend_rest is None else bend_rest
-        if (self.bend_reference if bend_reference is None else bend_reference) in ("start", "previous") and bend > 0:
+        ref = self.bend_reference if bend_reference is None else bend_reference
+        if ref in ("start", "previous") and bend > 0:
             rest_hinges = self.hinge_lengths(X0)
+        elif ref == "moved" and bend > 0:  # the start's hinges where its fold left the reference's
+            h0 = self.hinge_lengths(X0)
+            rest_hinges = np.where(np.abs(h0 - rest_hinges) > self.bend_moved, h0, rest_hinges)
         active = np.zeros(n, bool)
         for _ in range(self.iterations):
             A = np.zeros((n, 3, 3))

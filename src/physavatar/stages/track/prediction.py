@@ -229,7 +229,7 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.smoothness, rest=t.vertices,
                           iso_weight=cfg.iso, collider_faces=body_faces, collision_weight=cfg.collision,
                           bend_weight=cfg.bend, bend_huber=cfg.bend_huber, prior_weight=cfg.prior,
-                          bend_reference=cfg.bend_reference, min_texture=cfg.min_texture,
+                          bend_reference=cfg.bend_reference, bend_moved=cfg.bend_moved, min_texture=cfg.min_texture,
                           highpass=cfg.highpass, texture_blur=cfg.texture_blur)
     return FlowStart(lift, train, first_vertices, first_grey, cfg.corrections, cfg.final_corrections,
                      dict(smoothness=cfg.correction_smoothness, prior_weight=cfg.correction_prior,

@@ -80,11 +80,11 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
                                     + ", ".join(f"flow_{k}={getattr(flow, k)}" for k in numeric))
     if flow.channels not in ("luma", "colour"):
         raise PhysavatarError(None, f"flow.channels must be 'luma' or 'colour', got {flow.channels!r}")
-    if flow.bend_reference not in ("rest", "start") or flow.correction_bend_reference not in ("", "rest", "start",
-                                                                                           "previous"):
-        raise PhysavatarError(None, "flow.bend_reference must be 'rest' or 'start' and flow.correction_bend_reference "
-                                    f"'', 'rest', 'start' or 'previous', got {flow.bend_reference!r}, "
-                                    f"{flow.correction_bend_reference!r}")
+    if flow.bend_reference not in ("rest", "start", "moved") or flow.correction_bend_reference not in (
+            "", "rest", "start", "previous", "moved"):
+        raise PhysavatarError(None, "flow.bend_reference must be 'rest', 'start' or 'moved' and "
+                                    "flow.correction_bend_reference '', 'rest', 'start', 'previous' or 'moved', got "
+                                    f"{flow.bend_reference!r}, {flow.correction_bend_reference!r}")
     if flow.carry not in ("still", "body", "near"):
         raise PhysavatarError(None, f"flow.carry must be 'still', 'body' or 'near', got {flow.carry!r}")
     if flow.plain not in ("auto", "plain", "patterned"):
