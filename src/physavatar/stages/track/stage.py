@@ -23,6 +23,7 @@ from .config import TrackConfig, fit_scale
 from .fit import fit_frame, smoothing_solver
 from .gaussians import MeshGaussians
 from .losses import AnchorLoss, CollisionLoss, IsometryLoss, NormalLoss
+from .flow import BEND_REFERENCES
 from .prediction import FrameStarts
 from .views import initial_colors, load_views
 
@@ -80,10 +81,10 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
                                     + ", ".join(f"flow_{k}={getattr(flow, k)}" for k in numeric))
     if flow.channels not in ("luma", "colour"):
         raise PhysavatarError(None, f"flow.channels must be 'luma' or 'colour', got {flow.channels!r}")
-    if flow.bend_reference not in ("rest", "start", "moved") or flow.correction_bend_reference not in (
-            "", "rest", "start", "previous", "moved"):
-        raise PhysavatarError(None, "flow.bend_reference must be 'rest', 'start' or 'moved' and "
-                                    "flow.correction_bend_reference '', 'rest', 'start', 'previous' or 'moved', got "
+    lifts = [r for r in BEND_REFERENCES if r != "previous"]  # "previous" is for the corrections alone
+    if flow.bend_reference not in lifts or flow.correction_bend_reference not in ("", *BEND_REFERENCES):
+        raise PhysavatarError(None, f"flow.bend_reference must be one of {', '.join(lifts)} and "
+                                    f"flow.correction_bend_reference '' or one of {', '.join(BEND_REFERENCES)}, got "
                                     f"{flow.bend_reference!r}, {flow.correction_bend_reference!r}")
     if flow.carry not in ("still", "body", "near"):
         raise PhysavatarError(None, f"flow.carry must be 'still', 'body' or 'near', got {flow.carry!r}")
