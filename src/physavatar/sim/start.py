@@ -70,27 +70,49 @@ class SurfaceCarry:
         return P
 
 
-def warm_start(scene, terms, free, X, x_pred, stats):
+def warm_start(scene, terms, free, X, x_pred, stats, weight=None):
     """Start Newton from the inertial prediction x̃ (free cloth vertices, mask ``free`` [n]),
     clipped by CCD so it stays intersection-free, when its energy under ``terms`` is below that
-    of X (IPC's initial guess). Returns the start."""
+    of X (IPC's initial guess). Returns the start. ``weight`` [n_free] in [0, 1]: each free
+    vertex goes that fraction of the way from X to x̃ (the release of carried cloth,
+    :func:`release_weight`)."""
     n = len(free)
     X_pred = X.copy()
-    X_pred[:n][free] = x_pred[free]
+    if weight is None:
+        X_pred[:n][free] = x_pred[free]
+    else:
+        X_pred[:n][free] += weight[:, None] * (x_pred[free] - X[:n][free])
     tc = time.perf_counter()
     alpha = scene.collision_free_stepsize(X, X_pred)
     stats.time["ccd"] += time.perf_counter() - tc
     if alpha <= 0.0:
         return X
     X_pred = X + alpha * (X_pred - X)
-    scene.prepare_static(X)
+    # both ends of the CCD's segment: its candidates hold their barrier sets
+    for Y in (X, X_pred):
+        if not _covers(scene, Y):
+            scene.prepare_static(Y)
     e0 = sum(t.energy(X) for t in terms)
-    scene.prepare_static(X_pred)
     e1 = sum(t.energy(X_pred) for t in terms)
     return X_pred if e1 < e0 else X
 
 
-def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True, cut=None):
+def _covers(scene, X) -> bool:
+    """Whether the scene's last candidate build holds every pair within d̂ at X
+    (linesearch.CandidateScene.covers; a plain ContactScene: never known)."""
+    return bool(getattr(scene, "covers", lambda X: False)(X))
+
+
+def release_weight(distance, dhat, release):
+    """[m] in [0, 1]: how far carried cloth at ``distance`` [m] from the body (at the step's start)
+    goes back to its inertial prediction (SimSettings.follow_release): none within 2 d̂ (the
+    contacts and the cloth just off them stay carried), all from ``release`` on, linear between."""
+    lo = 2.0 * dhat
+    return np.clip((np.asarray(distance) - lo) / max(release - lo, 1e-12), 0.0, 1.0)
+
+
+def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True, cut=None,
+                info=None):
     """Carry the cloth along with the body from X_from to the body pose of X_goal
     (SimSettings.follow_body). Returns (X, reached): X_goal's body with the carried cloth
     when every leg of the move is collision-free (reached = True), else X_from moved by
@@ -107,7 +129,8 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
     not survive the small non-rigid distortions of the carry; the free phase settles it
     back in a few iterations. ``lift_still=False``: not where the carrying triangle stays put
     nor carried (sim.lag: cloth pinched where the body is held back stays exactly where it is).
-    ``cut``: a list that gets the leg (X_seg, X_next) whose CCD cut the move.
+    ``cut``: a list that gets the leg (X_seg, X_next) whose CCD cut the move. ``info``: a dict
+    that gets "distance" [n_free], each free cloth vertex's distance to the body at X_from.
     """
     s = settings
     n = len(free)
@@ -118,9 +141,12 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
     tq = time.perf_counter()
     outer = getattr(scene, "outer_faces", None)  # this step's collision surface (crease.outer_surface)
     carry = SurfaceCarry(b0, body_faces if outer is None else outer, x)
+    if info is not None:
+        info["distance"] = carry.distance
     weight = np.clip(2.0 - carry.distance / s.follow_body, 0.0, 1.0)[:, None]
     gap = np.full(n, np.inf)  # per cloth vertex: the closest active contact it is part of
-    scene.prepare_static(X_from)
+    if not _covers(scene, X_from):  # (the solver's CCD of the body's move X_from → X_goal covers it)
+        scene.prepare_static(X_from)
     coll = scene.collisions_at(X_from)
     E, Fa = scene.mesh.edges, scene.mesh.faces
     for group in (coll.vv_collisions, coll.ev_collisions, coll.ee_collisions, coll.fv_collisions):
@@ -135,15 +161,23 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
         lift = np.where(moves > 0, lift, 0.0)
         weight = np.where(moves[:, None] > 0, weight, 0.0)  # exactly where it is (a carry rounds)
     stats.time["contact"] += time.perf_counter() - tq
-    X_seg = X_from
     K = max(1, int(s.follow_segments))
+    legs = [X_from]
     for k in range(1, K + 1):
         t = k / K
         X_next = X_goal.copy() if k == K else X_from + t * (X_goal - X_from)
         carried = carry.at(X_next[n:], lift=t * lift)
         X_next[:n][free] = weight * carried + (1.0 - weight) * (x + t * (x_end - x))
+        legs.append(X_next)
+    tc = time.perf_counter()
+    one_build = hasattr(scene, "prepare_box")  # one candidate build for all legs (docs/simulation.md "Session 23")
+    if one_build:
+        scene.prepare_box(legs)
+    stats.time["ccd"] += time.perf_counter() - tc
+    X_seg = X_from
+    for X_next in legs[1:]:
         tc = time.perf_counter()
-        alpha = scene.collision_free_stepsize(X_seg, X_next)
+        alpha = scene.collision_free_stepsize(X_seg, X_next, build=not one_build)
         stats.time["ccd"] += time.perf_counter() - tc
         if alpha < 1.0:
             if cut is not None:
