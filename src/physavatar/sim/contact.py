@@ -98,11 +98,8 @@ class ContactScene:
             self._preview = (X.copy(), c)
         return c
 
-    def collision_free_stepsize(self, X0, X1, build=True):
+    def collision_free_stepsize(self, X0, X1):
         """Largest α ∈ [0, 1] such that X0 + α (X1 − X0) stays intersection-free (ipctk CCD).
-
-        ``build=False``: the narrow phase runs on the current candidates, which the caller has
-        built over a box that holds the segment (linesearch.CandidateScene.prepare_box).
 
         The narrow phase runs on ``ccd_threads`` threads: it is a min-reduction over the
         candidates (each candidate's time of impact does not depend on the others), so the
@@ -110,8 +107,7 @@ class ContactScene:
         thread: with more, the candidates (and the barrier sums over them) come in a
         schedule-dependent order.
         """
-        if build:
-            self.prepare_segment(X0, X1)
+        self.prepare_segment(X0, X1)
         if self.ccd_threads > 1:
             ipctk.set_num_threads(self.ccd_threads)
         try:

@@ -159,8 +159,6 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
         base = scene.base_filter = scene.mesh.can_collide
     s = sim.settings
     scene.mesh.can_collide, scene.outer_faces = base, None
-    if hasattr(scene, "forget"):  # candidates built under another filter hold other pairs
-        scene.forget()
     if s.crease_ring < 0 or not sim.nb:  # off: the body as it is, every triangle collides
         return 0, 0
     faces = sim._body_faces

@@ -30,23 +30,6 @@ class CandidateScene(ContactScene):
         super().prepare_segment(X0, X1)
         self._box = (np.minimum(X0, X1), np.maximum(X0, X1))
 
-    def prepare_box(self, configurations):
-        """Candidates for every straight move between any of ``configurations`` (a list of
-        [N, 3]) that stays inside their per-vertex box (the legs of start.follow_body): one
-        build whose per-vertex boxes are that box (ipctk bounds each vertex by the box of its
-        two given positions), so every leg's CCD can run on it (``collision_free_stepsize(...,
-        build=False)``). A superset of each leg's own candidates: the same α except where
-        AdditiveCCD's conservative rule stops a pair the leg's own build would not hold."""
-        lo, hi = np.array(configurations[0], dtype=np.float64), np.array(configurations[0], dtype=np.float64)
-        for X in configurations[1:]:
-            np.minimum(lo, X, out=lo)
-            np.maximum(hi, X, out=hi)
-        self.prepare_segment(lo, hi)
-
-    def forget(self):
-        """The candidates no longer hold what :meth:`covers` says (the contact filter changed)."""
-        self._box = None
-
     def covers(self, X) -> bool:
         """Whether the last build's candidates hold every pair within d̂ at X."""
         box = self._box

@@ -365,8 +365,7 @@ class ClothSim:
             # friction is not lagged yet at this point
             X = warm_start(self.scene, self.terms + [self.barrier], free, X, x_pred, stats)
         diag = self.scene.bbox_diagonal(X_goal)
-        if not self.scene.covers(X):  # (the start's last CCD usually covers it: no new build)
-            self.scene.prepare_static(X)
+        self.scene.prepare_static(X)
         initial_stiffness(self, X)
         self.friction.lag(X, self.barrier)
         return _Solve(X=X, penalty=penalty, X_goal=X_goal, diag=diag,

@@ -88,19 +88,11 @@ def warm_start(scene, terms, free, X, x_pred, stats, weight=None):
     if alpha <= 0.0:
         return X
     X_pred = X + alpha * (X_pred - X)
-    # both ends of the CCD's segment: its candidates hold their barrier sets
-    for Y in (X, X_pred):
-        if not _covers(scene, Y):
-            scene.prepare_static(Y)
+    scene.prepare_static(X)
     e0 = sum(t.energy(X) for t in terms)
+    scene.prepare_static(X_pred)
     e1 = sum(t.energy(X_pred) for t in terms)
     return X_pred if e1 < e0 else X
-
-
-def _covers(scene, X) -> bool:
-    """Whether the scene's last candidate build holds every pair within d̂ at X
-    (linesearch.CandidateScene.covers; a plain ContactScene: never known)."""
-    return bool(getattr(scene, "covers", lambda X: False)(X))
 
 
 def release_weight(distance, dhat, release):
@@ -145,8 +137,7 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
         info["distance"] = carry.distance
     weight = np.clip(2.0 - carry.distance / s.follow_body, 0.0, 1.0)[:, None]
     gap = np.full(n, np.inf)  # per cloth vertex: the closest active contact it is part of
-    if not _covers(scene, X_from):  # (the solver's CCD of the body's move X_from → X_goal covers it)
-        scene.prepare_static(X_from)
+    scene.prepare_static(X_from)
     coll = scene.collisions_at(X_from)
     E, Fa = scene.mesh.edges, scene.mesh.faces
     for group in (coll.vv_collisions, coll.ev_collisions, coll.ee_collisions, coll.fv_collisions):
@@ -161,23 +152,15 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
         lift = np.where(moves > 0, lift, 0.0)
         weight = np.where(moves[:, None] > 0, weight, 0.0)  # exactly where it is (a carry rounds)
     stats.time["contact"] += time.perf_counter() - tq
+    X_seg = X_from
     K = max(1, int(s.follow_segments))
-    legs = [X_from]
     for k in range(1, K + 1):
         t = k / K
         X_next = X_goal.copy() if k == K else X_from + t * (X_goal - X_from)
         carried = carry.at(X_next[n:], lift=t * lift)
         X_next[:n][free] = weight * carried + (1.0 - weight) * (x + t * (x_end - x))
-        legs.append(X_next)
-    tc = time.perf_counter()
-    one_build = hasattr(scene, "prepare_box")  # one candidate build for all legs (docs/simulation.md "Session 23")
-    if one_build:
-        scene.prepare_box(legs)
-    stats.time["ccd"] += time.perf_counter() - tc
-    X_seg = X_from
-    for X_next in legs[1:]:
         tc = time.perf_counter()
-        alpha = scene.collision_free_stepsize(X_seg, X_next, build=not one_build)
+        alpha = scene.collision_free_stepsize(X_seg, X_next)
         stats.time["ccd"] += time.perf_counter() - tc
         if alpha < 1.0:
             if cut is not None:
