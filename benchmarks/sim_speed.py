@@ -9,7 +9,7 @@ default of `simulate`/`animate`), simulated through the project's own path
 
 Two worker processes simulate the same scene: this tree's code ("new") and the ``--baseline``
 commit's (its ``src/`` exported with ``git archive`` into a cache folder, run with PYTHONPATH
-pointing there; default: main at the start of session 22). They run in lockstep, one
+pointing there; default: main at the start of session 23). They run in lockstep, one
 frame each in turn, so that both see the same load on a shared machine, and the speed ratio
 new / baseline is taken from the same run. Each worker first simulates 3 frames untimed (numba's
 compilation, imports), then the timed walk; afterwards (untimed) it checks every frame with
@@ -51,7 +51,7 @@ sys.path.insert(0, str(HERE))
 
 import numpy as np  # noqa: E402
 
-BASELINE = "0c141a4"  # main at the start of session 22
+BASELINE = "ce87dd4"  # main at the start of session 23
 FPS_TARGET = 2.0
 FACT_TARGET = 4.0
 WARMUP_FRAMES = 3

@@ -553,3 +553,52 @@ def test_contact_preview_changes_the_path_not_the_solution():
 def test_contact_preview_beyond_the_candidates_reach_is_refused():
     with pytest.raises(ValueError, match="contact_preview"):
         SimSettings(contact_preview=2.5)
+
+
+
+def test_release_of_the_carried_cloth_changes_the_start_not_the_solution():
+    """SimSettings.follow_release moves the carried cloth off the body back toward its inertial
+    prediction (CCD-clipped, kept when E is lower): a sphere rising under a stiff cloth, so every
+    step after the first is carried. Each step, from the same state, ends where the step from the
+    plain carry ends, to the Newton tolerance, except the first contact step, where the cloth
+    settles on another facet of the faceted sphere (0.6 mm away, also with a 1e-7 `max`
+    tolerance: a nearby minimum, as in the contact preview's and the follow_body tests). Every
+    state is intersection-free."""
+    from physavatar.sim.start import release_weight
+
+    w = release_weight([0.0, 2e-3, 6e-3, 1e-2, 0.05], 1e-3, 0.01)
+    assert np.allclose(w, [0.0, 0.0, 0.5, 1.0, 1.0])  # none within 2 d̂, all from the release distance
+    m = Material(density=0.15, stretch_stiffness=30.0, bend_stiffness=1e-2)
+    V, F = grid(7, 0.3, z=0.0)
+    B0, BF = sphere()
+    B0 = B0 + np.array([0, 0, -0.13])
+    pins = [0, 6, 42, 48]
+    sims = [ClothSim(V, F, m, SimSettings(damping_mass=0.5, newton_tol=1e-6, friction=0.0, follow_body=0.05,
+                                          follow_release=r), pins) for r in (0.0, 0.02)]
+    starts = []
+
+    def recording(start):  # the start of each step's Newton solve
+        def wrapped(*args):
+            sv = start(*args)
+            starts.append(sv.X.copy())
+            return sv
+        return wrapped
+
+    for sim in sims:
+        sim._start = recording(sim._start)
+    x, v = V.copy(), np.zeros_like(V)
+    diffs, changed, follows = [], 0, 0
+    for t in range(6):
+        b0, b1 = B0 + np.array([0, 0, 0.012 * t]), B0 + np.array([0, 0, 0.012 * (t + 1)])
+        sims[1].set_state(sims[0].get_state())
+        out = [sim.step(x, v, b0, b1, BF, V[pins]) for sim in sims]
+        for k, (xk, _, st) in enumerate(out):
+            assert st.converged
+            assert not ipctk.has_intersections(sims[k].scene.mesh, np.vstack([xk, b1]))
+            follows += st.body_follows
+        diffs.append(np.abs(out[0][0] - out[1][0]).max())
+        changed += not np.array_equal(starts[-2], starts[-1])
+        x, v = out[0][0], out[0][1]
+    assert x[:, 2].max() > 0.01 and follows >= 8  # the sphere did push the cloth, which was carried
+    assert changed >= 3  # the release moved the start
+    assert sorted(diffs)[-2] < 1e-6 and max(diffs) < 1e-3, diffs

@@ -49,6 +49,13 @@ class SimSettings:
             collision-free, Newton starts there with the body at its pose and no penalty phase;
             otherwise the penalty phase starts from its collision-free part. 0 = off. Changes
             the path to the minimiser, not the minimiser.
+        follow_release: r > 0 [m]: after a carry that reached the body's pose, the carried cloth
+            moves back toward its inertial prediction, none of the way within 2 d̂ of the body
+            (at the step's start), all of it from r on, linear between (start.release_weight);
+            the move is CCD-clipped and kept when it lowers E (start.warm_start). The carry
+            holds cloth up to follow_body from the body rigidly, ~8-10 mm from the step's
+            solution where the prediction is ~3 mm from it (docs/simulation.md "Session 23").
+            Changes the path to the minimiser, not the minimiser. 0 = off.
         step_expansion: when a full Newton step was accepted but the residual fell by less
             than 30%, also try 2, 4, ... 64 times the step (CCD- and energy-checked;
             sim.linesearch.expand_step). Changes the path to the minimiser, not the minimiser.
@@ -136,6 +143,7 @@ class SimSettings:
     follow_segments: int = 4
     follow_lift: float = 1.0
     follow_retry: int = 3
+    follow_release: float = 0.0
     step_expansion: bool = True
     linear_rtol: float = 1e-6
     newton_forcing: float = 1e-3

@@ -41,7 +41,7 @@ from .material import Material
 from .mesh import ClothTopology
 from .settings import SimSettings, StepStats
 from .linesearch import CandidateScene, EnergyMemo, backtrack, expand_step
-from .start import follow_body, warm_start
+from .start import follow_body, release_weight, warm_start
 from .terms import StepState
 
 CUT_FORCING = 10.0  # newton_forcing × this after a CCD-cut step (docs/simulation.md "Session 14")
@@ -354,9 +354,13 @@ class ClothSim:
         X = X_prev.copy() if penalty else X_goal.copy()
         free = self.inertia.unit_mass[: self.n] > 0
         if penalty and s.follow_body > 0 and self.nb:
-            X, reached = follow_body(self.scene, self._body_faces, free, s, X_prev, X_goal, x_pred, stats)
+            info = {}
+            X, reached = follow_body(self.scene, self._body_faces, free, s, X_prev, X_goal, x_pred, stats, info=info)
             penalty = not reached
             stats.body_follows += int(reached)
+            if reached and s.follow_release > 0:  # the carried cloth off the body back toward x̃ (Session 23)
+                w = release_weight(info["distance"], s.dhat, s.follow_release)
+                X = warm_start(self.scene, self.terms + [self.barrier], free, X, x_pred, stats, weight=w)
         elif not penalty and s.warm_start and np.any(x_pred != x):
             # friction is not lagged yet at this point
             X = warm_start(self.scene, self.terms + [self.barrier], free, X, x_pred, stats)

@@ -70,13 +70,18 @@ class SurfaceCarry:
         return P
 
 
-def warm_start(scene, terms, free, X, x_pred, stats):
+def warm_start(scene, terms, free, X, x_pred, stats, weight=None):
     """Start Newton from the inertial prediction x̃ (free cloth vertices, mask ``free`` [n]),
     clipped by CCD so it stays intersection-free, when its energy under ``terms`` is below that
-    of X (IPC's initial guess). Returns the start."""
+    of X (IPC's initial guess). Returns the start. ``weight`` [n_free] in [0, 1]: each free
+    vertex goes that fraction of the way from X to x̃ (the release of carried cloth,
+    :func:`release_weight`)."""
     n = len(free)
     X_pred = X.copy()
-    X_pred[:n][free] = x_pred[free]
+    if weight is None:
+        X_pred[:n][free] = x_pred[free]
+    else:
+        X_pred[:n][free] += weight[:, None] * (x_pred[free] - X[:n][free])
     tc = time.perf_counter()
     alpha = scene.collision_free_stepsize(X, X_pred)
     stats.time["ccd"] += time.perf_counter() - tc
@@ -90,7 +95,16 @@ def warm_start(scene, terms, free, X, x_pred, stats):
     return X_pred if e1 < e0 else X
 
 
-def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True, cut=None):
+def release_weight(distance, dhat, release):
+    """[m] in [0, 1]: how far carried cloth at ``distance`` [m] from the body (at the step's start)
+    goes back to its inertial prediction (SimSettings.follow_release): none within 2 d̂ (the
+    contacts and the cloth just off them stay carried), all from ``release`` on, linear between."""
+    lo = 2.0 * dhat
+    return np.clip((np.asarray(distance) - lo) / max(release - lo, 1e-12), 0.0, 1.0)
+
+
+def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats, lift_still=True, cut=None,
+                info=None):
     """Carry the cloth along with the body from X_from to the body pose of X_goal
     (SimSettings.follow_body). Returns (X, reached): X_goal's body with the carried cloth
     when every leg of the move is collision-free (reached = True), else X_from moved by
@@ -107,7 +121,8 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
     not survive the small non-rigid distortions of the carry; the free phase settles it
     back in a few iterations. ``lift_still=False``: not where the carrying triangle stays put
     nor carried (sim.lag: cloth pinched where the body is held back stays exactly where it is).
-    ``cut``: a list that gets the leg (X_seg, X_next) whose CCD cut the move.
+    ``cut``: a list that gets the leg (X_seg, X_next) whose CCD cut the move. ``info``: a dict
+    that gets "distance" [n_free], each free cloth vertex's distance to the body at X_from.
     """
     s = settings
     n = len(free)
@@ -118,6 +133,8 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
     tq = time.perf_counter()
     outer = getattr(scene, "outer_faces", None)  # this step's collision surface (crease.outer_surface)
     carry = SurfaceCarry(b0, body_faces if outer is None else outer, x)
+    if info is not None:
+        info["distance"] = carry.distance
     weight = np.clip(2.0 - carry.distance / s.follow_body, 0.0, 1.0)[:, None]
     gap = np.full(n, np.inf)  # per cloth vertex: the closest active contact it is part of
     scene.prepare_static(X_from)
