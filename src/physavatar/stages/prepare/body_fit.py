@@ -38,7 +38,7 @@ from ...files import read_json
 from ..base import option, setting
 from .body_check import check
 from .fit_model import _extremities, _Model
-from .keypoints import make_detector, triangulate
+from .keypoints import detect_capture, make_detector, triangulate
 
 # The bones a fit moves (the rest follow their parents): trunk, neck and head, arms to the
 # wrists, legs to the feet. Twist bones (upperarm02, ...) and fingers stay at rest.
@@ -153,16 +153,6 @@ def _read_mask(path: Path, size: tuple[int, int]) -> np.ndarray:
         raise PhysavatarError(path, f"unreadable or corrupt mask ({type(e).__name__})") from None
 
 
-def _read_image(path: Path) -> np.ndarray:
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"))
-    except FileNotFoundError:
-        raise PhysavatarError(path, "image not found") from None
-    except Exception as e:  # noqa: BLE001
-        raise PhysavatarError(path, f"unreadable or corrupt image ({type(e).__name__})") from None
-
-
 class _Observations:
     """Masks (at the working resolution), keypoints and the clothed mesh of a capture."""
 
@@ -193,17 +183,17 @@ class _Observations:
 
     def _detect(self, progress) -> None:
         T, C = len(self.frames), len(self.cams)
+        # the keypoints prepare detected already (prepare/keypoints.npz, for the cameras' check)
+        saved = self.root / "prepare" / "keypoints.npz"
+        z = np.load(saved) if saved.is_file() else None
+        if z is not None and z["keypoints"].shape == (T, C, 33, 2) and list(z["frames"]) == list(self.frames):
+            native, conf = z["keypoints"], z["confidence"].copy()
+        else:
+            native, conf = detect_capture(self.root, self.native, self.frames, self.detector, progress)
         kp = np.zeros((T, C, 33, 2))
-        conf = np.zeros((T, C, 33))
-        with progress.task("prepare: detecting keypoints", total=T * C) as task:
-            for t, f in enumerate(self.frames):
-                for c, (cam, nat) in enumerate(zip(self.cams, self.native)):
-                    img = _read_image(self.root / "images" / nat.name / f"{f:06d}.png")
-                    k, w = self.detector.detect(img)
-                    s = cam.width / nat.width
-                    kp[t, c] = (k + 0.5) * s - 0.5
-                    conf[t, c] = w
-                    task.advance()
+        for c, (cam, nat) in enumerate(zip(self.cams, self.native)):
+            s = cam.width / nat.width
+            kp[:, c] = (native[:, c] + 0.5) * s - 0.5
         # drop detections that disagree with the other views (RANSAC triangulation)
         thr = np.array([0.04 * max(c.width, c.height) for c in self.cams])
         self.tri = []

@@ -122,6 +122,18 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
         given_template = src / "template" / "mesh.ply"
         labelled = given_template.is_file() and "label" in read_ply(given_template).vertex_data
 
+        # -- the cameras checked against the person (calibration.py)
+        t = time.time()
+        from .calibration import calibrate_step
+        from .mesh import imported_mesh_path
+
+        given = ("body.npz given" if (src / "body.npz").is_file() else "mesh given"
+                 if labelled or imported_mesh_path(src, first) is not None else None)
+        raw, steps["cameras"], cam_numbers = calibrate_step(src, tmp, raw, cfg, masks_of, given, prog)
+        if cam_numbers:
+            numbers["cameras"] = cam_numbers
+        seconds["cameras"] = time.time() - t
+
         # -- first-frame mesh
         t = time.time()
         mesh_source, src_mesh, src_labels = None, None, None
