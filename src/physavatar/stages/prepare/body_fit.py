@@ -84,6 +84,11 @@ class BodyFitConfig:
     # with keypoints (real people): the four fingers of each hand flex together by one angle per
     # hand and frame (Anny's rest hand is open; a real hand is often a fist)
     finger_curl: bool = setting(False)
+    # with keypoints (real people): the thumbs' first two joints are fitted too. Anny's rest thumb
+    # stands out from the palm, a relaxed hand holds it along the index; pressed into the masks
+    # (w_outside_keypoints) the fitted thumb comes in (Pose2Sim, session 23: hands' vertices in
+    # the masks ..., worst camera 93.7 -> 95.0 %). Without keypoints (the demo) not used
+    fit_thumbs: bool = setting(True)
     outside_margin_px: float = setting(0.0)  # the outside term's mask is shrunk by this [working px]
     # ... and by this with keypoints (they hold the pose while the body is pressed in): on the
     # Pose2Sim clip with the ramp below, body in the masks 88.0 / 86.4 % -> 90.0 / 88.0 % (mean /
@@ -267,7 +272,8 @@ def outside_weight(cfg: BodyFitConfig, sigma: float, keypoints: bool) -> float:
 class _Fitter:
     def __init__(self, cfg: BodyFitConfig, obs: _Observations, clothing: ClothedSurface | None, fps: float):
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
-        self.model = _Model(cfg, curl=cfg.finger_curl and obs.kp is not None)
+        self.model = _Model(cfg, curl=cfg.finger_curl and obs.kp is not None,
+                            thumbs=cfg.fit_thumbs and obs.kp is not None)
         self.A = self.model.n_params
         # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
         # from a far pose they squeeze the body into the wrong part of the clothing
@@ -282,7 +288,7 @@ class _Fitter:
         self.sample_bary = torch.as_tensor(bary, dtype=DTYPE)
         self.kp_ids = np.array(self.model.kp_ids)
         # the spine bones' turns about the vertical (world-aligned axis-angle: the z component)
-        self.twist_ids = [i for i, b in enumerate(cfg.bones) if b.startswith("spine")]
+        self.twist_ids = [i for i, b in enumerate(self.model.bones) if b.startswith("spine")]
         # the clothed mesh's terms leave out the hands' and feet's extremities (fingers, metacarpals,
         # toes): a surface remeshed at a few centimetres has no fingers, only a blob whose nearest
         # vertex normals put the true fingers 3-4 cm "outside" it; they pulled the arms into the blob
