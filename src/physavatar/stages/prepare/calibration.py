@@ -79,37 +79,37 @@ def keypoint_offsets(cams: list[Camera], kp: np.ndarray, conf: np.ndarray, *, mi
     N = len(X0)
     s_obs = size[oc][:, None]
 
+    # the offsets a common 3D shift of the person explains (J_c d in camera c, J_c the projection's
+    # Jacobian at the keypoints' centre) are left to the points: the offsets are held orthogonal
+    # to them (a strong residual), so the world stays put
+    J = np.concatenate([_projection_jacobian(c, np.mean(X0, 0)) for c in cams])  # [2C, 3]
+    Q = np.linalg.qr(J)[0]  # [2C, 3] orthonormal
+
     def residuals(x):
         d = x[:2 * C].reshape(C, 2)
         X = x[2 * C:].reshape(N, 3)
         h = np.einsum("nij,nj->ni", P[oc], np.concatenate([X[op], np.ones((n, 1))], 1))
         proj = h[:, :2] / h[:, 2:3] + d[oc]
         r = w[:, None] * (proj - uv) / (loss_px * s_obs)
-        return np.concatenate([r.ravel(), (d / (prior_px * size[:, None])).ravel()])
+        return np.concatenate([r.ravel(), (d / (prior_px * size[:, None])).ravel(), 100.0 * (Q.T @ d.ravel())])
 
-    A = lil_matrix((2 * n + 2 * C, 2 * C + 3 * N), dtype=np.int8)
+    A = lil_matrix((2 * n + 2 * C + 3, 2 * C + 3 * N), dtype=np.int8)
     rows = np.arange(n)
     for j in range(2):
         A[2 * rows + j, 2 * oc + j] = 1
         for a in range(3):
             A[2 * rows + j, 2 * C + 3 * op + a] = 1
     A[2 * n + np.arange(2 * C), np.arange(2 * C)] = 1
+    A[2 * n + 2 * C:, :2 * C] = 1
     x0 = np.concatenate([np.zeros(2 * C), np.asarray(X0).ravel()])
     sol = least_squares(residuals, x0, jac_sparsity=A, loss="soft_l1", f_scale=1.0, x_scale="jac", max_nfev=200)
     off = sol.x[:2 * C].reshape(C, 2)
-    # the part of the offsets a common 3D shift d of the person explains (J_c d in camera c, J_c the
-    # projection's Jacobian at the keypoints' centre) is left to the points: the world stays put
-    Xc = sol.x[2 * C:].reshape(N, 3).mean(0)
-    J = np.stack([_projection_jacobian(c, Xc) for c in cams])  # [C, 2, 3]
-    d = np.linalg.lstsq(J.reshape(2 * C, 3), off.ravel(), rcond=None)[0]
-    off = off - J @ d
 
     def median_px(x):
         r = residuals(x)[:2 * n].reshape(n, 2) * (loss_px * s_obs) / w[:, None]
         return float(np.median(np.linalg.norm(r, axis=1)))
 
-    x_tri = x0.copy()
-    info |= {"median_residual_px_before": round(median_px(x_tri), 2),
+    info |= {"median_residual_px_before": round(median_px(x0), 2),
              "median_residual_px_after": round(median_px(sol.x), 2)}
     return off, info
 
