@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -62,11 +63,12 @@ def _read_mask(path: Path) -> np.ndarray:
 
 
 def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, faces: np.ndarray | None, cfg: PrepareConfig,
-              progress) -> tuple[BodyPoses, dict]:
+              progress, fit_offsets: bool = False) -> tuple[BodyPoses, dict]:
     from ...body.model import BodyShape
     from .body_fit import fit_body
 
-    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, template_faces=faces)
+    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, template_faces=faces,
+                   fit_offsets=fit_offsets)
     poses = BodyPoses(BodyShape.from_array(np.asarray(fit.shape)), [str(b) for b in fit.bone_names],
                       np.asarray(fit.rotations, np.float64), np.asarray(fit.root_translation, np.float64),
                       str(fit.topology))
@@ -179,8 +181,16 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
             # 2.3 cm pixels, first frame: 49 mm vertex error with it, 8.5 mm without)
             clothed = not labelled and (mesh_source != "visual hull" or _footprint(raw.cameras, V)
                                         <= cfg.mesh.clothing_footprint)
-            body, numbers["body"] = _fit_body(src, tmp, V if clothed else None, F if clothed else None, cfg, prog)
+            body, numbers["body"] = _fit_body(src, tmp, V if clothed else None, F if clothed else None, cfg, prog,
+                                              fit_offsets=cfg.calibrate and given is None and len(raw.cameras) >= 3)
             body.save(tmp / "body.npz")
+            offsets = numbers["body"].get("camera_offsets_px")
+            if offsets:  # the cameras' image offsets fitted with the body (body_fit.py)
+                from .calibration import shifted
+
+                raw = replace(raw, cameras=[shifted(c, offsets[c.name]) for c in raw.cameras])
+                save_cameras(tmp, raw.cameras)
+                steps["cameras"] += "; offsets refined with the body"
             steps["body"] = "fitted (Anny, every frame)"
         seconds["body"] = time.time() - t
 
