@@ -95,3 +95,29 @@ def test_refine_cameras_applies_a_correction_the_masks_confirm():
     got = np.array([[n.K[0, 2] - c.K[0, 2], n.K[1, 2] - c.K[1, 2]] for n, c in zip(new, cams)])
     expected = _without_gauge(TRUE_OFFSETS, cams, X.reshape(-1, 3).mean(0))
     assert np.abs(got - expected).max() < 0.3
+
+
+def test_silhouette_terms_recover_an_image_offset():
+    """The body fit's image offsets (``fit_offsets``): the silhouette terms with a per-view offset
+    added to the projections, optimised over the offsets alone, move a body's outline onto masks
+    drawn from cameras moved by known offsets."""
+    import torch
+
+    from physavatar.body.fit_terms import MaskView, silhouette_terms
+
+    cams = _rig()
+    truth = [shifted(c, o) for c, o in zip(cams, TRUE_OFFSETS)]
+    rng = np.random.default_rng(0)
+    views = [MaskView.build(c, m, 400, rng) for c, m in zip(cams, _masks(truth))]
+    # points on the ellipsoid's surface (the "body")
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    P = torch.as_tensor(d * [0.3, 0.2, 0.8] + [0.0, 0.0, 0.9])
+    off = torch.zeros(4, 2, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([off], lr=0.1)
+    for it in range(300):
+        opt.zero_grad()
+        o, c = silhouette_terms(P, views, 0.01, 0.0, off)
+        (50.0 * o + c).backward()
+        opt.step()
+    assert np.abs(off.detach().numpy() - TRUE_OFFSETS).max() < 0.5, off

@@ -279,10 +279,10 @@ class _Fitter:
     def __init__(self, cfg: BodyFitConfig, obs: _Observations, clothing: ClothedSurface | None, fps: float,
                  fit_offsets: bool = False):
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
+        keypoints = obs is not None and obs.kp is not None
         self.offsets = None  # [C, 2] working px: each camera's image offset, fitted in the sequence pass
-        self.fit_offsets = fit_offsets and cfg.fit_offsets and obs.kp is not None
-        self.model = _Model(cfg, curl=cfg.finger_curl and obs.kp is not None,
-                            thumbs=cfg.fit_thumbs and obs.kp is not None)
+        self.fit_offsets = fit_offsets and cfg.fit_offsets and keypoints
+        self.model = _Model(cfg, curl=cfg.finger_curl and keypoints, thumbs=cfg.fit_thumbs and keypoints)
         self.A = self.model.n_params
         # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
         # from a far pose they squeeze the body into the wrong part of the clothing

@@ -167,6 +167,22 @@ def hull_coverage(cams: list[Camera], masks: list[np.ndarray], voxel: float = 0.
     return out
 
 
+def hull_check(cams: list[Camera], new: list[Camera], masks_of, frames: list[int], check_frames: int = 3) -> dict:
+    """Whether cameras ``new`` make the masks agree better than ``cams``: the masks' hull coverage
+    (:func:`hull_coverage`) of ``check_frames`` frames spread over the clip, its worst camera
+    (``applied``), and the coverages."""
+    pick = np.unique(np.linspace(0, len(frames) - 1, min(check_frames, len(frames))).round().astype(int))
+    before, after = np.zeros(len(cams)), np.zeros(len(cams))
+    for i in pick:
+        m = masks_of(frames[i])
+        ms = [np.asarray(m[c.name]) > 0.5 for c in cams]
+        before += hull_coverage(cams, ms) / len(pick)
+        after += hull_coverage(new, ms) / len(pick)
+    return {"hull_coverage_before": {c.name: round(float(v), 4) for c, v in zip(cams, before)},
+            "hull_coverage_after": {c.name: round(float(v), 4) for c, v in zip(cams, after)},
+            "applied": bool(after.min() > before.min())}
+
+
 def refine_cameras(cams: list[Camera], kp: np.ndarray, conf: np.ndarray, masks_of, frames: list[int],
                    check_frames: int = 3) -> tuple[list[Camera], dict]:
     """The cameras with the keypoints' image offsets (:func:`keypoint_offsets`) when the masks'
@@ -179,16 +195,7 @@ def refine_cameras(cams: list[Camera], kp: np.ndarray, conf: np.ndarray, masks_o
         info["applied"] = False
         return cams, info
     new = [shifted(c, o) for c, o in zip(cams, off)]
-    pick = np.unique(np.linspace(0, len(frames) - 1, min(check_frames, len(frames))).round().astype(int))
-    before, after = np.zeros(len(cams)), np.zeros(len(cams))
-    for i in pick:
-        m = masks_of(frames[i])
-        ms = [np.asarray(m[c.name]) > 0.5 for c in cams]
-        before += hull_coverage(cams, ms) / len(pick)
-        after += hull_coverage(new, ms) / len(pick)
-    info["hull_coverage_before"] = {c.name: round(float(v), 4) for c, v in zip(cams, before)}
-    info["hull_coverage_after"] = {c.name: round(float(v), 4) for c, v in zip(cams, after)}
-    info["applied"] = bool(after.min() > before.min())
+    info |= hull_check(cams, new, masks_of, frames, check_frames)
     return (new if info["applied"] else cams), info
 
 

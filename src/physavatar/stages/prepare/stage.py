@@ -185,12 +185,17 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
                                               fit_offsets=cfg.calibrate and given is None and len(raw.cameras) >= 3)
             body.save(tmp / "body.npz")
             offsets = numbers["body"].get("camera_offsets_px")
-            if offsets:  # the cameras' image offsets fitted with the body (body_fit.py)
-                from .calibration import shifted
+            if offsets:  # the cameras' image offsets fitted with the body (body_fit.py), checked like the step's
+                from .calibration import hull_check, shifted
 
-                raw = replace(raw, cameras=[shifted(c, offsets[c.name]) for c in raw.cameras])
-                save_cameras(tmp, raw.cameras)
-                steps["cameras"] += "; offsets refined with the body"
+                new = [shifted(c, offsets[c.name]) for c in raw.cameras]
+                numbers["cameras_body"] = {"offsets_px": offsets} | hull_check(raw.cameras, new, masks_of, raw.frames)
+                if numbers["cameras_body"]["applied"]:
+                    raw = replace(raw, cameras=new)
+                    save_cameras(tmp, raw.cameras)
+                    steps["cameras"] += "; offsets refined with the body, checked against the masks' hull"
+                else:
+                    steps["cameras"] += "; the body fit's offsets not applied (the masks' hull disagrees)"
             steps["body"] = "fitted (Anny, every frame)"
         seconds["body"] = time.time() - t
 
