@@ -84,12 +84,15 @@ def gm(d2: torch.Tensor, sigma) -> torch.Tensor:
 
 
 def silhouette_terms(points: torch.Tensor, views: list[MaskView], sigma: float,
-                     margin_px: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+                     margin_px: float = 0.0, offsets: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean squared outside distance [m^2] (outside the mask shrunk by ``margin_px``) and mean
-    robust contour distance [m^2] of body ``points`` [N, 3] over the views of one frame."""
+    robust contour distance [m^2] of body ``points`` [N, 3] over the views of one frame
+    (``offsets`` [C, 2] px added to each view's projections: its image offset)."""
     out, cont = points.new_zeros(()), points.new_zeros(())
-    for view in views:
+    for i, view in enumerate(views):
         uv, z = project(points, view.camera)
+        if offsets is not None:
+            uv = uv + offsets[i]
         f = float(view.camera.K[0, 0])
         scale = z.clamp(min=1e-3) / f  # metres per pixel at each point
         d_out = torch.relu(sample_field(view.dt, uv) + margin_px) * scale
@@ -106,7 +109,7 @@ def silhouette_terms(points: torch.Tensor, views: list[MaskView], sigma: float,
 
 
 def keypoint_term(joints: torch.Tensor, kp2d: np.ndarray, conf: np.ndarray, cams: list[Camera],
-                  sigma: float) -> torch.Tensor:
+                  sigma: float, offsets: torch.Tensor | None = None) -> torch.Tensor:
     """Robust confidence-weighted reprojection error [m^2] of [K, 3] model keypoints against
     detections kp2d [C, K, 2] px with confidences [C, K]."""
     total, wsum = joints.new_zeros(()), 0.0
@@ -115,6 +118,8 @@ def keypoint_term(joints: torch.Tensor, kp2d: np.ndarray, conf: np.ndarray, cams
         if float(w.sum()) <= 0:
             continue
         uv, z = project(joints, cam)
+        if offsets is not None:
+            uv = uv + offsets[c]
         scale = z.clamp(min=1e-3) / float(cam.K[0, 0])
         d2 = ((uv - torch.as_tensor(kp2d[c], dtype=DTYPE)) ** 2).sum(-1) * scale ** 2
         total = total + (w * gm(d2, sigma)).sum()

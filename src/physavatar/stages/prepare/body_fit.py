@@ -38,7 +38,7 @@ from ...files import read_json
 from ..base import option, setting
 from .body_check import check
 from .fit_model import _extremities, _Model
-from .keypoints import make_detector, triangulate
+from .keypoints import detect_capture, make_detector, triangulate
 
 # The bones a fit moves (the rest follow their parents): trunk, neck and head, arms to the
 # wrists, legs to the feet. Twist bones (upperarm02, ...) and fingers stay at rest.
@@ -84,6 +84,17 @@ class BodyFitConfig:
     # with keypoints (real people): the four fingers of each hand flex together by one angle per
     # hand and frame (Anny's rest hand is open; a real hand is often a fist)
     finger_curl: bool = setting(False)
+    # with keypoints (real people): the thumbs' first two joints are fitted too. Anny's rest thumb
+    # stands out from the palm, a relaxed hand holds it along the index; pressed into the masks
+    # (w_outside_keypoints) the fitted thumb comes in (Pose2Sim, session 23: hands' vertices in
+    # the masks ..., worst camera 93.7 -> 95.0 %). Without keypoints (the demo) not used
+    fit_thumbs: bool = setting(True)
+    # with keypoints, when prepare's cameras step may correct the cameras: each camera's image
+    # offset is fitted with the body in the whole-sequence pass (session 23)
+    fit_offsets: bool = setting(True)
+    offset_lr: float = setting(0.02)  # [working px] Adam's step for the offsets
+    w_offset_gauge: float = setting(100.0)
+    w_offset_prior: float = setting(0.1)
     outside_margin_px: float = setting(0.0)  # the outside term's mask is shrunk by this [working px]
     # ... and by this with keypoints (they hold the pose while the body is pressed in): on the
     # Pose2Sim clip with the ramp below, body in the masks 88.0 / 86.4 % -> 90.0 / 88.0 % (mean /
@@ -153,16 +164,6 @@ def _read_mask(path: Path, size: tuple[int, int]) -> np.ndarray:
         raise PhysavatarError(path, f"unreadable or corrupt mask ({type(e).__name__})") from None
 
 
-def _read_image(path: Path) -> np.ndarray:
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"))
-    except FileNotFoundError:
-        raise PhysavatarError(path, "image not found") from None
-    except Exception as e:  # noqa: BLE001
-        raise PhysavatarError(path, f"unreadable or corrupt image ({type(e).__name__})") from None
-
-
 class _Observations:
     """Masks (at the working resolution), keypoints and the clothed mesh of a capture."""
 
@@ -193,17 +194,17 @@ class _Observations:
 
     def _detect(self, progress) -> None:
         T, C = len(self.frames), len(self.cams)
+        # the keypoints prepare detected already (prepare/keypoints.npz, for the cameras' check)
+        saved = self.root / "prepare" / "keypoints.npz"
+        z = np.load(saved) if saved.is_file() else None
+        if z is not None and z["keypoints"].shape == (T, C, 33, 2) and list(z["frames"]) == list(self.frames):
+            native, conf = z["keypoints"], z["confidence"].copy()
+        else:
+            native, conf = detect_capture(self.root, self.native, self.frames, self.detector, progress)
         kp = np.zeros((T, C, 33, 2))
-        conf = np.zeros((T, C, 33))
-        with progress.task("prepare: detecting keypoints", total=T * C) as task:
-            for t, f in enumerate(self.frames):
-                for c, (cam, nat) in enumerate(zip(self.cams, self.native)):
-                    img = _read_image(self.root / "images" / nat.name / f"{f:06d}.png")
-                    k, w = self.detector.detect(img)
-                    s = cam.width / nat.width
-                    kp[t, c] = (k + 0.5) * s - 0.5
-                    conf[t, c] = w
-                    task.advance()
+        for c, (cam, nat) in enumerate(zip(self.cams, self.native)):
+            s = cam.width / nat.width
+            kp[:, c] = (native[:, c] + 0.5) * s - 0.5
         # drop detections that disagree with the other views (RANSAC triangulation)
         thr = np.array([0.04 * max(c.width, c.height) for c in self.cams])
         self.tri = []
@@ -275,9 +276,13 @@ def outside_weight(cfg: BodyFitConfig, sigma: float, keypoints: bool) -> float:
 # -- optimisation --------------------------------------------------------------------------------
 
 class _Fitter:
-    def __init__(self, cfg: BodyFitConfig, obs: _Observations, clothing: ClothedSurface | None, fps: float):
+    def __init__(self, cfg: BodyFitConfig, obs: _Observations, clothing: ClothedSurface | None, fps: float,
+                 fit_offsets: bool = False):
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
-        self.model = _Model(cfg, curl=cfg.finger_curl and obs.kp is not None)
+        keypoints = obs is not None and obs.kp is not None
+        self.offsets = None  # [C, 2] working px: each camera's image offset, fitted in the sequence pass
+        self.fit_offsets = fit_offsets and cfg.fit_offsets and keypoints
+        self.model = _Model(cfg, curl=cfg.finger_curl and keypoints, thumbs=cfg.fit_thumbs and keypoints)
         self.A = self.model.n_params
         # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
         # from a far pose they squeeze the body into the wrong part of the clothing
@@ -292,7 +297,7 @@ class _Fitter:
         self.sample_bary = torch.as_tensor(bary, dtype=DTYPE)
         self.kp_ids = np.array(self.model.kp_ids)
         # the spine bones' turns about the vertical (world-aligned axis-angle: the z component)
-        self.twist_ids = [i for i, b in enumerate(cfg.bones) if b.startswith("spine")]
+        self.twist_ids = [i for i, b in enumerate(self.model.bones) if b.startswith("spine")]
         # the clothed mesh's terms leave out the hands' and feet's extremities (fingers, metacarpals,
         # toes): a surface remeshed at a few centimetres has no fingers, only a blob whose nearest
         # vertex normals put the true fingers 3-4 cm "outside" it; they pulled the arms into the blob
@@ -304,12 +309,12 @@ class _Fitter:
         kps = self.model.keypoints(V, H) if obs.kp is not None else None
         for i, t in enumerate(frames):
             margin = cfg.outside_margin_px if obs.kp is None else cfg.outside_margin_px_keypoints
-            o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, margin)
+            o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, margin, self.offsets)
             total = total + self.outside_weight(sigma) * o + cfg.w_contour * c
             if kps is not None:
                 conf = obs.conf[t][:, self.kp_ids] * self.model.kp_weight
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
-                                                                max(sigma, cfg.kp_sigma))
+                                                                max(sigma, cfg.kp_sigma), self.offsets)
             if t == 0 and self.clothing is not None and self.use_clothing:
                 total = total + self.clothing_loss(V[i], sigma)
         return total / len(frames)
@@ -449,14 +454,46 @@ class _Fitter:
                 loss = loss + cfg.smoothness * (acc ** 2).sum(-1).mean()
             return loss
 
-        self._run([rot, tau], [0.005, 0.002], cfg.sequence_iterations, f, cfg.sigma_end, cfg.sigma_end)
+        if not self.fit_offsets:
+            self._run([rot, tau], [0.005, 0.002], cfg.sequence_iterations, f, cfg.sigma_end, cfg.sigma_end)
+            return rot.detach(), tau.detach()
+        # each camera's image offset with the body (calibration.py's from the keypoints carry the
+        # detector's bias): held orthogonal to what a common shift of the body explains (the
+        # translations are free), weakly drawn to 0; in metres at the body's distance
+        cams = self.obs.cams
+        with torch.no_grad():
+            centre = self.model.pose(rot, tau, phen)[0].mean((0, 1)).numpy()
+        from .calibration import _projection_jacobian
+
+        Q = torch.as_tensor(np.linalg.qr(np.concatenate([_projection_jacobian(c, centre) for c in cams]))[0])
+        m_px = torch.as_tensor([np.linalg.norm(c.center - centre) / c.K[0, 0] for c in cams], dtype=DTYPE)[:, None]
+        self.offsets = torch.zeros(len(cams), 2, dtype=DTYPE, requires_grad=True)
+
+        def g(sigma):
+            d = self.offsets * m_px
+            return f(sigma) + cfg.w_offset_gauge * ((Q.T @ (self.offsets * m_px).reshape(-1)) ** 2).sum() \
+                + cfg.w_offset_prior * (d ** 2).sum()
+
+        self._run([rot, tau, self.offsets], [0.005, 0.002, cfg.offset_lr], cfg.sequence_iterations, g, cfg.sigma_end,
+                  cfg.sigma_end)
+        off = self.offsets.detach().numpy().copy()
+        self.offsets = None
+        # the offsets go into the cameras (the check and the capture's cameras.json)
+        from .calibration import shifted
+
+        self.obs.cams = [shifted(c, o) for c, o in zip(cams, off)]
+        for views in self.obs._views.values():
+            for v, o in zip(views, off):
+                v.camera = shifted(v.camera, o)
+        self.camera_offsets = {n.name: [round(float(x) * n.width / c.width, 3) for x in o]
+                               for n, c, o in zip(self.obs.native, cams, off)}
         return rot.detach(), tau.detach()
 
 
 # -- entry point ---------------------------------------------------------------------------------
 
 def fit_body(capture_dir: str | Path, *, template_vertices: np.ndarray | None, config: BodyFitConfig | None = None,
-             progress=None, template_faces: np.ndarray | None = None) -> BodyFit:
+             progress=None, template_faces: np.ndarray | None = None, fit_offsets: bool = False) -> BodyFit:
     """Fit the Anny body to every frame of a capture (see the module doc).
 
     Args:
@@ -472,12 +509,12 @@ def fit_body(capture_dir: str | Path, *, template_vertices: np.ndarray | None, c
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small tensors: one thread is faster, and far faster on a busy machine
     try:
-        return _fit(Path(capture_dir), template_vertices, template_faces, cfg, progress)
+        return _fit(Path(capture_dir), template_vertices, template_faces, cfg, progress, fit_offsets)
     finally:
         torch.set_num_threads(threads)
 
 
-def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, progress) -> BodyFit:
+def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, progress, fit_offsets=False) -> BodyFit:
     from ...progress import resolve
 
     t0 = time.time()
@@ -494,7 +531,7 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
         if tv.ndim != 2 or tv.shape[1] != 3 or not np.isfinite(tv).all():
             raise PhysavatarError(None, f"body fit: template vertices must be finite [V, 3], got {tv.shape}")
         clothing = ClothedSurface(tv, template_faces)
-    fitter = _Fitter(cfg, obs, clothing, fps)
+    fitter = _Fitter(cfg, obs, clothing, fps, fit_offsets)
     T = len(obs.frames)
     report: dict = {"detector": obs.detector_note, "frames": T, "cameras": len(obs.cams),
                     "working_resolution": [[c.width, c.height] for c in obs.cams][:1][0]}
@@ -521,6 +558,8 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
                 rot, tau = fitter.sequence(rot, tau, phen)
                 task.advance()
     report.update(check(fitter, rot, tau, phen))
+    if getattr(fitter, "camera_offsets", None):
+        report["camera_offsets_px"] = fitter.camera_offsets  # the images' own pixels
     shape = BodyShape.from_array(np.clip(phen.numpy(), 0.0, 1.0))
     report["shape"] = shape.to_dict()
     with torch.no_grad():

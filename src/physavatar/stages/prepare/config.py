@@ -144,6 +144,9 @@ class PrepareConfig:
     body: BodyFitConfig = field(default_factory=BodyFitConfig)
     segment: SegmentConfig = field(default_factory=SegmentConfig)
     boundary: BoundaryConfig = field(default_factory=BoundaryConfig)
+    calibrate: bool = option(True, "correct each camera's image offset from the person's keypoints when the masks' "
+                             "hull agrees (only when the body and mesh are not given)",
+                             flag="--calibrate/--no-calibrate")
     copy_images: bool = option(False, "copy the images instead of hard-linking them", flag="--copy-images")
     report: bool = option(True, "write the preparation report (report.md and pictures)", flag="--report/--no-report",
                           hash=False)

@@ -63,21 +63,28 @@ def _curl_axes(heads: np.ndarray, names: list[str], side: str) -> tuple[list[int
     return bones, np.array(axes)
 
 
+# the thumbs' first two joints (fitted with keypoints: body_fit.BodyFitConfig.fit_thumbs)
+THUMB_BONES = ("finger1-1.L", "finger1-2.L", "finger1-1.R", "finger1-2.R")
+
+
 class _Model:
-    """The differentiable body with the fit's parameterisation (the moving bones only, and with
-    ``curl`` one flexion angle per hand for its four fingers, an extra row of ``rot``)."""
+    """The differentiable body with the fit's parameterisation (the moving bones only, the
+    thumbs' joints too with ``thumbs``, and with ``curl`` one flexion angle per hand for its four
+    fingers, an extra row of ``rot``)."""
 
     MAX_CURL = 1.4  # [rad] per finger joint: a fist
 
-    def __init__(self, cfg, curl: bool = False):  # cfg: body_fit.BodyFitConfig
+    def __init__(self, cfg, curl: bool = False, thumbs: bool = False):  # cfg: body_fit.BodyFitConfig
         self.body = DiffBody(cfg.topology)
         names = self.body.bone_names
-        missing = [b for b in cfg.bones if b not in names]
+        bones = tuple(cfg.bones) + tuple(b for b in THUMB_BONES if thumbs and b not in cfg.bones)
+        missing = [b for b in bones if b not in names]
         if missing:
             raise PhysavatarError(None, f"body fit: bones {missing} are not Anny bones")
-        self.active = torch.as_tensor([names.index(b) for b in cfg.bones])
+        self.bones = bones
+        self.active = torch.as_tensor([names.index(b) for b in bones])
         self.B = len(names)
-        self.n_bones = len(cfg.bones)
+        self.n_bones = len(bones)
         self.curl = curl
         self.n_params = self.n_bones + int(curl)
         with torch.no_grad():

@@ -105,6 +105,24 @@ def make_detector(kind: str) -> tuple[Detector | None, str]:
     return None, f"no keypoint detector: {why}"
 
 
+def detect_capture(root, cams: list[Camera], frames: list[int], detector: Detector, progress) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoints [T, C, 33, 2] px (the images' own resolution) and confidences [T, C, 33] of every
+    camera's image of every frame of the capture at ``root`` (``images/<camera>/<frame>.png``)."""
+    from pathlib import Path
+
+    from ...capture import _read_png
+
+    T, C = len(frames), len(cams)
+    kp, conf = np.zeros((T, C, N_LANDMARKS, 2)), np.zeros((T, C, N_LANDMARKS))
+    with progress.task("prepare: detecting keypoints", total=T * C) as task:
+        for t, f in enumerate(frames):
+            for c, cam in enumerate(cams):
+                img = _read_png(Path(root) / "images" / cam.name / f"{f:06d}.png", "RGB")
+                kp[t, c], conf[t, c] = detector.detect(img)
+                task.advance()
+    return kp, conf
+
+
 # -- triangulation -------------------------------------------------------------------------------
 
 def projection_matrix(cam: Camera) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -62,11 +63,12 @@ def _read_mask(path: Path) -> np.ndarray:
 
 
 def _fit_body(src: Path, tmp: Path, vertices: np.ndarray | None, faces: np.ndarray | None, cfg: PrepareConfig,
-              progress) -> tuple[BodyPoses, dict]:
+              progress, fit_offsets: bool = False) -> tuple[BodyPoses, dict]:
     from ...body.model import BodyShape
     from .body_fit import fit_body
 
-    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, template_faces=faces)
+    fit = fit_body(tmp, template_vertices=vertices, config=cfg.body, progress=progress, template_faces=faces,
+                   fit_offsets=fit_offsets)
     poses = BodyPoses(BodyShape.from_array(np.asarray(fit.shape)), [str(b) for b in fit.bone_names],
                       np.asarray(fit.rotations, np.float64), np.asarray(fit.root_translation, np.float64),
                       str(fit.topology))
@@ -122,6 +124,18 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
         given_template = src / "template" / "mesh.ply"
         labelled = given_template.is_file() and "label" in read_ply(given_template).vertex_data
 
+        # -- the cameras checked against the person (calibration.py)
+        t = time.time()
+        from .calibration import calibrate_step
+        from .mesh import imported_mesh_path
+
+        given = ("body.npz given" if (src / "body.npz").is_file() else "mesh given"
+                 if labelled or imported_mesh_path(src, first) is not None else None)
+        raw, steps["cameras"], cam_numbers = calibrate_step(src, tmp, raw, cfg, masks_of, given, prog)
+        if cam_numbers:
+            numbers["cameras"] = cam_numbers
+        seconds["cameras"] = time.time() - t
+
         # -- first-frame mesh
         t = time.time()
         mesh_source, src_mesh, src_labels = None, None, None
@@ -167,8 +181,21 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
             # 2.3 cm pixels, first frame: 49 mm vertex error with it, 8.5 mm without)
             clothed = not labelled and (mesh_source != "visual hull" or _footprint(raw.cameras, V)
                                         <= cfg.mesh.clothing_footprint)
-            body, numbers["body"] = _fit_body(src, tmp, V if clothed else None, F if clothed else None, cfg, prog)
+            body, numbers["body"] = _fit_body(src, tmp, V if clothed else None, F if clothed else None, cfg, prog,
+                                              fit_offsets=cfg.calibrate and given is None and len(raw.cameras) >= 3)
             body.save(tmp / "body.npz")
+            offsets = numbers["body"].get("camera_offsets_px")
+            if offsets:  # the cameras' image offsets fitted with the body (body_fit.py), checked like the step's
+                from .calibration import hull_check, shifted
+
+                new = [shifted(c, offsets[c.name]) for c in raw.cameras]
+                numbers["cameras_body"] = {"offsets_px": offsets} | hull_check(raw.cameras, new, masks_of, raw.frames)
+                if numbers["cameras_body"]["applied"]:
+                    raw = replace(raw, cameras=new)
+                    save_cameras(tmp, raw.cameras)
+                    steps["cameras"] += "; offsets refined with the body, checked against the masks' hull"
+                else:
+                    steps["cameras"] += "; the body fit's offsets not applied (the masks' hull disagrees)"
             steps["body"] = "fitted (Anny, every frame)"
         seconds["body"] = time.time() - t
 
