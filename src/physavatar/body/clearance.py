@@ -57,14 +57,14 @@ def default_rules(clearance: float = 0.03) -> list[Clearance]:
     """The rules :func:`part_clearance` applies by default, meant for motion capture after
     ``motion.arm_clearance`` (``benchmarks/motion_suite.py --part-clearance``; `simulate` does not
     call it): the thigh out
-    of the belly (at most 20 degrees of hip flexion taken back; pairs within 6 cm of each other at
+    of the belly (at most 35 degrees of hip flexion taken back; pairs within 6 cm of each other at
     rest, the groin, left out), the calf out of the thigh at the back of the knee (the same bounds
     for the knee), then the forearm and hand off every other part of the body (at most 40 degrees
     more at the shoulder, on top of ``arm_clearance``'s sideways raise)."""
     rules = []
     for s in ("L", "R"):
         rules.append(Clearance(f"thigh-belly.{s}", f"upperleg01.{s}", (f"upperleg01.{s}", f"upperleg02.{s}"), _TRUNK,
-                               clearance=0.01, max_angle=np.radians(20.0), rest_gap=0.06))
+                               clearance=0.01, max_angle=np.radians(35.0), rest_gap=0.06))
     for s in ("L", "R"):
         rules.append(Clearance(f"knee-fold.{s}", f"lowerleg01.{s}", (f"lowerleg01.{s}", f"lowerleg02.{s}"), ("upperleg",),
                                clearance=0.01, max_angle=np.radians(20.0), rest_gap=0.06))
