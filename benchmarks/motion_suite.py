@@ -43,6 +43,7 @@ import numpy as np  # noqa: E402
 
 from _common import cpu_name  # noqa: E402
 from physavatar.body import BUILTIN, BodyModel, Motion  # noqa: E402
+from physavatar.body.clearance import part_clearance  # noqa: E402
 from physavatar.body.load import load_motion, with_arm_clearance  # noqa: E402
 from physavatar.body.motion import _x, _y, _z, bone_vertex_mask  # noqa: E402
 from physavatar.data.garment_sequence import GarmentSequence  # noqa: E402
@@ -259,6 +260,9 @@ def main():
     ap.add_argument("--targets", action="store_true",
                     help="check only the attached (boundary) targets, simulate nothing: the frames where the "
                          "attached triangles alone cross, riding the skin and after garment.unfold_targets")
+    ap.add_argument("--part-clearance", action="store_true",
+                    help="the CMU clips also corrected by body.clearance.part_clearance (thigh out of the belly, "
+                         "hand off the body; docs/simulation.md \"Session 23\")")
     ap.add_argument("--partial", action="store_true",
                     help="check the frames written so far by the (interrupted or running) runs in --work, simulate nothing")
     args = ap.parse_args()
@@ -278,7 +282,7 @@ def main():
         path = MOTIONS / clip
         if not wanted(name):
             continue
-        cached = work / f"{name}{'-full' if args.full else ''}.npz"
+        cached = work / f"{name}{'-full' if args.full else ''}{'-parts' if args.part_clearance else ''}.npz"
         if cached.exists():  # the clip retargeted with arm clearance (minutes on a loaded machine)
             specs[name] = str(cached)
             continue
@@ -287,6 +291,8 @@ def main():
             continue
         m = load_motion(str(path), fps, 4.0, body=body)
         m, _ = with_arm_clearance(m, str(path), body, 0.03)
+        if args.part_clearance:
+            m, _ = part_clearance(m, body)
         if not args.full:
             m = m.slice(start, start + int(round(duration * fps)) + 1)
         m.save(cached)

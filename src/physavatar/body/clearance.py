@@ -1,0 +1,218 @@
+"""Room between the body parts a garment covers: a motion correction for motion capture.
+
+Motion capture retargeted onto Anny often makes the collider pass through itself: a hand rests in
+the hip, the forearm swings through the thigh, the thigh of a high step sinks centimetres into the
+belly (linear blend skinning collapses the groin). A garment lying between two such parts has no
+position outside the body at all: a contact-exact simulator lags or leaves cloth inside the body
+there (docs/simulation.md, "Session 21" and "Session 23"). The given motion is physically
+impossible in those frames, so it is changed, as little as the rule below needs, and the change is
+reported.
+
+:func:`part_clearance` applies :class:`Clearance` rules. A rule names a joint (the head of a bone),
+the *part* it moves (the vertices whose dominant bone has one of the given prefixes) and an
+*obstacle* (another set of vertices and the triangles among them). In every frame where a point of
+the part comes closer than ``clearance`` to the obstacle's surface, the bone is turned at its joint
+about the axis that moves that closest point straight away from the obstacle (the axis
+``(p - joint) x n``, n the obstacle's normal at the closest point), by the smallest angle (a
+bisection) that clears it, at most ``max_angle``. The angles are held over a third of a second and
+smoothed over time (no jitter), and the measure-turn-smooth round is repeated for the frames still
+short (``rounds``), the total turn bounded by ``max_angle``. Frames where no point comes too close,
+and that no smoothing window reaches, are left exactly as they are.
+
+Parts connected at the joint (the thigh and the belly at the hip) are always in contact near the
+joint; ``rest_gap`` leaves out the points of the part and the obstacle that are closer than that to
+each other in the rest pose: the rule then keeps apart only what is apart at rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .model import BodyModel, axis_angle_to_matrix, bone_vertex_mask, matrix_to_axis_angle
+
+
+@dataclass(frozen=True)
+class Clearance:
+    """One part kept ``clearance`` [m] away from an obstacle by turning ``joint`` (a bone name)
+    at most ``max_angle`` [rad]; pairs closer than ``rest_gap`` [m] at rest are left out."""
+
+    name: str
+    joint: str
+    part: tuple[str, ...]
+    obstacle: tuple[str, ...]
+    clearance: float
+    max_angle: float
+    rest_gap: float = 0.0
+    exclude: tuple[str, ...] = ()  # bones left out of the obstacle on the joint's side (the limb itself)
+
+
+_HAND = ("lowerarm", "wrist", "hand", "finger", "thumb", "metacarpal")
+_TRUNK = ("root", "pelvis", "spine")
+_ARM = ("clavicle", "shoulder", "upperarm") + _HAND
+
+
+def default_rules(clearance: float = 0.03) -> list[Clearance]:
+    """The rules :func:`part_clearance` applies by default, meant for motion capture after
+    ``motion.arm_clearance`` (``benchmarks/motion_suite.py --part-clearance``; `simulate` does not
+    call it): the thigh out
+    of the belly (at most 35 degrees of hip flexion taken back; pairs within 6 cm of each other at
+    rest, the groin, left out), the calf out of the thigh at the back of the knee (the same bounds
+    for the knee), then the forearm and hand off every other part of the body (at most 40 degrees
+    more at the shoulder, on top of ``arm_clearance``'s sideways raise)."""
+    rules = []
+    for s in ("L", "R"):
+        rules.append(Clearance(f"thigh-belly.{s}", f"upperleg01.{s}", (f"upperleg01.{s}", f"upperleg02.{s}"), _TRUNK,
+                               clearance=0.01, max_angle=np.radians(35.0), rest_gap=0.06))
+    for s in ("L", "R"):
+        rules.append(Clearance(f"knee-fold.{s}", f"lowerleg01.{s}", (f"lowerleg01.{s}", f"lowerleg02.{s}"), ("upperleg",),
+                               clearance=0.01, max_angle=np.radians(20.0), rest_gap=0.06))
+    for s in ("L", "R"):
+        rules.append(Clearance(f"hand-body.{s}", f"upperarm01.{s}", _HAND, ("",), clearance=clearance,
+                               max_angle=np.radians(40.0), exclude=_ARM))
+    return rules
+
+
+def _side_mask(body: BodyModel, prefixes, side: str | None) -> np.ndarray:
+    names = [n for n in body.bone_names if n.startswith(tuple(prefixes))
+             and (side is None or n.endswith(f".{side}") or not n.endswith((".L", ".R")))]
+    return bone_vertex_mask(body, names)
+
+
+class _Geometry:
+    """The part's vertices and the obstacle's surface samples (with normals) of one rule."""
+
+    def __init__(self, body: BodyModel, rule: Clearance, samples_per_face: int):
+        from scipy.spatial import cKDTree
+
+        side = rule.joint.rsplit(".", 1)[1] if rule.joint.endswith((".L", ".R")) else None
+        part = _side_mask(body, rule.part, side)
+        # the obstacle: both sides' parts (a hand meets either thigh), never the part itself
+        obst = bone_vertex_mask(body, [n for n in body.bone_names if n.startswith(tuple(rule.obstacle))]) & ~part
+        if rule.exclude:
+            obst &= ~_side_mask(body, rule.exclude, side)
+        R = np.asarray(body.rest_vertices)
+        F = np.asarray(body.faces)
+        if rule.rest_gap > 0 and part.any() and obst.any():
+            d_part = cKDTree(R[obst]).query(R)[0]
+            d_obst = cKDTree(R[part]).query(R)[0]
+            part &= d_part > rule.rest_gap
+            obst &= d_obst > rule.rest_gap
+        self.part = np.flatnonzero(part)
+        self.faces = F[np.all(obst[F], axis=1)]
+        self.bary = np.random.default_rng(0).dirichlet([1.0, 1.0, 1.0], size=(len(self.faces), samples_per_face))
+
+    def closest(self, V):
+        """Per frame of V [T, N, 3]: (distance [T], part point [T, 3], obstacle normal [T, 3])."""
+        from scipy.spatial import cKDTree
+
+        T = len(V)
+        d, p, n = np.empty(T), np.empty((T, 3)), np.empty((T, 3))
+        for t in range(T):
+            tri = V[t][self.faces]
+            P = np.einsum("fsk,fkd->fsd", self.bary, tri).reshape(-1, 3)
+            nf = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            dd, j = cKDTree(P).query(V[t][self.part])
+            i = int(np.argmin(dd))
+            d[t], p[t] = dd[i], V[t][self.part[i]]
+            nn = nf[j[i] // self.bary.shape[1]]
+            n[t] = nn / max(np.linalg.norm(nn), 1e-12)
+        return d, p, n
+
+
+def _world_rotations(r, parents):
+    R = axis_angle_to_matrix(r)
+    X = np.empty_like(R)
+    for b in range(r.shape[1]):
+        X[:, b] = R[:, b] if parents[b] < 0 else X[:, parents[b]] @ R[:, b]
+    return X
+
+
+def _turned(r, b, Xp, vec, frames):
+    """``r`` with bone ``b`` turned by the world rotation vectors ``vec`` [len(frames), 3] about
+    its joint in ``frames`` (Xp: the parent's world rotations there)."""
+    out = r.copy()
+    Q = axis_angle_to_matrix(vec)
+    Rb = np.swapaxes(Xp, 1, 2) @ Q @ Xp @ axis_angle_to_matrix(r[frames, b])
+    out[frames, b] = matrix_to_axis_angle(Rb)
+    return out
+
+
+def _smooth(theta, axis, fps):
+    """Angles held for a third of a second around each frame and smoothed; the axis smoothed
+    with them (the angle-weighted mean of the frames' axes nearby)."""
+    from scipy.ndimage import gaussian_filter1d, maximum_filter1d
+
+    w = max(1, int(round(fps / 3)))
+    held = gaussian_filter1d(maximum_filter1d(theta, size=2 * w + 1), sigma=w / 2)
+    vec = gaussian_filter1d(axis * theta[:, None], sigma=2 * w, axis=0, mode="nearest")
+    norm = np.linalg.norm(vec, axis=1)
+    held[norm < 1e-12] = 0.0
+    return held[:, None] * vec / np.maximum(norm, 1e-12)[:, None]
+
+
+def part_clearance(motion, body: BodyModel, rules=None, samples_per_face: int = 10, rounds: int = 3):
+    """The motion with every rule of ``rules`` (default :func:`default_rules`) applied in turn.
+    Returns (motion, info): per rule, the distance before and after [T] and the angle added [T]
+    (radians)."""
+    from .motion import Motion
+
+    rules = default_rules() if rules is None else rules
+    m = motion.for_bones(body.bone_names)
+    rots, trs = m.rotations.copy(), m.root_translation
+    idx = {n: i for i, n in enumerate(body.bone_names)}
+    parents = body.parents
+    info = {}
+    for rule in rules:
+        b = idx.get(rule.joint)
+        if b is None:
+            continue
+        g = _Geometry(body, rule, samples_per_face)
+        if not len(g.part) or not len(g.faces):
+            continue
+
+        def measure(r, frames):
+            P = body.pose(r[frames], trs[frames])
+            return g.closest(P.vertices) + (P.joints[:, b],)
+
+        T = len(rots)
+        d0 = measure(rots, np.arange(T))[0]
+        total = np.zeros((T, 3))
+        for _ in range(rounds):
+            d, p, n, joint = measure(rots, np.arange(T))
+            budget = rule.max_angle - np.linalg.norm(total, axis=1)
+            need = np.flatnonzero((d < rule.clearance) & (budget > 1e-3))
+            if not len(need):
+                break
+            axis = np.cross(p[need] - joint[need], n[need])
+            axis /= np.maximum(np.linalg.norm(axis, axis=1), 1e-12)[:, None]
+            Xp = _world_rotations(rots[need], parents)[:, parents[b]]
+            lo, hi = np.zeros(len(need)), budget[need].copy()
+            for _ in range(7):  # bisection on the angle, all frames at once
+                mid = 0.5 * (lo + hi)
+                ok = measure(_turned(rots, b, Xp, axis * mid[:, None], need), need)[0] >= rule.clearance
+                hi, lo = np.where(ok, mid, hi), np.where(ok, lo, mid)
+            # where no angle within the budget clears it, the angle (of five) that leaves the most room
+            short = measure(_turned(rots, b, Xp, axis * hi[:, None], need), need)[0] < rule.clearance
+            if short.any():
+                grid = np.linspace(0.0, 1.0, 5)
+                best = np.stack([measure(_turned(rots, b, Xp, axis * (a * budget[need])[:, None], need), need)[0]
+                                 for a in grid])
+                hi = np.where(short, grid[np.argmax(best, axis=0)] * budget[need], hi)
+            theta, ax = np.zeros(T), np.zeros((T, 3))
+            theta[need], ax[need] = hi, axis
+            vec = _smooth(theta, ax, m.fps)
+            # the total stays within max_angle
+            tot = total + vec
+            over = np.linalg.norm(tot, axis=1) / rule.max_angle
+            vec = np.where(over[:, None] > 1, tot / np.maximum(over, 1)[:, None] - total, vec)
+            moved = np.flatnonzero(np.linalg.norm(vec, axis=1) > 0)
+            if not len(moved):
+                break
+            Xp = _world_rotations(rots[moved], parents)[:, parents[b]]
+            rots = _turned(rots, b, Xp, vec[moved], moved)
+            total += vec
+        info[rule.name] = {"distance_before_m": d0, "distance_after_m": measure(rots, np.arange(T))[0],
+                           "angle_rad": np.linalg.norm(total, axis=1)}
+    return Motion(m.name, m.fps, m.bone_names, rots, trs, dict(m.meta)), info
