@@ -78,3 +78,29 @@ def test_part_clearance_moves_the_hand_off_the_hip_and_the_thigh_out_of_the_bell
     V0 = m.pose(body).vertices
     for f in (42, 45, 48):
         assert buried_vertices(V1[f], F).sum() < buried_vertices(V0[f], F).sum()
+
+
+def test_with_part_clearance_is_what_simulate_and_animate_apply(body):
+    """`--part-clearance` (body.load.with_part_clearance): only motion capture is corrected, only
+    when asked; the summary it records in config.json counts the frames in which the hip was
+    turned, as measured from the rotations themselves, and the line the CLI prints names the rule."""
+    from physavatar.body.load import describe_part_clearance, with_part_clearance
+
+    names = body.bone_names
+    idx = {n: i for i, n in enumerate(names)}
+    T = 40
+    a = np.clip(1 - np.abs(np.arange(T) - 20) / 10, 0, 1)
+    R = np.zeros((T, len(names), 3))
+    R[:, idx["upperleg01.R"], 0] = -2.1 * a * a * (3 - 2 * a)  # the knee to the chest
+    m = Motion("t", 25.0, names, R, np.zeros((T, 3)))
+    assert with_part_clearance(m, "walk", body, True) == (m, None)  # a built-in motion: made for Anny
+    assert with_part_clearance(m, "clip.bvh", body, False) == (m, None)
+    m2, summary = with_part_clearance(m, "clip.bvh", body, True)
+    assert set(summary) >= {"thigh-belly.R"} and "thigh-belly.L" not in summary
+    b = idx["upperleg01.R"]
+    turned = np.linalg.norm(m2.rotations[:, b] - m.rotations[:, b], axis=1) > 1e-3
+    s = summary["thigh-belly.R"]
+    assert abs(s["frames_turned"] - turned.sum()) <= 2 and 5 < s["max_angle_deg"] <= 35.0 + 0.5
+    assert s["min_distance_after_m"] > s["min_distance_before_m"]
+    assert describe_part_clearance(summary).startswith("part clearance: thigh-belly.R in ")
+    assert describe_part_clearance(None) is None

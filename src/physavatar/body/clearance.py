@@ -55,8 +55,8 @@ _ARM = ("clavicle", "shoulder", "upperarm") + _HAND
 
 def default_rules(clearance: float = 0.03) -> list[Clearance]:
     """The rules :func:`part_clearance` applies by default, meant for motion capture after
-    ``motion.arm_clearance`` (``benchmarks/motion_suite.py --part-clearance``; `simulate` does not
-    call it): the thigh out
+    ``motion.arm_clearance`` (``simulate`` / ``animate --part-clearance``, off by default;
+    ``benchmarks/motion_suite.py --part-clearance``): the thigh out
     of the belly (at most 35 degrees of hip flexion taken back; pairs within 6 cm of each other at
     rest, the groin, left out), the calf out of the thigh at the back of the knee (the same bounds
     for the knee), then the forearm and hand off every other part of the body (at most 40 degrees

@@ -72,6 +72,27 @@ def with_arm_clearance(motion: Motion, spec: str, body: BodyModel, clearance: fl
     return m2, summary
 
 
+def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool) -> tuple[Motion, dict | None]:
+    """Motion capture with the parts a garment covers kept apart (:func:`body.clearance.part_clearance`:
+    thigh out of the belly, calf out of the thigh, hands off the body) when ``on``; other motions
+    and ``on=False`` unchanged. Returns the motion and, per rule that turned a bone, the frames
+    turned, the largest turn [deg] and the closest distance before and after [m] (None when
+    nothing was done)."""
+    if not on or not is_capture(spec):
+        return motion, None
+    from .clearance import part_clearance
+    m2, info = part_clearance(motion, body)
+    summary = {}
+    for name, d in info.items():
+        turned = d["angle_rad"] > 1e-3
+        if turned.any():
+            summary[name] = {"frames_turned": int(turned.sum()),
+                             "max_angle_deg": round(float(np.degrees(d["angle_rad"].max())), 1),
+                             "min_distance_before_m": round(float(d["distance_before_m"][turned].min()), 4),
+                             "min_distance_after_m": round(float(d["distance_after_m"][turned].min()), 4)}
+    return m2, summary or None
+
+
 def describe_clearance(summary: dict | None, clearance: float) -> str | None:
     """One line saying which arms were raised and by how much (None when none was)."""
     raised = {k: v for k, v in (summary or {}).items() if v["frames_raised"]}
@@ -81,6 +102,16 @@ def describe_clearance(summary: dict | None, clearance: float) -> str | None:
         f"{side} arm raised in {v['frames_raised']} frames (up to {v['max_angle_deg']} deg), hand-to-trunk "
         f"{1000 * v['min_distance_before_m']:.0f} -> {1000 * v['min_distance_after_m']:.0f} mm"
         for side, v in raised.items()) + f" (--arm-clearance {clearance:g} m; 0 keeps the motion as it is)"
+
+
+def describe_part_clearance(summary: dict | None) -> str | None:
+    """One line saying which bones --part-clearance turned and by how much (None when none was)."""
+    if not summary:
+        return None
+    return "part clearance: " + "; ".join(
+        f"{name} in {v['frames_turned']} frames (up to {v['max_angle_deg']} deg), closest "
+        f"{1000 * v['min_distance_before_m']:.0f} -> {1000 * v['min_distance_after_m']:.0f} mm"
+        for name, v in summary.items())
 
 
 def inspect_capture(spec: str | Path, body: BodyModel, mapping: str | Path | None = None) -> dict:

@@ -44,10 +44,11 @@ def bad_option(name: str, problem: str):
     raise PhysavatarError(None, f"option {name}: {problem}")
 
 
-def say_clearance(summary, clearance: float) -> None:
-    """Print what arm clearance changed (body.load.describe_clearance), if anything."""
-    from ..body.load import describe_clearance
+def say_clearance(summary, clearance: float, parts=None) -> None:
+    """Print what arm clearance and part clearance changed (body.load.describe_clearance,
+    describe_part_clearance), if anything."""
+    from ..body.load import describe_clearance, describe_part_clearance
 
-    line = describe_clearance(summary, clearance)
-    if line:
-        console.print(line)
+    for line in (describe_clearance(summary, clearance), describe_part_clearance(parts)):
+        if line:
+            console.print(line)

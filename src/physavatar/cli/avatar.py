@@ -42,7 +42,7 @@ def animate(avatar: Path = typer.Argument(..., help="avatar folder (build-avatar
     from ..stages.animate import run
 
     r = run(avatar, out=out, config=config, progress=True)
-    say_clearance(r.clearance, config.arm_clearance)
+    say_clearance(r.clearance, config.arm_clearance, r.part_clearance)
     st = r.stats
     console.print(f"animated {st['frames']} frames (+{st['warmup_frames']} warm-up) at {st['sim_fps']:.2f} "
                   f"simulated frames/s; wrote {out}/sequence.npz, meshes/")

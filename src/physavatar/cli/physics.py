@@ -33,7 +33,7 @@ def simulate(
     """
     r = simulate_stage.run(out=out, config=config, capture=capture, garment=garment, motion=motion,
                            collider=collider, progress=True)
-    say_clearance(r.clearance, config.arm_clearance)
+    say_clearance(r.clearance, config.arm_clearance, r.part_clearance)
     if r.bad_frames:
         bad = r.bad_frames
         console.print(f"[yellow]warning:[/] {len(bad)} of {r.frames} frames intersect the body or are not finite: "

@@ -187,6 +187,11 @@ class AnimateConfig(GarmentFileOptions):
                                     check=lambda v: None if v >= 1 else "must be at least 1")
     arm_clearance: float = option(0.03, "with motion capture (.bvh, AMASS .npz): raise the arms where a hand comes closer than this [m] "
                                   "to the hips/trunk, so the garment is not pinched (0 = off)", check=nonnegative)
+    part_clearance: bool = option(False, "with motion capture: keep the parts the garment covers apart where the motion "
+                                         "makes the body pass through itself (thigh into the belly, calf into the "
+                                         "thigh, hand into the body): bones turned by at most 20-40 deg "
+                                         "(body.clearance; docs/simulation.md \"Session 23\")",
+                                  flag="--part-clearance/--no-part-clearance")
     max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
                                check=lambda v: None if v >= 1 else "must be at least 1")
     self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
@@ -205,6 +210,7 @@ class AnimateResult:
     sequence: AnimatedSequence
     stats: dict
     clearance: dict | None
+    part_clearance: dict | None = None
 
 
 def _file_garment(av: Avatar, config: AnimateConfig, settings: SimSettings, progress):
@@ -226,15 +232,18 @@ def _file_garment(av: Avatar, config: AnimateConfig, settings: SimSettings, prog
 def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> AnimateResult:
     """Drive the avatar folder ``avatar`` with ``config.motion``; writes ``out`` (sequence.npz,
     sequence.json with the config and stats, meshes/)."""
-    from ..body.load import is_capture, load_motion, with_arm_clearance
+    from ..body.load import is_capture, load_motion, with_arm_clearance, with_part_clearance
 
     if not config.motion:
         raise PhysavatarError(None, "option --motion: give a motion (built-in name, .bvh or .npz)")
     av = Avatar.load(avatar)
     m = load_motion(config.motion, av.fps, config.duration)
-    info = None
-    if config.arm_clearance and is_capture(config.motion):  # motion capture: .bvh, AMASS .npz
-        m, info = with_arm_clearance(m, config.motion, BodyModel(av.shape, topology="collider"), config.arm_clearance)
+    info = parts = None
+    if (config.arm_clearance or config.part_clearance) and is_capture(config.motion):  # motion capture: .bvh, AMASS .npz
+        collider = BodyModel(av.shape, topology="collider")
+        if config.arm_clearance:
+            m, info = with_arm_clearance(m, config.motion, collider, config.arm_clearance)
+        m, parts = with_part_clearance(m, config.motion, collider, config.part_clearance)
     if config.max_frames:
         m = m.slice(0, config.max_frames)
     settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)
@@ -242,6 +251,6 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
     seq, stats = animate(av, m, warmup_s=config.warmup, settings=settings, progress=progress,
                          max_substeps=config.max_substeps, out=out, garment=garment)
     seq.save(Path(out), {"command": "animate", "motion_spec": config.motion, "config": to_dict(config),
-                         "arm_clearance": info, "garment_import": imported, **stats})
+                         "arm_clearance": info, "part_clearance": parts, "garment_import": imported, **stats})
     FrameStore(out, "", 0).remove()  # the sequence is written: the per-frame record is no longer needed
-    return AnimateResult(seq, stats, info)
+    return AnimateResult(seq, stats, info, parts)

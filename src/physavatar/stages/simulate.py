@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..body import BodyModel, Motion
-from ..body.load import load_motion, with_arm_clearance
+from ..body.load import load_motion, with_arm_clearance, with_part_clearance
 from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
 from ..data.garment_sequence import GarmentSequence
 from ..data.material import resolve_material
@@ -96,6 +96,11 @@ class SimulateConfig(GarmentFileOptions):
     arm_clearance: float = option(0.03, "with a .bvh motion: raise the arms where a hand comes closer than this [m] "
                                         "to the hips/trunk, so the garment is not pinched (0 = off)",
                                   flag="--arm-clearance")
+    part_clearance: bool = option(False, "with a .bvh/AMASS motion: keep the parts the garment covers apart where the "
+                                         "motion makes the body pass through itself (thigh into the belly, calf into "
+                                         "the thigh, hand into the body): bones turned by at most 20-40 deg "
+                                         "(body.clearance; docs/simulation.md \"Session 23\")",
+                                  flag="--part-clearance/--no-part-clearance")
     edge_length: float = option(0.02, "garment edge length [m] (with --garment KIND)")
     over: str | None = option(None, "with --motion: built-in garments worn over --garment, innermost first "
                                     "(comma-separated: dress, skirt, tshirt), simulated together with it as one cloth, "
@@ -114,6 +119,7 @@ class SimulateResult:
         bad_frames: written frames that intersect the body or are not finite.
         warmup_frames: leading frames simulated but not written.
         clearance: what arm clearance changed (body.load.with_arm_clearance), or None.
+        part_clearance: what --part-clearance changed (body.load.with_part_clearance), or None.
         preview: whether preview.mp4 was written.
         lagged_frames: written frames where the body stopped short of its pose (the step gave
             up even at max_substeps; written with the given pose).
@@ -130,6 +136,7 @@ class SimulateResult:
     preview: bool
     lagged_frames: list = field(default_factory=list)
     self_intersecting_frames: list = field(default_factory=list)
+    part_clearance: dict | None = None
 
 
 def _bad_option(name: str, problem: str):
@@ -156,7 +163,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     if cfg.over and (capture is not None or collider is not None or garment is None or motion is None):
         _bad_option("--over", "layers built-in garments over --garment on --motion (Anny's body): give both")
     n_warm = 0  # leading frames simulated but not written (--motion's transition)
-    clearance_info = None
+    clearance_info = parts_info = None
     imported = None  # what reading, fitting and repairing a garment file did (config.json)
     if capture is not None:
         part, bodies, body_faces, fps = _from_capture(Path(capture))
@@ -166,7 +173,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         bodies, body_faces = load_mesh_sequence(collider)
         part, imported = garment_file(Path(garment), cfg, bodies[0], body_faces)
     elif garment is not None and motion is not None:
-        part, bodies, body_faces, n_warm, clearance_info, imported = _on_motion(garment, motion, fps, cfg, mat,
+        part, bodies, body_faces, n_warm, clearance_info, parts_info, imported = _on_motion(garment, motion, fps, cfg, mat,
                                                                                 sim_settings, progress)
     else:
         _bad_option("--capture/--garment/--collider",
@@ -202,7 +209,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         "collider": _text(collider), "material": mat.to_dict(), "fps": fps, "substeps": cfg.substeps,
         "integrator": integrator, "self_contact": self_contact,
         "frames_with_intersection_or_nan": bad, "frames_with_self_intersection": self_bad,
-        "warmup_frames": n_warm, "arm_clearance": clearance_info, "garment_import": imported, "frames": len(X), "seconds": round(secs, 1),
+        "warmup_frames": n_warm, "arm_clearance": clearance_info, "part_clearance": parts_info, "garment_import": imported, "frames": len(X), "seconds": round(secs, 1),
         "resumed_after_frame": resumed, "layers": _layers_record(garment, cfg.over, part),
         **_frame_summary(reports), "config": to_dict(cfg)})
     if cfg.preview:
@@ -213,7 +220,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
         write_video(out / "preview.mp4", render_frames(Vall, Fall, None, None, title="simulate"), fps)
     store.remove()  # the final files are written: the per-frame record is no longer needed
     return SimulateResult(out, len(X), len(part.vertices), secs, bad, n_warm, clearance_info, cfg.preview,
-                          [f for f, r in reports if r["lagged"]], self_bad)
+                          [f for f, r in reports if r["lagged"]], self_bad, parts_info)
 
 
 def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps: float, settings: SimSettings,
@@ -302,8 +309,8 @@ def _from_capture(capture: Path):
 
 
 def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settings, progress):
-    """(garment part, body vertices, body faces, warm-up frames, arm clearance summary, import
-    report) of a built-in garment, or a garment file (fitted onto Anny's rest pose), on the Anny
+    """(garment part, body vertices, body faces, warm-up frames, arm clearance summary, part
+    clearance summary, import report) of a built-in garment, or a garment file (fitted onto Anny's rest pose), on the Anny
     collider driven by ``motion``."""
     body = BodyModel(topology="collider")
     imported = None
@@ -319,6 +326,7 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
         part = _layered(part, cfg.over, body, cfg)
     mot = load_motion(motion, fps, cfg.duration)
     mot, clearance_info = with_arm_clearance(mot, motion, body, cfg.arm_clearance)
+    mot, parts_info = with_part_clearance(mot, motion, body, cfg.part_clearance)
     rots, trs = mot.rotations, mot.root_translation
     # the garment is made for the rest pose: a motion that starts elsewhere (a BVH clip) is
     # reached by a transition first, as `animate` does, so the garment never starts inside the body
@@ -329,7 +337,7 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
         n_warm = max(2, int(round(cfg.warmup * fps)))
         wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
         rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
-    return part, body.pose(rots, trs).vertices, body.faces, n_warm, clearance_info, imported
+    return part, body.pose(rots, trs).vertices, body.faces, n_warm, clearance_info, parts_info, imported
 
 
 def garment_file(path: Path, cfg: SimulateConfig | None = None, body_vertices=None, body_faces=None):
