@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import BodyModel, axis_angle_to_matrix, bone_vertex_mask, matrix_to_axis_angle
+from .model import BodyModel, bone_vertex_mask
+from .motion import Motion, turn_bone, world_rotations
 
 
 @dataclass(frozen=True)
@@ -121,24 +122,6 @@ class _Geometry:
         return d, p, n
 
 
-def _world_rotations(r, parents):
-    R = axis_angle_to_matrix(r)
-    X = np.empty_like(R)
-    for b in range(r.shape[1]):
-        X[:, b] = R[:, b] if parents[b] < 0 else X[:, parents[b]] @ R[:, b]
-    return X
-
-
-def _turned(r, b, Xp, vec, frames):
-    """``r`` with bone ``b`` turned by the world rotation vectors ``vec`` [len(frames), 3] about
-    its joint in ``frames`` (Xp: the parent's world rotations there)."""
-    out = r.copy()
-    Q = axis_angle_to_matrix(vec)
-    Rb = np.swapaxes(Xp, 1, 2) @ Q @ Xp @ axis_angle_to_matrix(r[frames, b])
-    out[frames, b] = matrix_to_axis_angle(Rb)
-    return out
-
-
 def _smooth(theta, axis, fps):
     """Angles held for a third of a second around each frame and smoothed; the axis smoothed
     with them (the angle-weighted mean of the frames' axes nearby)."""
@@ -156,8 +139,6 @@ def part_clearance(motion, body: BodyModel, rules=None, samples_per_face: int = 
     """The motion with every rule of ``rules`` (default :func:`default_rules`) applied in turn.
     Returns (motion, info): per rule, the distance before and after [T] and the angle added [T]
     (radians)."""
-    from .motion import Motion
-
     rules = default_rules() if rules is None else rules
     m = motion.for_bones(body.bone_names)
     rots, trs = m.rotations.copy(), m.root_translation
@@ -187,17 +168,17 @@ def part_clearance(motion, body: BodyModel, rules=None, samples_per_face: int = 
                 break
             axis = np.cross(p[need] - joint[need], n[need])
             axis /= np.maximum(np.linalg.norm(axis, axis=1), 1e-12)[:, None]
-            Xp = _world_rotations(rots[need], parents)[:, parents[b]]
+            Xp = world_rotations(rots[need], parents)[:, parents[b]]
             lo, hi = np.zeros(len(need)), budget[need].copy()
             for _ in range(7):  # bisection on the angle, all frames at once
                 mid = 0.5 * (lo + hi)
-                ok = measure(_turned(rots, b, Xp, axis * mid[:, None], need), need)[0] >= rule.clearance
+                ok = measure(turn_bone(rots, b, Xp, axis * mid[:, None], need), need)[0] >= rule.clearance
                 hi, lo = np.where(ok, mid, hi), np.where(ok, lo, mid)
             # where no angle within the budget clears it, the angle (of five) that leaves the most room
-            short = measure(_turned(rots, b, Xp, axis * hi[:, None], need), need)[0] < rule.clearance
+            short = measure(turn_bone(rots, b, Xp, axis * hi[:, None], need), need)[0] < rule.clearance
             if short.any():
                 grid = np.linspace(0.0, 1.0, 5)
-                best = np.stack([measure(_turned(rots, b, Xp, axis * (a * budget[need])[:, None], need), need)[0]
+                best = np.stack([measure(turn_bone(rots, b, Xp, axis * (a * budget[need])[:, None], need), need)[0]
                                  for a in grid])
                 hi = np.where(short, grid[np.argmax(best, axis=0)] * budget[need], hi)
             theta, ax = np.zeros(T), np.zeros((T, 3))
@@ -210,8 +191,8 @@ def part_clearance(motion, body: BodyModel, rules=None, samples_per_face: int = 
             moved = np.flatnonzero(np.linalg.norm(vec, axis=1) > 0)
             if not len(moved):
                 break
-            Xp = _world_rotations(rots[moved], parents)[:, parents[b]]
-            rots = _turned(rots, b, Xp, vec[moved], moved)
+            Xp = world_rotations(rots[moved], parents)[:, parents[b]]
+            rots = turn_bone(rots, b, Xp, vec[moved], moved)
             total += vec
         info[rule.name] = {"distance_before_m": d0, "distance_after_m": measure(rots, np.arange(T))[0],
                            "angle_rad": np.linalg.norm(total, axis=1)}

@@ -129,6 +129,26 @@ def _ease(t: np.ndarray, ramp: float = 0.5) -> np.ndarray:
     return s * s * (3 - 2 * s)
 
 
+def world_rotations(r: np.ndarray, parents) -> np.ndarray:
+    """[T, B, 3, 3] each bone's world rotation relative to rest from the per-bone axis-angle
+    rotations ``r`` [T, B, 3] (world-aligned local rotations: X_b = X_parent R_b)."""
+    R = axis_angle_to_matrix(r)
+    X = np.empty_like(R)
+    for b in range(r.shape[1]):
+        X[:, b] = R[:, b] if parents[b] < 0 else X[:, parents[b]] @ R[:, b]
+    return X
+
+
+def turn_bone(r: np.ndarray, b: int, Xp: np.ndarray, vec: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """``r`` [T, B, 3] with bone ``b`` turned about its joint by the world rotation vectors ``vec``
+    [len(frames), 3] in ``frames`` (``Xp``: the parent's world rotations there, which this leaves
+    unchanged)."""
+    out = r.copy()
+    Q = axis_angle_to_matrix(vec)
+    out[frames, b] = matrix_to_axis_angle(np.swapaxes(Xp, 1, 2) @ Q @ Xp @ axis_angle_to_matrix(r[frames, b]))
+    return out
+
+
 def _x(a):  # axis-angle about world x
     return np.stack([a, np.zeros_like(a), np.zeros_like(a)], -1)
 
@@ -316,13 +336,6 @@ def arm_clearance(motion: Motion, body: BodyModel, clearance: float = 0.03, samp
     bary = np.random.default_rng(0).dirichlet([1.0, 1.0, 1.0], size=(len(trunk_faces), samples_per_face))
     parents = body.parents
 
-    def world_rotations(r):
-        R = axis_angle_to_matrix(r)
-        X = np.empty_like(R)
-        for b in range(len(names)):
-            X[:, b] = R[:, b] if parents[b] < 0 else X[:, parents[b]] @ R[:, b]
-        return X
-
     def distances(r, arm):
         V = body.pose(r, trs).vertices
         out = np.empty(len(V))
@@ -332,11 +345,7 @@ def arm_clearance(motion: Motion, body: BodyModel, clearance: float = 0.03, samp
         return out
 
     def rotated(r, b, Xp, axis, theta):  # Xp: the parent's world rotations (unchanged by this)
-        Q = axis_angle_to_matrix(axis * theta[:, None])
-        Rb = np.swapaxes(Xp, 1, 2) @ Q @ Xp @ axis_angle_to_matrix(r[:, b])
-        out = r.copy()
-        out[:, b] = matrix_to_axis_angle(Rb)
-        return out
+        return turn_bone(r, b, Xp, axis * theta[:, None], np.arange(len(r)))
 
     info = {}
     for side in ("L", "R"):
@@ -345,7 +354,7 @@ def arm_clearance(motion: Motion, body: BodyModel, clearance: float = 0.03, samp
         if b is None or not arm.any() or not len(trunk_faces):
             continue
         # the torso's forward axis (the body faces -y at rest) and the shoulder's rotation, per frame
-        X = world_rotations(rots)
+        X = world_rotations(rots, parents)
         axis = X[:, idx.get("spine01", 0)] @ np.array([0.0, -1.0, 0.0])
         Xp = X[:, parents[b]]
         d0 = distances(rots, arm)

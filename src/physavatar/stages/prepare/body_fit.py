@@ -281,6 +281,7 @@ class _Fitter:
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
         keypoints = obs is not None and obs.kp is not None
         self.offsets = None  # [C, 2] working px: each camera's image offset, fitted in the sequence pass
+        self.camera_offsets = None  # {camera: [du, dv]} the images' own px, once fitted
         self.fit_offsets = fit_offsets and cfg.fit_offsets and keypoints
         self.model = _Model(cfg, curl=cfg.finger_curl and keypoints, thumbs=cfg.fit_thumbs and keypoints)
         self.A = self.model.n_params
@@ -471,8 +472,7 @@ class _Fitter:
 
         def g(sigma):
             d = self.offsets * m_px
-            return f(sigma) + cfg.w_offset_gauge * ((Q.T @ (self.offsets * m_px).reshape(-1)) ** 2).sum() \
-                + cfg.w_offset_prior * (d ** 2).sum()
+            return f(sigma) + cfg.w_offset_gauge * ((Q.T @ d.reshape(-1)) ** 2).sum() + cfg.w_offset_prior * (d ** 2).sum()
 
         self._run([rot, tau, self.offsets], [0.005, 0.002, cfg.offset_lr], cfg.sequence_iterations, g, cfg.sigma_end,
                   cfg.sigma_end)
@@ -558,7 +558,7 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
                 rot, tau = fitter.sequence(rot, tau, phen)
                 task.advance()
     report.update(check(fitter, rot, tau, phen))
-    if getattr(fitter, "camera_offsets", None):
+    if fitter.camera_offsets:
         report["camera_offsets_px"] = fitter.camera_offsets  # the images' own pixels
     shape = BodyShape.from_array(np.clip(phen.numpy(), 0.0, 1.0))
     report["shape"] = shape.to_dict()

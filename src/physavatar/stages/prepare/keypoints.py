@@ -110,14 +110,14 @@ def detect_capture(root, cams: list[Camera], frames: list[int], detector: Detect
     camera's image of every frame of the capture at ``root`` (``images/<camera>/<frame>.png``)."""
     from pathlib import Path
 
-    from ...capture import _read_png
+    from ...capture import _read_png, frame_name
 
     T, C = len(frames), len(cams)
     kp, conf = np.zeros((T, C, N_LANDMARKS, 2)), np.zeros((T, C, N_LANDMARKS))
     with progress.task("prepare: detecting keypoints", total=T * C) as task:
         for t, f in enumerate(frames):
             for c, cam in enumerate(cams):
-                img = _read_png(Path(root) / "images" / cam.name / f"{f:06d}.png", "RGB")
+                img = _read_png(Path(root) / "images" / cam.name / f"{frame_name(f)}.png", "RGB")
                 kp[t, c], conf[t, c] = detector.detect(img)
                 task.advance()
     return kp, conf
