@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...body.differentiable import DTYPE, DiffBody
+from ...body.differentiable import DTYPE, DiffBody, axis_angle_to_matrix_t
 from ...body.fit_terms import ClothedSurface, keypoint_term, silhouette_terms
 from ...body.model import PHENOTYPES, TOPOLOGIES, BodyShape
 from ...errors import PhysavatarError
@@ -90,6 +90,21 @@ class BodyFitConfig:
     # with keypoints, when prepare's cameras step may correct the cameras: each camera's image
     # offset is fitted with the body in the whole-sequence pass (session 23)
     fit_offsets: bool = setting(True)
+    # with keypoints and the first-frame mesh: a detector's landmark is not an Anny joint (on the
+    # demo's renders MediaPipe's ankles sit 4.5 cm above Anny's, its shoulders 2.5 cm above and
+    # 1.5 cm inside, its hips 2-3 cm inside and in front; session 24). Once the first frame's pose
+    # is close, each keypoint gets an offset in the body's frame, fitted with the mesh and the
+    # silhouettes (so the keypoints do not pull there), and kept for the later frames
+    landmark_offsets: bool = setting(True)
+    # with keypoints, the frame whose clothed mesh is used (the first) is pressed into the masks like
+    # the others (w_outside_keypoints, the margin) only with fewer cameras than this; with more it
+    # gets w_outside and outside_margin_px. A hull carved from many views is close to the clothed
+    # surface, lies inside every mask and holds the body under it: on the demo (10 cameras) the
+    # press took the legs 2-4 cm off, first frame 5.6 -> 12.0 mm (session 24). From few views the
+    # hull has wedges of empty space between them, its terms draw the body out into them, and the
+    # press is what keeps the body in the masks: Pose2Sim (4 cameras) 96.0 % in the worst camera
+    # with it, 95.2 % without
+    press_with_mesh_below: int = setting(6)
     offset_lr: float = setting(0.02)  # [working px] Adam's step for the offsets
     w_offset_gauge: float = setting(100.0)
     w_offset_prior: float = setting(0.1)
@@ -156,6 +171,7 @@ class _Fitter:
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
         keypoints = obs is not None and obs.kp is not None
         self.offsets = None  # [C, 2] working px: each camera's image offset, fitted in the sequence pass
+        self.kp_offsets = None  # [K, 3] each keypoint's landmark offset in the body's (root's) frame
         self.camera_offsets = None  # {camera: [du, dv]} the images' own px, once fitted
         self.fit_offsets = fit_offsets and cfg.fit_offsets and keypoints
         self.model = _Model(cfg, curl=cfg.finger_curl and keypoints, thumbs=cfg.fit_thumbs and keypoints)
@@ -179,21 +195,33 @@ class _Fitter:
         # vertex normals put the true fingers 3-4 cm "outside" it; they pulled the arms into the blob
         self.clothing_points = torch.as_tensor(np.flatnonzero(~_extremities(self.model.body)))
 
-    def data_loss(self, frames: list[int], V, H, sigma: float) -> torch.Tensor:
+    def data_loss(self, frames: list[int], V, H, sigma: float, rot=None) -> torch.Tensor:
         cfg, obs = self.cfg, self.obs
         total = V.new_zeros(())
-        kps = self.model.keypoints(V, H) if obs.kp is not None else None
+        kps = self.keypoints(V, H, rot) if obs.kp is not None else None
         for i, t in enumerate(frames):
-            margin = cfg.outside_margin_px if obs.kp is None else cfg.outside_margin_px_keypoints
+            mesh = t == 0 and self.clothing is not None and self.use_clothing
+            pressed = obs.kp is not None and (not mesh or len(obs.cams) < cfg.press_with_mesh_below)
+            margin = cfg.outside_margin_px_keypoints if pressed else cfg.outside_margin_px
             o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, margin, self.offsets)
-            total = total + self.outside_weight(sigma) * o + cfg.w_contour * c
+            w_out = outside_weight(cfg, sigma, True) if pressed else cfg.w_outside
+            total = total + w_out * o + cfg.w_contour * c
             if kps is not None:
                 conf = obs.conf[t][:, self.kp_ids] * self.model.kp_weight
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
                                                                 max(sigma, cfg.kp_sigma), self.offsets)
-            if t == 0 and self.clothing is not None and self.use_clothing:
+            if mesh:
                 total = total + self.clothing_loss(V[i], sigma)
         return total / len(frames)
+
+    def keypoints(self, V, H, rot=None) -> torch.Tensor:
+        """[T, K, 3] the model's keypoints, each moved by its landmark offset (in the body's frame,
+        turned with the root: ``rot`` [T, A, 3]) once that is known."""
+        kps = self.model.keypoints(V, H)
+        if self.kp_offsets is None or rot is None:
+            return kps
+        R0 = axis_angle_to_matrix_t(rot[:, 0])  # [T, 3, 3]
+        return kps + torch.einsum("tij,kj->tki", R0, self.kp_offsets)
 
     def outside_weight(self, sigma: float) -> float:
         return outside_weight(self.cfg, sigma, self.obs.kp is not None)
@@ -263,7 +291,7 @@ class _Fitter:
         def loss_fn(rot, tau, ph):
             def f(sigma):
                 V, H = self.model.pose(rot, tau, ph)
-                return (self.data_loss([0], V, H, sigma) + self.prior(rot)
+                return (self.data_loss([0], V, H, sigma, rot) + self.prior(rot)
                         + cfg.w_shape_prior * ((ph - 0.5) ** 2).sum())
             return f
 
@@ -285,10 +313,18 @@ class _Fitter:
         loss = self._run([rot, tau], [0.03, 0.01], third, loss_fn(rot, tau, ph), cfg.sigma_start, 2 * cfg.sigma_end)
         task.advance()
         self.use_clothing = True
+        params, lrs = [rot, tau, ph], [0.02, 0.005, 0.02]
+        if obs.kp is not None and self.clothing is not None and cfg.landmark_offsets:
+            self.kp_offsets = torch.zeros(len(self.kp_ids), 3, dtype=DTYPE, requires_grad=True)
+            params, lrs = params + [self.kp_offsets], lrs + [0.005]
         for s0, s1 in [(2 * cfg.sigma_end, cfg.sigma_end), (cfg.sigma_end, cfg.sigma_end)]:
-            loss = self._run([rot, tau, ph], [0.02, 0.005, 0.02], third, loss_fn(rot, tau, ph), s0, s1, ph)
+            loss = self._run(params, lrs, third, loss_fn(rot, tau, ph), s0, s1, ph)
             body.relinearize(BodyShape.from_array(ph.detach().numpy()))
             task.advance()
+        if self.kp_offsets is not None:
+            self.kp_offsets = self.kp_offsets.detach()
+            info["landmark_offsets_mm"] = {str(k): [round(1000 * float(x), 1) for x in o]
+                                           for k, o in zip(self.kp_ids, self.kp_offsets)}
         info["first_frame_loss"] = loss
         return rot.detach(), tau.detach(), ph.detach(), info
 
@@ -304,7 +340,7 @@ class _Fitter:
 
         def f(sigma):
             V, H = self.model.pose(rot, tau, phen)
-            loss = self.data_loss([t], V, H, sigma) + self.prior(rot)
+            loss = self.data_loss([t], V, H, sigma, rot) + self.prior(rot)
             if t >= 2:
                 acc = H[0] - 2 * Hs[-1] + Hs[-2]
                 # weak here: a constant-velocity prior would carry one frame's error into the next
@@ -324,7 +360,7 @@ class _Fitter:
 
         def f(sigma):
             V, H = self.model.pose(rot, tau, phen)
-            loss = self.data_loss(frames, V, H, sigma) + self.prior(rot)
+            loss = self.data_loss(frames, V, H, sigma, rot) + self.prior(rot)
             if len(frames) >= 3:
                 acc = H[2:] - 2 * H[1:-1] + H[:-2]
                 loss = loss + cfg.smoothness * (acc ** 2).sum(-1).mean()
