@@ -121,3 +121,27 @@ def test_silhouette_terms_recover_an_image_offset():
         (50.0 * o + c).backward()
         opt.step()
     assert np.abs(off.detach().numpy() - TRUE_OFFSETS).max() < 0.5, off
+
+
+def test_hull_check_refuses_a_tie():
+    """Sub-pixel offsets (what the body fit finds on the demo's exact cameras, up to 0.17 px)
+    change the masks' hull coverage by a hair, even when they are right. A rise by a hair must not
+    count: the cameras would change after the hull was carved with the given ones (on the demo with
+    MediaPipe that lost the straps: boundary 1.6 -> 6.4 cm). A real correction passes."""
+    from physavatar.stages.prepare.calibration import hull_check
+
+    cams = _rig()
+    rng = np.random.default_rng(0)
+    rises = 0
+    for _ in range(4):
+        off = rng.normal(0.0, 0.1, (len(cams), 2))
+        near = [shifted(c, o) for c, o in zip(cams, off)]
+        masks = _masks(near)  # the images of cameras a tenth of a pixel from the calibration
+        info = hull_check(cams, near, lambda f: {c.name: m for c, m in zip(cams, masks)}, [0])
+        before, after = (min(info[k].values()) for k in ("hull_coverage_before", "hull_coverage_after"))
+        rises += after > before
+        assert not info["applied"], (off, before, after)
+    assert rises > 0  # the right sub-pixel offsets raise it: the check without its margin took them
+    truth = [shifted(c, o) for c, o in zip(cams, TRUE_OFFSETS)]
+    tm = _masks(truth)
+    assert hull_check(cams, truth, lambda f: {c.name: m for c, m in zip(cams, tm)}, [0])["applied"]

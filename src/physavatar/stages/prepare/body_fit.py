@@ -9,7 +9,9 @@ terms of :mod:`physavatar.body.fit_terms`:
    hull (feet on its floor, centred in it); its facing comes from the triangulated shoulders and
    hips, or, without keypoints, from the best of four headings after a short fit each. Then the
    terms: body inside every mask, skin contours on the body's outline, keypoints, body inside the
-   clothed mesh and near it where it is skin; weak priors on pose and shape.
+   clothed mesh and near it where it is skin; weak priors on pose and shape. With keypoints and
+   the mesh, each keypoint's offset from its Anny joint (a landmark is not a joint) is fitted
+   here and kept for the later frames.
 2. **Every later frame**, in order: pose and translation starting from the previous frames
    (constant velocity), with a smoothness term on the joints' acceleration.
 3. **All frames together**: a few iterations on the whole sequence with the same terms, so the
@@ -27,18 +29,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
-from ...body.differentiable import DTYPE, DiffBody
-from ...body.fit_terms import ClothedSurface, MaskView, keypoint_term, silhouette_terms
+from ...body.differentiable import DTYPE, DiffBody, axis_angle_to_matrix_t
+from ...body.fit_terms import ClothedSurface, keypoint_term, silhouette_terms
 from ...body.model import PHENOTYPES, TOPOLOGIES, BodyShape
-from ...camera import Camera
 from ...errors import PhysavatarError
 from ...files import read_json
 from ..base import option, setting
 from .body_check import check
 from .fit_model import _extremities, _Model
-from .keypoints import detect_capture, make_detector, triangulate
+from .observations import _heading_from_keypoints, _hull_extent, _Observations
 
 # The bones a fit moves (the rest follow their parents): trunk, neck and head, arms to the
 # wrists, legs to the feet. Twist bones (upperarm02, ...) and fingers stay at rest.
@@ -92,6 +92,21 @@ class BodyFitConfig:
     # with keypoints, when prepare's cameras step may correct the cameras: each camera's image
     # offset is fitted with the body in the whole-sequence pass (session 23)
     fit_offsets: bool = setting(True)
+    # with keypoints and the first-frame mesh: a detector's landmark is not an Anny joint (on the
+    # demo's renders MediaPipe's ankles sit 4.5 cm above Anny's, its shoulders 2.5 cm above and
+    # 1.5 cm inside, its hips 2-3 cm inside and in front; session 24). Once the first frame's pose
+    # is close, each keypoint gets an offset in the body's frame, fitted with the mesh and the
+    # silhouettes (so the keypoints do not pull there), and kept for the later frames
+    landmark_offsets: bool = setting(True)
+    # with keypoints, the frame whose clothed mesh is used (the first) is pressed into the masks like
+    # the others (w_outside_keypoints, the margin) only with fewer cameras than this; with more it
+    # gets w_outside and outside_margin_px. A hull carved from many views is close to the clothed
+    # surface, lies inside every mask and holds the body under it: on the demo (10 cameras) the
+    # press took the legs 2-4 cm off, first frame 5.6 -> 12.0 mm (session 24). From few views the
+    # hull has wedges of empty space between them, its terms draw the body out into them, and the
+    # press is what keeps the body in the masks: Pose2Sim (4 cameras) 96.0 % in the worst camera
+    # with it, 95.2 % without
+    press_with_mesh_below: int = setting(6)
     offset_lr: float = setting(0.02)  # [working px] Adam's step for the offsets
     w_offset_gauge: float = setting(100.0)
     w_offset_prior: float = setting(0.1)
@@ -137,129 +152,6 @@ class BodyFit:
         self.body_poses().save(path)
 
 
-# -- reading the capture -------------------------------------------------------------------------
-
-def _read_capture(root: Path) -> tuple[list[Camera], list[int]]:
-    meta = read_json(root / "capture.json")
-    try:
-        frames = [int(f) for f in meta["frames"]]
-        cams = [Camera.from_dict(d) for d in read_json(root / "cameras.json")]
-    except (KeyError, TypeError, ValueError) as e:
-        raise PhysavatarError(root, f"capture.json or cameras.json is malformed ({e})") from None
-    if not frames or not cams:
-        raise PhysavatarError(root, "the capture lists no frames or no cameras")
-    return cams, frames
-
-
-def _read_mask(path: Path, size: tuple[int, int]) -> np.ndarray:
-    try:
-        with Image.open(path) as im:
-            im = im.convert("L")
-            if im.size != size:
-                im = im.resize(size, Image.BILINEAR)
-            return np.asarray(im, dtype=np.float32) / 255.0
-    except FileNotFoundError:
-        raise PhysavatarError(path, "mask not found (the body fit needs a mask for every camera and frame)") from None
-    except Exception as e:  # noqa: BLE001
-        raise PhysavatarError(path, f"unreadable or corrupt mask ({type(e).__name__})") from None
-
-
-class _Observations:
-    """Masks (at the working resolution), keypoints and the clothed mesh of a capture."""
-
-    def __init__(self, root: Path, cfg: BodyFitConfig, progress):
-        self.root = root
-        cams, self.frames = _read_capture(root)
-        self.native = cams
-        self.cams = [c.scaled(min(1.0, cfg.max_resolution / max(c.width, c.height))) for c in cams]
-        self.rng = np.random.default_rng(cfg.seed)
-        self.cfg = cfg
-        self._views: dict[int, list[MaskView]] = {}
-        if not (root / "masks").is_dir():
-            raise PhysavatarError(root / "masks", "no masks: the body fit needs the masks of every view")
-        try:
-            self.detector, self.detector_note = make_detector(cfg.keypoints)
-        except ImportError as e:
-            raise PhysavatarError(None, f"option --keypoints mediapipe: {e}") from None
-        self.kp = None  # [T, C, K, 2] px at the working resolution, conf [T, C, K]
-        if self.detector is not None:
-            self._detect(progress)
-
-    def views(self, t: int) -> list[MaskView]:
-        if t not in self._views:
-            f = f"{self.frames[t]:06d}.png"
-            self._views[t] = [MaskView.build(c, _read_mask(self.root / "masks" / n.name / f, (c.width, c.height)),
-                                             self.cfg.max_contour, self.rng) for c, n in zip(self.cams, self.native)]
-        return self._views[t]
-
-    def _detect(self, progress) -> None:
-        T, C = len(self.frames), len(self.cams)
-        # the keypoints prepare detected already (prepare/keypoints.npz, for the cameras' check)
-        saved = self.root / "prepare" / "keypoints.npz"
-        z = np.load(saved) if saved.is_file() else None
-        if z is not None and z["keypoints"].shape == (T, C, 33, 2) and list(z["frames"]) == list(self.frames):
-            native, conf = z["keypoints"], z["confidence"].copy()
-        else:
-            native, conf = detect_capture(self.root, self.native, self.frames, self.detector, progress)
-        kp = np.zeros((T, C, 33, 2))
-        for c, (cam, nat) in enumerate(zip(self.cams, self.native)):
-            s = cam.width / nat.width
-            kp[:, c] = (native[:, c] + 0.5) * s - 0.5
-        # drop detections that disagree with the other views (RANSAC triangulation)
-        thr = np.array([0.04 * max(c.width, c.height) for c in self.cams])
-        self.tri = []
-        for t in range(T):
-            tri = triangulate(kp[t], conf[t], self.cams, threshold_px=thr)
-            conf[t] = np.where(tri.inliers, conf[t], 0.0)
-            self.tri.append(tri)
-        self.kp, self.conf = kp, conf
-
-
-# -- placement -----------------------------------------------------------------------------------
-
-def _hull_extent(views: list[MaskView], step: float = 0.05) -> tuple[np.ndarray, float, float]:
-    """Centre (x, y), lowest and highest z of the masks' visual hull (coarse voxels)."""
-    cams = [v.camera for v in views]
-    # the point nearest to every optical axis: where the rig looks
-    A, b = np.zeros((3, 3)), np.zeros(3)
-    for c in cams:
-        d = c.c2w[:3, 2]
-        M = np.eye(3) - np.outer(d, d)
-        A += M
-        b += M @ c.center
-    centre = np.linalg.lstsq(A, b, rcond=None)[0]
-    xs = np.arange(-1.2, 1.2 + 1e-9, step)
-    zs = np.arange(-2.0, 2.0 + 1e-9, step)
-    X, Y, Z = np.meshgrid(xs + centre[0], xs + centre[1], zs + centre[2], indexing="ij")
-    P = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
-    inside = np.ones(len(P), bool)
-    seen = np.zeros(len(P), int)
-    for v in views:
-        uv, z = v.camera.project(P)
-        u, w = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
-        vis = (z > 0) & (u >= 0) & (w >= 0) & (u < v.camera.width) & (w < v.camera.height)
-        ok = np.zeros(len(P), bool)
-        ok[vis] = v.mask[w[vis], u[vis]]
-        inside &= ok | ~vis
-        seen += vis
-    inside &= seen >= 2
-    if inside.sum() < 10:
-        raise PhysavatarError(None, "body fit: the masks of the first frame have no common foreground "
-                                    "(is the calibration consistent with the images?)")
-    Q = P[inside]
-    return np.median(Q[:, :2], 0), float(np.percentile(Q[:, 2], 0.5)), float(np.percentile(Q[:, 2], 99.5))
-
-
-def _heading_from_keypoints(tri) -> float | None:
-    """Yaw that turns the rest body (left at +x) to the triangulated shoulders and hips."""
-    pairs = [(11, 12), (23, 24)]
-    left = [tri.points[a] - tri.points[b] for a, b in pairs if tri.ok[a] and tri.ok[b]]
-    if not left:
-        return None
-    d = np.mean(left, 0)
-    return float(np.arctan2(d[1], d[0]))
-
-
 def outside_weight(cfg: BodyFitConfig, sigma: float, keypoints: bool) -> float:
     """The outside term's weight at kernel ``sigma``: ``w_outside`` without keypoints; with them
     ``w_outside_keypoints``, reached from ``w_outside`` (geometrically) as the kernel narrows
@@ -281,6 +173,7 @@ class _Fitter:
         self.cfg, self.obs, self.clothing, self.fps = cfg, obs, clothing, fps
         keypoints = obs is not None and obs.kp is not None
         self.offsets = None  # [C, 2] working px: each camera's image offset, fitted in the sequence pass
+        self.kp_offsets = None  # [K, 3] each keypoint's landmark offset in the body's (root's) frame
         self.camera_offsets = None  # {camera: [du, dv]} the images' own px, once fitted
         self.fit_offsets = fit_offsets and cfg.fit_offsets and keypoints
         self.model = _Model(cfg, curl=cfg.finger_curl and keypoints, thumbs=cfg.fit_thumbs and keypoints)
@@ -304,21 +197,33 @@ class _Fitter:
         # vertex normals put the true fingers 3-4 cm "outside" it; they pulled the arms into the blob
         self.clothing_points = torch.as_tensor(np.flatnonzero(~_extremities(self.model.body)))
 
-    def data_loss(self, frames: list[int], V, H, sigma: float) -> torch.Tensor:
+    def data_loss(self, frames: list[int], V, H, sigma: float, rot=None) -> torch.Tensor:
         cfg, obs = self.cfg, self.obs
         total = V.new_zeros(())
-        kps = self.model.keypoints(V, H) if obs.kp is not None else None
+        kps = self.keypoints(V, H, rot) if obs.kp is not None else None
         for i, t in enumerate(frames):
-            margin = cfg.outside_margin_px if obs.kp is None else cfg.outside_margin_px_keypoints
+            mesh = t == 0 and self.clothing is not None and self.use_clothing
+            pressed = obs.kp is not None and (not mesh or len(obs.cams) < cfg.press_with_mesh_below)
+            margin = cfg.outside_margin_px_keypoints if pressed else cfg.outside_margin_px
             o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, margin, self.offsets)
-            total = total + self.outside_weight(sigma) * o + cfg.w_contour * c
+            w_out = outside_weight(cfg, sigma, True) if pressed else cfg.w_outside
+            total = total + w_out * o + cfg.w_contour * c
             if kps is not None:
                 conf = obs.conf[t][:, self.kp_ids] * self.model.kp_weight
                 total = total + cfg.w_keypoints * keypoint_term(kps[i], obs.kp[t][:, self.kp_ids], conf, obs.cams,
                                                                 max(sigma, cfg.kp_sigma), self.offsets)
-            if t == 0 and self.clothing is not None and self.use_clothing:
+            if mesh:
                 total = total + self.clothing_loss(V[i], sigma)
         return total / len(frames)
+
+    def keypoints(self, V, H, rot=None) -> torch.Tensor:
+        """[T, K, 3] the model's keypoints, each moved by its landmark offset (in the body's frame,
+        turned with the root: ``rot`` [T, A, 3]) once that is known."""
+        kps = self.model.keypoints(V, H)
+        if self.kp_offsets is None or rot is None:
+            return kps
+        R0 = axis_angle_to_matrix_t(rot[:, 0])  # [T, 3, 3]
+        return kps + torch.einsum("tij,kj->tki", R0, self.kp_offsets)
 
     def outside_weight(self, sigma: float) -> float:
         return outside_weight(self.cfg, sigma, self.obs.kp is not None)
@@ -388,7 +293,7 @@ class _Fitter:
         def loss_fn(rot, tau, ph):
             def f(sigma):
                 V, H = self.model.pose(rot, tau, ph)
-                return (self.data_loss([0], V, H, sigma) + self.prior(rot)
+                return (self.data_loss([0], V, H, sigma, rot) + self.prior(rot)
                         + cfg.w_shape_prior * ((ph - 0.5) ** 2).sum())
             return f
 
@@ -410,10 +315,18 @@ class _Fitter:
         loss = self._run([rot, tau], [0.03, 0.01], third, loss_fn(rot, tau, ph), cfg.sigma_start, 2 * cfg.sigma_end)
         task.advance()
         self.use_clothing = True
+        params, lrs = [rot, tau, ph], [0.02, 0.005, 0.02]
+        if obs.kp is not None and self.clothing is not None and cfg.landmark_offsets:
+            self.kp_offsets = torch.zeros(len(self.kp_ids), 3, dtype=DTYPE, requires_grad=True)
+            params, lrs = params + [self.kp_offsets], lrs + [0.005]
         for s0, s1 in [(2 * cfg.sigma_end, cfg.sigma_end), (cfg.sigma_end, cfg.sigma_end)]:
-            loss = self._run([rot, tau, ph], [0.02, 0.005, 0.02], third, loss_fn(rot, tau, ph), s0, s1, ph)
+            loss = self._run(params, lrs, third, loss_fn(rot, tau, ph), s0, s1, ph)
             body.relinearize(BodyShape.from_array(ph.detach().numpy()))
             task.advance()
+        if self.kp_offsets is not None:
+            self.kp_offsets = self.kp_offsets.detach()
+            info["landmark_offsets_mm"] = {str(k): [round(1000 * float(x), 1) for x in o]
+                                           for k, o in zip(self.kp_ids, self.kp_offsets)}
         info["first_frame_loss"] = loss
         return rot.detach(), tau.detach(), ph.detach(), info
 
@@ -429,7 +342,7 @@ class _Fitter:
 
         def f(sigma):
             V, H = self.model.pose(rot, tau, phen)
-            loss = self.data_loss([t], V, H, sigma) + self.prior(rot)
+            loss = self.data_loss([t], V, H, sigma, rot) + self.prior(rot)
             if t >= 2:
                 acc = H[0] - 2 * Hs[-1] + Hs[-2]
                 # weak here: a constant-velocity prior would carry one frame's error into the next
@@ -449,7 +362,7 @@ class _Fitter:
 
         def f(sigma):
             V, H = self.model.pose(rot, tau, phen)
-            loss = self.data_loss(frames, V, H, sigma) + self.prior(rot)
+            loss = self.data_loss(frames, V, H, sigma, rot) + self.prior(rot)
             if len(frames) >= 3:
                 acc = H[2:] - 2 * H[1:-1] + H[:-2]
                 loss = loss + cfg.smoothness * (acc ** 2).sum(-1).mean()

@@ -195,7 +195,7 @@ def run(capture: str | Path, *, out: str | Path, config: PrepareConfig = Prepare
                     save_cameras(tmp, raw.cameras)
                     steps["cameras"] += "; offsets refined with the body, checked against the masks' hull"
                 else:
-                    steps["cameras"] += "; the body fit's offsets not applied (the masks' hull disagrees)"
+                    steps["cameras"] += "; the body fit's offsets not applied (the masks' hull does not rise with them)"
             steps["body"] = "fitted (Anny, every frame)"
         seconds["body"] = time.time() - t
 
