@@ -163,3 +163,38 @@ def test_patterned_opponents_tells_a_hue_pattern_from_a_plain_colour_with_noise(
         img[hit] = [0.7, 0.2, 0.25]
         plain.append(np.clip(img + rng.normal(0, 0.03, img.shape), 0, 1))
     assert patterned_opponents(V0, F, solve, cams, plain) == (False, False)
+
+
+def test_bending_toward_seen_hinges_keeps_a_seen_fold_and_undoes_an_unseen_one():
+    """bend_reference="seen" (session 24): the start's hinge distance only where the lift's flow
+    sees both vertices opposite the hinge in ``bend_views`` cameras and it moved more than
+    ``bend_moved``; the template's elsewhere. A fold every camera sees is kept as "moved" keeps it;
+    a fold the start has made where no camera sees (a drifted hem) is opened back to the true flat
+    sheet, where "moved" keeps it because it moved, and holds the unseen half 0.1 m off."""
+    V0, F = _grid(9, 0.4)
+    solve = np.ones(len(V0), bool)
+    kw = {"smoothness": 0.0, "iterations": 15, "rest": V0, "iso_weight": 10.0, "bend_weight": 10.0}
+
+    def observe(truth, where):
+        obs = []
+        for cam in _rig():
+            idx = np.intersect1d(np.flatnonzero(visible_vertices(truth, F, cam)), where)
+            obs.append(FlowObservation(cam, idx, cam.project(truth[idx])[0]))
+        return obs
+
+    def lifts(start, obs):
+        return {ref: FlowPrediction(F, solve, F, bend_reference=ref, **kw).lift(start, obs)
+                for ref in ("rest", "moved", "seen")}
+
+    shift = np.array([0.008, -0.005, 0.004])
+    start = _fold(V0, 60.0)  # a real fold, seen by the cameras on both sides of the crease
+    truth = start + shift
+    out = lifts(start, observe(truth, np.arange(len(V0))))
+    err = {ref: np.linalg.norm(X - truth, axis=1).max() for ref, X in out.items()}
+    assert err["seen"] < 2e-3 and err["moved"] < 2e-3 and err["rest"] > 2 * err["seen"], err
+
+    truth = V0 + shift  # the sheet is flat; the start folded its unseen half
+    out = lifts(start, observe(truth, np.flatnonzero(V0[:, 0] < -1e-9)))
+    right = V0[:, 0] > 1e-9
+    err = {ref: np.linalg.norm(X[right] - truth[right], axis=1).mean() for ref, X in out.items()}
+    assert err["moved"] > 0.05 and err["seen"] < 0.2 * err["moved"] and err["seen"] < 2 * err["rest"] + 1e-3, err

@@ -229,7 +229,8 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.smoothness, rest=t.vertices,
                           iso_weight=cfg.iso, collider_faces=body_faces, collision_weight=cfg.collision,
                           bend_weight=cfg.bend, bend_huber=cfg.bend_huber, prior_weight=cfg.prior,
-                          bend_reference=cfg.bend_reference, bend_moved=cfg.bend_moved, min_texture=cfg.min_texture,
+                          bend_reference=cfg.bend_reference, bend_moved=cfg.bend_moved,
+                          bend_views=cfg.bend_views, min_texture=cfg.min_texture,
                           highpass=cfg.highpass, texture_blur=cfg.texture_blur)
     return FlowStart(lift, train, first_vertices, first_grey, cfg.corrections, cfg.final_corrections,
                      dict(smoothness=cfg.correction_smoothness, prior_weight=cfg.correction_prior,
@@ -354,8 +355,14 @@ class FrameStarts:
             self._carry_w = np.exp(-np.square(np.minimum(d, 4 * r) / r))
         return self._carry_w
 
-    def refine(self, i: int, vertices: np.ndarray) -> np.ndarray:
-        """``frames[i]``'s fitted ``vertices`` after ``flow.final_corrections`` flow corrections."""
+    def refine(self, i: int, vertices: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+        """``frames[i]``'s fitted ``vertices`` after ``flow.final_corrections`` flow corrections;
+        with ``start`` (the frame's start) the free garment first keeps ``flow.fit_blend`` of the
+        fit's move from it (1: all of it)."""
+        if self.flow is not None and i > 0 and start is not None and self.cfg.flow.fit_blend < 1:
+            free = ~self.skinned
+            vertices = np.array(vertices, np.float32, copy=True)
+            vertices[free] = start[free] + self.cfg.flow.fit_blend * (vertices[free] - start[free])
         if self.flow is not None and i > 0 and self.cfg.flow.final_corrections > 0:
             f = self.frames[i]
             return self.flow.refine(vertices, self._grey[f], self._masks.pop(f, None)).astype(np.float32)
