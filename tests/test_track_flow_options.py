@@ -198,3 +198,30 @@ def test_bending_toward_seen_hinges_keeps_a_seen_fold_and_undoes_an_unseen_one()
     right = V0[:, 0] > 1e-9
     err = {ref: np.linalg.norm(X[right] - truth[right], axis=1).mean() for ref, X in out.items()}
     assert err["moved"] > 0.05 and err["seen"] < 0.2 * err["moved"] and err["seen"] < 2 * err["rest"] + 1e-3, err
+
+
+def test_fit_blend_keeps_the_flow_start_of_the_free_garment_and_the_fit_of_the_body():
+    """flow.fit_blend (session 24): the final corrections of frame t start from the fit for the
+    skinned vertices (the body) and, for the free garment, from its flow start plus ``fit_blend``
+    of the fit's move; 1 (default) is the fit as before."""
+    from dataclasses import replace
+
+    from physavatar.stages.track import TrackConfig
+    from physavatar.stages.track.prediction import FrameStarts
+
+    class Lift:  # the final corrections, recorded rather than run
+        def refine(self, vertices, views, masks):
+            self.got = np.array(vertices)
+            return vertices
+
+    rng = np.random.default_rng(1)
+    start, fit = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    skinned = np.array([True, True, False, False, False, True])
+    for blend in (1.0, 0.5, 0.0):
+        s = object.__new__(FrameStarts)
+        cfg = TrackConfig()
+        s.cfg = replace(cfg, flow=replace(cfg.flow, fit_blend=blend))
+        s.flow, s.skinned, s.frames, s._grey, s._masks = Lift(), skinned, [0, 1], {1: []}, {}
+        s.refine(1, fit.astype(np.float32), start.astype(np.float32))
+        want = np.where(skinned[:, None], fit, start + blend * (fit - start))
+        assert np.allclose(s.flow.got, want, atol=1e-6), blend
