@@ -222,6 +222,12 @@ def test_fit_blend_keeps_the_flow_start_of_the_free_garment_and_the_fit_of_the_b
         cfg = TrackConfig()
         s.cfg = replace(cfg, flow=replace(cfg.flow, fit_blend=blend))
         s.flow, s.skinned, s.frames, s._grey, s._masks = Lift(), skinned, [0, 1], {1: []}, {}
+        s.flow_cfg = s.cfg.flow
         s.refine(1, fit.astype(np.float32), start.astype(np.float32))
         want = np.where(skinned[:, None], fit, start + blend * (fit - start))
         assert np.allclose(s.flow.got, want, atol=1e-6), blend
+    # the plain-garment rule keeps the fit whole: a plain garment's flow follows the shading
+    s.cfg = replace(cfg, flow=replace(cfg.flow, fit_blend=0.0, plain="plain"))
+    s.flow_cfg = s._flow_settings(None, [])
+    s.refine(1, fit.astype(np.float32), start.astype(np.float32))
+    assert s.flow_cfg.fit_blend == 1.0 and np.allclose(s.flow.got, fit, atol=1e-6)
