@@ -150,9 +150,10 @@ def _unhashed(config, prefix: str = "") -> set[str]:
 
 # settings a run folder's config.json may not record, with the value such a run had: defaults that
 # changed after config.json began to record the setting (flow.channels: grey until session 15),
-# and settings added later (session 18: a run that does not record them ran with them off)
+# and settings added later (session 18: a run that does not record them ran with them off; session
+# 24: nor with fit_blend, it kept the whole fit)
 UNRECORDED = {"flow.channels": "luma", "flow.highpass": 0.0, "flow.texture_blur": 0.0, "flow.plain": "patterned",
-              "flow.silhouette": 0.0}
+              "flow.silhouette": 0.0, "flow.fit_blend": 1.0}
 
 
 def _check_resume(out: Path, saved: dict, wanted: dict) -> None:
