@@ -163,3 +163,71 @@ def test_patterned_opponents_tells_a_hue_pattern_from_a_plain_colour_with_noise(
         img[hit] = [0.7, 0.2, 0.25]
         plain.append(np.clip(img + rng.normal(0, 0.03, img.shape), 0, 1))
     assert patterned_opponents(V0, F, solve, cams, plain) == (False, False)
+
+
+def test_bending_toward_seen_hinges_keeps_a_seen_fold_and_undoes_an_unseen_one():
+    """bend_reference="seen" (session 24): the start's hinge distance only where the lift's flow
+    sees both vertices opposite the hinge in ``bend_views`` cameras and it moved more than
+    ``bend_moved``; the template's elsewhere. A fold every camera sees is kept as "moved" keeps it;
+    a fold the start has made where no camera sees (a drifted hem) is opened back to the true flat
+    sheet, where "moved" keeps it because it moved, and holds the unseen half 0.1 m off."""
+    V0, F = _grid(9, 0.4)
+    solve = np.ones(len(V0), bool)
+    kw = {"smoothness": 0.0, "iterations": 15, "rest": V0, "iso_weight": 10.0, "bend_weight": 10.0}
+
+    def observe(truth, where):
+        obs = []
+        for cam in _rig():
+            idx = np.intersect1d(np.flatnonzero(visible_vertices(truth, F, cam)), where)
+            obs.append(FlowObservation(cam, idx, cam.project(truth[idx])[0]))
+        return obs
+
+    def lifts(start, obs):
+        return {ref: FlowPrediction(F, solve, F, bend_reference=ref, **kw).lift(start, obs)
+                for ref in ("rest", "moved", "seen")}
+
+    shift = np.array([0.008, -0.005, 0.004])
+    start = _fold(V0, 60.0)  # a real fold, seen by the cameras on both sides of the crease
+    truth = start + shift
+    out = lifts(start, observe(truth, np.arange(len(V0))))
+    err = {ref: np.linalg.norm(X - truth, axis=1).max() for ref, X in out.items()}
+    assert err["seen"] < 2e-3 and err["moved"] < 2e-3 and err["rest"] > 2 * err["seen"], err
+
+    truth = V0 + shift  # the sheet is flat; the start folded its unseen half
+    out = lifts(start, observe(truth, np.flatnonzero(V0[:, 0] < -1e-9)))
+    right = V0[:, 0] > 1e-9
+    err = {ref: np.linalg.norm(X[right] - truth[right], axis=1).mean() for ref, X in out.items()}
+    assert err["moved"] > 0.05 and err["seen"] < 0.2 * err["moved"] and err["seen"] < 2 * err["rest"] + 1e-3, err
+
+
+def test_fit_blend_keeps_the_flow_start_of_the_free_garment_and_the_fit_of_the_body():
+    """flow.fit_blend (session 24): the final corrections of frame t start from the fit for the
+    skinned vertices (the body) and, for the free garment, from its flow start plus ``fit_blend``
+    of the fit's move; 1 (default) is the fit as before."""
+    from dataclasses import replace
+
+    from physavatar.stages.track import TrackConfig
+    from physavatar.stages.track.prediction import FrameStarts
+
+    class Lift:  # the final corrections, recorded rather than run
+        def refine(self, vertices, views, masks):
+            self.got = np.array(vertices)
+            return vertices
+
+    rng = np.random.default_rng(1)
+    start, fit = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    skinned = np.array([True, True, False, False, False, True])
+    for blend in (1.0, 0.5, 0.0):
+        s = object.__new__(FrameStarts)
+        cfg = TrackConfig()
+        s.cfg = replace(cfg, flow=replace(cfg.flow, fit_blend=blend))
+        s.flow, s.skinned, s.frames, s._grey, s._masks = Lift(), skinned, [0, 1], {1: []}, {}
+        s.flow_cfg = s.cfg.flow
+        s.refine(1, fit.astype(np.float32), start.astype(np.float32))
+        want = np.where(skinned[:, None], fit, start + blend * (fit - start))
+        assert np.allclose(s.flow.got, want, atol=1e-6), blend
+    # the plain-garment rule keeps the fit whole: a plain garment's flow follows the shading
+    s.cfg = replace(cfg, flow=replace(cfg.flow, fit_blend=0.0, plain="plain"))
+    s.flow_cfg = s._flow_settings(None, [])
+    s.refine(1, fit.astype(np.float32), start.astype(np.float32))
+    assert s.flow_cfg.fit_blend == 1.0 and np.allclose(s.flow.got, fit, atol=1e-6)

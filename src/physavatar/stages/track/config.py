@@ -216,6 +216,14 @@ class FlowConfig:
         bend_moved: [m] the threshold of ``bend_reference`` "moved" (session 22's lead: skirt
             5.38 -> 5.00 mm, demo frames 0-8 1.230 -> 1.207 mm; off by default until measured on
             the tops and the demo's 48 frames, docs/tracking.md).
+        bend_views: the cameras whose flow must see both vertices opposite a hinge for
+            ``bend_reference`` "seen" to keep the start's distance there (session 24).
+        fit_blend: the share of the photometric fit's move of the free garment (from the frame's
+            flow start) that the frame keeps before its final corrections (1: all, as before
+            session 24; 0, default since session 24: the fit places the body alone and the garment
+            keeps its full-resolution flow start, which the quarter-resolution fit only pulled
+            off; a plain garment, whose flow follows the shading, keeps the fit whole). Demo 48
+            frames 1.835 -> 1.327 mm, skirt 5.38 -> 5.09, printed top 0.81 -> 0.71 (docs/tracking.md).
         min_texture: [levels per pixel] a flow observation counts only where the view it is
             measured from has at least this much texture in both directions
             (:func:`~physavatar.stages.track.channels.texture_strength`, per channel; 0: all). On a
@@ -264,6 +272,8 @@ class FlowConfig:
     bend_reference: str = setting("rest")
     correction_bend_reference: str = setting("")
     bend_moved: float = setting(0.002)
+    bend_views: int = setting(2)
+    fit_blend: float = setting(0.0)
     min_texture: float = setting(0.0)
     carry: str = setting("still")
     predict_colour: bool = setting(False)

@@ -66,7 +66,7 @@ class FlowObservation:
                 np.einsum("nki,nk->ni", Jm, rm) * w[:, None])
 
 
-BEND_REFERENCES = ("rest", "start", "previous", "moved")  # FlowPrediction.bend_reference
+BEND_REFERENCES = ("rest", "start", "previous", "moved", "seen")  # FlowPrediction.bend_reference
 
 class FlowPrediction:
     """Multi-view optical flow lifted to the vertices of a mesh (module docstring).
@@ -98,7 +98,10 @@ class FlowPrediction:
             the prediction, and in :meth:`correct` the hinges of the tracked frame t-1; "moved"
             per hinge: the start's distance where it differs from the reference's (the template's)
             by more than ``bend_moved`` [m], the template's elsewhere (a fold the garment has made
-            is kept, the template's shape holds where the garment still has it).
+            is kept, the template's shape holds where the garment still has it); "seen" as "moved",
+            and only where both vertices opposite the hinge have flow observations in at least
+            ``bend_views`` cameras in that lift (a fold the views see follows the data, an unseen
+            hinge keeps the template's distance).
         collider_faces: [Fc, 3] faces (over the same vertices, none solved) the solved vertices stay
             outside of, by ``collision_margin`` [m], penalty ``collision_weight``, for vertices
             within ``contact_range`` [m] of it (module docstring, 4). None: no collider.
@@ -110,7 +113,8 @@ class FlowPrediction:
                  rest: np.ndarray | None = None, iso_weight: float = 0.0, collider_faces: np.ndarray | None = None,
                  collision_margin: float = 5e-4, collision_weight: float = 1e3, contact_range: float = 0.03,
                  bend_weight: float = 0.0, bend_huber: float = 0.0, bend_reference: str = "rest",
-                 bend_moved: float = 2e-3, min_texture: float = 0.0, highpass: float = 0.0, texture_blur: float = 0.0):
+                 bend_moved: float = 2e-3, bend_views: int = 2, min_texture: float = 0.0, highpass: float = 0.0,
+                 texture_blur: float = 0.0):
         self.faces = np.asarray(faces, np.int64)
         self.solve = np.asarray(solve, bool)
         self.ids = np.flatnonzero(self.solve)
@@ -134,6 +138,7 @@ class FlowPrediction:
             raise ValueError(f"bend_reference must be one of {', '.join(BEND_REFERENCES)}, got {bend_reference!r}")
         self.bend_reference = bend_reference
         self.bend_moved = bend_moved
+        self.bend_views = bend_views
         self._hinges = _hinge_pairs(smooth_faces, self.solve)
         self._rest_lengths = self._rest_hinges = None
         if rest is not None:
@@ -250,6 +255,15 @@ class FlowPrediction:
         X = np.asarray(vertices, np.float64)
         return np.linalg.norm(X[self._hinges[:, 0]] - X[self._hinges[:, 1]], axis=1)
 
+    def views_per_vertex(self, observations: list) -> np.ndarray:
+        """[V] int: in how many cameras the :class:`FlowObservation` s of ``observations`` see
+        each vertex (a camera's channels count once; other observations, the silhouette's, not)."""
+        count = np.zeros(len(self.solve), np.int64)
+        for o in observations:
+            if isinstance(o, FlowObservation) and len(o.vertex):
+                count[np.unique(o.vertex)] += 1
+        return count
+
     def lift(self, vertices: np.ndarray, observations: list[FlowObservation], start: np.ndarray | None = None,
              smoothness: float | None = None, prior_weight: float | None = None,
              iso_weight: float | None = None, bend_weight: float | None = None,
@@ -285,6 +299,11 @@ class FlowPrediction:
         elif ref == "moved" and bend > 0:  # the start's hinges where its fold left the reference's
             h0 = self.hinge_lengths(X0)
             rest_hinges = np.where(np.abs(h0 - rest_hinges) > self.bend_moved, h0, rest_hinges)
+        elif ref == "seen" and bend > 0:  # the same, only where the lift's flow sees both ends
+            h0 = self.hinge_lengths(X0)
+            views = self.views_per_vertex(observations)
+            seen = (views[self._hinges] >= self.bend_views).all(1)
+            rest_hinges = np.where(seen & (np.abs(h0 - rest_hinges) > self.bend_moved), h0, rest_hinges)
         active = np.zeros(n, bool)
         for _ in range(self.iterations):
             A = np.zeros((n, 3, 3))

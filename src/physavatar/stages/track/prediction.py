@@ -229,7 +229,8 @@ def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarr
     lift = FlowPrediction(t.faces, ~skinned, garment_faces, smoothness=cfg.smoothness, rest=t.vertices,
                           iso_weight=cfg.iso, collider_faces=body_faces, collision_weight=cfg.collision,
                           bend_weight=cfg.bend, bend_huber=cfg.bend_huber, prior_weight=cfg.prior,
-                          bend_reference=cfg.bend_reference, bend_moved=cfg.bend_moved, min_texture=cfg.min_texture,
+                          bend_reference=cfg.bend_reference, bend_moved=cfg.bend_moved,
+                          bend_views=cfg.bend_views, min_texture=cfg.min_texture,
                           highpass=cfg.highpass, texture_blur=cfg.texture_blur)
     return FlowStart(lift, train, first_vertices, first_grey, cfg.corrections, cfg.final_corrections,
                      dict(smoothness=cfg.correction_smoothness, prior_weight=cfg.correction_prior,
@@ -323,7 +324,8 @@ class FrameStarts:
 
     def _flow_settings(self, first_vertices: np.ndarray, first_views: list[np.ndarray]) -> FlowConfig:
         """``cfg.flow`` with the plain-garment rule applied (:class:`FlowConfig` ``plain``): the
-        texture of the first frame's views decides whether the flow is gated and the carry near.
+        texture of the first frame's views decides whether the flow is gated, the carry near and
+        the fit's move of the free garment kept whole (``fit_blend`` 1).
         Sets ``self.garment_texture`` (None when not measured) and ``self.plain``."""
         fc = self.cfg.flow
         self.garment_texture = None
@@ -335,8 +337,9 @@ class FrameStarts:
         self.plain = fc.plain == "plain" or (fc.plain == "auto" and self.garment_texture < fc.plain_texture)
         if not self.plain:
             return fc
+        # a plain garment's flow follows the shading: the fit (its masks) places the garment too
         return replace(fc, min_texture=max(fc.min_texture, fc.plain_texture), texture_blur=fc.texture_blur or PLAIN_BLUR,
-                       carry="near" if fc.carry == "still" else fc.carry)
+                       carry="near" if fc.carry == "still" else fc.carry, fit_blend=1.0)
 
     def carry_weights(self) -> np.ndarray:
         """[V] how much of the body's motion each vertex takes as its "no motion" under
@@ -354,8 +357,15 @@ class FrameStarts:
             self._carry_w = np.exp(-np.square(np.minimum(d, 4 * r) / r))
         return self._carry_w
 
-    def refine(self, i: int, vertices: np.ndarray) -> np.ndarray:
-        """``frames[i]``'s fitted ``vertices`` after ``flow.final_corrections`` flow corrections."""
+    def refine(self, i: int, vertices: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+        """``frames[i]``'s fitted ``vertices`` after ``flow.final_corrections`` flow corrections;
+        with ``start`` (the frame's start) the free garment first keeps ``flow.fit_blend`` of the
+        fit's move from it (1: all of it; a plain garment keeps all, :meth:`_flow_settings`)."""
+        blend = self.flow_cfg.fit_blend if self.flow is not None else 1.0
+        if i > 0 and start is not None and blend < 1:
+            free = ~self.skinned
+            vertices = np.array(vertices, np.float32, copy=True)
+            vertices[free] = start[free] + blend * (vertices[free] - start[free])
         if self.flow is not None and i > 0 and self.cfg.flow.final_corrections > 0:
             f = self.frames[i]
             return self.flow.refine(vertices, self._grey[f], self._masks.pop(f, None)).astype(np.float32)

@@ -86,6 +86,8 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"flow.bend_reference must be one of {', '.join(lifts)} and "
                                     f"flow.correction_bend_reference '' or one of {', '.join(BEND_REFERENCES)}, got "
                                     f"{flow.bend_reference!r}, {flow.correction_bend_reference!r}")
+    if flow.fit_blend > 1:
+        raise PhysavatarError(None, f"flow.fit_blend must be in [0, 1], got {flow.fit_blend}")
     if flow.carry not in ("still", "body", "near"):
         raise PhysavatarError(None, f"flow.carry must be 'still', 'body' or 'near', got {flow.carry!r}")
     if flow.plain not in ("auto", "plain", "patterned"):
@@ -148,9 +150,10 @@ def _unhashed(config, prefix: str = "") -> set[str]:
 
 # settings a run folder's config.json may not record, with the value such a run had: defaults that
 # changed after config.json began to record the setting (flow.channels: grey until session 15),
-# and settings added later (session 18: a run that does not record them ran with them off)
+# and settings added later (session 18: a run that does not record them ran with them off; session
+# 24: nor with fit_blend, it kept the whole fit)
 UNRECORDED = {"flow.channels": "luma", "flow.highpass": 0.0, "flow.texture_blur": 0.0, "flow.plain": "patterned",
-              "flow.silhouette": 0.0}
+              "flow.silhouette": 0.0, "flow.fit_blend": 1.0}
 
 
 def _check_resume(out: Path, saved: dict, wanted: dict) -> None:
@@ -277,7 +280,7 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                             collision=collision, anchor=anchor)
             # the chain's stages, kept for diagnosis: the start (prediction and corrections) and the fit
             extra = {} if i == 0 else dict(start_vertices=np.asarray(init, np.float32), fit_vertices=res.vertices)
-            res.vertices = starts.refine(i, res.vertices)
+            res.vertices = starts.refine(i, res.vertices, None if i == 0 else init)
             dt = time.perf_counter() - t0
             if i == 0:
                 extra = dict(log_scales=model.log_scales.numpy(), opacity_logits=model.opacity_logits.numpy(),
