@@ -385,3 +385,6 @@ def test_level_iters_sets_each_levels_iterations(body_capture):
         _check_config(replace(FAST, prediction=replace(FAST.prediction, garment="lbs")), cap)
     with pytest.raises(PhysavatarError, match="flow_corrections"):
         _check_config(replace(FAST, flow=replace(FAST.flow, corrections=-1)), cap)
+    for blend in (-0.5, 1.5):  # flow.fit_blend is a share of the fit's move
+        with pytest.raises(PhysavatarError, match="fit_blend"):
+            _check_config(replace(FAST, flow=replace(FAST.flow, fit_blend=blend)), cap)

@@ -86,7 +86,7 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"flow.bend_reference must be one of {', '.join(lifts)} and "
                                     f"flow.correction_bend_reference '' or one of {', '.join(BEND_REFERENCES)}, got "
                                     f"{flow.bend_reference!r}, {flow.correction_bend_reference!r}")
-    if flow.fit_blend > 1:
+    if not 0 <= flow.fit_blend <= 1:
         raise PhysavatarError(None, f"flow.fit_blend must be in [0, 1], got {flow.fit_blend}")
     if flow.carry not in ("still", "body", "near"):
         raise PhysavatarError(None, f"flow.carry must be 'still', 'body' or 'near', got {flow.carry!r}")
