@@ -170,6 +170,8 @@ def frame_report(frame: int, stats: list, substeps: int, attempts: int, seconds:
             # the body's own creases (sim.crease): body vertices left out of contact, cloth released
             "buried_vertices": int(max((s.buried_vertices for s in stats), default=0)),
             "released_vertices": int(max((s.released_vertices for s in stats), default=0)),
+            # cloth moved out of the body after a pinch (sim.untangle)
+            "untangled_vertices": int(sum(s.untangled_vertices for s in stats)),
             "body_move_m": round(float(move), 5),
             "seconds": round(float(seconds), 3)}
 
