@@ -30,6 +30,7 @@ from .crease import body_creases
 from .material import Material
 from .settings import SimSettings
 from .solver import ClothSim
+from .untangle import flag_crossing
 
 
 @dataclasses.dataclass
@@ -282,6 +283,9 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                     n = min(2 * n, max_substeps)
                 x, v = saved[0], saved[1]
                 sim.set_state(saved[2])
+            # cloth through the body the sim holds (a step's CCD can miss an impact in a pinch):
+            # moved out at the next frame's start (sim.untangle; docs/simulation.md "Session 24")
+            flag_crossing(sim, x, bodies[f])
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
             if on_frame is not None:
