@@ -187,6 +187,7 @@ class StepStats:
     body_gap: float = 0.0  # [m] how far the body (or a Dirichlet vertex) stopped short of its pose
     body_lagged: bool = False  # the step started from where the last step's body got to
     lag_vertices: int = 0  # prescribed vertices (body, attached cloth) short of their pose
+    untangled_vertices: int = 0  # cloth vertices moved out of the body at the step's start (sim.untangle)
     lag_radius: float = 0.0  # [m] the lag was confined to this distance of the pinch (sim.lag); 0: not
     buried_vertices: int = 0  # body vertices inside another body part, left out of contact (sim.crease)
     released_vertices: int = 0  # cloth vertices inside the body at the start, released (sim.crease)

@@ -30,6 +30,7 @@ from .crease import body_creases
 from .material import Material
 from .settings import SimSettings
 from .solver import ClothSim
+from .untangle import flag_crossing
 
 
 @dataclasses.dataclass
@@ -170,6 +171,8 @@ def frame_report(frame: int, stats: list, substeps: int, attempts: int, seconds:
             # the body's own creases (sim.crease): body vertices left out of contact, cloth released
             "buried_vertices": int(max((s.buried_vertices for s in stats), default=0)),
             "released_vertices": int(max((s.released_vertices for s in stats), default=0)),
+            # cloth moved out of the body after a pinch (sim.untangle)
+            "untangled_vertices": int(sum(s.untangled_vertices for s in stats)),
             "body_move_m": round(float(move), 5),
             "seconds": round(float(seconds), 3)}
 
@@ -280,6 +283,9 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                     n = min(2 * n, max_substeps)
                 x, v = saved[0], saved[1]
                 sim.set_state(saved[2])
+            # cloth through the body the sim holds (a step's CCD can miss an impact in a pinch):
+            # moved out at the next frame's start (sim.untangle; docs/simulation.md "Session 24")
+            flag_crossing(sim, x, bodies[f])
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
             if on_frame is not None:

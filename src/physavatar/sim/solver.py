@@ -43,6 +43,7 @@ from .settings import SimSettings, StepStats
 from .linesearch import CandidateScene, EnergyMemo, backtrack, expand_step
 from .start import follow_body, release_weight, warm_start
 from .terms import StepState
+from .untangle import PINCH_DISTANCE, untangle_start
 
 CUT_FORCING = 10.0  # newton_forcing × this after a CCD-cut step (docs/simulation.md "Session 14")
 
@@ -280,6 +281,8 @@ class ClothSim:
         stats = StepStats()
         x = np.asarray(x, dtype=np.float64)
         v = np.asarray(v, dtype=np.float64)
+        # after a pinch: cloth left inside or through the body moved out first (untangle.py)
+        x, stats.untangled_vertices = untangle_start(self, x, collider_vertices_t, collider_faces)
         state, x_pred = self._begin_step(x, v, collider_vertices_t, collider_vertices_t1, collider_faces,
                                          boundary_targets, history, stats)
         free = self.inertia.unit_mass[: self.n] > 0  # the body's own creases (crease.py)
@@ -517,6 +520,10 @@ class ClothSim:
         c = self.scene.collisions_at(X)
         stats.n_contacts = len(c)
         stats.min_distance = float(np.sqrt(self.scene.min_distance(X)))  # ipctk: squared
+        if sv.penalty or sv.confined or stats.body_lagged or stats.min_distance < PINCH_DISTANCE:
+            # a pinch (the body lags, or a pair nm apart, where AdditiveCCD can step through it):
+            # look for cloth inside or through the body at the next step's start (untangle.py)
+            self._crease_check = True
         ls = sv.linear_solver
         self.linearization = Linearization(
             (self.assembler_all if sv.penalty else self.assembler_free).dof_map, sv.matrix,

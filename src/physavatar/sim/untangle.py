@@ -1,0 +1,117 @@
+"""Cloth left inside or through the body after a pinch: moved out before the next step.
+
+A step that cannot keep the cloth outside the moving body lets the body *lag* (sim.lag). In
+such a pinch the cloth is pressed to nanometres of the body (κ at its ceiling), and there
+ipctk's AdditiveCCD can miss a crossing: on the CMU hop (docs/simulation.md "Session 24") a
+cloth edge 5e-11 m from a body edge passed through it in a confined lag's free solve (Tight
+Inclusion CCD finds the impact at t = 1.7e-5, AdditiveCCD none). From then on every step keeps
+that crossing (CCD keeps whatever topology it starts from), so every later frame crosses the
+body. The crease rule's release-and-pull (sim.crease) does not undo it on a moving body:
+released cloth is out of body contact, so the body sweeps through it and more is released every
+step (8 → 55 vertices in 5 frames, measured).
+
+:func:`untangle` runs at the start of a step that follows a pinch (``ClothSim._crease_check``,
+set by a lagging step, sim.solver): the free cloth vertices inside the body (winding number
+> ½) move to 2 d̂ outside the closest point of its outer surface, and the corners of cloth edges
+and triangles that cross the surface with their corners outside are lifted 2 d̂ above the
+crossing (crease.crossing_cloth), for a few rounds. The result is kept only when it is
+intersection-free (ipctk, against the same filter as the solve: the body and, with
+self-contact, the cloth itself) with every pair apart; otherwise the start is left as it was
+(and the crease rule's release-and-pull acts as before). A step without a pinch before it does
+not run this: the simulation is bit-identical there.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .crease import INSIDE, buried_vertices, crossing_cloth, grow, winding_numbers
+
+log = logging.getLogger(__name__)
+
+PINCH_DISTANCE = 1e-7  # [m] a step ending with a pair this close (1e-4 d̂) is checked at the next start too
+ROUNDS = 16  # move-and-check rounds (moving a vertex out can leave a neighbour's edge through the body)
+
+
+def untangle(scene, x, cloth_faces, body, body_faces, free, dhat, crease_ring: int = 1):
+    """(x' [N, 3], moved vertex ids): the cloth ``x`` moved out of the ``body`` (module
+    docstring), or (x, empty) when nothing is inside or through it or when the moved cloth
+    would not be intersection-free. ``scene``: the solver's ContactScene ([cloth; body]);
+    ``free``: bool [N], the cloth vertices that may move."""
+    from .crease import _outside_targets
+
+    x = np.asarray(x, np.float64)
+    B = np.asarray(body, np.float64)
+    Fb = np.asarray(body_faces, np.int64)
+    ids = np.flatnonzero(free)
+    if not len(ids) or not len(B):
+        return x, np.zeros(0, np.int64)
+    out, moved = x.copy(), np.zeros(len(x), bool)
+    hidden = outer = None
+    for _ in range(ROUNDS):
+        inside = np.zeros(len(x), bool)
+        inside[ids] = winding_numbers(out[ids], B, Fb) > INSIDE
+        if hidden is None:  # the body's outer surface (without the triangles it buries in itself)
+            buried = buried_vertices(B, Fb)
+            hidden = np.flatnonzero(grow(buried, Fb, crease_ring)) if buried.any() else np.zeros(0, np.int64)
+            outer = Fb[~np.isin(Fb, hidden).any(axis=1)] if len(hidden) else Fb
+        lift = crossing_cloth(out, cloth_faces, B, outer, dhat)
+        crossing = np.all(np.isfinite(lift), axis=1) & free & ~inside
+        if not inside.any() and not crossing.any():
+            break
+        if inside.any():
+            out[inside] = _outside_targets(out[inside], B, Fb, hidden, dhat)
+        out[crossing] = lift[crossing]
+        moved |= inside | crossing
+    if not moved.any():
+        return x, np.zeros(0, np.int64)
+    X = np.vstack([out, B])
+    if scene.has_intersections(X):
+        log.debug("untangle: %d moved, still crossing: not kept", int(moved.sum()))
+        return x, np.zeros(0, np.int64)
+    scene.prepare_static(X)
+    if not scene.min_distance(X) > 0.0:
+        log.debug("untangle: %d moved, a pair at distance 0: not kept", int(moved.sum()))
+        return x, np.zeros(0, np.int64)
+    return out, np.flatnonzero(moved)
+
+
+def untangle_start(sim, x, body_t, body_faces):
+    """``sim.step``'s start after a pinch (``sim._crease_check``): :func:`untangle` against the
+    body where the step starts (where a lagging body got to, as ``_begin_step`` continues it).
+    Returns (x', number of cloth vertices moved)."""
+    if not sim._crease_check or body_t is None or not len(body_t):
+        return x, 0
+    sim.prepare(body_t, body_faces)
+    B = np.asarray(body_t, np.float64).reshape(-1, 3)
+    lag = sim._body_lag
+    if lag is not None and np.array_equal(lag[0], B):
+        B = lag[1]
+    scene = sim.scene
+    base = getattr(scene, "base_filter", None)
+    if base is not None:  # the scene's own filter (outer_surface sets this step's after)
+        scene.mesh.can_collide = base
+    free = sim.inertia.unit_mass[: sim.n] > 0
+    out, moved = untangle(scene, x, sim.topo.faces, B, sim._body_faces, free, sim.settings.dhat,
+                          max(sim.settings.crease_ring, 0))
+    return out, len(moved)
+
+
+def flag_crossing(sim, x, body) -> bool:
+    """After a frame (sim.simulate): whether the cloth ``x`` crosses the body the sim holds (the
+    frame's ``body``, or where a lagging body got to), with the scene's own filter (ipctk's exact
+    test, ~10 ms on the hop's 557 + 1,229 vertices). If it does, the next step starts with
+    :func:`untangle` (``sim._crease_check``). A frame after which nothing crosses changes nothing."""
+    if sim.scene is None or sim._crease_check or body is None or not len(body):
+        return False
+    B = np.asarray(body, np.float64)
+    lag = sim._body_lag
+    if lag is not None and np.array_equal(lag[0], B):
+        B = lag[1]
+    crossing = bool(sim.scene.has_intersections(np.vstack([x, B])))
+    if crossing:
+        log.debug("flag_crossing: the cloth crosses the body after the frame")
+        sim._crease_check = True
+    return crossing

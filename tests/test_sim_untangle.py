@@ -1,0 +1,102 @@
+"""Cloth left inside or through the body after a pinch is moved out at the next step (sim.untangle)."""
+
+import cloth_grid
+import ipctk
+import numpy as np
+import trimesh
+
+from physavatar.sim import ClothSim, Material, SimSettings
+from physavatar.sim.crease import winding_numbers
+from physavatar.sim.untangle import untangle
+
+
+def box(extents=(0.3, 0.3, 0.2), subdivisions=3):
+    """A closed, outward-oriented box centred at the origin (top face z = 0.1), ~2-4 cm faces."""
+    m = trimesh.creation.box(extents=extents)
+    V, F = m.vertices, m.faces
+    for _ in range(subdivisions):
+        V, F = trimesh.remesh.subdivide(V, F)
+    return np.asarray(V, np.float64), np.asarray(F, np.int64)
+
+
+def crossing_cloth_on_box():
+    """A 10-cm cloth 2 mm above the box's top face, its middle vertices pushed 1 cm into the box:
+    its edges there pass through the top face (as a pinch leaves it, docs/simulation.md "Session 24")."""
+    V, F = cloth_grid.grid(8, 0.1, 0.0, center=True)
+    V = V + [0.0, 0.0, 0.102]
+    x = V.copy()
+    deep = np.linalg.norm(V[:, :2], axis=1) < 0.03
+    x[deep, 2] = 0.09
+    return V, F, x, deep
+
+
+def body_crossings(x, F, B, Fb):
+    """ipctk's exact test on the cloth and the body as one mesh (body–body pairs left out)."""
+    X = np.vstack([x, B])
+    faces = np.vstack([F, Fb + len(x)])
+    mesh = ipctk.CollisionMesh(X, ipctk.edges(faces), faces)
+    mesh.can_collide = ipctk.make_static_obstacle_filter(len(x))
+    return ipctk.has_intersections(mesh, X)
+
+
+def test_cloth_through_a_moving_body_after_a_pinch_is_out_after_one_step():
+    """The cloth crosses the box's top face (12 vertices 1 cm inside) at the start of a step that
+    follows a pinch (the solver state's ``crease_check``, which a lagging step sets), and the box
+    slides 1 cm a step. After one step no cloth vertex is inside the box (winding number) and
+    nothing crosses it (ipctk), and so for three more steps. Before session 24 the crease rule's
+    release-and-pull acted alone: the released cloth is out of the box's contact, the sliding box
+    carries nothing, and cloth stayed inside and through the box."""
+    V, F, x, deep = crossing_cloth_on_box()
+    B0, Fb = box()
+    assert deep.sum() == 12 and np.sum(winding_numbers(x, B0, Fb) > 0.5) == 12 and body_crossings(x, F, B0, Fb)
+    sim = ClothSim(V, F, Material(), SimSettings(friction=0.0), [])
+    sim.set_state(sim.get_state() | {"crease_check": True})  # as after a step whose body lagged
+    v, B = np.zeros_like(x), B0
+    for k in range(4):
+        B1 = B0 + [0.01 * (k + 1), 0.0, 0.0]
+        x, v, st = sim.step(x, v, B, B1, Fb)
+        B = B1
+        assert st.body_gap == 0.0
+        assert np.sum(winding_numbers(x, B, Fb) > 0.5) == 0, k
+        assert not body_crossings(x, F, B, Fb), k
+        if k == 0:
+            assert st.untangled_vertices >= 12  # the 12 inside, and the ring whose edges cross
+    assert np.all(np.isfinite(x))
+
+
+def test_untangle_leaves_cloth_outside_the_body_as_it_is():
+    """Nothing inside or through the body: the same array back, nothing moved (a step after a
+    pinch with clean cloth is simulated as without this rule)."""
+    V, F, x, _ = crossing_cloth_on_box()
+    B, Fb = box()
+    sim = ClothSim(V, F, Material(), SimSettings(), [])
+    sim.prepare(B, Fb)
+    out, moved = untangle(sim.scene, V, F, B, Fb, np.ones(len(V), bool), 1e-3)
+    assert out is V and len(moved) == 0
+    out, moved = untangle(sim.scene, x, F, B, Fb, np.ones(len(V), bool), 1e-3)
+    assert len(moved) >= 12 and np.all(winding_numbers(out, B, Fb) < 0.5) and not body_crossings(out, F, B, Fb)
+    # moved only where it was inside or next to it, to 2 d̂ above the top face
+    far = np.linalg.norm(V[:, :2], axis=1) > 0.05
+    np.testing.assert_array_equal(out[far], x[far])
+    np.testing.assert_allclose(out[moved, 2], 0.1 + 2e-3, atol=1e-9)
+
+
+def test_simulate_moves_cloth_that_crosses_the_body_out_after_the_frame():
+    """sim.simulate checks every frame's cloth against the body the sim holds (ipctk) and, where
+    it crosses, moves it out at the next frame's first step. The cloth starts through the box's
+    top face (as the CMU hop's frame 172 ended: an edge through the body, no lag, nothing that
+    would make the solver look) and the box slides 1 cm a frame: frame 1 still crosses, frames
+    2–4 do not, and no cloth vertex is inside from frame 2 on. Before session 24 nothing looked:
+    every frame crossed (the hop's frames 172–229)."""
+    from physavatar.sim import simulate
+
+    V, F, x, _ = crossing_cloth_on_box()
+    B0, Fb = box()
+    bodies = np.stack([B0 + [0.01 * k, 0.0, 0.0] for k in range(5)])
+    reports = []
+    X = simulate(V, F, Material(), bodies, Fb, fps=25.0, settings=SimSettings(friction=0.0), x0=x,
+                 on_frame=lambda c, r: reports.append(r))
+    crosses = [body_crossings(X[f], F, bodies[f], Fb) for f in range(5)]
+    inside = [int(np.sum(winding_numbers(X[f], bodies[f], Fb) > 0.5)) for f in range(5)]
+    assert crosses == [True, True, False, False, False] and inside[2:] == [0, 0, 0]
+    assert reports[1]["untangled_vertices"] >= 12 and not any(r["lagged"] for r in reports)
