@@ -108,6 +108,20 @@ def test_bending_toward_the_start_keeps_a_fold_the_garment_formed():
 
 
 
+def _observe(truth, F, where):
+    """Exact flow observations of the vertices ``where`` that each camera of the rig sees."""
+    obs = []
+    for cam in _rig():
+        idx = np.intersect1d(np.flatnonzero(visible_vertices(truth, F, cam)), where)
+        obs.append(FlowObservation(cam, idx, cam.project(truth[idx])[0]))
+    return obs
+
+
+def _lifts(start, obs, F, solve, kw, refs):
+    """The lift from ``start`` under each bending reference of ``refs``."""
+    return {ref: FlowPrediction(F, solve, F, bend_reference=ref, **kw).lift(start, obs) for ref in refs}
+
+
 def test_bending_toward_moved_hinges_keeps_a_fold_and_flattens_noise():
     """bend_reference="moved" (per hinge): a hinge the start has moved more than ``bend_moved``
     from the template's holds the start's distance, the others the template's. On the folded
@@ -120,15 +134,10 @@ def test_bending_toward_moved_hinges_keeps_a_fold_and_flattens_noise():
     left = np.flatnonzero(V0[:, 0] < 1e-9)
 
     def seen(truth):
-        obs = []
-        for cam in _rig():
-            idx = np.intersect1d(np.flatnonzero(visible_vertices(truth, F, cam)), left)
-            obs.append(FlowObservation(cam, idx, cam.project(truth[idx])[0]))
-        return obs
+        return _observe(truth, F, left)
 
     def lifts(start, obs):
-        return {ref: FlowPrediction(F, solve, F, bend_reference=ref, **kw).lift(start, obs)
-                for ref in ("rest", "start", "moved")}
+        return _lifts(start, obs, F, solve, kw, ("rest", "start", "moved"))
 
     start = _fold(V0, 60.0)
     truth = start + [0.008, -0.005, 0.004]
@@ -176,15 +185,10 @@ def test_bending_toward_seen_hinges_keeps_a_seen_fold_and_undoes_an_unseen_one()
     kw = {"smoothness": 0.0, "iterations": 15, "rest": V0, "iso_weight": 10.0, "bend_weight": 10.0}
 
     def observe(truth, where):
-        obs = []
-        for cam in _rig():
-            idx = np.intersect1d(np.flatnonzero(visible_vertices(truth, F, cam)), where)
-            obs.append(FlowObservation(cam, idx, cam.project(truth[idx])[0]))
-        return obs
+        return _observe(truth, F, where)
 
     def lifts(start, obs):
-        return {ref: FlowPrediction(F, solve, F, bend_reference=ref, **kw).lift(start, obs)
-                for ref in ("rest", "moved", "seen")}
+        return _lifts(start, obs, F, solve, kw, ("rest", "moved", "seen"))
 
     shift = np.array([0.008, -0.005, 0.004])
     start = _fold(V0, 60.0)  # a real fold, seen by the cameras on both sides of the crease
