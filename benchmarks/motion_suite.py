@@ -43,8 +43,7 @@ import numpy as np  # noqa: E402
 
 from _common import cpu_name  # noqa: E402
 from physavatar.body import BUILTIN, BodyModel, Motion  # noqa: E402
-from physavatar.body.clearance import part_clearance  # noqa: E402
-from physavatar.body.load import load_motion, with_arm_clearance  # noqa: E402
+from physavatar.body.load import load_motion, with_clearances  # noqa: E402
 from physavatar.body.motion import _x, _y, _z, bone_vertex_mask  # noqa: E402
 from physavatar.data.garment_sequence import GarmentSequence  # noqa: E402
 from physavatar.files import write_json_atomic  # noqa: E402
@@ -290,9 +289,7 @@ def main():
             print(f"{name}: {path} missing, skipped")
             continue
         m = load_motion(str(path), fps, 4.0, body=body)
-        m, _ = with_arm_clearance(m, str(path), body, 0.03)
-        if args.part_clearance:
-            m, _ = part_clearance(m, body)
+        m, _, _ = with_clearances(m, str(path), lambda: body, 0.03, args.part_clearance)  # as `simulate` does
         if not args.full:
             m = m.slice(start, start + int(round(duration * fps)) + 1)
         m.save(cached)

@@ -93,6 +93,21 @@ def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool) ->
     return m2, summary or None
 
 
+def with_clearances(motion: Motion, spec: str, make_body, arm: float, parts: bool) -> tuple[Motion, dict | None, dict | None]:
+    """Motion capture with both corrections of ``simulate`` and ``animate`` applied: arm clearance
+    (``arm`` [m], :func:`with_arm_clearance`) and then part clearance (``parts``,
+    :func:`with_part_clearance`). ``make_body()`` gives the collider they measure on; it is built
+    only when a correction applies. Returns the motion and the two summaries."""
+    if arm < 0:
+        raise PhysavatarError(None, "option --arm-clearance: must be >= 0")
+    if not (arm or parts) or not is_capture(spec):
+        return motion, None, None
+    body = make_body()
+    motion, arm_info = with_arm_clearance(motion, spec, body, arm)
+    motion, parts_info = with_part_clearance(motion, spec, body, parts)
+    return motion, arm_info, parts_info
+
+
 def describe_clearance(summary: dict | None, clearance: float) -> str | None:
     """One line saying which arms were raised and by how much (None when none was)."""
     raised = {k: v for k, v in (summary or {}).items() if v["frames_raised"]}

@@ -209,7 +209,7 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
         at_end = np.flatnonzero(grow(buried1, faces, s.crease_ring)) if buried1.any() else np.zeros(0, np.int64)
         target = np.empty((len(released), 3))
         deep = ~crossing[released]
-        target[deep] = _outside_targets(cloth[released[deep]], B1, faces, at_end, s.dhat)
+        target[deep] = outside_targets(cloth[released[deep]], B1, faces, at_end, s.dhat)
         target[~deep] = lift[released[~deep]]
         pull.set(released, target,
                  sim.inertia.unit_mass[released] * sim.material.density / sim.h_implicit**2)
@@ -269,7 +269,7 @@ def _release_term(sim) -> ReleasePull:
     return term
 
 
-def _outside_targets(points, body, faces, hidden, dhat):
+def outside_targets(points, body, faces, hidden, dhat):
     """2 d̂ outside the closest point of the body's outer surface (its triangles without a
     hidden corner) to each point (geometry.MeshQuery), along that triangle's normal."""
     from ..geometry.closest import MeshQuery

@@ -27,7 +27,7 @@ import logging
 
 import numpy as np
 
-from .crease import INSIDE, buried_vertices, crossing_cloth, grow, winding_numbers
+from .crease import INSIDE, buried_vertices, crossing_cloth, grow, outside_targets, winding_numbers
 
 log = logging.getLogger(__name__)
 
@@ -40,29 +40,26 @@ def untangle(scene, x, cloth_faces, body, body_faces, free, dhat, crease_ring: i
     docstring), or (x, empty) when nothing is inside or through it or when the moved cloth
     would not be intersection-free. ``scene``: the solver's ContactScene ([cloth; body]);
     ``free``: bool [N], the cloth vertices that may move."""
-    from .crease import _outside_targets
-
     x = np.asarray(x, np.float64)
     B = np.asarray(body, np.float64)
     Fb = np.asarray(body_faces, np.int64)
     ids = np.flatnonzero(free)
     if not len(ids) or not len(B):
         return x, np.zeros(0, np.int64)
+    # the body's outer surface (without the triangles it buries in itself)
+    buried = buried_vertices(B, Fb)
+    hidden = np.flatnonzero(grow(buried, Fb, crease_ring)) if buried.any() else np.zeros(0, np.int64)
+    outer = Fb[~np.isin(Fb, hidden).any(axis=1)] if len(hidden) else Fb
     out, moved = x.copy(), np.zeros(len(x), bool)
-    hidden = outer = None
     for _ in range(ROUNDS):
         inside = np.zeros(len(x), bool)
         inside[ids] = winding_numbers(out[ids], B, Fb) > INSIDE
-        if hidden is None:  # the body's outer surface (without the triangles it buries in itself)
-            buried = buried_vertices(B, Fb)
-            hidden = np.flatnonzero(grow(buried, Fb, crease_ring)) if buried.any() else np.zeros(0, np.int64)
-            outer = Fb[~np.isin(Fb, hidden).any(axis=1)] if len(hidden) else Fb
         lift = crossing_cloth(out, cloth_faces, B, outer, dhat)
         crossing = np.all(np.isfinite(lift), axis=1) & free & ~inside
         if not inside.any() and not crossing.any():
             break
         if inside.any():
-            out[inside] = _outside_targets(out[inside], B, Fb, hidden, dhat)
+            out[inside] = outside_targets(out[inside], B, Fb, hidden, dhat)
         out[crossing] = lift[crossing]
         moved |= inside | crossing
     if not moved.any():
@@ -78,6 +75,14 @@ def untangle(scene, x, cloth_faces, body, body_faces, free, dhat, crease_ring: i
     return out, np.flatnonzero(moved)
 
 
+def held_body(sim, body) -> np.ndarray:
+    """The body the sim holds for pose ``body``: where a lagging body got to when the last step
+    was given this pose, else the pose itself."""
+    B = np.asarray(body, np.float64).reshape(-1, 3)
+    lag = sim._body_lag
+    return lag[1] if lag is not None and np.array_equal(lag[0], B) else B
+
+
 def untangle_start(sim, x, body_t, body_faces):
     """``sim.step``'s start after a pinch (``sim._crease_check``): :func:`untangle` against the
     body where the step starts (where a lagging body got to, as ``_begin_step`` continues it).
@@ -85,10 +90,7 @@ def untangle_start(sim, x, body_t, body_faces):
     if not sim._crease_check or body_t is None or not len(body_t):
         return x, 0
     sim.prepare(body_t, body_faces)
-    B = np.asarray(body_t, np.float64).reshape(-1, 3)
-    lag = sim._body_lag
-    if lag is not None and np.array_equal(lag[0], B):
-        B = lag[1]
+    B = held_body(sim, body_t)
     scene = sim.scene
     base = getattr(scene, "base_filter", None)
     if base is not None:  # the scene's own filter (outer_surface sets this step's after)
@@ -106,10 +108,7 @@ def flag_crossing(sim, x, body) -> bool:
     :func:`untangle` (``sim._crease_check``). A frame after which nothing crosses changes nothing."""
     if sim.scene is None or sim._crease_check or body is None or not len(body):
         return False
-    B = np.asarray(body, np.float64)
-    lag = sim._body_lag
-    if lag is not None and np.array_equal(lag[0], B):
-        B = lag[1]
+    B = held_body(sim, body)
     crossing = bool(sim.scene.has_intersections(np.vstack([x, B])))
     if crossing:
         log.debug("flag_crossing: the cloth crosses the body after the frame")

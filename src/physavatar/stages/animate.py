@@ -232,18 +232,14 @@ def _file_garment(av: Avatar, config: AnimateConfig, settings: SimSettings, prog
 def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> AnimateResult:
     """Drive the avatar folder ``avatar`` with ``config.motion``; writes ``out`` (sequence.npz,
     sequence.json with the config and stats, meshes/)."""
-    from ..body.load import is_capture, load_motion, with_arm_clearance, with_part_clearance
+    from ..body.load import load_motion, with_clearances
 
     if not config.motion:
         raise PhysavatarError(None, "option --motion: give a motion (built-in name, .bvh or .npz)")
     av = Avatar.load(avatar)
     m = load_motion(config.motion, av.fps, config.duration)
-    info = parts = None
-    if (config.arm_clearance or config.part_clearance) and is_capture(config.motion):  # motion capture: .bvh, AMASS .npz
-        collider = BodyModel(av.shape, topology="collider")
-        if config.arm_clearance:
-            m, info = with_arm_clearance(m, config.motion, collider, config.arm_clearance)
-        m, parts = with_part_clearance(m, config.motion, collider, config.part_clearance)
+    m, info, parts = with_clearances(m, config.motion, lambda: BodyModel(av.shape, topology="collider"),
+                                     config.arm_clearance, config.part_clearance)
     if config.max_frames:
         m = m.slice(0, config.max_frames)
     settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..body import BodyModel, Motion
-from ..body.load import load_motion, with_arm_clearance, with_part_clearance
+from ..body.load import load_motion, with_clearances
 from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
 from ..data.garment_sequence import GarmentSequence
 from ..data.material import resolve_material
@@ -325,8 +325,8 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
     if cfg.over:
         part = _layered(part, cfg.over, body, cfg)
     mot = load_motion(motion, fps, cfg.duration)
-    mot, clearance_info = with_arm_clearance(mot, motion, body, cfg.arm_clearance)
-    mot, parts_info = with_part_clearance(mot, motion, body, cfg.part_clearance)
+    mot, clearance_info, parts_info = with_clearances(mot, motion, lambda: body, cfg.arm_clearance,
+                                                      cfg.part_clearance)
     rots, trs = mot.rotations, mot.root_translation
     # the garment is made for the rest pose: a motion that starts elsewhere (a BVH clip) is
     # reached by a transition first, as `animate` does, so the garment never starts inside the body
