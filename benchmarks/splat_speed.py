@@ -12,7 +12,9 @@ demo_out/capture, when it exists). Writes benchmarks/results/splat_speed.json.
 
 ``--gsplat`` (a CUDA machine with gsplat) also times the ``gsplat`` backend on the same scenes,
 inputs on the GPU, in the same process, and reports its speed-up over the numba kernels on the
-machine's cores.
+machine's cores; the tracking stage then runs twice, with gsplat and with the numba kernels on the
+most threads given, and reports both runs' seconds per frame, their error against the capture's
+ground truth and how far apart their meshes are.
 """
 
 from __future__ import annotations
@@ -126,21 +128,54 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
-def tracking_time(capture: Path, frames: int) -> dict:
-    """Seconds per frame of the tracking stage (default config) on the first `frames` frames."""
+def tracking_time(capture: Path, frames: int, backend: str = "auto", threads: int | None = None) -> dict:
+    """Seconds per frame of the tracking stage (default config but ``backend`` and ``threads``) on
+    the first `frames` frames; with the capture's ground truth, the garment and body error per frame
+    (mm, every vertex against its true position, as `evaluate` scores tracking)."""
     import shutil
     import tempfile
 
+    from physavatar.files import load_npz
     from physavatar.stages.track import TrackConfig, run as run_track
 
     work = Path(tempfile.mkdtemp(prefix="splat_speed_track_"))
+    extra = {} if threads is None else {"threads": threads}
     try:
-        res = run_track(capture, out=work / "track", config=TrackConfig(n_frames=frames), progress=False)
+        res = run_track(capture, out=work / "track", config=TrackConfig(n_frames=frames, splat_backend=backend, **extra),
+                        progress=False)
         secs = [float(res.seconds[f]) for f in res.frames]
+        V = np.stack([load_npz(q)["vertices"] for q in sorted((work / "track" / "frames").glob("*.npz"))])
+        labels = load_npz(work / "track" / "tracked.npz")["labels"]
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    return {"measured": True, "capture": str(capture), "frames": len(secs), "seconds_per_frame": secs,
-            "first_frame_s": secs[0], "later_frames_mean_s": float(np.mean(secs[1:])) if len(secs) > 1 else None}
+    out = {"measured": True, "capture": str(capture), "backend": backend, "threads": threads, "frames": len(secs),
+           "seconds_per_frame": secs, "first_frame_s": secs[0],
+           "later_frames_mean_s": float(np.mean(secs[1:])) if len(secs) > 1 else None}
+    truth = capture / "ground_truth" / "meshes.npz"
+    if truth.is_file():
+        e = np.linalg.norm(V - load_npz(truth)["vertices"][: len(V)], axis=-1) * 1000
+        g = labels > 0
+        out["garment_mm"] = [round(float(x), 4) for x in e[:, g].mean(1)]
+        out["body_mm"] = [round(float(x), 4) for x in e[:, ~g].mean(1)]
+        out["vertices"] = V  # for the comparison between backends; dropped before saving
+    return out
+
+
+def tracking_backends(capture: Path, frames: int, threads: int) -> dict:
+    """The tracking stage with the splat rasterizer on CUDA (gsplat) and with the numba kernels on
+    ``threads`` cores, in one process: seconds per frame, error against the ground truth, and how far
+    apart the two runs' meshes are."""
+    runs = {"gsplat": tracking_time(capture, frames, "gsplat"),
+            f"numba_t{threads}": tracking_time(capture, frames, "numba", threads)}
+    a, b = (r.pop("vertices", None) for r in runs.values())
+    if a is not None and b is not None:
+        d = np.linalg.norm(a - b, axis=-1) * 1000
+        runs["gsplat_vs_numba_mm"] = {"mean_per_frame": [round(float(x), 4) for x in d.mean(1)],
+                                      "max": float(d.max())}
+    g, n = runs["gsplat"], runs[f"numba_t{threads}"]
+    if g["later_frames_mean_s"] and n["later_frames_mean_s"]:
+        runs["later_frames_speedup"] = n["later_frames_mean_s"] / g["later_frames_mean_s"]
+    return runs
 
 
 def time_gsplat(args, threads, figures, rows) -> str:
@@ -249,8 +284,16 @@ def main() -> None:
         checks["parallel_efficiency"] = {"value": (one / two) / ms, "target": ">= 0.75",
                                          "unit": "rasterizer 2-thread ratio / trivially parallel loop's",
                                          "pass": (one / two) / ms >= 0.75}
-    if args.track_frames > 0 and (args.track_capture / "capture.json").is_file():
+    if args.track_frames > 0 and (args.track_capture / "capture.json").is_file() and args.gsplat:
+        figures["tracking_backends"] = tb = tracking_backends(args.track_capture, args.track_frames, max(threads))
+        for name, t in tb.items():
+            if isinstance(t, dict) and "seconds_per_frame" in t:
+                print(f"tracking {args.track_capture} with {name}: first frame {t['first_frame_s']:.1f} s, later frames"
+                      f" {t['later_frames_mean_s']:.1f} s each; garment error {t.get('garment_mm')} mm")
+        print(f"gsplat vs numba meshes: {tb.get('gsplat_vs_numba_mm')}; later frames {tb.get('later_frames_speedup', 0):.2f}x")
+    elif args.track_frames > 0 and (args.track_capture / "capture.json").is_file():
         figures["tracking"] = tracking_time(args.track_capture, args.track_frames)
+        figures["tracking"].pop("vertices", None)
         t = figures["tracking"]
         print(f"tracking {args.track_capture} ({t['frames']} frames, default TrackConfig): first frame "
               f"{t['first_frame_s']:.1f} s, later frames {t['later_frames_mean_s']:.1f} s each")
