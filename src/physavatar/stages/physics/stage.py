@@ -57,6 +57,13 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
         say(f"note: frame {cfg.start} has the garment {start_info['crossing_pairs']} triangle pairs through the "
             f"body / {start_info['min_gap_mm']:.2f} mm from it: {start_info['pushed_vertices']} vertices pushed "
             f"out (at most {start_info['max_push_mm']:.1f} mm) to start the simulations")
+    offset = contact_offset(cfg.contact_offset, data)
+    start_info["contact_offset"] = offset
+    if offset["offset_mm"] > 0:
+        say(f"note: contact offset {offset['offset_mm']:.2f} mm ({offset.get('method', 'given')}"
+            + (f": the garment rests {offset['resting_mm']:.2f} mm from the body" if "resting_mm" in offset else "")
+            + ")")
+    initial = dataclasses.replace(initial, contact_offset=1e-3 * offset["offset_mm"])
     proxy = None
     n_fine = data.reference.shape[1]
     if cfg.max_vertices and n_fine > cfg.max_vertices:
@@ -89,6 +96,21 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
     write_outputs(out, result)
     write_json_atomic(out / "config.json", {**to_dict(cfg), "source": str(source.resolve())})
     return result
+
+
+def contact_offset(given: float | None, data) -> dict:
+    """The fit's contact thickness: ``given`` [m], or (None) estimated from the window's first
+    frame (sim.offset.estimate_contact_offset; 0 without a body). A report dict with offset_mm."""
+    from ...sim import SimSettings
+    from ...sim.offset import estimate_contact_offset
+
+    if given is not None:
+        return {"method": "given", "offset_mm": 1e3 * float(given)}
+    if data.collider is None:
+        return {"method": "no body", "offset_mm": 0.0}
+    x0 = data.reference[0] if data.initial is None else data.initial  # the start (clear_start)
+    return estimate_contact_offset(x0, data.faces, data.collider[0], data.collider_faces,
+                                   data.boundary, SimSettings().dhat)[1]
 
 
 def iteration_line(row: dict) -> str:

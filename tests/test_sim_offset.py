@@ -1,0 +1,95 @@
+"""The cloth's contact thickness (Material.contact_offset, ipctk's d_min): cloth settles at it on a
+plane (its distance is its height), the exact gradients hold with it (central differences), and
+the estimate from a template finds a resting band and ignores a designed clearance."""
+
+import dataclasses
+
+import cloth_grid
+import numpy as np
+import pytest
+
+from physavatar.sim import ClothSim, Material, SimSettings, preset
+from physavatar.sim.offset import estimate_contact_offset
+
+
+def plane(size=1.0, z=0.0):
+    """A square floor of two triangles at height z, facing up."""
+    V = np.array([[-size, -size, z], [size, -size, z], [size, size, z], [-size, size, z]])
+    return V, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def settle_on_plane(material, drop=0.008, steps=40):
+    V, F = cloth_grid.grid(7, 0.3, z=drop, center=True)
+    B, BF = plane()
+    sim = ClothSim(V, F, material, SimSettings(dt=0.04, damping_mass=5.0), [])
+    x, v = V.copy(), np.zeros_like(V)
+    for _ in range(steps):
+        x, v, st = sim.step(x, v, B, B, BF)
+        assert st.converged and np.all(np.isfinite(x))
+    assert np.abs(v).max() < 1e-3  # at rest
+    return x[:, 2]
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.003, 0.006])
+def test_cloth_rests_on_a_plane_at_the_contact_offset(offset):
+    """The height of cloth lying flat on a floor is its distance to it: within the barrier's
+    reach (d_min, d_min + d̂) of the offset, d̂ = 1 mm."""
+    z = settle_on_plane(dataclasses.replace(preset("cotton"), contact_offset=offset))
+    dhat = SimSettings().dhat
+    assert z.min() > offset
+    assert z.max() < offset + dhat
+    assert z.max() - z.min() < 0.2 * dhat  # flat on the floor
+
+
+def test_settings_dmin_overrides_the_material():
+    m = dataclasses.replace(preset("cotton"), contact_offset=0.003)
+    V, F = cloth_grid.grid(3, 0.1)
+    assert ClothSim(V, F, m, SimSettings()).dmin == 0.003
+    assert ClothSim(V, F, m, SimSettings(dmin=0.005)).dmin == 0.005
+    assert Material.from_dict(m.to_dict()).contact_offset == 0.003
+    assert Material.from_dict({k: v for k, v in preset("cotton").to_dict().items()
+                               if k != "contact_offset"}).contact_offset == 0.0  # older files
+
+
+def test_exact_gradient_matches_central_fd_with_a_contact_offset():
+    """The sensitivities through ipctk's d_min barrier (b(d² − d_min², (2 d_min + d̂) d̂)) against
+    central differences of the simulator, as tests/test_physics.py does without an offset:
+    frictionless within 1 % (measured 0.02 %); with friction 0.2 within 10 % (measured 7.6 % on
+    κb: the lagged normal forces' dependence on θ, which the sensitivities leave out, is larger
+    at the offset; 0.3 % without it)."""
+    from test_physics import TIGHT, cloth_on_sphere, exact_and_central_fd
+
+    from physavatar.geometry.closest import MeshQuery
+
+    data = cloth_on_sphere()
+    m = dataclasses.replace(preset("cotton"), contact_offset=0.003)
+    for friction, tol in ((0.0, 0.01), (0.2, 0.1)):
+        exact, fd, r = exact_and_central_fd(data, m, dataclasses.replace(TIGHT, friction=friction), 1e-3)
+        assert r.positions[-1, :, 2].min() < -0.05  # draped over the sphere
+        # the least cloth–sphere distance (cloth vertices to the sphere, sphere vertices to the cloth)
+        d = min(MeshQuery(data.collider[0], data.collider_faces).closest(r.positions[-1])[0].min(),
+                MeshQuery(r.positions[-1], data.faces).closest(data.collider[0])[0].min())
+        assert 0.003 < d < 0.004  # it rests on the sphere at the offset
+        assert np.all(np.abs(fd) > 1e-6)
+        np.testing.assert_array_less(np.abs(exact - fd) / np.abs(fd), tol)
+
+
+def test_offset_estimate_finds_the_resting_band_and_ignores_a_design_clearance():
+    """A garment resting 6 mm on a floor over part of it, rising beyond (a drape, as NVIDIA
+    Newton's cloth rests at its particle radius): offset 6 − d̂ = 5 mm. The same cloth placed at
+    a clearance growing from 5 mm at one point (a design): no resting band, offset 0."""
+    B, BF = plane()
+    V, F = cloth_grid.grid(21, 0.4, center=True)
+    rise = np.clip(V[:, 0], 0.0, None)  # flat for x < 0, rising beyond
+    rest = V + np.c_[np.zeros((len(V), 2)), 0.006 + 0.3 * rise ** 1.5]
+    offset, report = estimate_contact_offset(rest, F, B, BF)
+    assert report["resting"] and offset == pytest.approx(0.005, abs=2e-4)
+    r = np.linalg.norm(V[:, :2], axis=1)  # closest at one point, the clearance growing around it
+    design = V + np.c_[np.zeros((len(V), 2)), 0.005 + 0.2 * r ** 1.2]
+    offset, report = estimate_contact_offset(design, F, B, BF)
+    assert not report["resting"] and offset == 0.0
+    # the start must stay feasible (every pair beyond d_min): capped below the least pair distance
+    poked = rest.copy()
+    poked[len(V) // 4, 2] = 0.002
+    offset, report = estimate_contact_offset(poked, F, B, BF)
+    assert offset == pytest.approx(0.0015, abs=1e-4)
