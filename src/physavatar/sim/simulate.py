@@ -122,6 +122,24 @@ def seam_exclusions(faces, seams, n_vertices: int | None = None) -> np.ndarray:
     return np.c_[pairs.row[keep], pairs.col[keep]].astype(np.int64)
 
 
+def feasible_thickness(sim, x, body, body_faces) -> SimSettings:
+    """``sim``'s settings with a contact thickness its start ``x`` (body ``body``) satisfies: the
+    thickness (Material.contact_offset, SimSettings.dmin) unless a contact pair of the start is
+    closer than it plus d̂/2, then that pair's distance less d̂/2 (ipctk's barrier is undefined
+    closer than d_min), with a warning."""
+    from .offset import start_distance
+
+    s = sim.settings
+    least = (start_distance(x, sim.topo.faces, body, np.asarray(body_faces, np.int64).reshape(-1, 3), sim.boundary)
+             if body is not None and len(body) else np.inf)
+    if least >= sim.dmin + 0.5 * s.dhat:
+        return s
+    thickness = max(least - 0.5 * s.dhat, 1e-9)
+    logging.getLogger(__name__).warning("the start has cloth %.2f mm from the body, closer than the contact offset %.2f mm: simulated "
+                "with %.2f mm", 1e3 * least, 1e3 * sim.dmin, 1e3 * thickness)
+    return dataclasses.replace(s, dmin=thickness)
+
+
 def self_contact_possible(vertices, faces, dhat: float, exclude=None) -> bool:
     """Whether the garment's start leaves every pair of its own non-adjacent triangles ≥ d̂
     apart (ipctk), as self-contact needs, apart from the pairs ``exclude`` [P, 2] leaves out
@@ -229,6 +247,8 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
     v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)
     x0_boundary = x[sim.boundary].copy()
+    if sim.dmin > 0 and resume is None:
+        settings = sim.settings = feasible_thickness(sim, x, bodies[0], collider_faces)
 
     def targets(frame):
         if len(sim.boundary) == 0:

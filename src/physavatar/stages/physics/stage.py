@@ -100,17 +100,21 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
 
 def contact_offset(given: float | None, data) -> dict:
     """The fit's contact thickness: ``given`` [m], or (None) estimated from the window's first
-    frame (sim.offset.estimate_contact_offset; 0 without a body). A report dict with offset_mm."""
+    frame (sim.offset.estimate_contact_offset; 0 without a body); either capped so that the start
+    stays feasible (every contact pair d̂/2 beyond it). A report dict with offset_mm."""
     from ...sim import SimSettings
-    from ...sim.offset import estimate_contact_offset
+    from ...sim.offset import estimate_contact_offset, start_distance
 
-    if given is not None:
-        return {"method": "given", "offset_mm": 1e3 * float(given)}
-    if data.collider is None:
-        return {"method": "no body", "offset_mm": 0.0}
+    dhat = SimSettings().dhat
+    if data.collider is None or given == 0:
+        return {"method": "given" if given == 0 else "no body", "offset_mm": 0.0}
     x0 = data.reference[0] if data.initial is None else data.initial  # the start (clear_start)
-    return estimate_contact_offset(x0, data.faces, data.collider[0], data.collider_faces,
-                                   data.boundary, SimSettings().dhat)[1]
+    if given is None:
+        return estimate_contact_offset(x0, data.faces, data.collider[0], data.collider_faces, data.boundary, dhat)[1]
+    least = start_distance(x0, data.faces, data.collider[0], data.collider_faces, data.boundary)
+    cap = max(least - 0.5 * dhat, 0.0)
+    return {"method": "given", "given_mm": 1e3 * given, "least_pair_mm": 1e3 * least, "cap_mm": 1e3 * cap,
+            "offset_mm": 1e3 * min(given, cap)}
 
 
 def iteration_line(row: dict) -> str:
