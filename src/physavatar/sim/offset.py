@@ -13,10 +13,15 @@ simulation starts from): the resting distance r is the ``percentile`` (1 %) of t
 vertices' distances to the body, and the garment rests on the body when at least
 ``min_fraction`` (2 %) of them lie within ``band`` (0.5 mm) of r. The offset is then r − d̂, so
 the template starts where the barrier begins to act (d_min + d̂) and settles into it under load as
-it did in the capture; else 0. It is capped so that every cloth–body primitive pair of the start
-(edges too, which are closer than the vertices where the body is convex) stays at least d̂/2
-beyond the offset: ipctk's barrier is b(d² − d_min², (2 d_min + d̂) d̂), undefined for d < d_min
-(NaN energies, and a Hessian that cannot be projected onto the PSD cone).
+it did in the capture; else 0.
+
+ipctk's barrier is b(d² − d_min², (2 d_min + d̂) d̂), undefined for d < d_min (NaN energies, and a
+Hessian that cannot be projected onto the PSD cone: why ``SimSettings.dmin`` failed before), so
+every cloth–body primitive pair of the start must lie beyond it, not only the vertices: Newton's
+cloth keeps its *vertices* 6 mm off the body, but body vertices and edges come to 2.5 mm of its
+faces and edges. :func:`lift_start` moves the few cloth vertices of such pairs out to d_min + d̂/2
+(ipctk's pairs and distance gradients); :func:`feasible_start` does that and, where it cannot,
+lowers the thickness to what the start allows.
 """
 
 from __future__ import annotations
@@ -51,12 +56,58 @@ def estimate_contact_offset(vertices, faces, body_vertices, body_faces, boundary
     frac = float(np.mean(d <= r + band))
     resting = frac >= min_fraction
     offset = max(r - dhat, 0.0) if resting else 0.0
-    least = start_distance(V, faces, B, body_faces, boundary)
-    cap = max(least - 0.5 * dhat, 0.0)
-    report |= {"resting_mm": 1e3 * r, "band_fraction": frac, "resting": bool(resting),
-               "least_pair_mm": 1e3 * least, "cap_mm": 1e3 * cap}
-    offset = min(offset, cap)
+    report |= {"resting_mm": 1e3 * r, "band_fraction": frac, "resting": bool(resting)}
     return offset, report | {"offset_mm": 1e3 * offset}
+
+
+def lift_start(vertices, faces, body_vertices, body_faces, clearance: float, fixed=(), rounds: int = 20,
+               limit: float = 0.01):
+    """``vertices`` [N, 3] with every contact pair of cloth and body at least ``clearance`` [m]
+    apart, moving free cloth vertices only (not ``fixed``): each round, the cloth vertices of every
+    pair closer than that (ipctk's pairs: vertex–face, edge–edge, ... both ways) move along the
+    pair's distance gradient by 1.1 × the shortfall, at most ``limit`` in all. A start that a
+    contact thickness needs (ipctk's barrier is undefined within d_min): a simulator without one
+    (NVIDIA Newton's particles) lets the body's vertices and edges come closer to the cloth's
+    faces and edges than its vertices. Returns (vertices, least pair distance after [m])."""
+    from .contact import ContactScene
+
+    x0 = np.asarray(vertices, np.float64)
+    x = x0.copy()
+    B = np.asarray(body_vertices, np.float64)
+    n = len(x)
+    free = np.ones(n, bool)
+    free[np.asarray(fixed, np.int64)] = False
+    scene = ContactScene(x, faces, B, body_faces, dhat=clearance, prescribed=np.asarray(fixed, np.int64))
+    E, F = scene.mesh.edges, scene.mesh.faces
+    for _ in range(rounds):
+        X = np.vstack([x, B])
+        scene.prepare_static(X)
+        c = scene.collisions_at(X)
+        move = np.zeros_like(x)
+        for group in (c.vv_collisions, c.ev_collisions, c.ee_collisions, c.fv_collisions):
+            for col in group:
+                ids = np.array(col.vertex_ids(E, F))
+                ids = ids[ids >= 0]
+                d = float(np.sqrt(max(col.compute_distance(X[ids].ravel()), 0.0)))
+                if d >= clearance:
+                    continue
+                g = np.asarray(col.compute_distance_gradient(X[ids].ravel())).reshape(-1, 3)
+                cloth = (ids < n) & free[np.minimum(ids, n - 1)]
+                if not cloth.any():
+                    continue
+                dirs = g[cloth] / np.maximum(np.linalg.norm(g[cloth], axis=1, keepdims=True), 1e-30)
+                step = 1.1 * (clearance - d) * dirs
+                for i, v in zip(ids[cloth], step):
+                    if np.dot(v, v) > np.dot(move[i], move[i]):
+                        move[i] = v
+        if not move.any():
+            break
+        x = x + move
+        total = np.linalg.norm(x - x0, axis=1)
+        over = total > limit
+        if over.any():  # never more than ``limit`` from the start
+            x[over] = x0[over] + (x - x0)[over] * (limit / total[over])[:, None]
+    return x, start_distance(x, faces, B, body_faces, fixed)
 
 
 def start_distance(vertices, faces, body_vertices, body_faces, prescribed=(), reach: float = 0.05) -> float:
@@ -73,3 +124,20 @@ def start_distance(vertices, faces, body_vertices, body_faces, prescribed=(), re
     if not len(c):
         return reach
     return float(np.sqrt(c.compute_minimum_distance(scene.mesh, X)))
+
+
+def feasible_start(vertices, faces, body_vertices, body_faces, offset: float, dhat: float, fixed=()):
+    """(start, thickness, report): ``vertices`` lifted so that every contact pair is d̂/2 beyond
+    ``offset`` (:func:`lift_start`), and the offset, lowered to the least pair distance less d̂/2
+    where the lift could not reach it (the vertices unchanged when nothing was closer)."""
+    need = offset + 0.5 * dhat
+    least0 = start_distance(vertices, faces, body_vertices, body_faces, fixed)
+    report = {"least_pair_mm": 1e3 * least0, "lifted_vertices": 0, "max_lift_mm": 0.0}
+    if offset <= 0 or least0 >= need:
+        return np.asarray(vertices, np.float64), offset, report
+    x, least = lift_start(vertices, faces, body_vertices, body_faces, need * 1.02, fixed)
+    lift = np.linalg.norm(x - np.asarray(vertices), axis=1)
+    thickness = offset if least >= need else max(least - 0.5 * dhat, 0.0)
+    report.update(lifted_vertices=int(np.count_nonzero(lift > 0)), max_lift_mm=1e3 * float(lift.max()),
+                  least_pair_after_mm=1e3 * least, thickness_mm=1e3 * thickness)
+    return x, thickness, report
