@@ -93,3 +93,21 @@ def test_offset_estimate_finds_the_resting_band_and_ignores_a_design_clearance()
     poked[len(V) // 4, 2] = 0.002
     offset, report = estimate_contact_offset(poked, F, B, BF)
     assert offset == pytest.approx(0.0015, abs=1e-4)
+
+
+def test_lift_start_clears_every_pair_beyond_the_thickness():
+    """A body vertex poking up under a cloth face that rests 6 mm above the floor (as Newton's
+    drapes have them: its radius keeps only the cloth's vertices off): lift_start moves the
+    cloth there, and only there, until every pair is beyond the clearance (ipctk's distances)."""
+    from physavatar.sim.offset import lift_start, start_distance
+
+    V, F = cloth_grid.grid(11, 0.2, z=0.006, center=True)
+    B, BF = cloth_grid.grid(11, 0.2, z=0.0, center=True)
+    B[60, 2] = 0.004  # under the middle of the cloth, 2 mm from its faces
+    B[:, :2] += 0.01  # the body's vertices below the cloth's faces, not its vertices
+    assert start_distance(V, F, B, BF) < 0.0021
+    x, least = lift_start(V, F, B, BF, 0.0045)
+    assert least >= 0.0045 and start_distance(x, F, B, BF) >= 0.0045
+    moved = np.linalg.norm(x - V, axis=1) > 0
+    assert 0 < moved.sum() <= 6  # the corners of the faces over the poke
+    assert np.all(np.linalg.norm(V[moved, :2] - B[60, :2], axis=1) < 0.03)

@@ -11,17 +11,23 @@ band: its distances spread from the smallest on.
 :func:`estimate_contact_offset` looks for that band in one frame (the template, the frame the
 simulation starts from): the resting distance r is the ``percentile`` (1 %) of the free
 vertices' distances to the body, and the garment rests on the body when at least
-``min_fraction`` (2 %) of them lie within ``band`` (0.5 mm) of r. The offset is then r − d̂, so
-the template starts where the barrier begins to act (d_min + d̂) and settles into it under load as
-it did in the capture; else 0.
+``min_fraction`` (2 %) of them lie within ``band`` (0.5 mm) of r. The offset is then r − d̂ (the
+template starts where the barrier begins to act, d_min + d̂, and settles into it under load as it
+did in the capture), capped at the least distance of any contact pair of the template less d̂/2;
+else 0. The cap matters: Newton's radius holds the cloth's *vertices* 6 mm off the body, while
+ipctk's d_min holds every pair (body vertices against cloth faces, edges against edges), and on
+Newton's drapes those come to 2.5 mm. On the foreign tops the capped offset (2.0 mm) predicted the
+held-out motion best: 3 mm as well, 4 mm a little worse, and 5 mm (the start lifted to it,
+:func:`lift_start`: 195 vertices up to 3.5 mm) worse than none (docs/physics.md, "Session 25").
 
 ipctk's barrier is b(d² − d_min², (2 d_min + d̂) d̂), undefined for d < d_min (NaN energies, and a
 Hessian that cannot be projected onto the PSD cone: why ``SimSettings.dmin`` failed before), so
 every cloth–body primitive pair of the start must lie beyond it, not only the vertices: Newton's
 cloth keeps its *vertices* 6 mm off the body, but body vertices and edges come to 2.5 mm of its
-faces and edges. :func:`lift_start` moves the few cloth vertices of such pairs out to d_min + d̂/2
-(ipctk's pairs and distance gradients); :func:`feasible_start` does that and, where it cannot,
-lowers the thickness to what the start allows.
+faces and edges. For a thickness given or a start other than the template, :func:`lift_start`
+moves the cloth vertices of such pairs out to d_min + d̂/2 (ipctk's pairs and distance gradients);
+:func:`feasible_start` does that and, where it cannot, lowers the thickness to what the start
+allows.
 """
 
 from __future__ import annotations
@@ -57,6 +63,10 @@ def estimate_contact_offset(vertices, faces, body_vertices, body_faces, boundary
     resting = frac >= min_fraction
     offset = max(r - dhat, 0.0) if resting else 0.0
     report |= {"resting_mm": 1e3 * r, "band_fraction": frac, "resting": bool(resting)}
+    if offset > 0:  # no more than every contact pair of the template allows (d̂/2 beyond it)
+        least = start_distance(V, faces, B, body_faces, boundary)
+        report |= {"least_pair_mm": 1e3 * least, "cap_mm": 1e3 * max(least - 0.5 * dhat, 0.0)}
+        offset = min(offset, max(least - 0.5 * dhat, 0.0))
     return offset, report | {"offset_mm": 1e3 * offset}
 
 
@@ -133,11 +143,11 @@ def feasible_start(vertices, faces, body_vertices, body_faces, offset: float, dh
     need = offset + 0.5 * dhat
     least0 = start_distance(vertices, faces, body_vertices, body_faces, fixed)
     report = {"least_pair_mm": 1e3 * least0, "lifted_vertices": 0, "max_lift_mm": 0.0}
-    if offset <= 0 or least0 >= need:
+    if offset <= 0 or least0 >= need - 0.1 * dhat:  # (the estimate's cap sits at need itself)
         return np.asarray(vertices, np.float64), offset, report
     x, least = lift_start(vertices, faces, body_vertices, body_faces, need * 1.02, fixed)
     lift = np.linalg.norm(x - np.asarray(vertices), axis=1)
-    thickness = offset if least >= need else max(least - 0.5 * dhat, 0.0)
+    thickness = offset if least >= need - 0.1 * dhat else max(least - 0.5 * dhat, 0.0)
     report.update(lifted_vertices=int(np.count_nonzero(lift > 0)), max_lift_mm=1e3 * float(lift.max()),
                   least_pair_after_mm=1e3 * least, thickness_mm=1e3 * thickness)
     return x, thickness, report
