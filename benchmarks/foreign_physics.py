@@ -251,6 +251,14 @@ def main(argv=None) -> int:
             res = run_case(cfg, folder, seeds, say=lambda s: print(s, flush=True), points=points, offset=offset)
             result["results"][key] = res
             result["checks"].update(checks_for(key, res))
+            if offset != 0 and cfg.name in result["results"]:  # also against the draws without an offset
+                # (evaluate's random rows: simulated before any fit, as random_material draws them)
+                base = result["results"][cfg.name]["rows"]
+                mixed = dict(res, rows=dict(res["rows"], **{"random material": base["random material"]}))
+                c = checks_for(key, mixed).get(f"{key}:oracle_heldout_cd_below_random")
+                if c is not None:
+                    result["checks"][f"{key}:oracle_heldout_cd_below_random_without_offset"] = dict(
+                        c, informative=True)
             print(f"{key}: contact offset {res['contact_offset']}; oracle fit RMS {res['oracle_fit']['rms_mm']:.2f} mm",
                   flush=True)
             for name, r in res["rows"].items():
