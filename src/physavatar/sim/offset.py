@@ -16,12 +16,13 @@ vertices' distances to the body, and the garment rests on the body when at least
 mm, 7.1 %; the demo dress's template 9.7 mm, 0.1 %; a coarse skirt of our own simulator
 (`simulate --garment skirt --edge-length 0.05`, 216 free vertices) 8.8 mm, 1.4 %. The offset is then r − d̂ (the
 template starts where the barrier begins to act, d_min + d̂, and settles into it under load as it
-did in the capture), capped at the least distance of any contact pair of the template less d̂/2;
-else 0. The cap matters: Newton's radius holds the cloth's *vertices* 6 mm off the body, while
-ipctk's d_min holds every pair (body vertices against cloth faces, edges against edges), and on
-Newton's drapes those come to 2.5 mm. On the foreign tops the capped offset (2.0 mm) predicted the
-held-out motion best: 3 mm as well, 4 mm a little worse, and 5 mm (the start lifted to it,
-:func:`lift_start`: 195 vertices up to 3.5 mm) worse than none (docs/physics.md, "Session 25").
+did in the capture), capped at the least distance of any contact pair of the template plus d̂/2
+(the start then needs a lift of at most about d̂ to hold every pair d̂/2 beyond it); else 0. The
+cap matters: Newton's radius holds the cloth's *vertices* 6 mm off the body, while ipctk's d_min
+holds every pair (body vertices against cloth faces, edges against edges), and on Newton's drapes
+those come to 2.5 mm. On the foreign captures 3 mm (the cap) predicted the held-out motion best of
+0, 2, 3, 4 and 5 mm; 5 mm (195 start vertices lifted up to 3.5 mm, :func:`lift_start`) was worse
+than none (docs/physics.md, "Session 25").
 
 ipctk's barrier is b(d² − d_min², (2 d_min + d̂) d̂), undefined for d < d_min (NaN energies, and a
 Hessian that cannot be projected onto the PSD cone: why ``SimSettings.dmin`` failed before), so
@@ -41,6 +42,7 @@ PERCENTILE = 1.0  # % of the free vertices: the resting distance r (robust to a 
 BAND = 2.5e-4  # m: a vertex within this of r rests on the body
 MIN_FRACTION = 0.03  # of the free vertices within the band (and at least MIN_COUNT): it rests on the body
 MIN_COUNT = 10
+LIFT = 1.0  # × d̂: the estimate needs the start lifted by at most about this (its cap)
 
 
 def estimate_contact_offset(vertices, faces, body_vertices, body_faces, boundary=(), dhat: float = 1e-3,
@@ -67,10 +69,11 @@ def estimate_contact_offset(vertices, faces, body_vertices, body_faces, boundary
     resting = frac >= min_fraction and np.count_nonzero(d <= r + band) >= MIN_COUNT
     offset = max(r - dhat, 0.0) if resting else 0.0
     report |= {"resting_mm": 1e3 * r, "band_fraction": frac, "resting": bool(resting)}
-    if offset > 0:  # no more than every contact pair of the template allows (d̂/2 beyond it)
+    if offset > 0:  # no more than the template allows with a lift of at most d̂ (feasible_start)
         least = start_distance(V, faces, B, body_faces, boundary)
-        report |= {"least_pair_mm": 1e3 * least, "cap_mm": 1e3 * max(least - 0.5 * dhat, 0.0)}
-        offset = min(offset, max(least - 0.5 * dhat, 0.0))
+        cap = least + LIFT * dhat - 0.5 * dhat
+        report |= {"least_pair_mm": 1e3 * least, "cap_mm": 1e3 * cap}
+        offset = min(offset, cap)
     return offset, report | {"offset_mm": 1e3 * offset}
 
 
