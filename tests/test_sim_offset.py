@@ -111,3 +111,26 @@ def test_lift_start_clears_every_pair_beyond_the_thickness():
     moved = np.linalg.norm(x - V, axis=1) > 0
     assert 0 < moved.sum() <= 6  # the corners of the faces over the poke
     assert np.all(np.linalg.norm(V[moved, :2] - B[60, :2], axis=1) < 0.03)
+
+
+def test_fit_physics_records_the_estimated_offset_and_simulations_keep_it(tmp_path):
+    """The whole chain: a sequence of cloth resting 6 mm above a floor (as Newton's would) is fitted
+    with the offset estimated from its first frame (6 − d̂ = 5 mm), material.json records it, and
+    a simulation of the fitted material (no settings given) keeps the cloth that far off."""
+    from physavatar.data.material import FittedMaterial
+    from physavatar.sim import simulate
+    from physavatar.stages.physics import run as fit_physics
+    from physavatar.stages.physics.config import PhysicsConfig
+
+    V, F = cloth_grid.grid(7, 0.3, z=0.006, center=True)
+    B, BF = plane()
+    T = 3
+    np.savez(tmp_path / "seq.npz", vertices=np.repeat(V[None], T, 0), faces=F, body_vertices=np.repeat(B[None], T, 0),
+             body_faces=BF, fps=25.0)
+    fit_physics(tmp_path / "seq.npz", out=tmp_path / "fit", config=PhysicsConfig(window=3, iterations=1,
+                                                                                 integrator="euler"))
+    fitted = FittedMaterial.load(tmp_path / "fit" / "material.json")
+    assert fitted.material.contact_offset == pytest.approx(0.005, abs=1e-5)
+    assert fitted.start_state["contact_offset"]["resting"]
+    x = simulate(V, F, fitted.material, np.repeat(B[None], 6, 0), BF, [], None, 25.0)
+    assert np.all(x[-1][:, 2] > 0.005) and np.all(x[-1][:, 2] < 0.006)
