@@ -2,7 +2,7 @@
 judged on its held-out motion, in minutes instead of a full `physavatar run`.
 
     python benchmarks/foreign_physics.py [--cases NAME,NAME] [--work DIR] [--seeds 0,1,2,3,4]
-                                         [--points 10000,100000] [--out FILE]
+                                         [--points 10000,100000] [--contact-offsets 0,auto] [--out FILE]
 
 For each case of benchmarks/foreign_capture.py (same ForeignConfig: garment, fabric, body shape,
 motions, Newton settings, the drape before frame 0) the generator's Newton VBD simulation is run
@@ -27,7 +27,11 @@ meshes (the oracle row of foreign_capture.py):
   (foreign_capture.py) cannot be expected to do better; the raw ratios at the densest sampling
   are kept beside them (`raw_value_dense`).
 
-Meshes, fits and simulations are cached in --work (default /tmp/foreign_physics). Writes
+With --contact-offsets, each offset is a variant on the same meshes (session 25): the oracle fitted
+with that contact thickness (``auto``: fit-physics' estimate from the template, sim.offset), and
+the random draws simulated with the oracle's offset (the same model); a variant with an offset also
+gets the informative check against the draws without one (`evaluate`'s random rows have none).
+Results of a variant are under NAME@offset-LABEL. Meshes, fits and simulations are cached in --work (default /tmp/foreign_physics). Writes
 benchmarks/results/foreign_physics.json.
 """
 
