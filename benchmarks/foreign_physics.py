@@ -2,7 +2,7 @@
 judged on its held-out motion, in minutes instead of a full `physavatar run`.
 
     python benchmarks/foreign_physics.py [--cases NAME,NAME] [--work DIR] [--seeds 0,1,2,3,4]
-                                         [--points 10000,100000] [--out FILE]
+                                         [--points 10000,100000] [--contact-offsets 0,auto] [--out FILE]
 
 For each case of benchmarks/foreign_capture.py (same ForeignConfig: garment, fabric, body shape,
 motions, Newton settings, the drape before frame 0) the generator's Newton VBD simulation is run
@@ -27,7 +27,11 @@ meshes (the oracle row of foreign_capture.py):
   (foreign_capture.py) cannot be expected to do better; the raw ratios at the densest sampling
   are kept beside them (`raw_value_dense`).
 
-Meshes, fits and simulations are cached in --work (default /tmp/foreign_physics). Writes
+With --contact-offsets, each offset is a variant on the same meshes (session 25): the oracle fitted
+with that contact thickness (``auto``: fit-physics' estimate from the template, sim.offset), and
+the random draws simulated with the oracle's offset (the same model); a variant with an offset also
+gets the informative check against the draws without one (`evaluate`'s random rows have none).
+Results of a variant are under NAME@offset-LABEL. Meshes, fits and simulations are cached in --work (default /tmp/foreign_physics). Writes
 benchmarks/results/foreign_physics.json.
 """
 
@@ -98,7 +102,23 @@ def lbs_row(m: dict) -> np.ndarray:
     return linear_blend_skinning(x0, W, Ph @ np.linalg.inv(P0)[None])
 
 
-def run_case(cfg, folder: Path, seeds: list[int], say=print, points: tuple[int, ...] = (10000,)) -> dict:
+def material_key(mat) -> dict:
+    """A simulated row's cache key: the material, without a zero contact offset (the key it had
+    before Material.contact_offset existed)."""
+    d = mat.to_dict()
+    if not d.get("contact_offset"):
+        d.pop("contact_offset", None)
+        d["units"].pop("contact_offset", None)
+    return d
+
+
+def offset_tag(offset) -> str:
+    """The cache suffix of a --contact-offset variant ("" for none: the folders before session 25)."""
+    return "" if offset == 0 else "-offset-auto" if offset is None else f"-offset-{1e3 * offset:g}mm"
+
+
+def run_case(cfg, folder: Path, seeds: list[int], say=print, points: tuple[int, ...] = (10000,),
+             offset: float | None = 0.0) -> dict:
     from physavatar.data.material import FittedMaterial
     from physavatar.files import save_npz_atomic
     from physavatar.garment_sim import GarmentPart, simulate_on_body
@@ -112,22 +132,27 @@ def run_case(cfg, folder: Path, seeds: list[int], say=print, points: tuple[int, 
     seq = folder / "train_sequence.npz"
     save_npz_atomic(seq, vertices=m["garment_train"], faces=F, boundary=B, body_vertices=m["body_train"],
                     body_faces=BF, fps=cfg.fps)
-    fit_dir = folder / "oracle"
+    tag = offset_tag(offset)
+    fit_dir = folder / f"oracle{tag}"
     t0 = time.time()
     if not (fit_dir / "material.json").exists():
-        fit_physics(seq, out=fit_dir, config=pipeline_config(quick=True), say=lambda s: say(f"  fit: {s}"))
+        config = dataclasses.replace(pipeline_config(quick=True), contact_offset=offset)
+        fit_physics(seq, out=fit_dir, config=config, say=lambda s: say(f"  fit: {s}"))
     fit_s = round(time.time() - t0, 1)
     fitted = json.loads((fit_dir / "material.json").read_text())
     gh = m["garment_heldout"]
     rows = {"LBS": lbs_row(m)}
-    mats = {random_draw_row(s): random_material(s) for s in seeds}
-    mats["oracle material"] = FittedMaterial.load(fit_dir / "material.json").material
+    oracle = FittedMaterial.load(fit_dir / "material.json").material
+    # the random draws in the same simulation model as the oracle: its contact offset
+    mats = {random_draw_row(s): dataclasses.replace(random_material(s), contact_offset=oracle.contact_offset)
+            for s in seeds}
+    mats["oracle material"] = oracle
     part = GarmentPart(np.arange(len(m["garment_train"][0])), m["garment_train"][0].copy(), F, B)
     sim_s = {}
     for name, mat in mats.items():
-        f = folder / f"{name.replace(' ', '_').replace('(', '').replace(')', '')}.npy"
+        f = folder / f"{name.replace(' ', '_').replace('(', '').replace(')', '')}{tag}.npy"
         key = folder / (f.stem + ".json")
-        if f.exists() and key.exists() and json.loads(key.read_text()) == mat.to_dict():
+        if f.exists() and key.exists() and json.loads(key.read_text()) == material_key(mat):
             rows[name] = np.load(f)
             continue
         t0 = time.time()
@@ -138,9 +163,10 @@ def run_case(cfg, folder: Path, seeds: list[int], say=print, points: tuple[int, 
             continue
         sim_s[name] = round(time.time() - t0, 1)
         np.save(f, rows[name])
-        key.write_text(json.dumps(mat.to_dict()))
+        key.write_text(json.dumps(material_key(mat)))
     rows["truth (resampled)"] = gh
     out = {"settle": m["settle"], "seconds": {"fit": fit_s, "simulations": sim_s},
+           "contact_offset": (fitted.get("start_state") or {}).get("contact_offset"),
            "oracle_fit": {"rms_mm": fitted["rms_mm"], "initial_rms_mm": fitted.get("initial_rms_mm"),
                           "stretch_ratio": fitted["ratios"]["stretch_ratio"]["value"],
                           "bend_ratio": fitted["ratios"]["bend_ratio"]["value"],
@@ -203,6 +229,9 @@ def main(argv=None) -> int:
                     "more lower the sampling floor (A / (pi n))")
     ap.add_argument("--settle-frames", type=int, default=None, help="override ForeignConfig.settle_frames")
     ap.add_argument("--settle-damping", type=float, default=None, help="override ForeignConfig.settle_damping")
+    ap.add_argument("--contact-offsets", default="0", help="comma-separated contact offsets of the oracle fit, "
+                    "each a variant run on the same meshes (results under NAME and NAME@OFFSET): 0 (none, the "
+                    "results before session 25), auto (fit-physics' estimate from the template) or metres")
     ap.add_argument("--out", default=str(HERE / "results" / "foreign_physics.json"))
     args = ap.parse_args(argv)
     cases = FC.QUICK_CASES
@@ -217,15 +246,29 @@ def main(argv=None) -> int:
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(os.getloadavg())},
               "config": {"cases": [c.to_dict() for c in cases], "seeds": seeds, "points": list(points)}, "results": {}, "checks": {}}
     out = Path(args.out)
+    offsets = [None if o == "auto" else float(o) for o in args.contact_offsets.split(",")]
+    result["config"]["contact_offsets"] = args.contact_offsets.split(",")
     for cfg in cases:
         folder = Path(args.work) / f"{cfg.name}-settle{cfg.settle_frames}x{cfg.settle_damping}"
-        res = run_case(cfg, folder, seeds, say=lambda s: print(s, flush=True), points=points)
-        result["results"][cfg.name] = res
-        result["checks"].update(checks_for(cfg.name, res))
-        for name, r in res["rows"].items():
-            dense = "".join(f"  CD@{n} {v:.5f}" for n, v in r.get("dense_chamfer_x1e3", {}).items())
-            print(f"{cfg.name:16s} {name:26s} CD {r['chamfer_x1e3']:.4f} (above floor {r['chamfer_above_floor_x1e3']:.4f})"
-                  f"  vertex {r['vertex_mean_mm']:.2f} mm{dense}", flush=True)
+        for offset, label in zip(offsets, args.contact_offsets.split(",")):
+            key = cfg.name if offset == 0 else f"{cfg.name}@offset-{label}"
+            res = run_case(cfg, folder, seeds, say=lambda s: print(s, flush=True), points=points, offset=offset)
+            result["results"][key] = res
+            result["checks"].update(checks_for(key, res))
+            if offset != 0 and cfg.name in result["results"]:  # also against the draws without an offset
+                # (evaluate's random rows: simulated before any fit, as random_material draws them)
+                base = result["results"][cfg.name]["rows"]
+                mixed = dict(res, rows=dict(res["rows"], **{"random material": base["random material"]}))
+                c = checks_for(key, mixed).get(f"{key}:oracle_heldout_cd_below_random")
+                if c is not None:
+                    result["checks"][f"{key}:oracle_heldout_cd_below_random_without_offset"] = dict(
+                        c, informative=True)
+            print(f"{key}: contact offset {res['contact_offset']}; oracle fit RMS {res['oracle_fit']['rms_mm']:.2f} mm",
+                  flush=True)
+            for name, r in res["rows"].items():
+                dense = "".join(f"  CD@{n} {v:.5f}" for n, v in r.get("dense_chamfer_x1e3", {}).items())
+                print(f"{key:16s} {name:26s} CD {r['chamfer_x1e3']:.4f} (above floor {r['chamfer_above_floor_x1e3']:.4f})"
+                      f"  vertex {r['vertex_mean_mm']:.2f} mm{dense}", flush=True)
         result["machine"]["load_average_end"] = list(os.getloadavg())
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1) + "\n")

@@ -195,7 +195,7 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
         # edge through a cloth triangle, a cloth edge through a body triangle between its
         # corners): lifted above the crossing
         outer = F if scene.outer_faces is None else scene.outer_faces
-        lift = crossing_cloth(cloth, sim.topo.faces, B0, outer, s.dhat)
+        lift = crossing_cloth(cloth, sim.topo.faces, B0, outer, s.dhat + 0.5 * sim.dmin)  # 2 d̂ beyond d_min
         crossing = np.all(np.isfinite(lift), axis=1) & free & ~inside
         inside = inside | crossing
     released = np.flatnonzero(inside)
@@ -209,7 +209,7 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
         at_end = np.flatnonzero(grow(buried1, faces, s.crease_ring)) if buried1.any() else np.zeros(0, np.int64)
         target = np.empty((len(released), 3))
         deep = ~crossing[released]
-        target[deep] = outside_targets(cloth[released[deep]], B1, faces, at_end, s.dhat)
+        target[deep] = outside_targets(cloth[released[deep]], B1, faces, at_end, s.dhat + 0.5 * sim.dmin)
         target[~deep] = lift[released[~deep]]
         pull.set(released, target,
                  sim.inertia.unit_mass[released] * sim.material.density / sim.h_implicit**2)

@@ -31,7 +31,7 @@ def initial_stiffness(sim, X):
     grad_b = unit.gradient(c, sim.scene.mesh, X) if len(c) else np.zeros_like(grad_e)
     k, kmax = ipctk.initial_barrier_stiffness(
         sim.scene.bbox_diagonal(X), unit.barrier, s.dhat, sim._average_mass,
-        grad_e, grad_b, s.barrier_stiffness_scale, s.dmin,
+        grad_e, grad_b, s.barrier_stiffness_scale, sim.dmin,
     )
     sim._kappa_balanced = bool(len(c))
     sim.barrier_stiffness = max(k, sim.barrier_stiffness)
@@ -46,7 +46,7 @@ def adapt_stiffness(sim, sv, stats):
     min_dist = sim.scene.min_distance(sv.X)
     if sim.max_barrier_stiffness > 0 and np.isfinite(min_dist) and np.isfinite(sv.prev_min_dist):
         k = ipctk.update_barrier_stiffness(sv.prev_min_dist, min_dist, sim.max_barrier_stiffness,
-                                           sim.barrier_stiffness, sv.diag, dmin=sim.settings.dmin)
+                                           sim.barrier_stiffness, sv.diag, dmin=sim.dmin)
         if k != sim.barrier_stiffness:
             sim.barrier_stiffness = k
             sim.barrier.set_stiffness(k)

@@ -53,6 +53,14 @@ class Material:
             (solver ``step_base``): 1 is BDF2, 0 implicit Euler, in between a first-order blend
             whose numerical damping lies between theirs. ``fit-physics`` fits it with the
             stiffnesses; 1 for presets and older files.
+        contact_offset: the cloth's contact thickness [m]: the simulations keep the cloth at
+            least this far from the body (ipctk's minimum distance d_min, Codim-IPC's thickness
+            ξ: the barrier acts on d² − d_min² within (2 d_min + d̂) d̂; SimSettings.dmin). Like
+            the integrator it is part of the simulation model the material was fitted in:
+            ``fit-physics`` estimates it from the garment's distance to the body where it rests
+            on it (sim.offset.estimate_contact_offset) and records it, and every simulation of
+            the material uses it unless its settings give a ``dmin``. 0 for presets and older
+            files (no thickness).
     """
 
     density: float = 0.131
@@ -64,6 +72,7 @@ class Material:
     name: str = "codim-ipc-base"
     integrator: str = "euler"
     bdf2_blend: float = 1.0
+    contact_offset: float = 0.0
 
     UNITS = {
         "density": "kg/m^2",
@@ -71,6 +80,7 @@ class Material:
         "bend_stiffness": "N*m",
         "poisson": "1",
         "bdf2_blend": "1",
+        "contact_offset": "m",
     }
 
     def __post_init__(self):
@@ -84,6 +94,8 @@ class Material:
             raise PhysavatarError(None, f"material integrator must be 'euler' or 'bdf2', got {self.integrator!r}")
         if not (np.isfinite(self.bdf2_blend) and 0.0 <= self.bdf2_blend <= 1.0):
             raise PhysavatarError(None, f"material bdf2_blend must be in [0, 1], got {self.bdf2_blend}")
+        if not (np.isfinite(self.contact_offset) and 0.0 <= self.contact_offset < 0.05):
+            raise PhysavatarError(None, f"material contact_offset must be in [0, 0.05) m, got {self.contact_offset}")
 
     # -- derived quantities ------------------------------------------------------------------
 

@@ -19,7 +19,9 @@ class SimSettings:
             step continues the last one, from the sim itself; without one (the first step) the
             step is implicit Euler (a second-order start: the velocity error is O(h²)).
         dhat: barrier activation distance d̂ [m].
-        dmin: minimum separation kept between surfaces [m] (a thickness offset; 0 = none).
+        dmin: minimum separation kept between cloth and body [m] (a thickness: ipctk's d_min,
+            the barrier acting on d² − d_min² within (2 d_min + d̂) d̂); 0 = the material's
+            ``contact_offset`` (ClothSim.dmin; sim.offset estimates it from a template).
         friction: Coulomb coefficient μ (0 turns friction off).
         friction_eps_v: velocity below which friction is static [m/s] (ipctk ε_v).
         friction_iterations: lagged-friction updates per step (1 = λ, T from the step start).

@@ -122,6 +122,26 @@ def seam_exclusions(faces, seams, n_vertices: int | None = None) -> np.ndarray:
     return np.c_[pairs.row[keep], pairs.col[keep]].astype(np.int64)
 
 
+def feasible_thickness(sim, x, body, body_faces):
+    """(start, settings) for ``sim``'s contact thickness (Material.contact_offset, SimSettings.dmin):
+    ``x`` lifted where a contact pair with the body is closer than the thickness plus d̂/2 (ipctk's
+    barrier is undefined closer than d_min), and where that cannot be done the settings' thickness
+    lowered to what the start allows, with a warning (sim.offset.feasible_start)."""
+    from .offset import feasible_start
+
+    s = sim.settings
+    if body is None or not len(body):
+        return x, s
+    x, thickness, report = feasible_start(x, sim.topo.faces, body, np.asarray(body_faces, np.int64).reshape(-1, 3),
+                                          sim.dmin, s.dhat, sim.boundary)
+    if thickness >= sim.dmin:
+        return x, s
+    logging.getLogger(__name__).warning("the start has cloth %.2f mm from the body, closer than the contact offset "
+                                        "%.2f mm: simulated with %.2f mm", report.get("least_pair_after_mm", 0.0),
+                                        1e3 * sim.dmin, 1e3 * thickness)
+    return x, dataclasses.replace(s, dmin=max(thickness, 1e-9))
+
+
 def self_contact_possible(vertices, faces, dhat: float, exclude=None) -> bool:
     """Whether the garment's start leaves every pair of its own non-adjacent triangles ≥ d̂
     apart (ipctk), as self-contact needs, apart from the pairs ``exclude`` [P, 2] leaves out
@@ -229,6 +249,9 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
     v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)
     x0_boundary = x[sim.boundary].copy()
+    if sim.dmin > 0 and resume is None:
+        x, settings = feasible_thickness(sim, x, bodies[0], collider_faces)
+        sim.settings = settings
 
     def targets(frame):
         if len(sim.boundary) == 0:

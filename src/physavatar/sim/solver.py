@@ -125,6 +125,12 @@ class ClothSim:
         # (as exact as a direct solve: the ρ-scaling invariance test holds to 1e-5 only then).
         self.linear_solver_all = NewtonLinearSolver(1e-10, settings.max_cg_iterations, **solver_kw)
 
+    @property
+    def dmin(self) -> float:
+        """The contact thickness [m]: ``settings.dmin`` when set (> 0), else the material's
+        ``contact_offset`` (the model it was fitted in)."""
+        return self.settings.dmin if self.settings.dmin > 0 else self.material.contact_offset
+
     # -- setup ---------------------------------------------------------------------------------
 
     def prepare(self, collider_vertices, collider_faces):
@@ -145,7 +151,7 @@ class ClothSim:
         self.linear_solver.reset()  # a different system: its factor is no preconditioner
         self.linear_solver_all.reset()
         n_total = self.n + self.nb
-        self.scene = CandidateScene(self.topo.rest, self.topo.faces, body_vertices, body_faces, s.dhat, s.dmin,
+        self.scene = CandidateScene(self.topo.rest, self.topo.faces, body_vertices, body_faces, s.dhat, self.dmin,
                                   s.self_contact, exclude=self.contact_exclude, prescribed=self.boundary)
         self.scene.ccd_threads = s.ccd_threads if s.deterministic else 0
         free = np.ones(n_total)

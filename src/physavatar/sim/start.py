@@ -146,7 +146,7 @@ def follow_body(scene, body_faces, free, settings, X_from, X_goal, x_pred, stats
             cloth = [i for i in ids if i < n]
             gap[cloth] = np.minimum(gap[cloth], np.sqrt(max(c.compute_distance(X_from[ids].ravel()), 0.0)))
     gap = np.minimum(gap[free], carry.distance)
-    lift = np.clip(s.follow_lift * s.dhat - gap, 0.0, None) * carry.side
+    lift = np.clip(s.follow_lift * s.dhat + scene.dmin - gap, 0.0, None) * carry.side
     if not lift_still:
         moves = np.linalg.norm(X_goal[n:] - b0, axis=1)[carry.F[carry.face]].max(axis=1)
         lift = np.where(moves > 0, lift, 0.0)

@@ -96,7 +96,7 @@ def untangle_start(sim, x, body_t, body_faces):
     if base is not None:  # the scene's own filter (outer_surface sets this step's after)
         scene.mesh.can_collide = base
     free = sim.inertia.unit_mass[: sim.n] > 0
-    out, moved = untangle(scene, x, sim.topo.faces, B, sim._body_faces, free, sim.settings.dhat,
+    out, moved = untangle(scene, x, sim.topo.faces, B, sim._body_faces, free, sim.settings.dhat + 0.5 * sim.dmin,  # 2 d̂ beyond d_min
                           max(sim.settings.crease_ring, 0))
     return out, len(moved)
 

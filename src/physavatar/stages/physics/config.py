@@ -37,6 +37,10 @@ class PhysicsConfig:
         max_vertices: fit on a coarse proxy of at most this many vertices when the garment has
             more (0: always the full garment).
         shape_weight: weight of the local-shape residuals (None: 3 with exact, 0 with fd).
+        contact_offset: the cloth's contact thickness [m] (Material.contact_offset, ipctk's d_min);
+            None: estimated from the start frame, the garment's distance to the body where it
+            rests on it (sim.offset.estimate_contact_offset; 0 when it does not rest on it at
+            one distance, as a garment made in place with a design clearance); 0: none.
     """
 
     gradient: str = option("exact", "fd (the paper: finite differences + Adam) or exact (sensitivities + "
@@ -70,6 +74,11 @@ class PhysicsConfig:
     shape_weight: float | None = option(None, "weight of the local-shape residuals next to L_sim (default: 3 "
                                               "with exact, 0 = the paper's L_sim with fd; docs/physics.md)",
                                         flag="--shape-weight", check=lambda v: None if v >= 0 else "must be >= 0")
+    contact_offset: float | None = option(None, "cloth contact thickness in m, kept between cloth and body "
+                                                "(default: estimated from the start frame where the garment "
+                                                "rests on the body; 0 = none; docs/physics.md)",
+                                          flag="--contact-offset",
+                                          check=lambda v: None if 0 <= v < 0.05 else "must be in [0, 0.05) m")
 
     def __post_init__(self) -> None:
         # the same checks, and messages, as the command line's (a config made in Python)

@@ -58,12 +58,26 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
             f"body / {start_info['min_gap_mm']:.2f} mm from it: {start_info['pushed_vertices']} vertices pushed "
             f"out (at most {start_info['max_push_mm']:.1f} mm) to start the simulations")
     proxy = None
+    fine, fine_start = data, data.initial
     n_fine = data.reference.shape[1]
     if cfg.max_vertices and n_fine > cfg.max_vertices:
         proxy = make_proxy(data.rest, data.faces, data.boundary, cfg.max_vertices)
         data = on_proxy(data, proxy)
         say(f"simulating a {len(proxy.vertices)}-vertex proxy of the {n_fine}-vertex garment "
             f"(mean edge {100 * proxy.mean_edge:.1f} cm, {len(proxy.boundary)} boundary vertices)")
+    # the contact thickness: estimated on the garment itself, the start it needs on what is simulated
+    offset, offset_info = contact_offset(cfg.contact_offset, dataclasses.replace(fine, initial=fine_start))
+    thickness, offset_info["start"], data = thickness_start(offset, data)
+    offset_info["offset_mm"] = 1e3 * thickness
+    start_info["contact_offset"] = offset_info
+    initial = dataclasses.replace(initial, contact_offset=thickness)
+    if thickness > 0:
+        lifted = offset_info["start"].get("lifted_vertices", 0)
+        say(f"note: contact offset {1e3 * thickness:.2f} mm ({offset_info.get('method', 'given')}"
+            + (f": the garment rests {offset_info['resting_mm']:.2f} mm from the body" if "resting_mm" in offset_info
+               else "")
+            + (f"; {lifted} start vertices lifted, at most {offset_info['start']['max_lift_mm']:.1f} mm" if lifted
+               else "") + ")")
     # benchmark noise perturbs what is fitted to, not the (template-clean) start state
     data = data.with_noise(cfg.noise_mm * 1e-3, cfg.seed)
     n_iter = cfg.iterations or (PAPER_ITERATIONS if cfg.gradient == "fd" else EXACT_ITERATIONS)
@@ -89,6 +103,38 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
     write_outputs(out, result)
     write_json_atomic(out / "config.json", {**to_dict(cfg), "source": str(source.resolve())})
     return result
+
+
+def contact_offset(given: float | None, data) -> tuple[float, dict]:
+    """The fit's contact thickness [m]: ``given``, or (None) estimated from the window's first
+    frame (sim.offset.estimate_contact_offset; 0 without a body). Returns (offset, report)."""
+    from ...sim import SimSettings
+    from ...sim.offset import estimate_contact_offset
+
+    if data.collider is None or given == 0:
+        return 0.0, {"method": "given" if given == 0 else "no body", "offset_mm": 0.0}
+    if given is not None:
+        return float(given), {"method": "given", "offset_mm": 1e3 * float(given)}
+    x0 = data.reference[0] if data.initial is None else data.initial  # the start (clear_start)
+    return estimate_contact_offset(x0, data.faces, data.collider[0], data.collider_faces, data.boundary,
+                                   SimSettings().dhat)
+
+
+def thickness_start(offset: float, data) -> tuple[float, dict, object]:
+    """The start ``data`` needs for the thickness ``offset`` (sim.offset.feasible_start: lifted
+    where a contact pair is closer than d̂/2 beyond it, the thickness lowered where it could not
+    be; the rest shape moved with it). Returns (thickness, report, data with that start)."""
+    from ...sim import SimSettings
+    from ...sim.offset import feasible_start
+
+    if offset <= 0 or data.collider is None:
+        return offset, {}, data
+    x0 = data.reference[0] if data.initial is None else data.initial
+    x, thickness, report = feasible_start(x0, data.faces, data.collider[0], data.collider_faces, offset,
+                                          SimSettings().dhat, data.boundary)
+    # the rest shape moves with the start, as the proxy's does (the lift adds no strain)
+    rest = None if data.rest is None else data.rest + (x - x0)
+    return thickness, report, dataclasses.replace(data, initial=x, rest=rest)
 
 
 def iteration_line(row: dict) -> str:
