@@ -11,6 +11,8 @@ hip, under the arms, between the legs under a skirt). Two kinds of evidence move
   the best candidate counts where its score is high and clearly above the vertex's median
   score. This is the plane-sweep photo-consistency of multi-view stereo (e.g. Furukawa &
   Ponce's PMVS; Goesele et al.), restricted to the normal line because the hull is close.
+  A depth that differs from the median of its neighbours' (two rings) by more than
+  ``agree_px`` pixel footprints is a wrong peak and carries no evidence (:func:`agreeing`).
 * **The body prior** where no camera sees the surface: hull vertices that face away from every
   camera (the underside that closes the hull between a hem and the legs) are drawn to the
   fitted body's surface, which is the true surface under clothing there (as body-model priors
