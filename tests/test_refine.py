@@ -77,3 +77,54 @@ def test_unseen_part_is_drawn_onto_the_body():
     assert np.abs(r_out[top] - R).max() < 0.004
     # never outside the hull (the masks)
     assert (r_out < R + 1e-3).all()
+
+
+def test_isolated_wrong_depths_are_left_out():
+    """The plane sweep's wrong peaks (a patch matched at the wrong depth) are isolated jumps on a
+    surface whose neighbours agree: on the textured sphere inside a 12-mm-too-large hull, 40
+    scattered vertices are given a wrong peak 28 mm inside (as a repeated pattern or an occluding
+    edge gives). Without the neighbourhood test they drag the surface in around them; with it the
+    refined sphere stays within the clean case's error of the true one."""
+    import physavatar.stages.prepare.refine as rf
+
+    cams = ring_rig(8, 2.0, 1.0, (0, 0, 1.0), 160, 160, 30.0, n_elevated=3, elevated_height=2.2)
+    images, masks = _render(cams)
+    V, F = _sphere(R + 0.012)
+    rng = np.random.default_rng(0)
+    seen = np.linalg.norm(V[:, :2] - C0[:2], axis=1) > 0.3 * R
+    wrong = rng.choice(np.flatnonzero(seen), 40, replace=False)
+    real = rf.photo_depths
+
+    def with_wrong_peaks(*a, **k):
+        d, s, used = real(*a, **k)
+        d, s = d.copy(), s.copy()
+        d[wrong], s[wrong] = 0.04, 0.95  # 28 mm below the true surface, a confident score
+        return d, s, used
+
+    errors = {}
+    for name, cfg in (("checked", RefineConfig(body_prior=False)), ("unchecked", RefineConfig(body_prior=False, agree_px=0))):
+        rf.photo_depths = with_wrong_peaks
+        try:
+            out, info = refine_hull(V, F, cams, images, masks, None, None, cfg)
+        finally:
+            rf.photo_depths = real
+        errors[name] = np.abs(np.linalg.norm(out - C0, axis=1) - R)
+    clean, _ = refine_hull(V, F, cams, images, masks, None, None, RefineConfig(body_prior=False))
+    e_clean = np.abs(np.linalg.norm(clean - C0, axis=1) - R)
+    # the wrong peaks and their rings: 1 cm or more off without the test
+    assert errors["unchecked"][wrong].mean() > 0.01, errors["unchecked"][wrong].mean()
+    assert errors["checked"][wrong].mean() < 0.004, errors["checked"][wrong].mean()
+    assert errors["checked"][seen].mean() < e_clean[seen].mean() + 0.001, (errors["checked"][seen].mean(), e_clean[seen].mean())
+
+
+def test_agreeing_flags_only_the_isolated_jumps():
+    """A smooth depth field over a sphere's vertices with isolated jumps: exactly the jumps fail."""
+    from physavatar.stages.prepare.refine import agreeing
+
+    V, F = _sphere(R, 3)
+    depth = 0.01 + 0.005 * np.sin(8 * V[:, 0]) * np.cos(6 * V[:, 1])  # smooth: a few mm between rings
+    jumps = np.random.default_rng(1).choice(len(V), 30, replace=False)
+    depth[jumps] += 0.03
+    has = np.ones(len(V), bool)
+    ok = agreeing(F, depth, has, rings=2, tol=0.008)
+    assert set(np.flatnonzero(~ok)) == set(jumps)

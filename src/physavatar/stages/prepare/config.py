@@ -80,6 +80,8 @@ class RefineConfig:
     min_contrast: float = setting(0.02)  # patches flatter than this (grey std, 0..1) carry no evidence
     min_score: float = setting(0.7)  # the best NCC must reach this
     min_peak: float = setting(0.15)  # and exceed the vertex's median NCC by this
+    agree_rings: int = setting(2)  # a depth must agree with the median of its neighbours' within this many rings
+    agree_px: float = setting(2.5)  # to within this many pixel footprints (0: no check)
     w_photo: float = setting(3.0)
     unseen_cos: float = setting(0.1)  # a vertex no camera sees (z-buffer) at a cosine above this is unseen
     w_body: float = setting(10.0)

@@ -11,6 +11,8 @@ hip, under the arms, between the legs under a skirt). Two kinds of evidence move
   the best candidate counts where its score is high and clearly above the vertex's median
   score. This is the plane-sweep photo-consistency of multi-view stereo (e.g. Furukawa &
   Ponce's PMVS; Goesele et al.), restricted to the normal line because the hull is close.
+  A depth that differs from the median of its neighbours' (two rings) by more than
+  ``agree_px`` pixel footprints is a wrong peak and carries no evidence (:func:`agreeing`).
 * **The body prior** where no camera sees the surface: hull vertices that face away from every
   camera (the underside that closes the hull between a hem and the legs) are drawn to the
   fitted body's surface, which is the true surface under clothing there (as body-model priors
@@ -123,6 +125,38 @@ def photo_depths(V: np.ndarray, N: np.ndarray, cameras: list, images: dict[str, 
     return best, score, used
 
 
+def _rings(F: np.ndarray, n: int, rings: int):
+    """[n, n] sparse boolean: the vertices within ``rings`` edges of each vertex (itself left out)."""
+    from scipy import sparse
+
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    A = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)
+    R = A.copy()
+    for _ in range(rings - 1):
+        R = ((R @ A + R) > 0).astype(np.float64)
+    R.setdiag(0)
+    R.eliminate_zeros()
+    return R.tocsr()
+
+
+def agreeing(F: np.ndarray, depth: np.ndarray, has: np.ndarray, rings: int, tol: float, min_neighbours: int = 3) -> np.ndarray:
+    """[V] bool: the vertices with evidence (``has``) whose ``depth`` lies within ``tol`` of the
+    median depth of their neighbours with evidence (within ``rings`` edges); a vertex with fewer
+    than ``min_neighbours`` such neighbours keeps its evidence. A wrong NCC peak (a repeated
+    pattern, a patch that straddles an occluding edge) is an isolated jump of a centimetre or
+    more on a surface whose neighbours agree with each other: the robust test of depth-map
+    filtering in multi-view stereo (a median over the neighbourhood)."""
+    R = _rings(F, len(depth), rings)
+    keep = has.copy()
+    for i in np.flatnonzero(has):
+        nb = R.indices[R.indptr[i]:R.indptr[i + 1]]
+        nb = nb[has[nb]]
+        if len(nb) >= min_neighbours and abs(depth[i] - np.median(depth[nb])) > tol:
+            keep[i] = False
+    return keep
+
+
 def _laplacian(F: np.ndarray, n: int):
     from scipy import sparse
 
@@ -156,6 +190,10 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
     if cfg.photo and images:
         d, s, used = photo_depths(V, N, cameras, images, cfg, view_cos, fp)
         has = s > 0
+        if cfg.agree_px > 0 and has.any():
+            ok = agreeing(F, d, has, cfg.agree_rings, cfg.agree_px * fp)
+            info["photo_disagreeing"] = int((has & ~ok).sum())
+            has = ok
         d = np.clip(d, 0.0, None)  # the hull contains the surface: inward only
         target[has] = V[has] - d[has, None] * N[has]
         conf[has] = cfg.w_photo * s[has]
