@@ -240,6 +240,11 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         return np.asarray(boundary_targets[frame])[order]
 
     out = np.full((T,) + x.shape, np.nan)
+    # the contact scene's rest positions are the body where it is built: ipctk's edge-edge
+    # mollifier thresholds come from them, so a resumed run builds it at frame 0 too, as an
+    # uninterrupted one does (docs/simulation.md "Session 25")
+    if T:
+        sim.prepare(bodies[0], collider_faces)
     start = 1
     if resume is not None:
         start = resume.frame + 1
