@@ -30,7 +30,7 @@ from .crease import body_creases
 from .material import Material
 from .settings import SimSettings
 from .solver import ClothSim
-from .untangle import flag_crossing
+from .untangle import untangle_frame_end
 
 
 @dataclasses.dataclass
@@ -289,10 +289,11 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 x, v = saved[0], saved[1]
                 sim.set_state(saved[2])
             # cloth through the body the sim holds (a step's CCD can miss an impact in a pinch):
-            # moved out at the next frame's start (sim.untangle; docs/simulation.md "Session 24")
-            flag_crossing(sim, x, bodies[f])
+            # moved out before the frame is written (sim.untangle; docs/simulation.md "Session 24", "Session 25")
+            x, moved = untangle_frame_end(sim, x, bodies[f], collider_faces)
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
+            report["untangled_vertices"] += moved
             if on_frame is not None:
                 on_frame(Checkpoint(f, x.copy(), v.copy(), sim.get_state() | {"stuck": stuck}), report)
             if callback is not None:

@@ -101,16 +101,23 @@ def untangle_start(sim, x, body_t, body_faces):
     return out, len(moved)
 
 
-def flag_crossing(sim, x, body) -> bool:
-    """After a frame (sim.simulate): whether the cloth ``x`` crosses the body the sim holds (the
-    frame's ``body``, or where a lagging body got to), with the scene's own filter (ipctk's exact
-    test, ~10 ms on the hop's 557 + 1,229 vertices). If it does, the next step starts with
-    :func:`untangle` (``sim._crease_check``). A frame after which nothing crosses changes nothing."""
-    if sim.scene is None or sim._crease_check or body is None or not len(body):
-        return False
-    B = held_body(sim, body)
-    crossing = bool(sim.scene.has_intersections(np.vstack([x, B])))
-    if crossing:
-        log.debug("flag_crossing: the cloth crosses the body after the frame")
-        sim._crease_check = True
-    return crossing
+def untangle_frame_end(sim, x, body, body_faces):
+    """After a frame (sim.simulate), before it is written: (x', cloth vertices moved). When the
+    cloth ``x`` crosses the body the sim holds (the frame's ``body``, or where a lagging body
+    got to; ipctk's exact test with the scene's own filter, every body triangle, ~10 ms on the
+    hop's 557 + 1,229 vertices), the next step starts with :func:`untangle`
+    (``sim._crease_check``) and the cloth is untangled now, so the frame is written without the
+    crossing that a step's CCD missed; the next step then starts from the untangled cloth, as it
+    would have done at its own start (docs/simulation.md "Session 25"). A frame after which
+    nothing crosses changes nothing."""
+    if sim.scene is None or body is None or not len(body):
+        return x, 0
+    scene = sim.scene
+    base = getattr(scene, "base_filter", None)
+    if base is not None:  # the whole body (a step's outer_surface filter leaves buried triangles out)
+        scene.mesh.can_collide = base
+    if not scene.has_intersections(np.vstack([x, held_body(sim, body)])):
+        return x, 0
+    log.debug("untangle_frame_end: the cloth crosses the body after the frame")
+    sim._crease_check = True
+    return untangle_start(sim, x, body, body_faces)
