@@ -381,7 +381,7 @@ def partial_row(run: Path, garment, over, spec, edge, duration, warmup, args) ->
     cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
                                         max_substeps=args.max_substeps, self_contact=not args.no_self_contact, over=over)
     mat = resolve_material(cfg.material, option="--material")
-    part, bodies, bf, n_warm, _, _ = simulate_stage._on_motion(garment, spec, 25.0, cfg, mat, SimSettings(), None)
+    part, bodies, bf, n_warm, *_ = simulate_stage._on_motion(garment, spec, 25.0, cfg, mat, SimSettings(), None)
     folder = run / "frames"
     done = sorted(int(f.stem) for f in folder.glob("[0-9]*.npz"))
     last = max(f for f in range(len(done) + 1) if done[:f] == list(range(1, f + 1)))

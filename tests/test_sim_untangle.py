@@ -81,13 +81,14 @@ def test_untangle_leaves_cloth_outside_the_body_as_it_is():
     np.testing.assert_allclose(out[moved, 2], 0.1 + 2e-3, atol=1e-9)
 
 
-def test_simulate_moves_cloth_that_crosses_the_body_out_after_the_frame():
+def test_simulate_moves_cloth_that_crosses_the_body_out_before_the_frame_is_written():
     """sim.simulate checks every frame's cloth against the body the sim holds (ipctk) and, where
-    it crosses, moves it out at the next frame's first step. The cloth starts through the box's
+    it crosses, moves it out before the frame is written. The cloth starts through the box's
     top face (as the CMU hop's frame 172 ended: an edge through the body, no lag, nothing that
-    would make the solver look) and the box slides 1 cm a frame: frame 1 still crosses, frames
-    2–4 do not, and no cloth vertex is inside from frame 2 on. Before session 24 nothing looked:
-    every frame crossed (the hop's frames 172–229)."""
+    would make the solver look) and the box slides 1 cm a frame: no written frame after the
+    start crosses it or has cloth inside. Before session 24 nothing looked (every frame crossed:
+    the hop's frames 172–229); in session 24 the cloth was moved out at the next frame's first
+    step, so the frame that ended crossing was written crossing (frame 1 here, the hop's 172)."""
     from physavatar.sim import simulate
 
     V, F, x, _ = crossing_cloth_on_box()
@@ -98,5 +99,56 @@ def test_simulate_moves_cloth_that_crosses_the_body_out_after_the_frame():
                  on_frame=lambda c, r: reports.append(r))
     crosses = [body_crossings(X[f], F, bodies[f], Fb) for f in range(5)]
     inside = [int(np.sum(winding_numbers(X[f], bodies[f], Fb) > 0.5)) for f in range(5)]
-    assert crosses == [True, True, False, False, False] and inside[2:] == [0, 0, 0]
-    assert reports[1]["untangled_vertices"] >= 12 and not any(r["lagged"] for r in reports)
+    assert crosses == [True, False, False, False, False] and inside[1:] == [0, 0, 0, 0]
+    assert reports[0]["untangled_vertices"] >= 12 and not any(r["lagged"] for r in reports)
+
+
+def two_boxes():
+    """A body that passes through itself, as Anny's collider at a crease: a box (top face
+    z = 0.1) and a taller one overlapping its side (x ≥ 0.1). The first box's top-face vertices
+    inside the second are buried, and their one-ring (x ≥ 0.0625) hidden from contact."""
+    A, FA = box()
+    B, FB = box((0.1, 0.3, 0.3))
+    return np.vstack([A, B + [0.15, 0.0, 0.05]]), np.vstack([FA, FB + len(A)])
+
+
+def body_only_crossings(x, F, B, Fb):
+    """ipctk's exact test, cloth against body only (as simulate's written-frame check)."""
+    X = np.vstack([x, B])
+    faces = np.vstack([F, Fb + len(x)])
+    mesh = ipctk.CollisionMesh(X, ipctk.edges(faces), faces)
+    mesh.can_collide = ipctk.make_vertex_patches_filter(np.r_[np.zeros(len(x)), np.ones(len(B))].astype(np.int32))
+    return ipctk.has_intersections(mesh, X)
+
+
+def test_a_frame_crossing_the_body_next_to_its_crease_is_written_untangled():
+    """Cloth 2 mm above the first box's top, next to where the second box rises out of it, with
+    4 vertices pushed 5 mm into the box under the triangles that the crease rule hides (a
+    corner buried in the other box), as the crease rule's steps leave cloth (the hop's full
+    clip, written frame 164, docs/simulation.md "Session 25"). Those triangles are outside the
+    other box there, so the crossing shows, and simulate's check counts it. The frame-end
+    untangle lifts the cloth over the visible part of every triangle: frame 1 is written
+    intersection-free, the cloth moved at most ~7 mm. Before (session 24's untangle, against
+    the outer surface only) its result still crossed the hidden triangles and was not kept."""
+    from physavatar.sim import simulate
+    from physavatar.sim.crease import buried_vertices, grow
+
+    B, Fb = two_boxes()
+    hidden = grow(buried_vertices(B, Fb), Fb, 1)
+    V, F = cloth_grid.grid(8, 0.08, 0.0, center=True)
+    V = V + [0.05, 0.0, 0.102]
+    x = V.copy()
+    pit = np.linalg.norm(V[:, :2] - [0.07, 0.0], axis=1) < 0.015
+    x[pit, 2] = 0.095
+    from physavatar.geometry.intersect import intersecting_pairs
+
+    crossed = {int(t) for _, t in intersecting_pairs(x, F, B, Fb)[0]}
+    assert pit.sum() == 4 and crossed and all(hidden[Fb[t]].any() for t in crossed)
+    bodies = np.stack([B] * 3)
+    reports = []
+    X = simulate(V, F, Material(), bodies, Fb, fps=25.0, settings=SimSettings(friction=0.0, self_contact=True),
+                 x0=x, on_frame=lambda c, r: reports.append(r))
+    assert [body_only_crossings(X[f], F, B, Fb) for f in range(3)] == [True, False, False]
+    assert reports[0]["untangled_vertices"] >= 4
+    assert np.all(winding_numbers(X[1], B, Fb) < 0.5)
+    assert np.abs(X[1] - x).max() < 0.012  # lifted over the crossing, not carried to a far triangle

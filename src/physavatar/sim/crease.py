@@ -285,13 +285,17 @@ def outside_targets(points, body, faces, hidden, dhat):
     return q + 2.0 * dhat * nrm
 
 
-def crossing_cloth(cloth, cloth_faces, body, body_faces, dhat) -> np.ndarray:
+def crossing_cloth(cloth, cloth_faces, body, body_faces, dhat, visible_in=None) -> np.ndarray:
     """[N, 3]: per cloth vertex, where it must go so that the cloth no longer crosses the body's
     surface with its corners outside (NaN: nowhere). The crossings both ways
     (``geometry.intersecting_pairs``: a cloth edge through a body triangle, a body edge through a
     cloth triangle). At a crossing point p with the body's outward normal there (the triangle's,
     or the mean of the edge's two triangles') each vertex of the cloth primitive that lies below
-    2 d̂ above p's tangent plane is lifted to 2 d̂ above it."""
+    2 d̂ above p's tangent plane is lifted to 2 d̂ above it. ``visible_in`` (V [Nb, 3], F [Fb', 3]):
+    only the crossings at points p outside every other part of that body mesh (its winding
+    number at p below BURIED; p on the surface is ½ inside its own part), i.e. on its visible
+    surface; a crossing inside another part is hidden, and the cloth edge there crosses the
+    visible surface elsewhere too."""
     from ..geometry.intersect import intersecting_pairs
 
     cloth, body = np.asarray(cloth, np.float64), np.asarray(body, np.float64)
@@ -305,9 +309,17 @@ def crossing_cloth(cloth, cloth_faces, body, body_faces, dhat) -> np.ndarray:
     for e, t in body_edges:  # the body edge's outward normal: the mean of its triangles'
         n = fn[(np.isin(Fb, e).sum(axis=1) == 2)].sum(axis=0)
         crossings.append((body[e], cloth[Fc[t]], Fc[t], n / max(np.linalg.norm(n), 1e-30)))
-    for (a, b), (t0, t1, t2), lifted, normal in crossings:
+    points = []
+    for (a, b), (t0, t1, t2), _, _ in crossings:
         tn = np.cross(t1 - t0, t2 - t0)
-        p = a + float(np.dot(t0 - a, tn) / np.dot(b - a, tn)) * (b - a)  # the crossing point
+        with np.errstate(divide="ignore", invalid="ignore"):  # an edge in the triangle's plane: NaN, no lift
+            points.append(a + float(np.dot(t0 - a, tn) / np.dot(b - a, tn)) * (b - a))  # the crossing point
+    shown = np.ones(len(points), bool)
+    if visible_in is not None and len(points):
+        shown = winding_numbers(np.array(points), *visible_in) < BURIED
+    for (_, _, lifted, normal), p, keep in zip(crossings, points, shown):
+        if not keep:
+            continue
         for i in lifted:
             x = out[i] if np.all(np.isfinite(out[i])) else cloth[i]
             depth = 2.0 * dhat - float(np.dot(x - p, normal))

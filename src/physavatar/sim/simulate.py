@@ -30,7 +30,7 @@ from .crease import body_creases
 from .material import Material
 from .settings import SimSettings
 from .solver import ClothSim
-from .untangle import flag_crossing
+from .untangle import untangle_frame_end
 
 
 @dataclasses.dataclass
@@ -249,7 +249,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
     x = np.array(garment_rest if x0 is None else x0, dtype=np.float64)
     v = np.zeros_like(x) if v0 is None else np.array(v0, dtype=np.float64)
     x0_boundary = x[sim.boundary].copy()
-    if sim.dmin > 0 and resume is None:
+    if sim.dmin > 0:  # on resume too: the same (possibly lowered) thickness; x is the checkpoint's below
         x, settings = feasible_thickness(sim, x, bodies[0], collider_faces)
         sim.settings = settings
 
@@ -263,6 +263,11 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         return np.asarray(boundary_targets[frame])[order]
 
     out = np.full((T,) + x.shape, np.nan)
+    # the contact scene's rest positions are the body where it is built: ipctk's edge-edge
+    # mollifier thresholds come from them, so a resumed run builds it at frame 0 too, as an
+    # uninterrupted one does (docs/simulation.md "Session 25")
+    if T:
+        sim.prepare(bodies[0], collider_faces)
     start = 1
     if resume is not None:
         start = resume.frame + 1
@@ -307,10 +312,11 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 x, v = saved[0], saved[1]
                 sim.set_state(saved[2])
             # cloth through the body the sim holds (a step's CCD can miss an impact in a pinch):
-            # moved out at the next frame's start (sim.untangle; docs/simulation.md "Session 24")
-            flag_crossing(sim, x, bodies[f])
+            # moved out before the frame is written (sim.untangle; docs/simulation.md "Session 24", "Session 25")
+            x, moved = untangle_frame_end(sim, x, bodies[f], collider_faces)
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
+            report["untangled_vertices"] += moved
             if on_frame is not None:
                 on_frame(Checkpoint(f, x.copy(), v.copy(), sim.get_state() | {"stuck": stuck}), report)
             if callback is not None:

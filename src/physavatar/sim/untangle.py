@@ -35,11 +35,16 @@ PINCH_DISTANCE = 1e-7  # [m] a step ending with a pair this close (1e-4 d̂) is 
 ROUNDS = 16  # move-and-check rounds (moving a vertex out can leave a neighbour's edge through the body)
 
 
-def untangle(scene, x, cloth_faces, body, body_faces, free, dhat, crease_ring: int = 1):
+def untangle(scene, x, cloth_faces, body, body_faces, free, dhat, crease_ring: int = 1, visible: bool = False):
     """(x' [N, 3], moved vertex ids): the cloth ``x`` moved out of the ``body`` (module
     docstring), or (x, empty) when nothing is inside or through it or when the moved cloth
     would not be intersection-free. ``scene``: the solver's ContactScene ([cloth; body]);
-    ``free``: bool [N], the cloth vertices that may move."""
+    ``free``: bool [N], the cloth vertices that may move. ``visible``: also lift the cloth
+    over the triangles next to the body's creases (those with a hidden corner) where it crosses
+    their visible part (outside every other part), and move cloth inside the body to the
+    closest point of any triangle where that is outside (the frame's end, untangle_frame_end:
+    ipctk's check there is against every triangle, and the crease rule's steps leave cloth
+    through these; docs/simulation.md "Session 25")."""
     x = np.asarray(x, np.float64)
     B = np.asarray(body, np.float64)
     Fb = np.asarray(body_faces, np.int64)
@@ -54,12 +59,20 @@ def untangle(scene, x, cloth_faces, body, body_faces, free, dhat, crease_ring: i
     for _ in range(ROUNDS):
         inside = np.zeros(len(x), bool)
         inside[ids] = winding_numbers(out[ids], B, Fb) > INSIDE
-        lift = crossing_cloth(out, cloth_faces, B, outer, dhat)
+        if visible and len(hidden):
+            lift = crossing_cloth(out, cloth_faces, B, Fb, dhat, visible_in=(B, Fb))
+        else:
+            lift = crossing_cloth(out, cloth_faces, B, outer, dhat)
         crossing = np.all(np.isfinite(lift), axis=1) & free & ~inside
         if not inside.any() and not crossing.any():
             break
         if inside.any():
-            out[inside] = outside_targets(out[inside], B, Fb, hidden, dhat)
+            target = outside_targets(out[inside], B, Fb, hidden, dhat)
+            if visible and len(hidden):  # the closest point of any triangle, where that is outside
+                near = outside_targets(out[inside], B, Fb, np.zeros(0, np.int64), dhat)
+                ok = winding_numbers(near, B, Fb) < INSIDE
+                target[ok] = near[ok]
+            out[inside] = target
         out[crossing] = lift[crossing]
         moved |= inside | crossing
     if not moved.any():
@@ -83,7 +96,7 @@ def held_body(sim, body) -> np.ndarray:
     return lag[1] if lag is not None and np.array_equal(lag[0], B) else B
 
 
-def untangle_start(sim, x, body_t, body_faces):
+def untangle_start(sim, x, body_t, body_faces, visible: bool = False):
     """``sim.step``'s start after a pinch (``sim._crease_check``): :func:`untangle` against the
     body where the step starts (where a lagging body got to, as ``_begin_step`` continues it).
     Returns (x', number of cloth vertices moved)."""
@@ -97,20 +110,28 @@ def untangle_start(sim, x, body_t, body_faces):
         scene.mesh.can_collide = base
     free = sim.inertia.unit_mass[: sim.n] > 0
     out, moved = untangle(scene, x, sim.topo.faces, B, sim._body_faces, free, sim.settings.dhat + 0.5 * sim.dmin,  # 2 d̂ beyond d_min
-                          max(sim.settings.crease_ring, 0))
+                          max(sim.settings.crease_ring, 0), visible)
     return out, len(moved)
 
 
-def flag_crossing(sim, x, body) -> bool:
-    """After a frame (sim.simulate): whether the cloth ``x`` crosses the body the sim holds (the
-    frame's ``body``, or where a lagging body got to), with the scene's own filter (ipctk's exact
-    test, ~10 ms on the hop's 557 + 1,229 vertices). If it does, the next step starts with
-    :func:`untangle` (``sim._crease_check``). A frame after which nothing crosses changes nothing."""
-    if sim.scene is None or sim._crease_check or body is None or not len(body):
-        return False
-    B = held_body(sim, body)
-    crossing = bool(sim.scene.has_intersections(np.vstack([x, B])))
-    if crossing:
-        log.debug("flag_crossing: the cloth crosses the body after the frame")
-        sim._crease_check = True
-    return crossing
+def untangle_frame_end(sim, x, body, body_faces):
+    """After a frame (sim.simulate), before it is written: (x', cloth vertices moved). When the
+    cloth ``x`` crosses the body the sim holds (the frame's ``body``, or where a lagging body
+    got to; ipctk's exact test with the scene's own filter, every body triangle, ~10 ms on the
+    hop's 557 + 1,229 vertices), the next step starts with :func:`untangle`
+    (``sim._crease_check``) and the cloth is untangled now (``visible``: also over the triangles
+    next to the body's creases, which the check counts), so the frame is written without the
+    crossing that a step's CCD missed or the crease rule let through; the next step starts from
+    the untangled cloth (docs/simulation.md "Session 25"). A frame after which nothing crosses
+    changes nothing."""
+    if sim.scene is None or body is None or not len(body):
+        return x, 0
+    scene = sim.scene
+    base = getattr(scene, "base_filter", None)
+    if base is not None:  # the whole body (a step's outer_surface filter leaves buried triangles out)
+        scene.mesh.can_collide = base
+    if not scene.has_intersections(np.vstack([x, held_body(sim, body)])):
+        return x, 0
+    log.debug("untangle_frame_end: the cloth crosses the body after the frame")
+    sim._crease_check = True
+    return untangle_start(sim, x, body, body_faces, visible=True)
