@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .model import PHENOTYPES, BodyModel, BodyShape, _anny, _floor_offset
+from .model import PHENOTYPES, BodyModel, BodyShape, _anny, _floor_offset, one_thread
 
 DTYPE = torch.float64
 
@@ -72,7 +72,7 @@ class DiffBody:
     # -- shape --------------------------------------------------------------------------------
     def _rest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         model = _anny(self.topology)
-        with torch.no_grad():
+        with torch.no_grad(), one_thread():
             out = model(None, phenotype_kwargs=torch.as_tensor(p[None], dtype=DTYPE))
         return out["rest_vertices"][0].numpy(), out["rest_bone_poses"][0, :, :3, 3].numpy()
 
