@@ -65,31 +65,46 @@ def test_an_interrupted_run_resumed_from_its_checkpoint_is_bit_identical(integra
 
 
 
+def _widening_box(height: float, frames: int, rise: float = 0.0):
+    """A 9 x 9 cloth ``height`` above the top of a box whose top widens (and rises by ``rise`` a
+    frame) under it: (V, F, box sequence, box faces)."""
+    V, F = grid(9, 0.3, center=True)
+    V[:, 2] = 0.01 + height
+    box = trimesh.creation.box((0.2, 0.2, 0.02))
+    B, BF = np.asarray(box.vertices), np.asarray(box.faces)
+    seq = np.stack([B * [1 + 0.03 * t, 1 + 0.02 * t, 1] + [0, 0, rise * t] for t in range(frames)])
+    return V, F, seq, BF
+
+
+def _interrupted_and_resumed(args, kw, at: int):
+    """``simulate(*args, **kw)`` stopped after frame ``at`` and resumed from its checkpoint there:
+    (the checkpoint, the resumed run)."""
+    saved = {}
+
+    def on_frame(ck, report):
+        saved[ck.frame] = ck
+        if ck.frame == at:
+            raise Stop
+
+    with pytest.raises(Stop):
+        simulate(*args, on_frame=on_frame, **kw)
+    return saved[at], simulate(*args, resume=saved[at], **kw)
+
+
 def test_a_run_on_a_deforming_body_resumes_bit_identical(tmp_path):
     """A body whose edges change length (a box widening under a cloth lying on it, its edges
     parallel to the cloth's): ipctk's edge-edge mollifier thresholds come from the contact
     scene's rest positions, which a resumed run used to take from the body at the frame it
     resumed at (docs/simulation.md "Session 25"; 15 mm apart two frames after the resume)."""
-    V, F = grid(9, 0.3, center=True)
-    V[:, 2] = 0.0105  # 0.5 mm above the box's top
-    box = trimesh.creation.box((0.2, 0.2, 0.02))
-    B, BF = np.asarray(box.vertices), np.asarray(box.faces)
-    seq = np.stack([B * [1 + 0.03 * t, 1 + 0.02 * t, 1] + [0, 0, 0.002 * t] for t in range(8)])
+    V, F, seq, BF = _widening_box(0.0005, 8, rise=0.002)  # 0.5 mm above the box's top
     kw = dict(fps=25.0, settings=SimSettings(), max_substeps=4)
-    full = simulate(V, F, MAT, seq, BF, [], None, **kw)
-    saved = {}
-
-    def on_frame(ck, report):
-        saved[ck.frame] = ck
-        if ck.frame == 3:
-            raise Stop
-
-    with pytest.raises(Stop):
-        simulate(V, F, MAT, seq, BF, [], None, on_frame=on_frame, **kw)
-    rest = simulate(V, F, MAT, seq, BF, [], None, resume=saved[3], **kw)
-    assert np.array_equal(saved[3].x, full[3])
+    args = (V, F, MAT, seq, BF, [], None)
+    full = simulate(*args, **kw)
+    ck, rest = _interrupted_and_resumed(args, kw, 3)
+    assert np.array_equal(ck.x, full[3])
     assert np.array_equal(rest[3:], full[3:])
     assert np.abs(full[-1] - full[3]).max() > 0.01  # the cloth moved after the resume
+
 
 def test_a_run_whose_contact_offset_was_lowered_resumes_with_the_same_thickness(tmp_path, caplog):
     """A start too close to the body for the material's contact offset (a pinned vertex 2.5 mm
@@ -98,27 +113,14 @@ def test_a_run_whose_contact_offset_was_lowered_resumes_with_the_same_thickness(
     is undefined closer than d_min)."""
     import dataclasses
 
-    V, F = grid(9, 0.3, center=True)
-    V[:, 2] = 0.0125  # 2.5 mm above the box's top
-    box = trimesh.creation.box((0.2, 0.2, 0.02))
-    B, BF = np.asarray(box.vertices), np.asarray(box.faces)
-    seq = np.stack([B * [1 + 0.03 * t, 1 + 0.02 * t, 1] for t in range(7)])
+    V, F, seq, BF = _widening_box(0.0025, 7)
     pin = [int(np.argmin(np.linalg.norm(V[:, :2], axis=1)))]  # the centre vertex, held where it is
-    mat = dataclasses.replace(MAT, contact_offset=0.004)
+    args = (V, F, dataclasses.replace(MAT, contact_offset=0.004), seq, BF, pin, None)
     kw = dict(fps=25.0, settings=SimSettings(), max_substeps=4)
     with caplog.at_level(logging.WARNING, logger="physavatar.sim.simulate"):
-        full = simulate(V, F, mat, seq, BF, pin, None, **kw)
+        full = simulate(*args, **kw)
     assert any("closer than the contact offset" in r.getMessage() for r in caplog.records)
-    saved = {}
-
-    def on_frame(ck, report):
-        saved[ck.frame] = ck
-        if ck.frame == 3:
-            raise Stop
-
-    with pytest.raises(Stop):
-        simulate(V, F, mat, seq, BF, pin, None, on_frame=on_frame, **kw)
-    rest = simulate(V, F, mat, seq, BF, pin, None, resume=saved[3], **kw)
+    _, rest = _interrupted_and_resumed(args, kw, 3)
     assert np.isfinite(rest[3:]).all()
     assert np.array_equal(rest[3:], full[3:])
 
