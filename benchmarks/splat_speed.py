@@ -23,7 +23,7 @@ import argparse
 import datetime
 import json
 import os
-import platform
+import sys
 import time
 from pathlib import Path
 
@@ -33,6 +33,9 @@ import torch
 
 from physavatar.camera import intrinsics, look_at
 from physavatar.splat import rasterize, rotmat_to_quat
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import cpu_name  # noqa: E402
 
 
 def cylinder_scene(n: int, width: int, height: int, seed: int = 0):
@@ -118,16 +121,6 @@ def machine_scaling(seconds_per_run: float = 0.3) -> float:
     return times[1] / times[2]
 
 
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def tracking_time(capture: Path, frames: int, backend: str = "auto", threads: int | None = None) -> dict:
     """Seconds per frame of the tracking stage (default config but ``backend`` and ``threads``) on
     the first `frames` frames; with the capture's ground truth, the garment and body error per frame
@@ -135,7 +128,10 @@ def tracking_time(capture: Path, frames: int, backend: str = "auto", threads: in
     import shutil
     import tempfile
 
+    from physavatar.capture import load_capture
+    from physavatar.data.tracked import TrackedSequence
     from physavatar.files import load_npz
+    from physavatar.metrics import vertex_error_mm
     from physavatar.stages.track import TrackConfig, run as run_track
 
     work = Path(tempfile.mkdtemp(prefix="splat_speed_track_"))
@@ -144,19 +140,18 @@ def tracking_time(capture: Path, frames: int, backend: str = "auto", threads: in
         res = run_track(capture, out=work / "track", config=TrackConfig(n_frames=frames, splat_backend=backend, **extra),
                         progress=False)
         secs = [float(res.seconds[f]) for f in res.frames]
-        V = np.stack([load_npz(q)["vertices"] for q in sorted((work / "track" / "frames").glob("*.npz"))])
-        labels = load_npz(work / "track" / "tracked.npz")["labels"]
+        V = TrackedSequence.load(work / "track").vertices
     finally:
         shutil.rmtree(work, ignore_errors=True)
     out = {"measured": True, "capture": str(capture), "backend": backend, "threads": threads, "frames": len(secs),
            "seconds_per_frame": secs, "first_frame_s": secs[0],
            "later_frames_mean_s": float(np.mean(secs[1:])) if len(secs) > 1 else None}
-    truth = capture / "ground_truth" / "meshes.npz"
-    if truth.is_file():
-        e = np.linalg.norm(V - load_npz(truth)["vertices"][: len(V)], axis=-1) * 1000
-        g = labels > 0
-        out["garment_mm"] = [round(float(x), 4) for x in e[:, g].mean(1)]
-        out["body_mm"] = [round(float(x), 4) for x in e[:, ~g].mean(1)]
+    cap = load_capture(capture)
+    if cap.ground_truth is not None and (cap.ground_truth / "meshes.npz").is_file():  # as evaluate scores tracking
+        gt = load_npz(cap.ground_truth / "meshes.npz")["vertices"][: len(V)]
+        g = cap.template.labels > 0
+        for part, sel in (("garment_mm", g), ("body_mm", ~g)):
+            out[part] = [round(float(x), 4) for x in vertex_error_mm(V[:, sel], gt[:, sel])["mean_mm"]]
         out["vertices"] = V  # for the comparison between backends; dropped before saving
     return out
 
