@@ -492,8 +492,10 @@ def main(argv=None) -> int:
               "figures": {}, "checks": {}}
     if args.before:  # an earlier file's checks beside today's (read now: --out may be the same file)
         old = json.loads(Path(args.before).read_text())
+        # its checks recomputed from its figures by today's rules, so every check has a before
         result["before"] = {"file": args.before, "date": old.get("date"), "code": old.get("config", {}).get("code"),
-                            "checks": old.get("checks", {})}
+                            "checks": {k: v for n, f in old.get("figures", {}).items() if "error" not in f
+                                       for k, v in checks_for(n, f).items()}}
     for cfg in cases:
         t0 = time.time()
         cap = build(work / cfg.name / "capture", cfg, say=lambda s: print(s, flush=True))
