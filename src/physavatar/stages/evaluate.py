@@ -304,13 +304,12 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     return out
 
 
-def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int) -> dict:
+def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int) -> tuple[dict, dict]:
     """Rows of a :func:`reference_sequences` folder, checked against this evaluation's materials
     (``refs``: :func:`_reference_materials`; the oracle is fitted in the run, not a reference).
     Returns (rows, stale): a row whose material differs only in its contact thickness (a folder
     made with another --contact-offset, or before the draws had one) is not reused but listed in
     ``stale`` (row -> why), for the caller to simulate again; any other difference is an error."""
-
     if not (path / "references.json").is_file():
         raise PhysavatarError(path, "no references.json (pass a `physavatar reference-sims` output folder)")
     ref_av = Avatar.load(path / "avatar")
