@@ -485,7 +485,9 @@ def report_markdown(m: dict) -> str:
         d = m["random_draws"]
         lines += ["", f"Random material: the median of {len(d['seeds'])} draws (seeds "
                   f"{', '.join(map(str, d['seeds']))}; garment CD ×10³ "
-                  f"{', '.join(f'{v:.4f}' for v in d['garment_chamfer_x1e3'])}), the draw of seed {d['median_seed']}."]
+                  f"{', '.join(f'{v:.4f}' for v in d['garment_chamfer_x1e3'])}), the draw of seed {d['median_seed']}"
+                  + (f"; simulated with the estimate's contact offset, {d['contact_offset_mm']:.2f} mm."
+                     if d.get("contact_offset_mm") else ".")]
     if m["rows"]:
         lines += ["", "F@1cm and F@2cm use plain distances; F@sq0.001 compares squared distances with 0.001 m² "
                   "(≈3.2 cm), the convention of widely copied code.", ""]
