@@ -1,5 +1,6 @@
 """Evaluation: the Table-2 rows are ordered as physics says on a tiny synthetic capture."""
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -112,6 +113,64 @@ def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
     with pytest.raises(PhysavatarError, match=r"random material \(seed 0\) was simulated with"):
         evaluate(tiny_capture, root / "avatar", root / "out3", n_points=1000, views_spp=4,
                  references=root / "refs", progress=False)
+
+
+def _least_body_distance(seq_dir) -> float:
+    """The least distance [m] of a sequence's garment vertices to its body surface over all frames
+    (the body rows of the same sequence, the template's triangles)."""
+    from physavatar.data.animated import AnimatedSequence
+    from physavatar.geometry import submesh
+    from physavatar.geometry.closest import MeshQuery
+
+    seq = AnimatedSequence.load(seq_dir)
+    b = seq.labels == 0
+    bidx, bf = submesh(seq.faces, b)
+    V = seq.vertices.astype(np.float64)
+    return min(float(MeshQuery(V[t][bidx], bf).signed_distance(V[t][~b])[0].min()) for t in range(len(V)))
+
+
+def test_random_draws_get_the_estimates_contact_offset(result, tiny_capture):
+    """The random draws are simulated before any fit; they get the thickness the fit uses
+    (`reference-sims --contact-offset`, else the template's estimate), so "below random" compares
+    materials in one model: with 3 mm every draw keeps its garment at least 3 mm off the body
+    (ipctk's d_min: measured on the sequences themselves), the offset is recorded, and draws made
+    with another thickness than the avatar's are simulated again, not reused."""
+    import json
+
+    from physavatar.sim import Material
+    from physavatar.stages.evaluate import evaluate, reference_sequences
+
+    m, root = result
+    off = 0.003
+    reference_sequences(tiny_capture, root / "refs3", contact_offset=off, progress=False)
+    info = json.loads((root / "refs3" / "references.json").read_text())
+    assert info["contact_offset_m"] == off and info["contact_offset"]["method"] == "given"
+    for s in range(5):
+        meta = json.loads((root / "refs3" / f"random-{s}" / "sequence.json").read_text())
+        assert meta["material"]["contact_offset"] == off
+        assert _least_body_distance(root / "refs3" / f"random-{s}") >= off - 2e-5, s
+    # the truth keeps the thickness its own file records (none: the tiny capture's simulator had none)
+    true = json.loads((root / "refs3" / "true" / "sequence.json").read_text())["material"]
+    assert true["contact_offset"] == 0.0
+    # the default (the tiny capture's template does not rest on the body at one distance): none
+    reference_sequences(tiny_capture, root / "refs0", progress=False)
+    assert json.loads((root / "refs0" / "references.json").read_text())["contact_offset_m"] == 0.0
+    assert _least_body_distance(root / "refs0" / "random-0") < off - 1e-3  # the test can tell them apart
+    # an avatar fitted with 3 mm reuses the 3-mm draws
+    mat = Material.load(root / "avatar" / "material.json")
+    build_avatar(tiny_capture, root / "avatar3", material=dataclasses.replace(mat, contact_offset=off))
+    m3 = evaluate(tiny_capture, root / "avatar3", root / "out_off", n_points=4000, references=root / "refs3",
+                  views=False, full=False, progress=False)
+    assert "references_simulated_again" not in m3 and m3["random_draws"]["contact_offset_mm"] == pytest.approx(3.0)
+    assert all(d["contact_offset"] == off for d in m3["random_draws"]["materials"])
+    # the offset-free avatar does not reuse them: the five draws are simulated again, without it,
+    # and give the rows of an evaluation that simulated them itself
+    m0 = evaluate(tiny_capture, root / "avatar", root / "out_off0", n_points=4000, references=root / "refs3",
+                  views=False, full=False, progress=False)
+    assert sorted(m0["references_simulated_again"]) == sorted(f"random material (seed {s})" for s in range(5))
+    np.testing.assert_allclose(m0["random_draws"]["garment_chamfer_x1e3"], m["random_draws"]["garment_chamfer_x1e3"],
+                               rtol=1e-4)
+    assert m3["random_draws"]["garment_chamfer_x1e3"] != m0["random_draws"]["garment_chamfer_x1e3"]
 
 
 def _check_random_median(m, refs, cap):

@@ -89,3 +89,28 @@ def test_with_dense_rows_the_checks_are_taken_above_the_dense_floor():
     assert c["top:heldout_cd_below_lbs"]["value"] == pytest.approx(1 - 0.00059 / 0.00025)
     assert not c["top:heldout_cd_below_lbs"]["pass"]
     assert c["top:heldout_cd_below_random"]["value"] == pytest.approx(1 - 0.00059 / (0.00560 - 0.00089))
+
+
+def test_every_figure_is_under_checks_the_untargeted_ones_reported():
+    """Issue 22 part 6: every figure under `checks`. The targets on both view sets (PSNR >= 28 dB,
+    LPIPS <= 0.03; a capture camera at 27.9 dB fails, one at 28.1 passes), and the figures without
+    a target (p95 and body tracking, the fit residual on tracked and true meshes and its tracking
+    share, texture error) with pass None, left out of the pass count."""
+    f = fig(est=0.05, lbs=0.5, rnd=0.06, floor=0.03)
+    f |= {"size_px": 256,
+          "tracking": {"garment_mean_mm": 5.0, "garment_last_over_first_quarter": 2.0, "garment_p95_mm": 15.0,
+                       "body_mean_mm": 0.46},
+          "heldout_motion_views": {"psnr": 28.1, "ssim": 0.97, "lpips": 0.02},
+          "capture_heldout_cameras": {"psnr": 27.9, "ssim": 0.97, "lpips": 0.031},
+          "material_fit": {"tracked": {"rms_mm": 5.0}, "true_meshes_oracle": {"rms_mm": 4.0}},
+          "fit_residual_split": FC.residual_split(Path("/nonexistent"), Path("/nonexistent"), {"rms_mm": 5.0},
+                                                  {"rms_mm": 4.0}),
+          "texture_error": {"garment": {"psnr_srgb_after_gain": 16.0}, "body": {"psnr_srgb_after_gain": 21.0}}}
+    c = FC.checks_for("s", f)
+    assert c["s:heldout_views_psnr"]["pass"] and c["s:heldout_views_lpips"]["pass"]
+    assert not c["s:capture_heldout_cameras_psnr"]["pass"] and not c["s:capture_heldout_cameras_lpips"]["pass"]
+    assert c["s:fit_residual_tracked_rms"]["value"] == 5.0 and c["s:fit_residual_true_meshes_rms"]["value"] == 4.0
+    assert c["s:fit_residual_tracking_share"]["value"] == pytest.approx(3.0)  # sqrt(25 - 16)
+    assert c["s:tracking_body_mean"]["pass"] is None and c["s:texture_psnr_body"]["value"] == 21.0
+    judged = [k for k, v in c.items() if v["pass"] is not None]
+    assert len(judged) == 8 and FC.pass_count(c).startswith(f"{sum(c[k]['pass'] for k in judged)}/8 pass")

@@ -121,9 +121,11 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
     if held_file.exists() and (capture / "ground_truth" / "heldout" / "meshes.npz").exists():
         # The true- and random-material rows need nothing fitted: simulated on the second core
         # while tracking (single-threaded) runs on the first.
-        steps.insert(0, Step("references", "physavatar.stages.evaluate:run_references",
-                             evaluate.ReferencesConfig(frames=cfg.eval_frames), cap, "references.json",
-                             background=True))
+        # The random draws get the thickness the fit will use (given, or estimated on the template).
+        refs_cfg = evaluate.ReferencesConfig(frames=cfg.eval_frames,
+                                             contact_offset=physics.pipeline_config(cfg.quick).contact_offset)
+        steps.insert(0, Step("references", "physavatar.stages.evaluate:run_references", refs_cfg, cap,
+                             "references.json", background=True))
         inputs = cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track"),
                         "references": ("step", "references")}
         if not (capture / "ground_truth" / "material.json").exists() and \

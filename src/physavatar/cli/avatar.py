@@ -107,6 +107,8 @@ def reference_sims(capture: Path = typer.Argument(..., help="synthetic capture (
     run_references(capture, out=out, config=config, progress=True)
     refs = read_json(out / "references.json")
     console.print(f"wrote {', '.join(f'{out}/{d} ({r})' for r, d in zip(refs['rows'], refs['folders']))}")
+    console.print(f"random draws simulated with contact offset {1e3 * refs['contact_offset_m']:.2f} mm "
+                  f"({refs['contact_offset'].get('method')})")
 
 
 @config_command(app, "run", RunConfig, wrap=handle_errors)

@@ -5,7 +5,9 @@ Geometry on the held-out motion (``ground_truth/heldout``): the garment is anima
   - random material: the median of several seeded draws in the paper's parameter ranges (seeds
     ``seed`` … ``seed + random_draws − 1``, default 0–4: one draw can land near the truth or far
     from it, the paper's baseline is a typical random material); the row is the draw whose
-    garment CD is the median, and every draw's CD is kept under ``random_draws``,
+    garment CD is the median, and every draw's CD is kept under ``random_draws``; each draw is
+    simulated with the estimated material's contact thickness (Material.contact_offset), so the
+    two rows differ in the material alone,
   - estimated material: the avatar's (fit-physics),
   - true material: ``ground_truth/material.json`` (the oracle),
   - oracle material: for a capture whose material is not in this simulator's terms (no
@@ -25,6 +27,8 @@ for garment and body.
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +47,8 @@ from ..geometry import submesh
 from ..sim import Material
 from .base import camera_list, option, setting
 
+log = logging.getLogger(__name__)
+
 ROWS = ("LBS", "random material", "estimated material", "true material", "oracle material")
 RANDOM_DRAWS = 5  # random materials per evaluation (seeds seed .. seed + 4): the row is their median
 
@@ -53,8 +59,6 @@ def random_material(seed: int = 0) -> Material:
     (0.1–10 each; docs/simulation.md gives the mapping to our units)."""
     rng = np.random.default_rng(seed)
     u = lambda lo, hi: float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
-    import dataclasses
-
     m = Material.from_codim_ipc(density_kg_m3=u(200.0, 640.0), stretch_mult=u(0.1, 10.0), bend_mult=u(0.1, 10.0))
     return dataclasses.replace(m, name=f"random-{seed}")
 
@@ -174,16 +178,19 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The reference materials: two independent simulations, side by side (physavatar.parallel),
     # or taken from a `reference_sequences` folder made earlier (`physavatar run` makes it while
     # tracking runs).
-    references_ = _reference_materials(gt_root, seed, random_draws)
+    references_ = _reference_materials(gt_root, seed, random_draws, av.material.contact_offset)
     refs = {r.row: r.material for r in references_}
     if oracle is not None:
         from ..data.material import FittedMaterial
 
         refs["oracle material"] = FittedMaterial.load(Path(oracle) / "material.json").material
     if references is not None:
-        for row, V in _reuse_references(Path(references), av, references_, len(gt)).items():
-            seqs[row] = V
+        reused, stale = _reuse_references(Path(references), av, references_, len(gt))
+        seqs.update(reused)
         metrics["references"] = str(references)
+        if stale:  # simulated again below, in the estimate's model
+            metrics["references_simulated_again"] = stale
+            log.warning("evaluate: %s of %s simulated again: %s", ", ".join(stale), references, next(iter(stale.values())))
     todo = [(row, mat) for row, mat in refs.items() if row not in seqs]
     if todo:
         n_sim = simulated_frames(av, held)
@@ -212,6 +219,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     draws = {s: rows_of(seqs[random_draw_row(s)]) for s in random_seeds(seed, random_draws)}
     metrics["rows"]["random material"], metrics["random_draws"] = median_random_row(draws)
     metrics["random_draws"]["materials"] = [refs[random_draw_row(s)].to_dict() for s in metrics["random_draws"]["seeds"]]
+    metrics["random_draws"]["contact_offset_mm"] = 1e3 * av.material.contact_offset
     for row in ROWS:
         if row in seqs:
             metrics["rows"][row] = rows_of(seqs[row])
@@ -236,16 +244,20 @@ class Reference(NamedTuple):
     material: Material
 
 
-def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS) -> list[Reference]:
+def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS,
+                         contact_offset: float = 0.0) -> list[Reference]:
     """The rows that need only the capture: the true material (when the capture has one, folder
-    ``true``) and each random draw (:func:`random_draw_row`, folder ``random-<seed>``)."""
+    ``true``; with the thickness its file records) and each random draw (:func:`random_draw_row`,
+    folder ``random-<seed>``) with the contact thickness ``contact_offset`` [m] of the estimate it
+    is compared with (Material.contact_offset: the fit's model, docs/physics.md)."""
     true_path = gt_root / "material.json"
     return ([Reference("true material", "true", Material.load(true_path))] if true_path.exists() else []) + \
-        [Reference(random_draw_row(s), f"random-{s}", random_material(s)) for s in random_seeds(seed, draws)]
+        [Reference(random_draw_row(s), f"random-{s}", dataclasses.replace(random_material(s), contact_offset=contact_offset))
+         for s in random_seeds(seed, draws)]
 
 
 def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | None = None, seed: int = 0,
-                        random_draws: int = RANDOM_DRAWS, progress=True) -> Path:
+                        random_draws: int = RANDOM_DRAWS, contact_offset: float | None = None, progress=True) -> Path:
     """The true- and random-material rows of :func:`evaluate` simulated ahead of time.
 
     They depend on the capture alone (its template, body shape and frame-1 pose; the held-out
@@ -253,7 +265,13 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     computes them on the second core while tracking runs on the first. Writes
     ``out/avatar`` (a bare avatar of the capture), ``out/true`` and ``out/random-<seed>`` for each
     random draw (``animate`` folders, without PLYs) and ``out/references.json``.
+
+    The random draws are simulated with the contact thickness the fit will use
+    (``contact_offset``, ``--contact-offset``; None: estimated on the template as fit-physics
+    estimates it, physics.stage.template_contact_offset); references.json records it, and
+    :func:`evaluate` does not reuse draws made with another thickness than the avatar's.
     """
+    from .physics.stage import template_contact_offset
     from .avatar import build_avatar
     from ..parallel import Job, run_jobs
     from .animate import animate_job, simulated_frames
@@ -266,7 +284,8 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     held = Motion.load(gt_root / "heldout" / "motion.npz")
     if frames:
         held = held.slice(0, frames)
-    refs = _reference_materials(gt_root, seed, random_draws)
+    offset, offset_info = template_contact_offset(cap.template, contact_offset)
+    refs = _reference_materials(gt_root, seed, random_draws, offset)
     av = build_avatar(cap, out / "avatar", material=refs[0].material)
     n_sim = simulated_frames(av, held)
     t0 = time.time()
@@ -280,13 +299,17 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames), "seed": seed,
                                                 "random_seeds": random_seeds(seed, random_draws),
                                                 "rows": [r.row for r in refs], "folders": [r.folder for r in refs],
+                                                "contact_offset_m": offset, "contact_offset": offset_info,
                                                 "seconds": round(time.time() - t0, 1)})
     return out
 
 
-def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int) -> dict:
+def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int) -> tuple[dict, dict]:
     """Rows of a :func:`reference_sequences` folder, checked against this evaluation's materials
-    (``refs``: :func:`_reference_materials`; the oracle is fitted in the run, not a reference)."""
+    (``refs``: :func:`_reference_materials`; the oracle is fitted in the run, not a reference).
+    Returns (rows, stale): a row whose material differs only in its contact thickness (a folder
+    made with another --contact-offset, or before the draws had one) is not reused but listed in
+    ``stale`` (row -> why), for the caller to simulate again; any other difference is an error."""
     if not (path / "references.json").is_file():
         raise PhysavatarError(path, "no references.json (pass a `physavatar reference-sims` output folder)")
     ref_av = Avatar.load(path / "avatar")
@@ -297,17 +320,22 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int) -> d
     if not same:
         raise PhysavatarError(path / "avatar", "the references start from another template, shape or rest pose "
                               "than the evaluated avatar (made for another capture or avatar)")
-    rows = {}
+    rows, stale = {}, {}
     for row, name, mat in refs:
         folder = path / name
         used = read_json(folder / SEQUENCE_META).get("material") if (folder / SEQUENCE_META).is_file() else None
         if used is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
-        if Material.from_dict(used) != mat:
-            raise PhysavatarError(folder / "sequence.json", f"{row} was simulated with {used.get('name')!r}, "
+        used = Material.from_dict(used)
+        if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset) == mat:
+            stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm, the estimate's is "
+                          f"{1e3 * mat.contact_offset:.3f} mm")
+            continue
+        if used != mat:
+            raise PhysavatarError(folder / "sequence.json", f"{row} was simulated with {used.name!r}, "
                                   f"this evaluation uses {mat.name!r} (other ground truth, --seed or --random-draws)")
         rows[row] = _reuse_sequence(folder, av, n_frames).vertices
-    return rows
+    return rows, stale
 
 
 def _reuse_sequence(path, av, n_frames: int):
@@ -457,7 +485,9 @@ def report_markdown(m: dict) -> str:
         d = m["random_draws"]
         lines += ["", f"Random material: the median of {len(d['seeds'])} draws (seeds "
                   f"{', '.join(map(str, d['seeds']))}; garment CD ×10³ "
-                  f"{', '.join(f'{v:.4f}' for v in d['garment_chamfer_x1e3'])}), the draw of seed {d['median_seed']}."]
+                  f"{', '.join(f'{v:.4f}' for v in d['garment_chamfer_x1e3'])}), the draw of seed {d['median_seed']}"
+                  + (f"; simulated with the estimate's contact offset, {d['contact_offset_mm']:.2f} mm."
+                     if d.get("contact_offset_mm") else ".")]
     if m["rows"]:
         lines += ["", "F@1cm and F@2cm use plain distances; F@sq0.001 compares squared distances with 0.001 m² "
                   "(≈3.2 cm), the convention of widely copied code.", ""]
@@ -510,6 +540,10 @@ class ReferencesConfig:
     frames: int | None = option(None, "the first N held-out frames", check=_frames_ok)
     seed: int = setting(0)
     random_draws: int = option(RANDOM_DRAWS, "random materials drawn (seeds seed..seed+N-1)", check=_draws_ok)
+    contact_offset: float | None = option(None, "cloth contact thickness in m of the random draws (default: "
+                                                "estimated on the template, as fit-physics estimates it)",
+                                          flag="--contact-offset",
+                                          check=lambda v: None if 0 <= v < 0.05 else "must be in [0, 0.05) m")
 
 
 def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), avatar: Path,
@@ -523,5 +557,5 @@ def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), 
 
 def run_references(capture: Path, *, out: Path, config: ReferencesConfig = ReferencesConfig(), progress=None) -> Path:
     """:func:`reference_sequences` as a stage (``physavatar reference-sims``)."""
-    return reference_sequences(capture, out, frames=config.frames, seed=config.seed,
-                               random_draws=config.random_draws, progress=progress)
+    return reference_sequences(capture, out, frames=config.frames, seed=config.seed, random_draws=config.random_draws,
+                               contact_offset=config.contact_offset, progress=progress)

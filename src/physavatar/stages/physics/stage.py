@@ -120,6 +120,32 @@ def contact_offset(given: float | None, data) -> tuple[float, dict]:
                                    SimSettings().dhat)
 
 
+def template_contact_offset(template, given: float | None = None) -> tuple[float, dict]:
+    """The contact thickness [m] a fit of this capture will use, from its template alone (frame 1,
+    where `run`'s tracking and the fit start): ``given`` (``--contact-offset``), or estimated on the
+    template's first garment against its body as :func:`contact_offset` estimates it on the
+    fit's start frame. `reference-sims` gives it to the random draws, simulated before any fit,
+    so that they are simulated in the model the estimate is (evaluate checks it against the
+    avatar's). Returns (offset, report)."""
+    import numpy as np
+
+    from ...geometry import submesh
+    from ...sim import SimSettings
+    from ...sim.offset import estimate_contact_offset
+
+    labels = np.asarray(template.labels)
+    garments = sorted(set(labels.tolist()) - {0})
+    if given == 0 or not garments or not (labels == 0).any():
+        return 0.0, {"method": "given" if given == 0 else "no body", "offset_mm": 0.0}
+    if given is not None:
+        return float(given), {"method": "given", "offset_mm": 1e3 * float(given)}
+    gidx, gfaces = submesh(template.faces, labels == garments[0])
+    bidx, bfaces = submesh(template.faces, labels == 0)
+    V = np.asarray(template.vertices, np.float64)
+    return estimate_contact_offset(V[gidx], gfaces, V[bidx], bfaces, np.flatnonzero(template.boundary[gidx]),
+                                   SimSettings().dhat)
+
+
 def thickness_start(offset: float, data) -> tuple[float, dict, object]:
     """The start ``data`` needs for the thickness ``offset`` (sim.offset.feasible_start: lifted
     where a contact pair is closer than d̂/2 beyond it, the thickness lowered where it could not
