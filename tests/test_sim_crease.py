@@ -180,3 +180,44 @@ def test_a_lagging_steps_free_solve_ends_once_its_norm_stalls(monkeypatch):
         sim._newton(sv, stats)
         iterations[stall] = stats.newton_iterations
     assert iterations == {False: SimSettings().max_newton_iterations, True: 2 + ClothSim.stall_window}
+
+
+def crease_with_a_ledge(dz):
+    """A box A (side wall x = 0.1, top z = 0.1 + dz) and a flatter box B (top z = 0.04 + dz)
+    passing 1 cm into A's wall, its vertex columns 4 cm apart (x = 0.09 inside A, 0.13, ...):
+    B's top-face triangles between x = 0.09 and 0.13 have a corner buried in A and straddle A's
+    wall; their part at x > 0.1 is the body's visible surface."""
+    VA, FA = box([0.0, 0.0, dz], (0.2, 0.2, 0.2))
+    VB, FB = box([0.25, 0.0, dz], (0.32, 0.16, 0.08))
+    return np.vstack([VA, VB]), np.vstack([FA, FB + len(VA)])
+
+
+def test_a_crease_step_keeps_cloth_on_the_visible_part_of_the_triangles_next_to_the_crease():
+    """Cloth 3 mm above B's top, over the visible part of the triangles next to the crease
+    (x = 0.111–0.159, the crease at x = 0.1), the body rising 8 mm in one crease step (as the
+    hop's knee, docs/simulation.md "Session 26"). The crease rule of session 20 leaves every
+    triangle whose corners are all hidden (buried, or one ring from one: here x = 0.09–0.13)
+    out of contact, so the body passes through the cloth there: ipctk finds the cloth crossing the body
+    and cloth vertices end up to 2 cm below B's top. With ``crease_visible`` those triangles
+    collide wherever the closest point lies outside the other part: the cloth is lifted with B's
+    top (every vertex above the plane z = 0.048, the independent expectation), nothing crosses
+    (ipctk), no cloth vertex is inside the body (winding number), the body reaches its pose."""
+    V, F = cloth_grid.grid(7, 0.048, 0.0, center=True)
+    V = V + [0.135, 0.0, 0.043]
+    B0, Fb = crease_with_a_ledge(0.0)
+    B1, _ = crease_with_a_ledge(0.008)
+    faces = np.vstack([F, Fb + len(V)])
+    result = {}
+    for visible in (False, True):
+        sim = ClothSim(V, F, Material(), SimSettings(), [])
+        sim.crease_on, sim.crease_visible = True, visible
+        x, v, st = sim.step(V, np.zeros_like(V), B0, B1, Fb)
+        assert st.buried_vertices > 0 and st.body_gap == 0.0
+        X = np.vstack([x, B1])
+        mesh = ipctk.CollisionMesh(X, ipctk.edges(faces), faces)
+        mesh.can_collide = ipctk.make_vertex_patches_filter(np.r_[np.zeros(len(V)), np.ones(len(B1))].astype(np.int32))
+        result[visible] = (ipctk.has_intersections(mesh, X), float(x[:, 2].min() - 0.048),
+                           int(np.sum(winding_numbers(x, B1, Fb) > 0.5)))
+    assert result[False][0] and result[False][1] < -0.01  # session 20's rule: through the ledge
+    crosses, above, inside = result[True]
+    assert not crosses and above >= 0.0 and inside == 0

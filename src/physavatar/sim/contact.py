@@ -18,6 +18,10 @@ from .terms import Diagonal, HessianSum, SparseHessian, StepState, StepTangent, 
 class ContactScene:
     """The shared collision mesh plus the collision state reused by the contact terms.
 
+    ``candidate_filter``: None, or a callable given the scene after every candidate build, which
+    may drop primitive pairs from ``scene.candidates`` (ipctk's ``can_collide`` works on vertex
+    pairs only; a crease step's contact with the visible part of a body triangle, sim.crease).
+
     Args:
         cloth_rest: [N, 3]; cloth_faces: [F, 3]; body_rest: [Nb, 3]; body_faces: [Fb, 3].
         dhat: barrier activation distance [m]; dmin: minimum separation (thickness) [m].
@@ -71,14 +75,20 @@ class ContactScene:
     def prepare_static(self, X):
         """Candidates around one configuration (inflated by d̂): valid for X only."""
         self.candidates.build(self.mesh, X, self.inflation, self.broad_phase)
+        if self.candidate_filter is not None:
+            self.candidate_filter(self)
         self._collisions_at = None
         self._preview = (None, None)
 
     def prepare_segment(self, X0, X1):
         """Candidates for the whole segment X0 → X1: valid for every point on it."""
         self.candidates.build(self.mesh, X0, X1, self.inflation, self.broad_phase)
+        if self.candidate_filter is not None:
+            self.candidate_filter(self)
         self._collisions_at = None
         self._preview = (None, None)
+
+    candidate_filter = None
 
     def collisions_at(self, X):
         """The active barrier set at X (from the current candidates; cached for repeated X)."""

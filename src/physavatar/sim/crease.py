@@ -31,6 +31,12 @@ A step without buried body vertices near the cloth or released cloth vertices ke
 own filter object: on a body that does not pass through itself near the cloth the simulation is
 bit-identical. The step stays intersection-free (CCD) against every pair it does collide with;
 the body's buried triangles are inside the body, so cloth crossing them does not show.
+
+With ``ClothSim.crease_visible`` (off; docs/simulation.md "Session 26") the body is hidden by
+primitive instead (:class:`VisibleContact`, a candidate filter): only the primitives with a
+buried corner, and those straddling the crossing curve only where the cloth faces their hidden
+part. It keeps the cloth on the visible part of the triangles next to a crease, but where the
+buried part sinks deep (the hop's knee) the cloth is then pinched there instead of crossing.
 """
 
 from __future__ import annotations
@@ -159,6 +165,7 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
         base = scene.base_filter = scene.mesh.can_collide
     s = sim.settings
     scene.mesh.can_collide, scene.outer_faces = base, None
+    scene.candidate_filter = None
     if s.crease_ring < 0 or not sim.nb:  # off: the body as it is, every triangle collides
         return 0, 0
     faces = sim._body_faces
@@ -177,6 +184,9 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
         buried0, buried1 = buried_vertices(B0, faces, near), buried_vertices(B1, faces, near)
     buried = buried0 | buried1
     hidden_body = np.flatnonzero(grow(buried, faces, s.crease_ring)) if buried.any() else np.zeros(0, np.int64)
+    if sim.crease_visible and len(hidden_body):  # by primitive, the visible part kept (VisibleContact)
+        hidden_body = np.flatnonzero(buried)
+        scene.candidate_filter = VisibleContact(sim, buried, cloth, B0, B1)
     F = np.asarray(faces, np.int64)
     # the body's collision surface this step: its triangles without a hidden corner (follow_body
     # carries cloth with these only)
@@ -218,7 +228,10 @@ def outer_surface(sim, X_start, X_goal, free) -> tuple[int, int]:
         released = np.flatnonzero(grow(inside, sim.topo.faces, RELEASE_RING) & free)
     elif pull in sim.terms:
         sim.terms.remove(pull)
-    if len(hidden_body) or len(released):
+    if scene.candidate_filter is not None:
+        if len(released):
+            scene.mesh.can_collide = base & outer_filter(n, sim.nb, released)
+    elif len(hidden_body) or len(released):
         scene.mesh.can_collide = base & outer_filter(n, sim.nb, np.r_[released, n + hidden_body])
     return int(buried.sum()), len(released)
 
@@ -326,3 +339,84 @@ def crossing_cloth(cloth, cloth_faces, body, body_faces, dhat, visible_in=None) 
             if depth > 0:
                 out[i] = x + depth * normal
     return out
+
+
+class VisibleContact:
+    """A crease step's body contact by primitive (``ContactScene.candidate_filter``): a body
+    vertex, edge or triangle with no buried corner collides as usual, one with every corner
+    buried not at all, and one that straddles the curve where the parts cross (some corners
+    buried) collides with a cloth primitive only where the closest point between the two at the
+    step's start lies on its visible part: outside every other part of the body at the step's
+    start and its end (the body's winding number there, its own triangles left out, below
+    BURIED). Decided once per pair for the step (from the step's start), so the filter is the
+    same at every build and the step's CCD holds against every pair it keeps."""
+
+    def __init__(self, sim, buried, cloth0, body0, body1):
+        self.n, self.nfc = sim.n, len(sim.topo.faces)
+        self.buried = np.asarray(buried, bool)
+        self.cloth0, self.B0, self.B1 = cloth0, body0, body1
+        self.Fb = np.asarray(sim._body_faces, np.int64)
+        self.keep = {}  # (0, body face, cloth vertex) / (1, body edge, cloth edge) -> bool
+        self.dropped = 0
+
+    def _decide(self, todo, scene):
+        import ipctk
+
+        n, E, F = self.n, scene.mesh.edges, scene.mesh.faces
+        pts0, pts1, skip = [], [], []
+        for kind, b, c in todo:
+            if kind == 0:
+                tri = F[b] - n
+                u, v = ipctk.point_triangle_closest_point(self.cloth0[c], *self.B0[tri])
+                u, v = min(max(u, 0.0), 1.0), min(max(v, 0.0), 1.0)
+                w = np.array([1.0 - u - v, u, v])
+                ids = tri
+            else:
+                ids = E[b] - n
+                g = E[c]
+                t, _ = ipctk.edge_edge_closest_point(self.B0[ids[0]], self.B0[ids[1]], self.cloth0[g[0]], self.cloth0[g[1]])
+                t = min(max(t, 0.0), 1.0)
+                w = np.array([1.0 - t, t])
+            pts0.append(w @ self.B0[ids])
+            pts1.append(w @ self.B1[ids])
+            skip.append(ids[~self.buried[ids]][0])  # its own triangles left out: a corner outside
+        skip = np.array(skip)
+        w0 = winding_numbers(np.array(pts0), self.B0, self.Fb, skip)
+        w1 = winding_numbers(np.array(pts1), self.B1, self.Fb, skip)
+        for key, a, b in zip(todo, w0, w1):
+            self.keep[key] = bool(a < BURIED and b < BURIED)
+
+    def __call__(self, scene):
+        n, nfc, bur = self.n, self.nfc, self.buried
+        E, F = scene.mesh.edges, scene.mesh.faces
+        cand = scene.candidates
+        fv, ee = cand.fv_candidates, cand.ee_candidates
+        fv_ids = np.array([(k.face_id, k.vertex_id) for k in fv], np.int64).reshape(-1, 2)
+        ee_ids = np.array([(k.edge0_id, k.edge1_id) for k in ee], np.int64).reshape(-1, 2)
+        buried = np.r_[np.zeros(n, bool), bur]  # over the stacked [cloth; body] vertices
+        # a body triangle and a cloth vertex (the pair's key: 0, triangle, vertex), or a cloth
+        # triangle and a body vertex (dropped where that is buried)
+        f, v = fv_ids[:, 0], fv_ids[:, 1]
+        body_face = f >= nfc
+        corners = buried[F[f]].sum(axis=1)
+        keep_fv = np.where(body_face, corners == 0, ~buried[v])
+        straddle_fv = np.flatnonzero(body_face & (corners > 0) & (corners < 3))
+        # a body edge and a cloth edge (key: 1, body edge, cloth edge); cloth–cloth pairs kept
+        a, b = ee_ids[:, 0], ee_ids[:, 1]
+        swap = E[a, 0] < n
+        body_e, cloth_e = np.where(swap, b, a), np.where(swap, a, b)
+        cross = (E[a, 0] < n) != (E[b, 0] < n)
+        ends = buried[E[body_e]].sum(axis=1)
+        keep_ee = ~cross | (ends == 0)
+        straddle_ee = np.flatnonzero(cross & (ends == 1))
+        keys = [(0, int(f[i]), int(v[i])) for i in straddle_fv] + [(1, int(body_e[i]), int(cloth_e[i])) for i in straddle_ee]
+        todo = [k for k in keys if k not in self.keep]
+        if todo:
+            self._decide(todo, scene)
+        keep_fv[straddle_fv] = [self.keep[k] for k in keys[:len(straddle_fv)]]
+        keep_ee[straddle_ee] = [self.keep[k] for k in keys[len(straddle_fv):]]
+        if not keep_fv.all():
+            cand.fv_candidates = [k for k, ok in zip(fv, keep_fv) if ok]
+        if not keep_ee.all():
+            cand.ee_candidates = [k for k, ok in zip(ee, keep_ee) if ok]
+        self.dropped = int((~keep_fv).sum() + (~keep_ee).sum())

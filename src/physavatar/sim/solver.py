@@ -89,6 +89,7 @@ class ClothSim:
     predict_acceleration = True  # implicit Euler: Newton starts at x̃ + h² aₜ (last step's aₜ)
     stall_exit, stall_window, stall_progress = False, 8, 0.1  # give up a penalty phase: gap -10 % in 8 (simulate)
     crease_on = False  # cloth collides with the body's outer surface only (crease.py; simulate: on a lag's retry)
+    crease_visible = False  # ... and with the visible part of the triangles next to a crease (crease.VisibleContact)
     lag_stall_exit = False  # a lagging step's free solve ends once it stalls (simulate turns it on; _Solve.lag_stall)
     _crease_check = False  # the last step hid body or released cloth: look for cloth inside the body (crease.py)
 

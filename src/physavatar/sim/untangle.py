@@ -108,6 +108,7 @@ def untangle_start(sim, x, body_t, body_faces, visible: bool = False):
     base = getattr(scene, "base_filter", None)
     if base is not None:  # the scene's own filter (outer_surface sets this step's after)
         scene.mesh.can_collide = base
+    scene.candidate_filter = None
     free = sim.inertia.unit_mass[: sim.n] > 0
     out, moved = untangle(scene, x, sim.topo.faces, B, sim._body_faces, free, sim.settings.dhat + 0.5 * sim.dmin,  # 2 d̂ beyond d_min
                           max(sim.settings.crease_ring, 0), visible)
@@ -130,6 +131,7 @@ def untangle_frame_end(sim, x, body, body_faces):
     base = getattr(scene, "base_filter", None)
     if base is not None:  # the whole body (a step's outer_surface filter leaves buried triangles out)
         scene.mesh.can_collide = base
+    scene.candidate_filter = None
     if not scene.has_intersections(np.vstack([x, held_body(sim, body)])):
         return x, 0
     log.debug("untangle_frame_end: the cloth crosses the body after the frame")
