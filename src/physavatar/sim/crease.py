@@ -305,10 +305,11 @@ def crossing_cloth(cloth, cloth_faces, body, body_faces, dhat, visible_in=None) 
     cloth triangle). At a crossing point p with the body's outward normal there (the triangle's,
     or the mean of the edge's two triangles') each vertex of the cloth primitive that lies below
     2 d̂ above p's tangent plane is lifted to 2 d̂ above it. ``visible_in`` (V [Nb, 3], F [Fb', 3]):
-    only the crossings at points p outside every other part of that body mesh (its winding
-    number at p below BURIED; p on the surface is ½ inside its own part), i.e. on its visible
-    surface; a crossing inside another part is hidden, and the cloth edge there crosses the
-    visible surface elsewhere too."""
+    only the crossings at points p outside every other part of that body mesh, i.e. on its
+    visible surface; a crossing inside another part is hidden, and the cloth edge there crosses
+    the visible surface elsewhere too. The winding number is taken a hair (d̂/1000) outside p
+    along the normal, where the crossed triangle adds ~0 and another part ~1: at p itself the
+    crossed triangle adds +½ or −½ by rounding (session 26)."""
     from ..geometry.intersect import intersecting_pairs
 
     cloth, body = np.asarray(cloth, np.float64), np.asarray(body, np.float64)
@@ -329,7 +330,8 @@ def crossing_cloth(cloth, cloth_faces, body, body_faces, dhat, visible_in=None) 
             points.append(a + float(np.dot(t0 - a, tn) / np.dot(b - a, tn)) * (b - a))  # the crossing point
     shown = np.ones(len(points), bool)
     if visible_in is not None and len(points):
-        shown = winding_numbers(np.array(points), *visible_in) < BURIED
+        outside = np.array(points) + 1e-3 * dhat * np.array([c[3] for c in crossings])
+        shown = winding_numbers(outside, *visible_in) < 0.5
     for (_, _, lifted, normal), p, keep in zip(crossings, points, shown):
         if not keep:
             continue
