@@ -206,7 +206,6 @@ class PhysicsPrediction:
         out[g] = x1
         return out
 
-
     def feasible(self, x: np.ndarray, body: np.ndarray) -> np.ndarray | None:
         """[Ng, 3] the garment ``x`` that intersects ``body`` made intersection-free, or None:
         first :func:`physavatar.sim.untangle.untangle` (cloth inside the body, by winding number,
