@@ -396,3 +396,23 @@ def test_level_iters_sets_each_levels_iterations(body_capture):
     for blend in (-0.5, 1.5):  # flow.fit_blend is a share of the fit's move
         with pytest.raises(PhysavatarError, match="fit_blend"):
             _check_config(replace(FAST, flow=replace(FAST.flow, fit_blend=blend)), cap)
+
+
+def test_physics_carry_refuses_a_material_that_is_not_one(body_capture, tmp_path):
+    """flow.carry "physics" with a prediction.material that is neither a preset nor a material
+    .json: one message naming the setting, before anything is tracked."""
+    from dataclasses import replace
+
+    from physavatar.capture import load_capture
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.track.stage import _check_config
+
+    cap = load_capture(body_capture[0])
+    carry = replace(FAST, flow=replace(FAST.flow, carry="physics"))
+    _check_config(replace(carry, prediction=replace(carry.prediction, material="cotton")), cap)
+    with pytest.raises(PhysavatarError, match="prediction.material"):
+        _check_config(replace(carry, prediction=replace(carry.prediction, material="linen")), cap)
+    bad = tmp_path / "material.json"
+    bad.write_text('{"colour": "red"}')
+    with pytest.raises(PhysavatarError, match="not a material"):
+        _check_config(replace(carry, prediction=replace(carry.prediction, material=str(bad))), cap)
