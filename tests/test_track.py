@@ -350,10 +350,18 @@ def test_physics_prediction_is_one_simulate_on_body_step():
     cv = np.linalg.norm(2 * G[1] - G[0] - G[2], axis=1)
     assert err.max() < 2e-4, err.max()
     assert cv.max() > 0.01, cv.max()
-    # a start state whose cloth passes through the ball has no simulator step: None
+    # a start state whose cloth cuts the ball's equator (pushing out along the normal cannot undo
+    # that): untangled first (session 26, sim.untangle), then stepped; the step ends outside the
+    # ball (ipctk's own intersection test on a scene built here)
+    from physavatar.sim.contact import ContactScene
+
     X = frames[1].copy()
-    X[part.vertex_ids, 2] = 0.0  # the cloth cuts the ball's equator: pushing out cannot untangle that
-    assert pred(frames[0], X, frames[1], frames[2]) is None
+    X[part.vertex_ids, 2] = 0.0
+    p = pred(frames[0], X, frames[1], frames[2])
+    assert pred.pushed and p is not None
+    scene = ContactScene(part.vertices, part.faces, bodies[2], body_faces, 1e-3)
+    assert scene.has_intersections(np.vstack([X[part.vertex_ids], bodies[2]]))
+    assert not scene.has_intersections(np.vstack([p[part.vertex_ids], bodies[2]]))
     # one vertex dented 1 cm into the ball: pushed out first, then stepped (outside the ball)
     X = frames[1].copy()
     c = part.vertex_ids[24]  # the middle of the cloth, 2.4 cm above the ball's top
@@ -388,3 +396,23 @@ def test_level_iters_sets_each_levels_iterations(body_capture):
     for blend in (-0.5, 1.5):  # flow.fit_blend is a share of the fit's move
         with pytest.raises(PhysavatarError, match="fit_blend"):
             _check_config(replace(FAST, flow=replace(FAST.flow, fit_blend=blend)), cap)
+
+
+def test_physics_carry_refuses_a_material_that_is_not_one(body_capture, tmp_path):
+    """flow.carry "physics" with a prediction.material that is neither a preset nor a material
+    .json: one message naming the setting, before anything is tracked."""
+    from dataclasses import replace
+
+    from physavatar.capture import load_capture
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.track.stage import _check_config
+
+    cap = load_capture(body_capture[0])
+    carry = replace(FAST, flow=replace(FAST.flow, carry="physics"))
+    _check_config(replace(carry, prediction=replace(carry.prediction, material="cotton")), cap)
+    with pytest.raises(PhysavatarError, match="prediction.material"):
+        _check_config(replace(carry, prediction=replace(carry.prediction, material="linen")), cap)
+    bad = tmp_path / "material.json"
+    bad.write_text('{"colour": "red"}')
+    with pytest.raises(PhysavatarError, match="not a material"):
+        _check_config(replace(carry, prediction=replace(carry.prediction, material=str(bad))), cap)

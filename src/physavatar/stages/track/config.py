@@ -146,8 +146,10 @@ class PredictionConfig:
             from skinning carried to the next frame with ``init="lbs"``. Below one, the start of
             each frame leans back toward the skinned pose, which bounds the drift: a per-frame
             fitting error b adds up to b / (1 - share) instead of growing without end.
-        material: simulator material preset of the physics prediction (the garment's material is
-            not known when tracking: a prior).
+        material: simulator material of the physics prediction and of ``flow.carry`` "physics": a
+            preset name or a material .json (fit-physics' material.json: the paper's loop, a second
+            tracking pass with the material fitted on the first). The garment's material is not
+            known when tracking: a prior.
         newton_iterations: cap on the physics step's Newton iterations (capped too low, the step
             stays in the phase where the body sweeps into the cloth).
     """
@@ -233,7 +235,13 @@ class FlowConfig:
             to t), so what no flow observes follows the body instead of staying behind; "near":
             the body's motion weighted by exp(-(d / ``carry_range``)^2), d [m] the vertex's distance
             from the body in the template (a fitted top follows the torso, a skirt's hem does not
-            follow the legs).
+            follow the legs); "velocity" (session 26): the garment's constant-velocity start
+            x_{t-1} + S(x_{t-1} - x_{t-2}); "physics" (session 26): one step of the cloth simulator
+            from the last two tracked frames (:class:`~physavatar.stages.track.prediction.PhysicsPrediction`,
+            material ``prediction.material``, the tracked garment first made intersection-free), also
+            the lift's start and the target of ``prior``: where the flow sees the cloth it follows the
+            images, where it does not the cloth keeps the simulator's motion (frames without a valid
+            step keep "still").
         predict_colour: the prediction's frame-to-frame flow runs on the same channels as the
             corrections (``channels``: with "colour", the luma and the patterned opponent
             channels) instead of the luma alone.

@@ -194,13 +194,9 @@ class PhysicsPrediction:
         bt, bt1 = np.asarray(body_prev, np.float64)[b], np.asarray(body_next, np.float64)[b]
         self.pushed = False
         if self._scene.has_intersections(np.vstack([x, bt])):
-            # a tracked garment that has passed into the body: push the offending vertices out
-            # along the body normal (as garment design does) to get an intersection-free start
-            from ...garment.garment import push_out
-
-            x = push_out(x, self._faces, [(bt, self.body_faces)], self.push_clearance, iters=10)[0]
+            x = self.feasible(x, bt)
             self.pushed = True
-            if self._scene.has_intersections(np.vstack([x, bt])):
+            if x is None:
                 self.last_stats = None
                 return None
         targets = attachment_positions(self.attachment, bt1)
@@ -210,13 +206,31 @@ class PhysicsPrediction:
         out[g] = x1
         return out
 
+    def feasible(self, x: np.ndarray, body: np.ndarray) -> np.ndarray | None:
+        """[Ng, 3] the garment ``x`` that intersects ``body`` made intersection-free, or None:
+        first :func:`physavatar.sim.untangle.untangle` (cloth inside the body, by winding number,
+        to 2 d̂ outside its closest outer point; edges through it lifted; session 26), then, if it
+        still crosses, the offending vertices pushed out along the body normal
+        (:func:`physavatar.garment.garment.push_out`, as garment design does)."""
+        from ...garment.garment import push_out
+        from ...sim.untangle import untangle
+
+        free = np.ones(len(x), bool)
+        free[self.boundary] = False
+        y, moved = untangle(self._scene, x, self._faces, body, self.body_faces, free, self.sim.settings.dhat)
+        if len(moved):
+            return y
+        x = push_out(x, self._faces, [(body, self.body_faces)], self.push_clearance, iters=10)[0]
+        return None if self._scene.has_intersections(np.vstack([x, body])) else x
+
 
 def physics_predictor(cap: Capture, cfg: PredictionConfig) -> PhysicsPrediction:
     """The :class:`PhysicsPrediction` of ``cfg`` for the capture's template."""
-    from ...sim import SimSettings, preset
+    from ...sim import Material, SimSettings, preset
 
     t = cap.template
-    return PhysicsPrediction(t.vertices, t.faces, t.labels, t.boundary, preset(cfg.material), cap.fps,
+    material = Material.load(cfg.material) if cfg.material.endswith(".json") else preset(cfg.material)
+    return PhysicsPrediction(t.vertices, t.faces, t.labels, t.boundary, material, cap.fps,
                              SimSettings(max_newton_iterations=cfg.newton_iterations))
 
 def flow_start(cfg: FlowConfig, t, train: list[Camera], first_vertices: np.ndarray, first_grey: list[np.ndarray],
@@ -267,8 +281,11 @@ class FrameStarts:
                        if p.velocity_smoothing > 0 else None)
         self.mixed = p.init == "mixed" and self.skin is not None
         free = bool((~self.skinned).any())
-        self.physics = physics_predictor(cap, p) if self.mixed and p.garment == "physics" and free else None
         self.use_flow = self.mixed and p.garment == "flow" and free
+        # the physics step: the start itself ("physics"), or the flow lift's reference (flow.carry "physics")
+        physics = p.garment == "physics" or (self.use_flow and cfg.flow.carry == "physics")
+        self.physics = physics_predictor(cap, p) if self.mixed and physics and free else None
+        self.physics_frames: dict[int, str] = {}  # frame -> "stepped" / "untangled" / "none" (no valid start)
         self.flow: FlowStart | None = None  # built at frame 2: frame 1 may come from a resumed run
         self._grey: dict[int, list[np.ndarray]] = {}  # frame -> training views' luma (sRGB: colour flow)
         self._masks: dict[int, list[np.ndarray]] = {}  # frame -> training views' masks (silhouette term)
@@ -301,6 +318,14 @@ class FrameStarts:
                     self.flow_cfg = self._flow_settings(tracked[0], first)
                     self.flow = flow_start(self.flow_cfg, self.template, self.train, tracked[0], first, self.skinned)
                 carried = None
+                if self.flow_cfg.carry == "velocity":  # no motion: the garment's own constant velocity
+                    carried = np.asarray(init, np.float64).copy()
+                elif self.flow_cfg.carry == "physics":  # no motion: one simulator step (session 26)
+                    x = self._physics_step(i, tracked, p)
+                    if x is not None:  # the start and the prior of the lift too
+                        carried = x
+                        carried[self.skinned] = init[self.skinned]
+                        init = carried.astype(np.float32)
                 if self.flow_cfg.carry in ("body", "near"):  # frame t-1 moved with the body to t
                     prev_x = np.asarray(tracked[-1], np.float64)
                     carried = self.skin.skin(i, self.skin.unskin(i - 1, prev_x))
@@ -310,9 +335,8 @@ class FrameStarts:
                     carried[self.skinned] = init[self.skinned]
                 init = self.flow(tracked[-1], self._grey.pop(prev), self._grey[f], init,
                                  self._masks.get(f), carried).astype(np.float32)
-            if self.physics is not None and i >= 2:
-                x = self.physics(tracked[-2], tracked[-1], self.skin.skin(i - 1), self.skin.skin(i), p.velocity,
-                                 self.smooth)
+            if self.physics is not None and not self.use_flow:
+                x = self._physics_step(i, tracked, p)
                 if x is not None:  # None: the tracked garment intersects the body, keep velocity
                     init[~self.skinned] = x[~self.skinned]
             return init
@@ -321,6 +345,16 @@ class FrameStarts:
         prev = tracked[-1]
         vel = tracked[-1] - tracked[-2] if i >= 2 else np.zeros_like(prev)
         return prev + np.float32(p.velocity) * vel
+
+    def _physics_step(self, i: int, tracked: list[np.ndarray], p: PredictionConfig) -> np.ndarray | None:
+        """[V, 3] one simulator step of the tracked garment to ``frames[i]`` (:class:`PhysicsPrediction`),
+        or None (frame 2, without a velocity yet, or no intersection-free start); noted in
+        ``physics_frames``."""
+        if i < 2:
+            return None
+        x = self.physics(tracked[-2], tracked[-1], self.skin.skin(i - 1), self.skin.skin(i), p.velocity, self.smooth)
+        self.physics_frames[self.frames[i]] = "none" if x is None else "untangled" if self.physics.pushed else "stepped"
+        return x
 
     def _flow_settings(self, first_vertices: np.ndarray, first_views: list[np.ndarray]) -> FlowConfig:
         """``cfg.flow`` with the plain-garment rule applied (:class:`FlowConfig` ``plain``): the

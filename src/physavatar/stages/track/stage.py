@@ -88,23 +88,31 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
                                     f"{flow.bend_reference!r}, {flow.correction_bend_reference!r}")
     if not 0 <= flow.fit_blend <= 1:
         raise PhysavatarError(None, f"flow.fit_blend must be in [0, 1], got {flow.fit_blend}")
-    if flow.carry not in ("still", "body", "near"):
-        raise PhysavatarError(None, f"flow.carry must be 'still', 'body' or 'near', got {flow.carry!r}")
+    if flow.carry not in CARRY:
+        raise PhysavatarError(None, f"flow.carry must be one of {', '.join(CARRY)}, got {flow.carry!r}")
     if flow.plain not in ("auto", "plain", "patterned"):
         raise PhysavatarError(None, f"flow.plain must be 'auto', 'plain' or 'patterned', got {flow.plain!r}")
     if flow.carry == "near" and flow.carry_range <= 0:
         raise PhysavatarError(None, f"flow.carry_range must be > 0 with flow.carry='near', got {flow.carry_range}")
-    if pred.garment == "physics":
+    if pred.garment == "physics" or flow.carry == "physics":
         from ...sim import PRESETS
 
-        if pred.material not in PRESETS:
-            raise PhysavatarError(None, f"prediction_material must be one of {sorted(PRESETS)}, got {pred.material!r}")
+        if pred.material not in PRESETS and not pred.material.endswith(".json"):
+            raise PhysavatarError(None, f"prediction.material must be one of {sorted(PRESETS)} or a material .json "
+                                        f"(fit-physics' material.json), got {pred.material!r}")
+        if pred.material.endswith(".json"):
+            from ...sim import Material
+
+            Material.load(pred.material)  # a file that is not a material: its one message now
     scale = fit_scale(fit, train)
     for c in train:
         if min(round(c.width * scale * min(fit.levels)), round(c.height * scale * min(fit.levels))) < 11:
             raise PhysavatarError(None, f"option --scale: camera {c.name} would be smaller than 11 px "
                                         "at the coarsest level (SSIM's window); use a larger --scale")
     return train, capture.frames[:n]
+
+
+CARRY = ("still", "body", "near", "velocity", "physics")  # flow.carry
 
 
 def _read_log(path: Path) -> dict[int, dict]:
