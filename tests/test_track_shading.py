@@ -104,8 +104,8 @@ def test_near_carry_weights_fall_with_the_distance_from_the_body():
 def test_plain_rule_tells_a_plain_sheet_from_a_textured_one():
     """``flow.plain="auto"``: a plain sheet under a soft light with pixel noise (a render's, or a
     fabric's aliased weave) measures below ``plain_texture`` on the views blurred by 1 px, the
-    procedurally textured sheet above; a plain garment's flow settings get the gate and the near
-    carry, a patterned one's stay as configured."""
+    procedurally textured sheet above; a plain garment's flow settings get the gate (and, from "still", the near
+    carry), a patterned one's stay as configured."""
     from physavatar.stages.track.channels import garment_texture
     from physavatar.stages.track.config import FlowConfig, TrackConfig
     from physavatar.stages.track.prediction import PLAIN_BLUR, FrameStarts
@@ -126,8 +126,11 @@ def test_plain_rule_tells_a_plain_sheet_from_a_textured_one():
     fs = FrameStarts.__new__(FrameStarts)
     fs.template = SimpleNamespace(faces=F)
     fs.skinned, fs.train, fs.cfg = ~region, cams, TrackConfig()
-    got = fs._flow_settings(V0, plain)
-    assert fs.plain and (got.min_texture, got.texture_blur, got.carry) == (limit, PLAIN_BLUR, "near")
+    got = fs._flow_settings(V0, plain)  # the default carry (physics, session 26) is kept
+    assert fs.plain and (got.min_texture, got.texture_blur, got.carry) == (limit, PLAIN_BLUR, "physics")
+    fs.cfg = TrackConfig(flow=FlowConfig(carry="still"))  # "still" becomes the near carry
+    assert fs._flow_settings(V0, plain).carry == "near" and fs.plain
+    fs.cfg = TrackConfig()
     assert fs._flow_settings(V0, textured) == fs.cfg.flow and not fs.plain
     fs.cfg = TrackConfig(flow=FlowConfig(plain="patterned"))
     assert fs._flow_settings(V0, plain) == fs.cfg.flow and fs.garment_texture is None

@@ -283,7 +283,7 @@ class FlowConfig:
     bend_views: int = setting(2)
     fit_blend: float = setting(0.0)
     min_texture: float = setting(0.0)
-    carry: str = setting("still")
+    carry: str = setting("physics")
     predict_colour: bool = setting(False)
     highpass: float = setting(0.0)
     texture_blur: float = setting(0.0)

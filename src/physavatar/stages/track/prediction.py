@@ -169,6 +169,12 @@ class PhysicsPrediction:
         # the intersection test of the start state (ipctk's CCD assumes an intersection-free start)
         self._scene = ContactScene(part.vertices, part.faces, V[self.body_ids], self.body_faces, settings.dhat)
         self._faces = part.faces
+        # Each call one step from the same sim state: the contact scene built on the template's body
+        # (ipctk takes its mollifier thresholds from the rest positions) and the initial barrier
+        # stiffness (which IPC adapts from step to step). A call's result then depends on its
+        # arguments alone, so a resumed tracking run predicts what an uninterrupted one does.
+        self.sim.prepare(V[self.body_ids], self.body_faces)
+        self._state0 = self.sim.get_state()
         self.push_clearance = push_clearance
         self.last_stats = None
         self.pushed = False
@@ -200,6 +206,7 @@ class PhysicsPrediction:
                 self.last_stats = None
                 return None
         targets = attachment_positions(self.attachment, bt1)
+        self.sim.set_state(self._state0)
         x1, _, self.last_stats = self.sim.step(x, velocity * dv[g] / self.h, bt, bt1, self.body_faces, targets)
         out = prev.copy()
         out[b] = bt1
