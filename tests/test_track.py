@@ -324,24 +324,35 @@ def _cloth_over_ball():
     return V, F, labels, boundary, bodies
 
 
-def test_physics_prediction_is_one_simulate_on_body_step():
-    """Frame 3 predicted from frames 1-2 of a simulation (velocity = their difference / h) is that
-    simulation's frame 3 (the independent reference: simulate_on_body over all three frames),
-    while constant velocity is centimetres off (gravity and the ball's push)."""
+def _cloth_over_ball_simulated(bodies=None):
+    """_cloth_over_ball simulated by simulate_on_body with cotton (the independent reference; its
+    ball ``bodies`` when given): (V, F, labels, boundary, bodies, body_ids, body_faces, part,
+    material, G [T, Ng, 3] the garment, frames [T] of template-shaped [V, 3])."""
     from physavatar.garment_sim import simulate_on_body, split_template
     from physavatar.sim import SimSettings, preset
-    from physavatar.stages.track.prediction import PhysicsPrediction
 
-    V, F, labels, boundary, bodies = _cloth_over_ball()
+    V, F, labels, boundary, ball = _cloth_over_ball()
+    bodies = ball if bodies is None else bodies
     body_ids, body_faces, part = split_template(V, F, labels, boundary)
     mat = preset("cotton")
     G = simulate_on_body(part, bodies, body_faces, mat, 25.0, SimSettings())
     frames = []
-    for k in range(3):
+    for k in range(len(bodies)):
         X = V.copy()
         X[body_ids] = bodies[k]
         X[part.vertex_ids] = G[k]
         frames.append(X)
+    return V, F, labels, boundary, bodies, body_ids, body_faces, part, mat, G, frames
+
+
+def test_physics_prediction_is_one_simulate_on_body_step():
+    """Frame 3 predicted from frames 1-2 of a simulation (velocity = their difference / h) is that
+    simulation's frame 3 (the independent reference: simulate_on_body over all three frames),
+    while constant velocity is centimetres off (gravity and the ball's push)."""
+    from physavatar.sim import SimSettings
+    from physavatar.stages.track.prediction import PhysicsPrediction
+
+    V, F, labels, boundary, bodies, body_ids, body_faces, part, mat, G, frames = _cloth_over_ball_simulated()
     pred = PhysicsPrediction(V, F, labels, boundary, mat, 25.0, SimSettings())
     p = pred(frames[0], frames[1], frames[1], frames[2])
     assert pred.last_stats.n_contacts > 0  # the ball is in contact in this step

@@ -13,7 +13,7 @@ from physavatar.camera import Camera, intrinsics, look_at
 from physavatar.stages.track import TrackConfig
 from physavatar.stages.track.flow import FlowObservation, FlowPrediction, FlowStart
 from physavatar.stages.track.prediction import FrameStarts, PhysicsPrediction
-from test_track import _cloth_over_ball
+from test_track import _cloth_over_ball, _cloth_over_ball_simulated
 
 
 class _Skin:  # the capture's skinning, here the simulation's own frames (body and boundary)
@@ -51,19 +51,7 @@ def _starts(V, F, labels, boundary, frames, carry, obs, mat):
 
 
 def test_physics_carry_keeps_the_simulators_motion_where_no_view_sees_the_cloth():
-    from physavatar.garment_sim import simulate_on_body, split_template
-    from physavatar.sim import SimSettings, preset
-
-    V, F, labels, boundary, bodies = _cloth_over_ball()
-    body_ids, body_faces, part = split_template(V, F, labels, boundary)
-    mat = preset("cotton")
-    G = simulate_on_body(part, bodies, body_faces, mat, 25.0, SimSettings())  # the reference
-    frames = []
-    for k in range(3):
-        X = V.copy()
-        X[body_ids] = bodies[k]
-        X[part.vertex_ids] = G[k]
-        frames.append(X)
+    V, F, labels, boundary, bodies, body_ids, body_faces, part, mat, G, frames = _cloth_over_ball_simulated()
     truth = frames[2].copy()
     g = part.vertex_ids
     free = g[~np.isin(np.arange(len(g)), part.boundary)]
@@ -101,20 +89,9 @@ def test_a_physics_step_depends_on_its_arguments_alone():
     must be the same bits as that of the predictor that ran every frame before: each call steps
     from the same sim state (the contact scene built on the template's body, the initial barrier
     stiffness), not from where the last call left the adaptive stiffness or the first call's body."""
-    from physavatar.garment_sim import simulate_on_body, split_template
-    from physavatar.sim import SimSettings, preset
-
-    V, F, labels, boundary, bodies = _cloth_over_ball()
-    bodies = np.concatenate([bodies, bodies[-1:] + [0.0, 0.0, 0.02]])  # the ball rises on into the cloth
-    body_ids, body_faces, part = split_template(V, F, labels, boundary)
-    mat = preset("cotton")
-    G = simulate_on_body(part, bodies, body_faces, mat, 25.0, SimSettings())
-    frames = []
-    for k in range(len(bodies)):
-        X = V.copy()
-        X[body_ids] = bodies[k]
-        X[part.vertex_ids] = G[k]
-        frames.append(X)
+    ball = _cloth_over_ball()[4]
+    ball = np.concatenate([ball, ball[-1:] + [0.0, 0.0, 0.02]])  # the ball rises on into the cloth
+    V, F, labels, boundary, bodies, body_ids, body_faces, part, mat, G, frames = _cloth_over_ball_simulated(ball)
     chained = PhysicsPrediction(V, F, labels, boundary, mat, 25.0)
     for k in range(2, len(frames)):
         a = chained(frames[k - 2], frames[k - 1], frames[k - 1], frames[k])
