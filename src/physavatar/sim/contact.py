@@ -37,6 +37,8 @@ class ContactScene:
             "Prescribed pairs").
     """
 
+    candidate_filter = None  # see above; set per scene
+
     def __init__(self, cloth_rest, cloth_faces, body_rest, body_faces, dhat, dmin=0.0,
                  self_contact=False, ccd_rescaling=0.9, exclude=None, prescribed=None):
         self.n_cloth = len(cloth_rest)
@@ -87,8 +89,6 @@ class ContactScene:
             self.candidate_filter(self)
         self._collisions_at = None
         self._preview = (None, None)
-
-    candidate_filter = None
 
     def collisions_at(self, X):
         """The active barrier set at X (from the current candidates; cached for repeated X)."""
