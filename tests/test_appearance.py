@@ -152,6 +152,18 @@ def test_short_fit_reduces_loss_and_moves_texture_to_truth(tiny, tmp_path, light
     more = fit_appearance(tiny, tmp_path / "fit", AppearanceConfig(**{**cfg.to_dict(), "iterations": 42}),
                           meshes="gt", progress=False)
     assert len(more.log) == 42 and [r["iteration"] for r in more.log[:40]] == list(range(40))
+    # ... but a checkpoint fitted to other meshes (another tracking run in the same folder) is
+    # fitted again, not resumed: its first 40 steps see the moved meshes, not the old log
+    from dataclasses import replace
+
+    from physavatar.stages.appearance.data import load_appearance_data
+
+    data = load_appearance_data(tiny, None, "gt", cfg.texture_size)
+    moved = replace(data, vertices=np.asarray(data.vertices) + np.array([0.0, 0.0, 0.01], np.float32))
+    other = fit_appearance(tiny, tmp_path / "fit", AppearanceConfig(**{**cfg.to_dict(), "iterations": 42}),
+                           data=moved, progress=False)
+    assert len(other.log) == 42
+    assert [r["loss"] for r in other.log[:40]] != [r["loss"] for r in more.log[:40]]
 
 
 def test_projected_texture_is_closer_to_the_true_albedo_than_face_colours(tiny, tmp_path):

@@ -67,6 +67,18 @@ def _resume_key(cfg: AppearanceConfig) -> dict:
     return d
 
 
+def _data_key(data: AppearanceData, tex0: np.ndarray) -> str:
+    """What a checkpoint must have been fitted to, besides the settings: the meshes, frames and
+    cameras, and the initial texture (its atlas and projection). A checkpoint of another tracking
+    run, or of another capture, in the same folder is not resumed but fitted again."""
+    import hashlib
+
+    h = hashlib.sha1(np.ascontiguousarray(np.asarray(data.vertices, np.float64)).tobytes())
+    h.update(np.ascontiguousarray(tex0, np.float64).tobytes())
+    h.update(json.dumps([[int(f) for f in data.frames], [c.name for c in data.cameras]]).encode())
+    return h.hexdigest()
+
+
 def fit_appearance(capture: str | Path | Capture, out: str | Path, config: AppearanceConfig = AppearanceConfig(), *,
                    tracked: str | Path | None = None, meshes: str | None = None, lighting: str | Path | None = None,
                    progress=None, data: AppearanceData | None = None) -> AppearanceResult:
@@ -130,7 +142,8 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
     exposure = None
     if ckpt.is_file():
         z = load_npz(ckpt)
-        if json.loads(str(z["resume_key"])) == _resume_key(cfg):
+        if json.loads(str(z["resume_key"])) == _resume_key(cfg) and \
+                (str(z["data_key"]) if "data_key" in z else None) == _data_key(data, tex0):
             for k in state:
                 state[k] = z[k]
             adam.load_state_dict(z)
@@ -181,6 +194,7 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
             task.advance(loss=loss)
             if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == cfg.iterations:
                 save_npz_atomic(ckpt, iteration=np.int64(it + 1), resume_key=np.array(json.dumps(_resume_key(cfg))),
+                                data_key=np.array(_data_key(data, tex0)),
                                 exposure=np.float64(exposure), **state, **adam.state_dict())
                 write_log(out / "fit_log.csv", log)
     # per-iteration time from the log, so that a resumed run reports the same figure
