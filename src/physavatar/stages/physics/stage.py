@@ -111,13 +111,19 @@ def contact_offset(given: float | None, data) -> tuple[float, dict]:
     from ...sim import SimSettings
     from ...sim.offset import estimate_contact_offset
 
-    if data.collider is None or given == 0:
+    x0 = data.reference[0] if data.initial is None else data.initial  # the start (clear_start)
+    return _given_or_estimated(given, data.collider is not None, lambda: estimate_contact_offset(
+        x0, data.faces, data.collider[0], data.collider_faces, data.boundary, SimSettings().dhat))
+
+
+def _given_or_estimated(given: float | None, has_body: bool, estimate) -> tuple[float, dict]:
+    """(offset, report): 0 without a body or when ``given`` is 0, ``given`` when set, else
+    ``estimate()`` (sim.offset.estimate_contact_offset on some frame)."""
+    if not has_body or given == 0:
         return 0.0, {"method": "given" if given == 0 else "no body", "offset_mm": 0.0}
     if given is not None:
         return float(given), {"method": "given", "offset_mm": 1e3 * float(given)}
-    x0 = data.reference[0] if data.initial is None else data.initial  # the start (clear_start)
-    return estimate_contact_offset(x0, data.faces, data.collider[0], data.collider_faces, data.boundary,
-                                   SimSettings().dhat)
+    return estimate()
 
 
 def template_contact_offset(template, given: float | None = None) -> tuple[float, dict]:
@@ -135,15 +141,15 @@ def template_contact_offset(template, given: float | None = None) -> tuple[float
 
     labels = np.asarray(template.labels)
     garments = sorted(set(labels.tolist()) - {0})
-    if given == 0 or not garments or not (labels == 0).any():
-        return 0.0, {"method": "given" if given == 0 else "no body", "offset_mm": 0.0}
-    if given is not None:
-        return float(given), {"method": "given", "offset_mm": 1e3 * float(given)}
-    gidx, gfaces = submesh(template.faces, labels == garments[0])
-    bidx, bfaces = submesh(template.faces, labels == 0)
-    V = np.asarray(template.vertices, np.float64)
-    return estimate_contact_offset(V[gidx], gfaces, V[bidx], bfaces, np.flatnonzero(template.boundary[gidx]),
-                                   SimSettings().dhat)
+
+    def estimate():
+        gidx, gfaces = submesh(template.faces, labels == garments[0])
+        bidx, bfaces = submesh(template.faces, labels == 0)
+        V = np.asarray(template.vertices, np.float64)
+        return estimate_contact_offset(V[gidx], gfaces, V[bidx], bfaces, np.flatnonzero(template.boundary[gidx]),
+                                       SimSettings().dhat)
+
+    return _given_or_estimated(given, bool(garments) and bool((labels == 0).any()), estimate)
 
 
 def thickness_start(offset: float, data) -> tuple[float, dict, object]:
