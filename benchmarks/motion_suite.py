@@ -1,8 +1,8 @@
 """Every motion, every frame: the dress simulated on a suite of motions, checked frame by frame.
 
 The motions: the built-in ones, both CMU clips (``shared/data/motions/cmu_131_0{1,3}.bvh``,
-arm clearance applied as ``simulate`` does), and synthetic stress motions (a high jump, a spin
-at 2 turns/s, the hands pressed to the hips (akimbo), a sit-down where the thighs fold into the lap).
+arm and part clearance applied as ``simulate`` does; ``--no-part-clearance``: arm clearance
+only), and synthetic stress motions (a high jump, a spin at 2 turns/s, the hands pressed to the hips (akimbo), a sit-down where the thighs fold into the lap).
 And two layered cases (``simulate --over``): a t-shirt over a skirt on the walk, a dress over a
 skirt (a petticoat) on the dance, simulated together with self-contact between the layers.
 Each runs through ``physavatar simulate``'s stage (stages.simulate.run: the built-in dress on
@@ -259,9 +259,10 @@ def main():
     ap.add_argument("--targets", action="store_true",
                     help="check only the attached (boundary) targets, simulate nothing: the frames where the "
                          "attached triangles alone cross, riding the skin and after garment.unfold_targets")
-    ap.add_argument("--part-clearance", action="store_true",
+    ap.add_argument("--part-clearance", action=argparse.BooleanOptionalAction, default=True,
                     help="the CMU clips also corrected by body.clearance.part_clearance (thigh out of the belly, "
-                         "hand off the body; docs/simulation.md \"Session 23\")")
+                         "calf out of the thigh, hand off the body; docs/simulation.md \"Session 23\"), as "
+                         "`simulate` and `animate` do by default; --no-part-clearance: the clips as retargeted")
     ap.add_argument("--partial", action="store_true",
                     help="check the frames written so far by the (interrupted or running) runs in --work, simulate nothing")
     args = ap.parse_args()
@@ -476,7 +477,7 @@ def _write(args, rows, load0, edge, duration, warmup, fps):
         "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None, **{k: v for k, v in stamp.items() if k != "date"}},
         "config": {"garment": "dress (layered cases: their rows' garment)", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
                    "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,
-                   "self_contact": not args.no_self_contact,
+                   "self_contact": not args.no_self_contact, "part_clearance": args.part_clearance,
                    "clip_excerpts": None if args.full else {k: [s, s + int(round(duration * fps))]
                                                             for k, (_, s) in CLIPS.items()}},
         "figures": rows,

@@ -104,3 +104,7 @@ def test_with_part_clearance_is_what_simulate_and_animate_apply(body):
     assert s["min_distance_after_m"] > s["min_distance_before_m"]
     assert describe_part_clearance(summary).startswith("part clearance: thigh-belly.R in ")
     assert describe_part_clearance(None) is None
+    # on by default for motion capture since session 27 (docs/motions.md), off only when asked
+    from physavatar.stages.animate import AnimateConfig
+    from physavatar.stages.simulate import SimulateConfig
+    assert SimulateConfig().part_clearance and AnimateConfig().part_clearance

@@ -187,10 +187,10 @@ class AnimateConfig(GarmentFileOptions):
                                     check=lambda v: None if v >= 1 else "must be at least 1")
     arm_clearance: float = option(0.03, "with motion capture (.bvh, AMASS .npz): raise the arms where a hand comes closer than this [m] "
                                   "to the hips/trunk, so the garment is not pinched (0 = off)", check=nonnegative)
-    part_clearance: bool = option(False, "with motion capture: keep the parts the garment covers apart where the motion "
+    part_clearance: bool = option(True, "with motion capture: keep the parts the garment covers apart where the motion "
                                          "makes the body pass through itself (thigh into the belly, calf into the "
                                          "thigh, hand into the body): bones turned by at most 20-40 deg "
-                                         "(body.clearance; docs/simulation.md \"Session 23\")",
+                                         "(body.clearance; docs/motions.md; --no-part-clearance keeps the clip as retargeted)",
                                   flag="--part-clearance/--no-part-clearance")
     max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
                                check=lambda v: None if v >= 1 else "must be at least 1")

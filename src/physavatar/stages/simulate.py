@@ -96,10 +96,10 @@ class SimulateConfig(GarmentFileOptions):
     arm_clearance: float = option(0.03, "with a .bvh motion: raise the arms where a hand comes closer than this [m] "
                                         "to the hips/trunk, so the garment is not pinched (0 = off)",
                                   flag="--arm-clearance")
-    part_clearance: bool = option(False, "with a .bvh/AMASS motion: keep the parts the garment covers apart where the "
+    part_clearance: bool = option(True, "with a .bvh/AMASS motion: keep the parts the garment covers apart where the "
                                          "motion makes the body pass through itself (thigh into the belly, calf into "
                                          "the thigh, hand into the body): bones turned by at most 20-40 deg "
-                                         "(body.clearance; docs/simulation.md \"Session 23\")",
+                                         "(body.clearance; docs/motions.md; --no-part-clearance keeps the clip as retargeted)",
                                   flag="--part-clearance/--no-part-clearance")
     edge_length: float = option(0.02, "garment edge length [m] (with --garment KIND)")
     over: str | None = option(None, "with --motion: built-in garments worn over --garment, innermost first "
