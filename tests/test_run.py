@@ -54,3 +54,22 @@ def test_run_end_to_end_and_resume(tiny_capture, tmp_path):
     r = CliRunner().invoke(app, ["run", str(tiny_capture), str(out), "--quick"])
     assert r.exit_code == 0, r.output
     assert r.output.count("skipped") == len(stages) - 1 and (out / "evaluate" / "metrics.json").exists()
+
+
+def test_a_motion_file_changed_in_place_animates_again(tiny_capture, tmp_path):
+    """`run --motion FILE`: the animate step's hash covers the motion file's content, so a file
+    changed in place (the body moved by 1 cm) is animated again (session 27: the hash held the
+    file's name only, and the rerun skipped animate with the old motion's sequence)."""
+    from physavatar.body import BodyModel, builtin_motion
+    from physavatar.pipeline import RunConfig, plan, step_hash
+
+    path = tmp_path / "motion.npz"
+    m = builtin_motion("arm-swing", BodyModel(topology="collider").bone_names, 25.0, 0.4)
+    m.save(path)
+    out = tmp_path / "out"
+    animate = next(s for s in plan(tiny_capture, out, RunConfig(motion=str(path))) if s.name == "animate")
+    before = step_hash(animate, out, {})
+    assert step_hash(animate, out, {}) == before
+    m.root_translation = m.root_translation + [0.0, 0.0, 0.01]
+    m.save(path)
+    assert step_hash(animate, out, {}) != before

@@ -7,7 +7,8 @@ export -> evaluate (with an oracle fit beside, for a capture whose material no f
 config. :func:`run` calls them in order, each writing ``OUT/<stage>/``.
 
 What is skipped: a stage whose final output exists and whose hash (its config and its inputs:
-the capture's files, or the hashes of the stages it reads from; :func:`stages.base.stage_hash`)
+the capture's files by path, size and modification time, or the hashes of the stages it reads
+from, and the content of a file its config names, ``--motion``; :func:`stages.base.stage_hash`)
 equals the one recorded in ``OUT/run.json`` when it last finished. So an interrupted run resumes
 where it stopped, a changed setting re-runs that stage and everything downstream of it, and the
 stages' own resume logic (tracking per frame, appearance checkpoints) picks up inside a stage.
@@ -33,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import PhysavatarError
-from .files import read_json, write_json_atomic
+from .files import content_key, read_json, write_json_atomic
 from .parallel import default_workers
 from .stages.base import camera_list, option, stage_hash, to_dict
 
@@ -54,6 +55,8 @@ class Step:
     out_file: str | None = None  # the stage's ``out`` is OUT/<name>/<out_file> instead of the folder
     background: bool = False
     command: list[str] = field(default_factory=list)  # the equivalent command line, for the report
+    # files the config names (animate's --motion): not passed as inputs, but their content enters the hash
+    files: dict = field(default_factory=dict)
 
     def out(self, root: Path) -> Path:
         return root / self.name / self.out_file if self.out_file else root / self.name
@@ -107,7 +110,8 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         Step("avatar", "physavatar.stages.avatar:run", avatar.AvatarConfig(),
              cap | {"material": ("step", "physics"), "appearance": ("step", "appearance")}, "avatar.json"),
         Step("animate", "physavatar.stages.animate:run", animate.pipeline_config(motion, cfg.eval_frames),
-             {"avatar": ("step", "avatar")}, "sequence.json"),
+             {"avatar": ("step", "avatar")}, "sequence.json",
+             files={"motion": cfg.motion} if cfg.motion and Path(cfg.motion).is_file() else {}),
         Step("render", "physavatar.stages.render:run", render.pipeline_config("fitted", cfg.quick),
              {"sequence": ("step", "animate")}, "render.json"),
         Step("relight", "physavatar.stages.render:run", render.pipeline_config("sky", cfg.quick),
@@ -191,8 +195,9 @@ def _command(st: Step, out: Path) -> list[str]:
 
 def step_hash(st: Step, out: Path, record: dict) -> str:
     """The step's hash: its config and inputs, an earlier step's input by that step's hash in
-    ``record`` (``run.json``'s entries; only those of the steps it reads from are needed)."""
-    inputs = {}
+    ``record`` (``run.json``'s entries; only those of the steps it reads from are needed), and
+    the content (files.content_key) of the files its config names (``Step.files``)."""
+    inputs = {f"file:{k}": content_key(Path(v)) for k, v in st.files.items()}
     for k, v in st.inputs.items():
         if isinstance(v, tuple) and v[:1] == ("step",):
             inputs[k] = {"step": v[1], "hash": record.get(v[1], {}).get("hash")}
