@@ -250,3 +250,25 @@ def test_heldout_cameras_of_a_capture_without_ground_truth(tmp_path, tiny_captur
             tracked=tmp_path / "true")
     with pytest.raises(PhysavatarError, match="nothing to evaluate"):
         run(cap, out=tmp_path / "e3", config=EvaluateConfig(), avatar=tmp_path / "avatar")
+
+
+def test_references_of_another_held_out_motion_are_simulated_again(tmp_path, tiny_capture):
+    """evaluate reuses a references folder's rows only when they were simulated on the held-out
+    motion it evaluates (session 27: it checked the template, body and materials but not the
+    motion, so after ground_truth/heldout/motion.npz changed it scored the old motion's rows).
+    The avatar here has the true material: its own simulation and the true row must agree."""
+    from physavatar.body import Motion
+    from physavatar.stages.evaluate import evaluate, reference_sequences
+
+    cap = tmp_path / "cap"
+    shutil.copytree(tiny_capture, cap)
+    reference_sequences(cap, tmp_path / "refs", frames=3, random_draws=1, progress=False)
+    path = cap / "ground_truth" / "heldout" / "motion.npz"
+    m = Motion.load(path)
+    m.root_translation = m.root_translation + [0.0, 0.01, 0.0]  # the body 1 cm to the side
+    m.save(path)
+    kw = dict(frames=3, random_draws=1, n_points=1000, views=False, full=False, progress=False)
+    got = evaluate(cap, tmp_path / "refs" / "avatar", tmp_path / "out", references=tmp_path / "refs", **kw)
+    rows = got["rows"]
+    assert rows["true material"]["garment"] == rows["estimated material"]["garment"]
+    assert "true material" in got["references_simulated_again"]
