@@ -74,6 +74,10 @@ def test_reused_sequence_gives_the_same_row_and_bad_ones_are_refused(result, tin
                     faces=seq.faces, labels=seq.labels[:10], fps=np.float64(seq.fps))
     with pytest.raises(PhysavatarError, match="not an animation of this avatar"):
         _reuse_sequence(root / "seq", av, n)
+    # ... and one simulated with another material than the avatar's (session 27: reused as its row)
+    seq.save(root / "seq", {"command": "animate", "material": random_material(0).to_dict()}, ply=False)
+    with pytest.raises(PhysavatarError, match="material"):
+        _reuse_sequence(root / "seq", av, n, av.material)
 
 
 def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):

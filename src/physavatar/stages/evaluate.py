@@ -168,7 +168,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The four garment rows.
     seqs = {}
     t0 = time.time()
-    est = _reuse_sequence(sequence, av, len(gt)) if sequence is not None else None
+    est = _reuse_sequence(sequence, av, len(gt), av.material) if sequence is not None else None
     if est is None:
         est, _ = animate(av, held, progress=progress)
     else:
@@ -355,8 +355,9 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
     return rows, stale
 
 
-def _reuse_sequence(path, av, n_frames: int):
-    """The ``animate`` output at ``path`` (checked against the avatar and the frame count)."""
+def _reuse_sequence(path, av, n_frames: int, material: Material | None = None):
+    """The ``animate`` output at ``path`` (checked against the avatar, the frame count and, when
+    given, ``material``: the one its sequence.json records must be it)."""
     path = Path(path)
     if not (path / SEQUENCE_NPZ).is_file():
         raise PhysavatarError(path, f"no {SEQUENCE_NPZ} (pass an `animate` output folder)")
@@ -369,6 +370,10 @@ def _reuse_sequence(path, av, n_frames: int):
         raise PhysavatarError(path, f"sequence has {len(seq.vertices)} frames, the evaluation needs {n_frames}")
     if abs(seq.fps - av.fps) > 1e-6:
         raise PhysavatarError(path, f"sequence runs at {seq.fps} fps, the avatar at {av.fps}")
+    used = read_json(path / SEQUENCE_META).get("material") if (path / SEQUENCE_META).is_file() else None
+    if material is not None and used is not None and Material.from_dict(used) != material:
+        raise PhysavatarError(path / SEQUENCE_META, f"sequence was simulated with material {used.get('name')!r}, "
+                              f"the avatar's is {material.name!r}: not an animation of this avatar")
     seq.vertices = seq.vertices[:n_frames]
     return seq
 
