@@ -272,7 +272,8 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
     cols: list[np.ndarray] = []
     computed: list[int] = []
     seconds: dict[int, float] = {}
-    key = capture_key(cap)
+    m = cfg.prediction.material  # a prior material file (physics carry): its content, not its name
+    key = content_key(capture_key(cap), *([Path(m)] if m.endswith(".json") else []))
     stale: list[int] = []
     with resolve(progress).task("track", total=len(frames)) as task:
         for i, f in enumerate(frames):
