@@ -131,10 +131,12 @@ def content_key(*parts, **meta) -> str:
     (dtype, shape and bytes), files (their bytes; a folder: each file's relative path and bytes,
     in sorted order; a missing path counts as missing), strings (e.g. an earlier key) and
     JSON-able settings ``meta``. Equal keys: the same data, whatever the files' names or times
-    (a modification time is not content). BLAKE2b, read in 1 MiB blocks."""
+    (a modification time is not content). SHA-256 (arrays and settings hashed as
+    data.sim_frames.fingerprint hashed them before session 27, so a simulation's frames written
+    then still resume), files read in 1 MiB blocks."""
     import hashlib
 
-    h = hashlib.blake2b(digest_size=16)
+    h = hashlib.sha256()
     for p in parts:
         if isinstance(p, Path):
             _hash_path(h, p)
@@ -142,10 +144,10 @@ def content_key(*parts, **meta) -> str:
             h.update(b"s" + p.encode() + b"\0")
         else:
             a = np.ascontiguousarray(p)
-            h.update(f"a{a.dtype.str}{a.shape}".encode())
+            h.update(f"{a.dtype.str}{a.shape}".encode())
             h.update(a.tobytes())
     h.update(json.dumps(meta, sort_keys=True, default=str).encode())
-    return h.hexdigest()
+    return h.hexdigest()[:32]
 
 
 def _hash_path(h, path: Path) -> None:

@@ -40,10 +40,11 @@ def garment_run_key(part, bodies, body_faces, material, settings, fps: float, **
     (``body_faces``) with ``material`` and SimSettings ``settings``: everything of the part that
     garment_sim.simulate_on_body reads (start and rest shape, triangles, boundary, seams), the body
     motion and the settings that change results (:func:`run_settings`); ``meta``: the caller's
-    other settings (substeps ...). ``simulate`` and ``animate`` resume by it."""
-    seams = np.zeros((0, 2), np.int64) if part.seams is None else part.seams
-    return fingerprint(part.vertices, part.rest_shape, part.faces, part.boundary, seams, bodies, body_faces,
-                       material=material.to_dict(), settings=run_settings(settings), fps=fps, **meta)
+    other settings (substeps ...). ``simulate`` and ``animate`` resume by it (simulate's key as
+    before session 27; animate's now also holds the rest shape and seams)."""
+    return fingerprint(part.vertices, part.rest_shape, part.faces, part.boundary, bodies, body_faces,
+                       *([] if part.seams is None else [part.seams]), material=material.to_dict(),
+                       settings=run_settings(settings), fps=fps, **meta)
 
 
 RESULT_NEUTRAL = ("ccd_threads",)  # SimSettings fields that change no result (same bits)
