@@ -60,3 +60,24 @@ def test_new_motion_with_warmup(tiny):
     seq.save(root / "seq", {"command": "test"})
     s2 = AnimatedSequence.load(root / "seq")
     assert np.allclose(s2.vertices, seq.vertices, atol=1e-6) and s2.avatar == av.root
+
+
+def test_an_interrupted_animation_resumes_only_on_the_same_garment(tiny, tmp_path):
+    """animate(out=) resumes from out/frames/ only when what it simulates is the same (session
+    27: the key left out the garment's rest shape, so a template whose rest shape had changed,
+    e.g. fitted again, resumed the frames simulated from the old one)."""
+    from dataclasses import replace
+
+    cap, av, _ = tiny
+    m = Motion("capture", cap.fps, cap.body.bone_names, cap.body.rotations, cap.body.root_translation).slice(0, 4)
+    out = tmp_path / "anim"
+    animate(av, m, out=out, progress=False)  # leaves out/frames/ (the stage removes it when done)
+    t = av.template
+    g = t.labels > 0
+    rest = t.vertices.copy()
+    c = rest[g].mean(0)
+    rest[g] = c + 0.97 * (rest[g] - c)  # a garment 3 % smaller at rest: it stretches on the body
+    other = replace(av, template=replace(t, rest=rest))
+    again, _ = animate(other, m, out=out, progress=False)
+    fresh, _ = animate(other, m, progress=False)
+    np.testing.assert_array_equal(again.vertices, fresh.vertices)

@@ -74,6 +74,10 @@ def test_reused_sequence_gives_the_same_row_and_bad_ones_are_refused(result, tin
                     faces=seq.faces, labels=seq.labels[:10], fps=np.float64(seq.fps))
     with pytest.raises(PhysavatarError, match="not an animation of this avatar"):
         _reuse_sequence(root / "seq", av, n)
+    # ... and one simulated with another material than the avatar's (session 27: reused as its row)
+    seq.save(root / "seq", {"command": "animate", "material": random_material(0).to_dict()}, ply=False)
+    with pytest.raises(PhysavatarError, match="material"):
+        _reuse_sequence(root / "seq", av, n, av.material)
 
 
 def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
@@ -250,3 +254,25 @@ def test_heldout_cameras_of_a_capture_without_ground_truth(tmp_path, tiny_captur
             tracked=tmp_path / "true")
     with pytest.raises(PhysavatarError, match="nothing to evaluate"):
         run(cap, out=tmp_path / "e3", config=EvaluateConfig(), avatar=tmp_path / "avatar")
+
+
+def test_references_of_another_held_out_motion_are_simulated_again(tmp_path, tiny_capture):
+    """evaluate reuses a references folder's rows only when they were simulated on the held-out
+    motion it evaluates (session 27: it checked the template, body and materials but not the
+    motion, so after ground_truth/heldout/motion.npz changed it scored the old motion's rows).
+    The avatar here has the true material: its own simulation and the true row must agree."""
+    from physavatar.body import Motion
+    from physavatar.stages.evaluate import evaluate, reference_sequences
+
+    cap = tmp_path / "cap"
+    shutil.copytree(tiny_capture, cap)
+    reference_sequences(cap, tmp_path / "refs", frames=3, random_draws=1, progress=False)
+    path = cap / "ground_truth" / "heldout" / "motion.npz"
+    m = Motion.load(path)
+    m.root_translation = m.root_translation + [0.0, 0.01, 0.0]  # the body 1 cm to the side
+    m.save(path)
+    kw = dict(frames=3, random_draws=1, n_points=1000, views=False, full=False, progress=False)
+    got = evaluate(cap, tmp_path / "refs" / "avatar", tmp_path / "out", references=tmp_path / "refs", **kw)
+    rows = got["rows"]
+    assert rows["true material"]["garment"] == rows["estimated material"]["garment"]
+    assert "true material" in got["references_simulated_again"]

@@ -59,3 +59,29 @@ def test_atomic_write_leaves_old_file_on_failure(tmp_path):
             raise RuntimeError("interrupted")
     assert p.read_text() == "old"
     assert [q.name for q in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_content_key_follows_content_not_names_or_times(tmp_path):
+    """files.content_key: what resumes compare (session 27). Bytes count, modification times do not."""
+    import os
+
+    from physavatar.files import content_key
+
+    f = tmp_path / "a.bin"
+    f.write_bytes(b"one")
+    k = content_key(f, np.arange(3), x=1)
+    os.utime(f, (1, 1))
+    assert content_key(f, np.arange(3), x=1) == k                    # touched: the same
+    assert content_key(f, np.arange(3), x=2) != k                    # settings
+    assert content_key(f, np.arange(3.0), x=1) != k                  # dtype
+    assert content_key(f, np.arange(4), x=1) != k                    # array bytes
+    f.write_bytes(b"two")
+    os.utime(f, (1, 1))
+    assert content_key(f, np.arange(3), x=1) != k                    # same size and time, other bytes
+    assert content_key(tmp_path / "missing") != content_key(tmp_path / "missing2", tmp_path / "missing")
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "x").write_bytes(b"1")
+    kd = content_key(d)
+    (d / "x").rename(d / "y")
+    assert content_key(d) != kd                                      # a folder: names count

@@ -54,3 +54,65 @@ def test_run_end_to_end_and_resume(tiny_capture, tmp_path):
     r = CliRunner().invoke(app, ["run", str(tiny_capture), str(out), "--quick"])
     assert r.exit_code == 0, r.output
     assert r.output.count("skipped") == len(stages) - 1 and (out / "evaluate" / "metrics.json").exists()
+
+
+def test_a_motion_file_changed_in_place_animates_again(tiny_capture, tmp_path):
+    """`run --motion FILE`: the animate step's hash covers the motion file's content, so a file
+    changed in place (the body moved by 1 cm) is animated again (session 27: the hash held the
+    file's name only, and the rerun skipped animate with the old motion's sequence)."""
+    from physavatar.body import BodyModel, builtin_motion
+    from physavatar.pipeline import RunConfig, plan, step_hash
+
+    path = tmp_path / "motion.npz"
+    m = builtin_motion("arm-swing", BodyModel(topology="collider").bone_names, 25.0, 0.4)
+    m.save(path)
+    out = tmp_path / "out"
+    animate = next(s for s in plan(tiny_capture, out, RunConfig(motion=str(path))) if s.name == "animate")
+    before = step_hash(animate, out, {})
+    assert step_hash(animate, out, {}) == before
+    m.root_translation = m.root_translation + [0.0, 0.0, 0.01]
+    m.save(path)
+    assert step_hash(animate, out, {}) != before
+
+
+def test_a_stage_remade_by_hand_runs_the_stages_after_it_again(tmp_path, monkeypatch):
+    """A stage re-made by hand in OUT (its command from the report, with other options) keeps its
+    result, and the stages that read it run again on the next `run` (session 27: their hashes
+    held the earlier stage's recorded hash only, so they were skipped with results made from
+    the output that was replaced)."""
+    from dataclasses import dataclass
+
+    from physavatar.pipeline import Step, run_step
+
+    (tmp_path / "fake_stages.py").write_text(
+        "from pathlib import Path\n"
+        "def first(*, out, config, progress=None):\n"
+        "    out.mkdir(parents=True, exist_ok=True)\n"
+        "    (out / 'a.txt').write_text(str(config.value))\n"
+        "def second(source, *, out, config, progress=None):\n"
+        "    out.mkdir(parents=True, exist_ok=True)\n"
+        "    (out / 'b.txt').write_text('from ' + (Path(source) / 'a.txt').read_text())\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    @dataclass(frozen=True)
+    class Cfg:
+        value: int = 1
+
+    out = tmp_path / "out"
+    a = Step("a", "fake_stages:first", Cfg(), {}, "a.txt")
+    b = Step("b", "fake_stages:second", Cfg(), {"source": ("step", "a")}, "b.txt")
+    record = {}
+
+    def run_all():
+        skipped = []
+        for st in (a, b):
+            r = run_step(st, out, record)
+            record[st.name] = r.entry
+            skipped += [st.name] if r.skipped else []
+        return skipped
+
+    assert run_all() == [] and (out / "b" / "b.txt").read_text() == "from 1"
+    assert run_all() == ["a", "b"]
+    (out / "a" / "a.txt").write_text("2")  # `a` re-made by hand with other options
+    assert run_all() == ["a"] and (out / "b" / "b.txt").read_text() == "from 2"
+    assert run_all() == ["a", "b"]

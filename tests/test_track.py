@@ -290,6 +290,35 @@ def test_resume_recomputes_only_missing_frame(body_capture, tracked):
         track(root, out, FAST, progress=False)
 
 
+def test_a_rerun_tracks_again_the_frames_whose_capture_data_changed(body_capture, tmp_path):
+    """A rerun into the same folder resumes only frames made from the same capture data (session
+    27: the resume checked the config and the capture's path only, and kept every frame after the
+    capture changed in place): frame 1's images replaced, frames 1 and 2 (which starts from frame
+    1) are tracked again, equal to a fresh run of the changed capture, and frame 0 is kept; a
+    camera moved by 1 cm, every frame."""
+    import json
+    import shutil
+
+    root, _ = body_capture
+    cap = tmp_path / "cap"
+    shutil.copytree(root, cap)
+    out = tmp_path / "run"
+    first = track(cap, out, FAST, progress=False)
+    for d in (cap / "images").iterdir():  # frame 1's images are now frame 2's
+        shutil.copyfile(d / "000002.png", d / "000001.png")
+    again = track(cap, out, FAST, progress=False)
+    assert again.computed == [1, 2]
+    fresh = track(cap, tmp_path / "fresh", FAST, progress=False)
+    np.testing.assert_array_equal(again.vertices, fresh.vertices)
+    np.testing.assert_array_equal(again.vertices[0], first.vertices[0])
+    assert np.abs(again.vertices[1] - first.vertices[1]).max() > 5e-3  # fitted to other images
+    assert track(cap, out, FAST, progress=False).computed == []  # the same data: nothing to do
+    cams = json.loads((cap / "cameras.json").read_text())
+    cams[0]["w2c"][0][3] += 0.01
+    (cap / "cameras.json").write_text(json.dumps(cams))
+    assert track(cap, out, FAST, progress=False).computed == [0, 1, 2]
+
+
 def test_cli_bad_input_exits_2(body_capture, tmp_path):
     root, _ = body_capture
     runner = CliRunner()

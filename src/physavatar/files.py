@@ -123,6 +123,49 @@ def _map_npz(path: Path, small: int = 1 << 20) -> dict[str, np.ndarray]:
     return out
 
 
+# -- content keys --------------------------------------------------------------------------------
+
+
+def content_key(*parts, **meta) -> str:
+    """A hex digest of what a result is made from, for a resume or cache to compare: arrays
+    (dtype, shape and bytes), files (their bytes; a folder: each file's relative path and bytes,
+    in sorted order; a missing path counts as missing), strings (e.g. an earlier key) and
+    JSON-able settings ``meta``. Equal keys: the same data, whatever the files' names or times
+    (a modification time is not content). SHA-256 (arrays and settings hashed as
+    data.sim_frames.fingerprint hashed them before session 27, so a simulation's frames written
+    then still resume), files read in 1 MiB blocks."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in parts:
+        if isinstance(p, Path):
+            _hash_path(h, p)
+        elif isinstance(p, str):
+            h.update(b"s" + p.encode() + b"\0")
+        else:
+            a = np.ascontiguousarray(p)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:32]
+
+
+def _hash_path(h, path: Path) -> None:
+    if path.is_dir():
+        files = sorted(q for q in path.rglob("*") if q.is_file())
+        h.update(f"d{len(files)}".encode())
+        for q in files:
+            h.update(str(q.relative_to(path)).encode() + b"\0")
+            _hash_path(h, q)
+    elif path.is_file():
+        h.update(f"f{path.stat().st_size}".encode())
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    else:
+        h.update(b"m")
+
+
 # -- PLY -----------------------------------------------------------------------------------------
 
 _PLY_TYPES = {

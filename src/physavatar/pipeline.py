@@ -7,7 +7,8 @@ export -> evaluate (with an oracle fit beside, for a capture whose material no f
 config. :func:`run` calls them in order, each writing ``OUT/<stage>/``.
 
 What is skipped: a stage whose final output exists and whose hash (its config and its inputs:
-the capture's files, or the hashes of the stages it reads from; :func:`stages.base.stage_hash`)
+the capture's files by path, size and modification time, or the hashes of the stages it reads
+from, and the content of a file its config names, ``--motion``; :func:`stages.base.stage_hash`)
 equals the one recorded in ``OUT/run.json`` when it last finished. So an interrupted run resumes
 where it stopped, a changed setting re-runs that stage and everything downstream of it, and the
 stages' own resume logic (tracking per frame, appearance checkpoints) picks up inside a stage.
@@ -33,9 +34,9 @@ from pathlib import Path
 from typing import Any
 
 from .errors import PhysavatarError
-from .files import read_json, write_json_atomic
+from .files import content_key, read_json, write_json_atomic
 from .parallel import default_workers
-from .stages.base import camera_list, option, stage_hash, to_dict
+from .stages.base import camera_list, fingerprint, option, stage_hash, to_dict
 
 
 @dataclass
@@ -54,6 +55,8 @@ class Step:
     out_file: str | None = None  # the stage's ``out`` is OUT/<name>/<out_file> instead of the folder
     background: bool = False
     command: list[str] = field(default_factory=list)  # the equivalent command line, for the report
+    # files the config names (animate's --motion): not passed as inputs, but their content enters the hash
+    files: dict = field(default_factory=dict)
 
     def out(self, root: Path) -> Path:
         return root / self.name / self.out_file if self.out_file else root / self.name
@@ -107,7 +110,8 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         Step("avatar", "physavatar.stages.avatar:run", avatar.AvatarConfig(),
              cap | {"material": ("step", "physics"), "appearance": ("step", "appearance")}, "avatar.json"),
         Step("animate", "physavatar.stages.animate:run", animate.pipeline_config(motion, cfg.eval_frames),
-             {"avatar": ("step", "avatar")}, "sequence.json"),
+             {"avatar": ("step", "avatar")}, "sequence.json",
+             files={"motion": cfg.motion} if cfg.motion and Path(cfg.motion).is_file() else {}),
         Step("render", "physavatar.stages.render:run", render.pipeline_config("fitted", cfg.quick),
              {"sequence": ("step", "animate")}, "render.json"),
         Step("relight", "physavatar.stages.render:run", render.pipeline_config("sky", cfg.quick),
@@ -191,8 +195,9 @@ def _command(st: Step, out: Path) -> list[str]:
 
 def step_hash(st: Step, out: Path, record: dict) -> str:
     """The step's hash: its config and inputs, an earlier step's input by that step's hash in
-    ``record`` (``run.json``'s entries; only those of the steps it reads from are needed)."""
-    inputs = {}
+    ``record`` (``run.json``'s entries; only those of the steps it reads from are needed), and
+    the content (files.content_key) of the files its config names (``Step.files``)."""
+    inputs = {f"file:{k}": content_key(Path(v)) for k, v in st.files.items()}
     for k, v in st.inputs.items():
         if isinstance(v, tuple) and v[:1] == ("step",):
             inputs[k] = {"step": v[1], "hash": record.get(v[1], {}).get("hash")}
@@ -218,29 +223,42 @@ def needs(st: Step) -> list[str]:
     return list(dict.fromkeys(v[1] for v in st.inputs.values() if isinstance(v, tuple) and v[:1] == ("step",)))
 
 
-def is_done(st: Step, out: Path, prev: dict, h: str) -> bool:
-    """Finished earlier with the same hash (its final output still there): skipped."""
-    return (out / st.name / st.done_file).exists() and prev.get("hash") == h and prev.get("status") == "ok"
+def upstream(st: Step, out: Path, record: dict) -> dict:
+    """The final files of the steps ``st`` reads from as they are now: name -> their
+    :func:`~stages.base.fingerprint` (None for an entry that does not name its file)."""
+    files = {n: record.get(n, {}).get("output") for n in needs(st)}
+    return {n: fingerprint(out / f) if f else None for n, f in files.items()}
 
 
-def entry(st: Step, h: str, status: str, secs: float, *, background: bool = False, error: str | None = None) -> dict:
-    """The step's entry in ``run.json``."""
+def is_done(st: Step, out: Path, prev: dict, h: str, up: dict | None = None) -> bool:
+    """Finished earlier with the same hash (its final output still there) and, where its entry
+    records them, from the same outputs of the steps it reads (``up``: :func:`upstream`; one
+    re-made since, e.g. by hand with other options, runs this step again): skipped."""
+    return (out / st.name / st.done_file).exists() and prev.get("hash") == h and prev.get("status") == "ok" \
+        and (up is None or "upstream" not in prev or prev["upstream"] == up)
+
+
+def entry(st: Step, h: str, status: str, secs: float, *, background: bool = False, error: str | None = None,
+          up: dict | None = None) -> dict:
+    """The step's entry in ``run.json`` (``output``: its final file, relative to OUT; ``upstream``:
+    :func:`upstream` when it ran)."""
     return ({"hash": h, "seconds": round(secs, 1), "status": status, "command": st.command,
-             "config": to_dict(st.config)} | ({"background": True} if background else {})
+             "config": to_dict(st.config), "output": f"{st.name}/{st.done_file}"}
+            | ({"upstream": up} if up is not None else {}) | ({"background": True} if background else {})
             | ({"error": error} if error else {}))
 
 
-def execute(st: Step, out: Path, h: str, *, progress=False, say=None) -> dict:
-    """Call the step's stage function; returns its ``run.json`` entry. A stage's
-    :class:`PhysavatarError` (bad input) gives status ``failed`` with its ``error``; anything else
-    (a bug, Ctrl-C) propagates."""
+def execute(st: Step, out: Path, h: str, *, progress=False, say=None, up: dict | None = None) -> dict:
+    """Call the step's stage function; returns its ``run.json`` entry (``up``: :func:`upstream`
+    before it ran). A stage's :class:`PhysavatarError` (bad input) gives status ``failed`` with its
+    ``error``; anything else (a bug, Ctrl-C) propagates."""
     (out / st.name).mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     try:
         _call(st, out, progress, say)
     except PhysavatarError as e:
-        return entry(st, h, "failed", time.time() - t0, error=str(e))
-    return entry(st, h, "ok", time.time() - t0)
+        return entry(st, h, "failed", time.time() - t0, error=str(e), up=up)
+    return entry(st, h, "ok", time.time() - t0, up=up)
 
 
 @dataclass
@@ -263,12 +281,13 @@ def run_step(st: Step, out: Path, record: dict, *, progress=False) -> StepResult
     order; a batch's Ray driver as tasks finish, in any order)."""
     h = step_hash(st, out, record)
     prev = record.get(st.name, {})
-    if is_done(st, out, prev, h):
+    up = upstream(st, out, record)
+    if is_done(st, out, prev, h, up):
         return StepResult(st.name, prev, skipped=True)
-    return StepResult(st.name, execute(st, out, h, progress=progress))
+    return StepResult(st.name, execute(st, out, h, progress=progress, up=up))
 
 
-def _child(st: Step, out: Path, h: str, log_path: Path, conn) -> None:
+def _child(st: Step, out: Path, h: str, log_path: Path, conn, up: dict | None = None) -> None:
     """A background stage in its own process (:func:`execute`): output to its log, its ``run.json``
     entry through ``conn``."""
     os.environ["PHYSAVATAR_WORKERS"] = "1"  # one core: the other runs the next stages
@@ -277,7 +296,7 @@ def _child(st: Step, out: Path, h: str, log_path: Path, conn) -> None:
     os.dup2(fd, 2)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", force=True)
     try:
-        e = execute(st, out, h)
+        e = execute(st, out, h, up=up)
         if e.get("error"):
             print(f"error: {e['error']}", flush=True)
         conn.send(("done", e, time.time()))
@@ -357,14 +376,16 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
                     finish(name)
             h = step_hash(st, out, record)
             prev = record.get(st.name, {})
-            if is_done(st, out, prev, h):
+            up = upstream(st, out, record)
+            if is_done(st, out, prev, h, up):
                 say(f"[{i}/{len(steps)}] {st.name}: done earlier ({prev.get('seconds', '?')} s), skipped")
                 skipped.append(st.name)
                 continue
             if st.background and len(running) < cores - 1:
                 (out / st.name).mkdir(parents=True, exist_ok=True)
                 parent, child = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child, args=(st, out, h, out / st.name / "stage.log", child), daemon=False)
+                proc = ctx.Process(target=_child, args=(st, out, h, out / st.name / "stage.log", child, up),
+                                   daemon=False)
                 proc.start()
                 child.close()
                 running[st.name] = _Running(st, proc, parent, time.time(), h)
@@ -372,7 +393,7 @@ def run(capture: str | Path, out: str | Path, cfg: RunConfig = RunConfig(), *, o
                     f"another core; log: {out / st.name / 'stage.log'})")
                 continue
             say(f"[{i}/{len(steps)}] {st.name}: physavatar {' '.join(st.command)}")
-            e = execute(st, out, h, progress=True, say=say)
+            e = execute(st, out, h, progress=True, say=say, up=up)
             save(st, e)
             if e["status"] != "ok":
                 raise PhysavatarError(None, f"stage {st.name!r} failed: {e['error']}; fix the cause and run again "

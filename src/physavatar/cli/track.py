@@ -16,7 +16,7 @@ from .options import config_command
 @config_command(app, "track", TrackConfig, wrap=handle_errors)
 def track(
     capture: Path = typer.Argument(..., help="capture folder"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder (a rerun with the same config resumes)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder (a rerun with the same config and capture data resumes)"),
     no_iso: bool = typer.Option(False, "--no-iso", help="drop the isometry loss (ablation)"),
     no_normal: bool = typer.Option(False, "--no-normal", help="drop the normal loss (ablation)"),
     *,

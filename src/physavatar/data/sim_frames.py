@@ -16,7 +16,6 @@ sequence.npz, atomically) from the frames and removes the folder.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -24,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import PhysavatarError
-from ..files import load_npz, read_json, save_npz_atomic, write_json_atomic
+from ..files import content_key, load_npz, read_json, save_npz_atomic, write_json_atomic
 from ..sim.simulate import Checkpoint
 
 FOLDER = "frames"
@@ -32,14 +31,20 @@ FOLDER = "frames"
 
 def fingerprint(*arrays, **meta) -> str:
     """A hex digest of arrays (dtype, shape and bytes) and JSON-able settings: the identity of
-    a simulation run (two runs with equal fingerprints compute the same frames)."""
-    h = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(f"{a.dtype.str}{a.shape}".encode())
-        h.update(a.tobytes())
-    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
-    return h.hexdigest()[:32]
+    a simulation run (two runs with equal fingerprints compute the same frames); files.content_key."""
+    return content_key(*arrays, **meta)
+
+
+def garment_run_key(part, bodies, body_faces, material, settings, fps: float, **meta) -> str:
+    """The :func:`fingerprint` of simulating GarmentPart ``part`` on ``bodies`` [T, Nb, 3]
+    (``body_faces``) with ``material`` and SimSettings ``settings``: everything of the part that
+    garment_sim.simulate_on_body reads (start and rest shape, triangles, boundary, seams), the body
+    motion and the settings that change results (:func:`run_settings`); ``meta``: the caller's
+    other settings (substeps ...). ``simulate`` and ``animate`` resume by it (simulate's key as
+    before session 27; animate's now also holds the rest shape and seams)."""
+    return fingerprint(part.vertices, part.rest_shape, part.faces, part.boundary, bodies, body_faces,
+                       *([] if part.seams is None else [part.seams]), material=material.to_dict(),
+                       settings=run_settings(settings), fps=fps, **meta)
 
 
 RESULT_NEUTRAL = ("ccd_threads",)  # SimSettings fields that change no result (same bits)

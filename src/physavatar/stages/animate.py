@@ -19,7 +19,7 @@ import numpy as np
 from ..data.avatar import Avatar
 from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
 from ..data.animated import AnimatedSequence
-from ..data.sim_frames import FrameStore, fingerprint, run_settings
+from ..data.sim_frames import FrameStore, garment_run_key
 from ..errors import PhysavatarError
 from ..geometry import count_intersections
 from ..garment_sim import simulate_on_body, split_template
@@ -124,9 +124,8 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
         Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, on_frame=lambda c, r: reports.append(r),
                               **options)
     else:
-        key = fingerprint(part.vertices, part.faces, part.boundary, posed.vertices, body.faces,
-                          material=avatar.material.to_dict(), settings=run_settings(settings),
-                          fps=fps, max_substeps=max_substeps)
+        key = garment_run_key(part, posed.vertices, body.faces, avatar.material, settings, fps,
+                              max_substeps=max_substeps)
         store = FrameStore(out, key, len(posed.vertices))
         Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, resume=store.resume(),
                               on_frame=store.write, **options)

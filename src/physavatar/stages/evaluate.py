@@ -42,7 +42,7 @@ from ..capture import load_capture
 from ..data.animated import META as SEQUENCE_META, NPZ as SEQUENCE_NPZ, AnimatedSequence
 from ..data.tracked import TrackedSequence
 from ..errors import PhysavatarError
-from ..files import load_npz, read_json, write_json_atomic, write_text_atomic
+from ..files import content_key, load_npz, read_json, write_json_atomic, write_text_atomic
 from ..geometry import submesh
 from ..sim import Material
 from .base import camera_list, option, setting
@@ -155,7 +155,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     from .animate import animate, animate_job, simulated_frames
 
     gt_root = cap.ground_truth
-    held = Motion.load(gt_root / "heldout" / "motion.npz")
+    held = held_all = Motion.load(gt_root / "heldout" / "motion.npz")
     gtz = load_npz(gt_root / "heldout" / "meshes.npz")
     gt = gtz["vertices"].astype(np.float64)
     if frames:
@@ -168,7 +168,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The four garment rows.
     seqs = {}
     t0 = time.time()
-    est = _reuse_sequence(sequence, av, len(gt)) if sequence is not None else None
+    est = _reuse_sequence(sequence, av, len(gt), av.material) if sequence is not None else None
     if est is None:
         est, _ = animate(av, held, progress=progress)
     else:
@@ -185,7 +185,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
 
         refs["oracle material"] = FittedMaterial.load(Path(oracle) / "material.json").material
     if references is not None:
-        reused, stale = _reuse_references(Path(references), av, references_, len(gt))
+        reused, stale = _reuse_references(Path(references), av, references_, len(gt), held_all)
         seqs.update(reused)
         metrics["references"] = str(references)
         if stale:  # simulated again below, in the estimate's model
@@ -296,7 +296,8 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
         AnimatedSequence(V, t.faces, t.labels, None, av.fps, av.root).save(
             out / r.folder, {"command": "reference-sims", "material": r.material.to_dict(),
                              "motion": held.name, "seed": seed}, ply=False)
-    write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames), "seed": seed,
+    write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames),
+                                                "motion_key": motion_key(held), "seed": seed,
                                                 "random_seeds": random_seeds(seed, random_draws),
                                                 "rows": [r.row for r in refs], "folders": [r.folder for r in refs],
                                                 "contact_offset_m": offset, "contact_offset": offset_info,
@@ -304,22 +305,38 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     return out
 
 
-def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int) -> tuple[dict, dict]:
+def motion_key(m: Motion) -> str:
+    """The content key (files.content_key) of a motion: rotations, root translation, fps, bones."""
+    return content_key(m.rotations, m.root_translation, fps=float(m.fps), bones=list(m.bone_names))
+
+
+def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, motion: Motion) -> tuple[dict, dict]:
     """Rows of a :func:`reference_sequences` folder, checked against this evaluation's materials
-    (``refs``: :func:`_reference_materials`; the oracle is fitted in the run, not a reference).
-    Returns (rows, stale): a row whose material differs only in its contact thickness (a folder
-    made with another --contact-offset, or before the draws had one) is not reused but listed in
-    ``stale`` (row -> why), for the caller to simulate again; any other difference is an error."""
+    (``refs``: :func:`_reference_materials`; the oracle is fitted in the run, not a reference)
+    and held-out ``motion`` (unsliced). Returns (rows, stale): a row simulated on another motion
+    (references.json's ``motion_key``: the capture's held-out motion changed since, or the
+    folder predates the key), or whose material differs only in its contact thickness (a folder
+    made with another --contact-offset, or before the draws had one), is not reused but listed
+    in ``stale`` (row -> why), for the caller to simulate again; any other difference is an error."""
     if not (path / "references.json").is_file():
         raise PhysavatarError(path, "no references.json (pass a `physavatar reference-sims` output folder)")
     ref_av = Avatar.load(path / "avatar")
-    same = (ref_av.template.vertices.shape == av.template.vertices.shape
-            and np.allclose(ref_av.template.vertices, av.template.vertices, atol=1e-7)
+    a, b = ref_av.template, av.template
+    same = (a.vertices.shape == b.vertices.shape and np.allclose(a.vertices, b.vertices, atol=1e-7)
+            and np.array_equal(a.faces, b.faces) and np.array_equal(a.labels, b.labels)
+            and np.array_equal(a.boundary, b.boundary) and np.allclose(a.rest_shape, b.rest_shape, atol=1e-7)
             and np.allclose(ref_av.rest_rotations, av.rest_rotations) and np.allclose(ref_av.rest_translation, av.rest_translation)
             and ref_av.shape == av.shape)
     if not same:
         raise PhysavatarError(path / "avatar", "the references start from another template, shape or rest pose "
                               "than the evaluated avatar (made for another capture or avatar)")
+    made = read_json(path / "references.json")
+    n_made = int(made.get("frames", 0))
+    if made.get("motion_key") is None or n_made > motion.frames or \
+            made["motion_key"] != motion_key(motion.slice(0, n_made)):
+        why = ("simulated on another held-out motion than the capture's" if made.get("motion_key") else
+               "made before references recorded their motion")
+        return {}, {r.row: why for r in refs}
     rows, stale = {}, {}
     for row, name, mat in refs:
         folder = path / name
@@ -338,8 +355,9 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int) -> t
     return rows, stale
 
 
-def _reuse_sequence(path, av, n_frames: int):
-    """The ``animate`` output at ``path`` (checked against the avatar and the frame count)."""
+def _reuse_sequence(path, av, n_frames: int, material: Material | None = None):
+    """The ``animate`` output at ``path`` (checked against the avatar, the frame count and, when
+    given, ``material``: the one its sequence.json records must be it)."""
     path = Path(path)
     if not (path / SEQUENCE_NPZ).is_file():
         raise PhysavatarError(path, f"no {SEQUENCE_NPZ} (pass an `animate` output folder)")
@@ -352,6 +370,10 @@ def _reuse_sequence(path, av, n_frames: int):
         raise PhysavatarError(path, f"sequence has {len(seq.vertices)} frames, the evaluation needs {n_frames}")
     if abs(seq.fps - av.fps) > 1e-6:
         raise PhysavatarError(path, f"sequence runs at {seq.fps} fps, the avatar at {av.fps}")
+    used = read_json(path / SEQUENCE_META).get("material") if (path / SEQUENCE_META).is_file() else None
+    if material is not None and used is not None and Material.from_dict(used) != material:
+        raise PhysavatarError(path / SEQUENCE_META, f"sequence was simulated with material {used.get('name')!r}, "
+                              f"the avatar's is {material.name!r}: not an animation of this avatar")
     seq.vertices = seq.vertices[:n_frames]
     return seq
 

@@ -42,7 +42,7 @@ from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
 from ..data.garment_sequence import GarmentSequence
 from ..data.material import resolve_material
 from ..data.mesh_sequence import load_mesh_sequence
-from ..data.sim_frames import FrameStore, fingerprint, run_settings
+from ..data.sim_frames import FrameStore, garment_run_key
 from ..errors import PhysavatarError
 from ..files import PlyMesh, load_npz, write_json_atomic, write_ply
 from ..garment import GARMENTS, make_garment
@@ -229,9 +229,8 @@ def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps:
     written frames' PLY meshes in out/meshes/), resuming an interrupted run of the same inputs
     and settings from its last frame. Returns (positions [T, N, 3] of every simulated frame,
     per-frame reports of frames 1..T−1, the FrameStore, the frame resumed after or None)."""
-    key = fingerprint(part.vertices, part.rest_shape, part.faces, part.boundary, bodies, body_faces,
-                      *([] if part.seams is None else [part.seams]), material=mat.to_dict(),
-                      settings=run_settings(settings), fps=fps, substeps=cfg.substeps, max_substeps=cfg.max_substeps)
+    key = garment_run_key(part, bodies, body_faces, mat, settings, fps, substeps=cfg.substeps,
+                          max_substeps=cfg.max_substeps)
     store = FrameStore(out, key, len(bodies))
     ck = store.resume()
     if ck is None and n_warm == 0:

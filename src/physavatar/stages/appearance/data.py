@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from ...camera import Camera
 from ...capture import Capture, Template, load_capture
 from ...data.tracked import TrackedSequence
 from ...errors import PhysavatarError
+from ...files import content_key
 from ...render import srgb_to_linear
 from .texture import uv_atlas
 
@@ -38,6 +40,20 @@ class AppearanceData:
     face_colors: np.ndarray | None
     source: str
     cameras: list[Camera] = field(default_factory=list)
+
+    @cached_property
+    def key(self) -> str:
+        """The content key (files.content_key) of everything a fit reads from this data: the
+        meshes, tracked colours, template (faces, labels, uvs), frames, cameras, and the
+        images and masks of those frames and cameras. T_0, the environment map and the
+        checkpoint are read back from an output folder only when made with this key."""
+        t = self.template
+        paths = [p for f in self.frames for c in self.cameras
+                 for p in (self.capture.image_path(c.name, f), self.capture.mask_path(c.name, f))]
+        extra = [] if self.face_colors is None else [self.face_colors]
+        return content_key(self.vertices, t.faces, t.labels, *([] if t.face_uvs is None else [t.face_uvs]), *extra,
+                           *paths, frames=[int(f) for f in self.frames], cameras=[c.to_dict() for c in self.cameras],
+                           tracked_colors=self.face_colors is not None)
 
 
 def load_appearance_data(capture: str | Path | Capture, tracked: str | Path | None = None, meshes: str = "tracked",

@@ -136,14 +136,15 @@ def env_views(n_frames: int, n_cams: int, n: int) -> list[tuple[int, int]]:
 
 def fitted_env_light(data, cfg, out, renderer, points, progress=None) -> tuple[np.ndarray, dict]:
     """:func:`fit_env_light`, read back from ``out/env_light.npz`` when it was made with the same
-    settings (a resumed fit), else computed and written there."""
+    settings from the same data (:attr:`AppearanceData.key`; a resumed fit), else computed and
+    written there."""
     import json
 
     from ...files import load_npz, save_npz_atomic
     from ...progress import resolve
 
     key = json.dumps({"lobes": cfg.env_lobes, "views": cfg.env_views, "spp": cfg.env_spp, "erode_px": cfg.erode_px,
-                      "ambient_init": cfg.ambient_init, "seed": cfg.seed, "meshes": data.source,
+                      "ambient_init": cfg.ambient_init, "seed": cfg.seed, "meshes": data.source, "data": data.key,
                       "frames": data.frames, "cameras": [c.name for c in data.cameras],
                       "texture_size": cfg.texture_size})
     path = out / "env_light.npz"

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ...capture import Capture, save_png
-from ...files import load_npz, save_npz_atomic, write_json_atomic
+from ...files import content_key, load_npz, save_npz_atomic, write_json_atomic
 from ...optim import Adam
 from ...progress import resolve
 from ...render import contact_sheet, linear_to_srgb8
@@ -67,16 +67,13 @@ def _resume_key(cfg: AppearanceConfig) -> dict:
     return d
 
 
-def _data_key(data: AppearanceData, tex0: np.ndarray) -> str:
-    """What a checkpoint must have been fitted to, besides the settings: the meshes, frames and
-    cameras, and the initial texture (its atlas and projection). A checkpoint of another tracking
-    run, or of another capture, in the same folder is not resumed but fitted again."""
-    import hashlib
-
-    h = hashlib.sha1(np.ascontiguousarray(np.asarray(data.vertices, np.float64)).tobytes())
-    h.update(np.ascontiguousarray(tex0, np.float64).tobytes())
-    h.update(json.dumps([[int(f) for f in data.frames], [c.name for c in data.cameras]]).encode())
-    return h.hexdigest()
+def _data_key(data: AppearanceData, tex0: np.ndarray, *lights) -> str:
+    """What a checkpoint must have been fitted to, besides the settings: the data
+    (:attr:`AppearanceData.key`: meshes, frames, cameras, images ...), the initial texture (its
+    atlas and projection) and the initial light values. A checkpoint of another tracking run, of
+    another capture, or of this one before an image or camera changed, is not resumed but fitted
+    again."""
+    return content_key(data.key, np.asarray(tex0, np.float64), *[np.asarray(x, np.float64) for x in lights if x is not None])
 
 
 def fit_appearance(capture: str | Path | Capture, out: str | Path, config: AppearanceConfig = AppearanceConfig(), *,
@@ -140,10 +137,11 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
     log: list[dict] = []
     start = 0
     exposure = None
+    data_key = _data_key(data, tex0, amb0, key0)
     if ckpt.is_file():
         z = load_npz(ckpt)
         if json.loads(str(z["resume_key"])) == _resume_key(cfg) and \
-                (str(z["data_key"]) if "data_key" in z else None) == _data_key(data, tex0):
+                (str(z["data_key"]) if "data_key" in z else None) == data_key:
             for k in state:
                 state[k] = z[k]
             adam.load_state_dict(z)
@@ -194,7 +192,7 @@ def fit_appearance(capture: str | Path | Capture, out: str | Path, config: Appea
             task.advance(loss=loss)
             if (it + 1) % cfg.checkpoint_every == 0 or it + 1 == cfg.iterations:
                 save_npz_atomic(ckpt, iteration=np.int64(it + 1), resume_key=np.array(json.dumps(_resume_key(cfg))),
-                                data_key=np.array(_data_key(data, tex0)),
+                                data_key=np.array(data_key),
                                 exposure=np.float64(exposure), **state, **adam.state_dict())
                 write_log(out / "fit_log.csv", log)
     # per-iteration time from the log, so that a resumed run reports the same figure

@@ -148,8 +148,8 @@ def projected_texture(data: AppearanceData, cfg: AppearanceConfig, renderer, amb
 def initial_texture(data: AppearanceData, cfg: AppearanceConfig, out: Path, progress=None, renderer=None,
                     ambient=None, key=None, light_key=None):
     """Steps 1-2 of the fit: the atlas and T_0, read back from ``out`` (``atlas.npz``,
-    ``texture_init_linear.npy``) when they were made with the same settings, else computed and
-    written there. ``init="project"`` needs the fit's ``renderer`` and its initial lights
+    ``texture_init_linear.npy``) when they were made with the same settings from the same data
+    (:attr:`AppearanceData.key`), else computed and written there. ``init="project"`` needs the fit's ``renderer`` and its initial lights
     (``light_key``: anything else that identifies them, e.g. a fitted environment map).
 
     Returns:
@@ -159,7 +159,7 @@ def initial_texture(data: AppearanceData, cfg: AppearanceConfig, out: Path, prog
     t = data.template
     atlas_path = out / "atlas.npz"
     init_key = json.dumps({"texture_size": cfg.texture_size, "init_frame_stride": cfg.init_frame_stride,
-                           "erode_px": cfg.erode_px, "meshes": data.source, "frames": data.frames,
+                           "erode_px": cfg.erode_px, "meshes": data.source, "data": data.key, "frames": data.frames,
                            "cameras": [c.name for c in data.cameras],
                            "tracked_colors": data.face_colors is not None, "init": cfg.init,
                            **({"project_views": cfg.project_views, "project_spp": cfg.project_spp,

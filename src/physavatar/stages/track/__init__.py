@@ -26,12 +26,17 @@ Outputs (:func:`run`; settings :class:`TrackConfig`, in groups ``fit``, ``loss``
     out/frames/<frame>.npz     vertices [V, 3] float32, face_colors [F, 3] (linear RGB);
                                the first frame also log_scales [F, 2], opacity_logits [F], edge_index [F];
                                later frames also start_vertices, fit_vertices [V, 3] (the frame's
-                               start and its fit before the final corrections, for diagnosis)
+                               start and its fit before the final corrections, for diagnosis);
+                               input_key: the content key of the capture data it was fitted
+                               from (stage.frame_key)
     out/meshes/<frame>.ply     the tracked mesh with per-vertex label and boundary
     out/track_log.csv          frame, iterations, final loss terms, seconds
     out/tracked.npz            vertices [T, V, 3], faces, labels, face_colors [T, F, 3], frames, ...
 
-Every file is written atomically; a rerun with the same config skips finished frames.
+Every file is written atomically; a rerun with the same config skips finished frames made from
+the same capture data (the cameras, capture.json, template, body poses and the frame's images
+and masks, chained over the frames before it); a frame whose data changed is tracked again, and
+so is every frame after it.
 """
 
 from .config import FitConfig, FlowConfig, LossConfig, PredictionConfig, TrackConfig, pipeline_config

@@ -16,7 +16,7 @@ from ...camera import Camera
 from ...capture import Capture, frame_name, load_capture
 from ...data.tracked import FILE as TRACKED, TrackedSequence
 from ...errors import PhysavatarError
-from ...files import PlyMesh, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
+from ...files import PlyMesh, content_key, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
 from ...progress import resolve
 from ..base import to_dict
 from .config import TrackConfig, fit_scale
@@ -180,6 +180,21 @@ def _check_resume(out: Path, saved: dict, wanted: dict) -> None:
                                    "choose another --out or delete it")
 
 
+def capture_key(cap: Capture) -> str:
+    """The content of the capture files every tracked frame depends on: cameras, frames and fps,
+    the template, the body poses (:func:`frame_key` chains each frame's images onto it)."""
+    root = Path(cap.root)
+    return content_key(root / "cameras.json", root / "capture.json", root / "template", root / "body.npz")
+
+
+def frame_key(cap: Capture, train: list[Camera], frame: int, previous: str) -> str:
+    """What frame ``frame``'s fit is made from: the key of the frame before it (its fit starts
+    from that one's, :func:`capture_key` for the first) and this frame's training images and masks.
+    A frame file with another key is tracked again, and so is every frame after it."""
+    return content_key(previous, *[p for c in train for p in (cap.image_path(c.name, frame),
+                                                             cap.mask_path(c.name, frame))])
+
+
 @dataclass
 class TrackResult:
     """vertices [T, V, 3] float32, face_colors [T, F, 3], frames [T], computed: frames fitted by
@@ -197,8 +212,8 @@ def run(capture: Path, *, out: Path, config: TrackConfig, progress=None) -> Trac
     """Track the capture's template through its frames into ``out`` (package docstring: outputs).
 
     ``capture``: the capture folder (or a loaded :class:`~physavatar.capture.Capture`). A rerun
-    into the same ``out`` with the same config (``n_frames`` may differ) skips finished frames;
-    another config there is refused. ``progress``: see :func:`physavatar.progress.resolve`."""
+    into the same ``out`` with the same config (``n_frames`` may differ) skips finished frames made
+    from the same capture data (:func:`frame_key`); another config there is refused. ``progress``: see :func:`physavatar.progress.resolve`."""
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -257,11 +272,18 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
     cols: list[np.ndarray] = []
     computed: list[int] = []
     seconds: dict[int, float] = {}
+    m = cfg.prediction.material  # a prior material file (physics carry): its content, not its name
+    key = content_key(capture_key(cap), *([Path(m)] if m.endswith(".json") else []))
+    stale: list[int] = []
     with resolve(progress).task("track", total=len(frames)) as task:
         for i, f in enumerate(frames):
             fpath = out / "frames" / f"{frame_name(f)}.npz"
-            if fpath.is_file():  # resumed
-                z = load_npz(fpath)
+            key = frame_key(cap, train, f, key)
+            z = load_npz(fpath) if fpath.is_file() else None
+            if z is not None and str(z.get("input_key", "")) != key:
+                stale.append(f)
+                z = None
+            if z is not None:  # resumed
                 verts.append(z["vertices"])
                 cols.append(z["face_colors"])
                 model.colors = torch.from_numpy(z["gaussian_colors"]).float()
@@ -295,7 +317,7 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                              edge_index=model.edge_index.numpy())
             face_colors = model.face_colors(len(t.faces))
             save_npz_atomic(fpath, vertices=res.vertices, face_colors=face_colors, gaussian_colors=res.colors,
-                            frame=np.int64(f), **extra)
+                            frame=np.int64(f), input_key=np.array(key), **extra)
             write_ply(out / "meshes" / f"{frame_name(f)}.ply",
                       PlyMesh(res.vertices, t.faces, {"label": t.labels.astype(np.uint8),
                                                       "boundary": t.boundary.astype(np.uint8)}))
@@ -308,6 +330,9 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
             computed.append(f)
             seconds[f] = dt
             task.advance(frame=frame_name(f), it=res.iterations, loss=res.terms["loss"], s=round(dt, 1))
+    if stale:
+        logger.info("track: %d frames in %s (from frame %d) were tracked from other capture data, or before "
+                    "frames recorded theirs: tracked again", len(stale), out / "frames", stale[0])
     if starts.plain is not None:  # decided in this run (a fully resumed run keeps the file it wrote)
         decision = "plain" if starts.plain else "patterned"
         write_json_atomic(out / PLAIN_FILE, {"rule": cfg.flow.plain, "garment_texture": starts.garment_texture,
