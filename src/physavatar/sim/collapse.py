@@ -12,7 +12,9 @@ body.
 triangles without a buried corner or a corner one ring from one), ``offset`` outside along that
 triangle's normal, and repeats while a vertex is still buried (a moved vertex can bury a
 neighbour's triangle). The surface the cloth then meets is the union's outer skin at the crease,
-without the pit. A body without buried vertices is returned as it is (the same array).
+without the pit. A body without buried vertices is returned as it is (the same array). ``sim.simulate`` keeps a
+frame simulated on the uncollapsed body only when its cloth does not cross the body as given
+(:func:`crosses`); otherwise the crease rule follows on the given body, as before.
 """
 
 from __future__ import annotations
@@ -68,3 +70,14 @@ def uncollapse_sequence(bodies, faces, offset: float = OFFSET):
         if len(ids):
             out[t], counts[t] = v, len(ids)
     return out, counts
+
+
+def crosses(sim, x, body) -> bool:
+    """Whether the cloth ``x`` crosses ``body`` (ipctk's exact test with the sim's scene and its own
+    filter, every body triangle: the check ``stages.simulate`` makes on the written frame)."""
+    scene = sim.scene
+    base = getattr(scene, "base_filter", None)
+    if base is not None:  # (a crease step's filter leaves buried triangles out)
+        scene.mesh.can_collide = base
+    scene.candidate_filter = None
+    return bool(scene.has_intersections(np.vstack([x, np.asarray(body, np.float64)])))

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..files import load_npz, save_npz_atomic
 from ..progress import ProgressLike, resolve
-from .collapse import uncollapse
+from .collapse import crosses, uncollapse
 from .crease import body_creases
 from .material import Material
 from .settings import SimSettings
@@ -302,6 +302,8 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
                                            stop_on_lag=not last)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
+                if held[f] and not lagged and crosses(sim, x, original):
+                    lagged = True  # clear of the uncollapsed body, through the one given: the crease rule on that
                 # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
                 # the body's pose) is not undone by shorter steps: no retries until a frame passes
                 if not lagged or last:
