@@ -122,6 +122,10 @@ class SimSettings:
             rings, are left out of cloth–body contact for that step, and cloth vertices inside
             the body at its start are released (sim.crease.outer_surface). 1: every triangle
             with a buried corner goes; 0: only triangles with all corners buried; -1: off.
+        uncollapse: a frame that lags where the body passes through itself within reach of the
+            cloth is first retried on its end pose with the buried body vertices moved out onto
+            the body's outer surface (sim.collapse; the crease rule follows if it still lags),
+            and the frame after starts there (docs/simulation.md "Session 27").
         gravity: [3] m/s².
     """
 
@@ -164,6 +168,7 @@ class SimSettings:
     max_body_move: float = 0.08
     lag_radius: float = 0.05
     crease_ring: int = 1
+    uncollapse: bool = True
     gravity: tuple = (0.0, 0.0, -9.81)
 
     def __post_init__(self):

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..files import load_npz, save_npz_atomic
 from ..progress import ProgressLike, resolve
+from .collapse import crosses, uncollapse
 from .crease import body_creases
 from .material import Material
 from .settings import SimSettings
@@ -275,6 +276,9 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
         sim.set_state(resume.solver)
     out[start - 1] = x
     stuck = bool(resume is not None and resume.solver.get("stuck", False))
+    held = np.zeros(T, bool)  # frames whose body was uncollapsed (sim.collapse): the next frame starts there
+    if resume is not None and resume.solver.get("uncollapsed", False):
+        bodies, held[start - 1] = _uncollapsed(bodies, start - 1, collider_faces), True
     # the body's own creases (sim.crease): on only for an attempt after one that lagged without
     # it, so a frame that does not pinch is simulated as before
     with resolve(progress).task("simulating", total=T - start, log_every=5) as task:
@@ -283,7 +287,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             tb0, tb1 = targets(f - 1), targets(f)
             n, move = substep_count(bodies[f - 1], bodies[f], x, settings, substeps, max_substeps)
             saved = (x, v, sim.get_state())
-            attempts, crease = 0, False
+            attempts, crease, tried = 0, False, False
             creasable = None if settings.crease_ring >= 0 else False  # None: not yet known
             while True:
                 attempts += 1
@@ -298,6 +302,8 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
                                            stop_on_lag=not last)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
+                if held[f] and not lagged and crosses(sim, x, original):
+                    lagged = True  # clear of the uncollapsed body, through the one given: the crease rule on that
                 # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
                 # the body's pose) is not undone by shorter steps: no retries until a frame passes
                 if not lagged or last:
@@ -305,7 +311,17 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                     break
                 if creasable is None:
                     creasable = body_creases(sim.settings, bodies[f - 1], bodies[f], collider_faces, saved[0])
-                if not crease and creasable:  # a pinch where the body passes through itself:
+                given = bodies
+                if creasable and settings.uncollapse and not tried and not crease:
+                    # a pinch where the body passes through itself: first on the body with its
+                    # buried vertices moved out (sim.collapse), then as before
+                    tried, bodies = True, _uncollapsed(bodies, f, collider_faces)
+                if bodies is not given:
+                    original, held[f] = given[f], True
+                elif not crease and creasable:  # a pinch where the body passes through itself:
+                    if held[f]:  # the crease rule on the body as it is given
+                        bodies = bodies.copy()
+                        bodies[f], held[f] = original, False
                     crease = True  # again, with the body's outer surface only (sim.crease)
                 else:  # the body could not reach its pose: the frame again, in shorter steps
                     n = min(2 * n, max_substeps)
@@ -318,12 +334,24 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
             report["untangled_vertices"] += moved
             if on_frame is not None:
-                on_frame(Checkpoint(f, x.copy(), v.copy(), sim.get_state() | {"stuck": stuck}), report)
+                state = sim.get_state() | {"stuck": stuck} | ({"uncollapsed": True} if held[f] else {})
+                on_frame(Checkpoint(f, x.copy(), v.copy(), state), report)
             if callback is not None:
                 callback(f, x, stats_frame)
             task.advance(1, frame=f, s_frame=report["seconds"], newton=report["newton_iterations"],
                          contacts=report["contacts"], substeps=n, lag_mm=round(1e3 * report["lag_m"], 2))
     return out
+
+
+def _uncollapsed(bodies, f: int, faces):
+    """``bodies`` with frame ``f`` uncollapsed (sim.collapse; a copy where it changes)."""
+    body, moved = uncollapse(bodies[f], faces)
+    if not len(moved):
+        return bodies
+    logging.getLogger(__name__).debug("frame %d: %d buried body vertices moved out", f, len(moved))
+    bodies = bodies.copy()
+    bodies[f] = body
+    return bodies
 
 
 def _frame(sim: ClothSim, x, v, body0, body1, body_faces, tb0, tb1, n: int, fps: float, stop_on_lag=False):
