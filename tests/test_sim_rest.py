@@ -144,9 +144,8 @@ def test_fit_physics_fits_at_the_equilibrium_rest_and_records_it(tmp_path):
     """fit-physics --rest-shape equilibrium on a cantilever that does not move (the true sequence
     is its loaded shape, held): with the loaded shape as rest every material sags and the fit's
     RMS residual stays above 0.3 mm (measured 0.45: the fit stiffens it); the refit at the
-    equilibrium rest
-    rest follows it to a tenth of that (measured 0.016 mm).
-    material.json records rest_shape "equilibrium" and the solve."""
+    equilibrium rest follows it to a tenth of that (measured 0.016 mm). material.json records
+    rest_shape "equilibrium" and the solve."""
     from physavatar.data.material import FittedMaterial
     from physavatar.stages.physics import run as fit_physics
     from physavatar.stages.physics.config import PhysicsConfig
