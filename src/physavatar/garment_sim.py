@@ -238,7 +238,8 @@ def equilibrium_part(part: GarmentPart, body, body_faces, material: Material,
     """``part`` with the rest shape whose static equilibrium under gravity, its boundary pinned,
     on ``body`` [Nb, 3] (the pose it is placed on), is ``part.vertices`` (sim.rest.equilibrium_rest
     for ``material``; seams held by their stitches). Returns (part, report); a solve that missed
-    its tolerance is logged and its best round kept."""
+    its tolerance is logged and its best round kept; a garment that is not at rest in
+    ``part.vertices`` (report["at_rest"] false: it moves there) keeps them as its rest shape."""
     from .sim.rest import equilibrium_rest
 
     X, report = equilibrium_rest(part.vertices, part.faces, material, part.boundary, body, body_faces, settings,
@@ -247,6 +248,10 @@ def equilibrium_part(part: GarmentPart, body, body_faces, material: Material,
            f"itself as rest, {report['final_max_mm']:.3f} mm with the rest found ({report['rounds']} rounds, "
            f"{report['seconds']:.1f} s)")
     log = logging.getLogger("physavatar.progress")
+    if not report["at_rest"]:  # moving in its first frame: no rest shape holds it there
+        log.warning(msg + f"; {report['final_rms_mm']:.1f} mm RMS left: the garment is not at rest in its first "
+                          "frame, simulated with it as rest shape")
+        return part, report
     if report["converged"]:
         log.info(msg)
     else:

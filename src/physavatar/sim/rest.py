@@ -33,6 +33,7 @@ from .material import Material
 from .settings import SimSettings
 
 EQ_STEP = 5.0  # [s] the proximal step: nearly static (0.5 s left the plain top's hem creeping: 0.21 mm RMS against 0.10)
+AT_REST_RMS = 1e-3  # [m] a start that no rest shape holds closer than this (RMS) is not at rest (is moving)
 SAFEGUARD = 1.5  # a round whose error exceeds the best one's by this factor restarts the mixing from the best
 
 
@@ -111,7 +112,10 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     contact model and gravity of the simulations that will use it (friction and damping are
     ignored: they vanish at rest). ``path``: the file named in the messages about bad input.
     Returns (X̄, report): report["converged"] says whether the tolerance was met within
-    ``max_rounds`` (otherwise X̄ is the round with the smallest error); "error_mm" per round
+    ``max_rounds`` (otherwise X̄ is the round with the smallest error); "at_rest" whether the best
+    round holds x₀ to an RMS error below ``AT_REST_RMS`` (1 mm): a garment that is moving in x₀
+    (a capture that starts mid-motion) is in no static equilibrium, and callers then keep x₀ as
+    the rest shape (garment_sim.equilibrium_part, fit-physics); "error_mm" per round
     (max and RMS of x_eq − x₀ over the vertices), "sag_mm": the first round's (X̄ = x₀), seconds.
     """
     x0 = np.asarray(x0, dtype=np.float64)
@@ -153,6 +157,8 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
         if err < tol:
             best = (err, X.copy(), r)
             break
+        if len(history) >= 3 and min(e["rms_mm"] for e in history) > 10e3 * AT_REST_RMS:
+            break  # hopeless: the start is far from any static equilibrium (report["at_rest"])
         if err > SAFEGUARD * best[0]:  # the mixing overshot: a plain step from the best round, history cleared
             G, R = [], []
             X = best[1] - best[2]
@@ -164,10 +170,13 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
             G, R = G[-(memory + 1):], R[-(memory + 1):]
             X = _anderson(G, R, memory).reshape(X.shape)
         X[~free] = x0[~free]
-    err, X, _ = best
+    err, X, r = best
     sag = history[0]
-    report = {"converged": bool(err < tol), "tol_mm": 1e3 * tol, "rounds": len(history), "error_mm": history,
+    d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
+    rms = float(np.sqrt(np.mean(d ** 2)))
+    report = {"converged": bool(err < tol), "at_rest": bool(rms < AT_REST_RMS), "tol_mm": 1e3 * tol, "rounds": len(history), "error_mm": history,
               "sag_mm": {"max": sag["max_mm"], "rms": sag["rms_mm"]}, "final_max_mm": 1e3 * err,
+              "final_rms_mm": 1e3 * rms,
               "rest_offset_mm": {"max": 1e3 * float(np.linalg.norm(X - x0, axis=1).max()),
                                  "rms": 1e3 * float(np.sqrt(np.mean(np.sum((X - x0) ** 2, axis=1))))},
               "method": f"fixed point with Anderson mixing (memory {memory}); equilibrium: implicit steps of "

@@ -118,22 +118,28 @@ def refit_at_equilibrium(data, first, settings, fit, say) -> tuple[object, dict]
     from that material; ``fit(data, initial)`` is the first fit's call. Returns (the second fit's
     result, its material recording rest_shape "equilibrium"; report: the solve, the first fit's
     RMS and material, and how far the rest shape for the final material is from the one fitted
-    with: the start frame's sag in the final material with the rest fitted with, ``refit_sag_mm``)."""
+    with: the start frame's sag in the final material with the rest fitted with, ``refit_sag_mm``).
+    A start frame that is not at rest (sim.rest: the garment moves in it) keeps the first fit
+    (report["used"] false; its material records the template rest shape)."""
     from ...sim.rest import equilibrium_rest, static_equilibrium
 
     x0 = data.reference[0] if data.initial is None else data.initial
     body = None if data.collider is None else data.collider[0]
     mat = dataclasses.replace(first.material, rest_shape="equilibrium")
     rest, report = equilibrium_rest(x0, data.faces, mat, data.boundary, body, data.collider_faces, settings)
-    say(f"rest shape from static equilibrium: the start frame sags {report['sag_mm']['max']:.2f} mm (max) with "
-        f"itself as rest, {report['final_max_mm']:.3f} mm with the rest found ({report['rounds']} rounds, "
-        f"{report['seconds']:.0f} s); fitting again from the first fit's material")
+    line = (f"rest shape from static equilibrium: the start frame sags {report['sag_mm']['max']:.2f} mm (max) with "
+            f"itself as rest, {report['final_max_mm']:.3f} mm ({report['final_rms_mm']:.3f} RMS) with the rest found "
+            f"({report['rounds']} rounds, {report['seconds']:.0f} s)")
+    if not report["at_rest"]:  # the garment moves in the start frame: no static equilibrium is it
+        say(f"note: {line}: the start frame is not at rest; the fit with it as rest shape is kept")
+        return first, report | {"used": False}
+    say(line + "; fitting again from the first fit's material")
     result = fit(dataclasses.replace(data, rest=rest), mat)
     x_eq, _ = static_equilibrium(rest, data.faces, result.material, x0, data.boundary, body, data.collider_faces,
                                  settings)
     report |= {"first_fit": {"rms_mm": first.rms_mm, "stretch_ratio": first.material.stretch_ratio,
                              "bend_ratio": first.material.bend_ratio},
-               "refit_sag_mm": 1e3 * float(np.linalg.norm(x_eq - x0, axis=1).max())}
+               "refit_sag_mm": 1e3 * float(np.linalg.norm(x_eq - x0, axis=1).max()), "used": True}
     return result, report
 
 
