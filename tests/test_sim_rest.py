@@ -166,3 +166,27 @@ def test_fit_physics_fits_at_the_equilibrium_rest_and_records_it(tmp_path):
     assert rms["template"] > 0.3 and rms["equilibrium"] < 0.1 * rms["template"], rms
     with pytest.raises(PhysavatarError, match="rest-shape"):
         PhysicsConfig(rest_shape="flat")
+
+
+def test_a_garment_that_moves_in_its_first_frame_keeps_it_as_rest_shape():
+    """A soft strip held out 60° from the vertical by nothing (a pendulum at the top of its swing,
+    as a capture that starts mid-motion): no rest shape holds it there (bending is 1e-7 N·m), so
+    the report says it is not at rest and simulate_on_body simulates it with itself as rest
+    shape, exactly as the template material does."""
+    from physavatar.garment_sim import GarmentPart, simulate_on_body
+
+    V, F = strip(3, 11, 0.02, 0.2)
+    a = np.deg2rad(60)
+    V = np.c_[V[:, 0], -V[:, 2] * np.sin(a), V[:, 2] * np.cos(a)]
+    top = np.flatnonzero(np.abs(V[:, 2]) < 1e-12)
+    mat = Material(density=0.1, stretch_stiffness=50.0, bend_stiffness=1e-7, poisson=0.3)
+    _, rep = equilibrium_rest(V, F, mat, top)
+    assert not rep["at_rest"] and rep["final_rms_mm"] > 5.0
+    part = GarmentPart(np.arange(len(V)), V, F, top)
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=0.05)  # a body far off (the attachment's)
+    far = np.repeat((np.asarray(ball.vertices) + [0.0, 0.0, 0.25])[None], 4, 0)
+    report = {}
+    X = simulate_on_body(part, far, ball.faces, dataclasses.replace(mat, rest_shape="equilibrium"), 25.0,
+                         rest_report=report)
+    assert not report["at_rest"]
+    assert np.array_equal(X, simulate_on_body(part, far, ball.faces, mat, 25.0))
