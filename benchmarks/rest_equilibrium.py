@@ -1,6 +1,6 @@
 """The garment's rest shape from static equilibrium (issue 22's model gap, session 27): before/after.
 
-    python benchmarks/rest_equilibrium.py [--cases NAME,NAME] [--foreign DIR] [--demo DIR] [--work DIR]
+    python benchmarks/rest_equilibrium.py [--cases NAME,NAME,tracked:DIR] [--foreign DIR] [--demo DIR] [--work DIR]
                                           [--random-draws N] [--out FILE]
 
 For each foreign capture (DIR/<case>/capture, made by benchmarks/foreign_capture.py: another
@@ -19,6 +19,9 @@ The demo (--demo: a finished `make demo`, DIR/capture and DIR/run): the material
 run's tracked meshes with `run`'s settings and --rest-shape equilibrium; before is the run's own
 fit and evaluate (same code without the option). Material error against ground_truth/material.json,
 held-out CD of the estimate and of the true material (the run's references).
+
+A case ``tracked:DIR`` (a foreign capture's finished `physavatar run`: DIR/capture, DIR/run) is
+measured as the demo is, on that run's tracked meshes, with the budget the run's fit had.
 
 Writes benchmarks/results/rest_equilibrium.json (checks: informative; the option becomes a
 default only where every case holds or improves).
@@ -156,12 +159,16 @@ def demo_case(demo: Path, work: Path) -> dict:
     from physavatar.data.tracked import TrackedSequence
 
     capture, run = demo / "capture", demo / "run"
-    truth = Material.load(capture / "ground_truth" / "material.json")
+    truth_file = capture / "ground_truth" / "material.json"  # (a foreign capture has none)
+    truth = Material.load(truth_file) if truth_file.exists() else None
+    from physavatar.stages.physics.config import pipeline_config
+
     t0 = time.time()
-    after = fit(run / "track", work / "physics-equilibrium", "equilibrium", quick=False)
+    quick = json.loads((run / "physics" / "config.json").read_text())["window"] == pipeline_config(True).window
+    after = fit(run / "track", work / "physics-equilibrium", "equilibrium", quick=quick)
     before = fit_record(run / "physics")
     res = {"fits": {"template": before, "equilibrium": after}, "seconds": {"fit_equilibrium": round(time.time() - t0, 1)}}
-    for k, r in res["fits"].items():
+    for k, r in res["fits"].items() if truth is not None else ():
         r["stretch_ratio_error_pct"] = 100 * abs(r["stretch_ratio"] / truth.stretch_ratio - 1)
         r["bend_ratio_error_pct"] = 100 * abs(r["bend_ratio"] / truth.bend_ratio - 1)
     av_dir = work / "avatar-equilibrium"
@@ -228,6 +235,12 @@ def main(argv=None) -> int:
         print(f"== {name}", flush=True)
         if name == "demo":
             res = demo_case(Path(args.demo), work)
+        elif name.startswith("tracked:"):  # a foreign capture's `run` (DIR/capture, DIR/run): its tracked meshes
+            folder = Path(name.split(":", 1)[1])
+            name = f"tracked-{folder.name}"
+            work = Path(args.work) / name
+            work.mkdir(parents=True, exist_ok=True)
+            res = demo_case(folder, work)
         else:
             res = foreign_case(name, Path(args.foreign) / name / "capture", work, args.random_draws)
         result["results"][name] = res
