@@ -112,7 +112,7 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     contact model and gravity of the simulations that will use it (friction and damping are
     ignored: they vanish at rest). ``path``: the file named in the messages about bad input.
     Returns (X̄, report): report["converged"] says whether the tolerance was met within
-    ``max_rounds`` (otherwise X̄ is the round with the smallest error); "at_rest" whether the best
+    ``max_rounds`` (otherwise X̄ is the round with the smallest RMS error); "at_rest" whether the best
     round holds x₀ to an RMS error below ``AT_REST_RMS`` (5 mm): a garment that is moving in x₀
     (a capture that starts mid-motion) is in no static equilibrium, and callers then keep x₀ as
     the rest shape (garment_sim.equilibrium_part, fit-physics); "error_mm" per round
@@ -151,29 +151,29 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
             break
         r = x_eq - x0
         d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
-        err = float(d.max())
+        err, rms = float(d.max()), float(np.sqrt(np.mean(d ** 2)))
         history.append({"max_mm": 1e3 * err, "rms_mm": 1e3 * float(np.sqrt(np.mean(d ** 2))),
                         "steps": info["steps"], "equilibrium_converged": info["converged"]})
         if err < tol:
-            best = (err, X.copy(), r)
+            best = (rms, X.copy(), r)
             break
         if len(history) >= 3 and min(e["rms_mm"] for e in history) > 10e3 * AT_REST_RMS:
             break  # hopeless: the start is far from any static equilibrium (report["at_rest"])
-        if err > SAFEGUARD * best[0]:  # the mixing overshot: a plain step from the best round, history cleared
+        if rms > SAFEGUARD * best[0]:  # the mixing overshot: a plain step from the best round, history cleared
             G, R = [], []
             X = best[1] - best[2]
         else:
-            if err < best[0]:
-                best = (err, X.copy(), r)
+            if rms < best[0]:  # the best round by RMS (a few hem vertices can stall the max)
+                best = (rms, X.copy(), r)
             G.append((X - r).ravel())
             R.append(-r.ravel())
             G, R = G[-(memory + 1):], R[-(memory + 1):]
             X = _anderson(G, R, memory).reshape(X.shape)
         X[~free] = x0[~free]
-    err, X, r = best
+    _, X, r = best
     sag = history[0]
     d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
-    rms = float(np.sqrt(np.mean(d ** 2)))
+    err, rms = float(d.max()), float(np.sqrt(np.mean(d ** 2)))
     report = {"converged": bool(err < tol), "at_rest": bool(rms < AT_REST_RMS), "tol_mm": 1e3 * tol, "rounds": len(history), "error_mm": history,
               "sag_mm": {"max": sag["max_mm"], "rms": sag["rms_mm"]}, "final_max_mm": 1e3 * err,
               "final_rms_mm": 1e3 * rms,
