@@ -230,16 +230,16 @@ def main(argv=None) -> int:
     result.update(date=datetime.datetime.now().isoformat(timespec="seconds"),
                   machine={"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(os.getloadavg())})
     for name in args.cases.split(","):
+        folder = None
+        if name.startswith("tracked:"):  # a foreign capture's `run` (DIR/capture, DIR/run): its tracked meshes
+            folder = Path(name.split(":", 1)[1])
+            name = f"tracked-{folder.name}"
         work = Path(args.work) / name
         work.mkdir(parents=True, exist_ok=True)
         print(f"== {name}", flush=True)
         if name == "demo":
             res = demo_case(Path(args.demo), work)
-        elif name.startswith("tracked:"):  # a foreign capture's `run` (DIR/capture, DIR/run): its tracked meshes
-            folder = Path(name.split(":", 1)[1])
-            name = f"tracked-{folder.name}"
-            work = Path(args.work) / name
-            work.mkdir(parents=True, exist_ok=True)
+        elif folder is not None:
             res = demo_case(folder, work)
         else:
             res = foreign_case(name, Path(args.foreign) / name / "capture", work, args.random_draws)
