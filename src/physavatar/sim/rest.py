@@ -112,8 +112,8 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     contact model and gravity of the simulations that will use it (friction and damping are
     ignored: they vanish at rest). ``path``: the file named in the messages about bad input.
     Returns (X̄, report): report["converged"] says whether the tolerance was met within
-    ``max_rounds`` (otherwise X̄ is the round with the smallest RMS error); "at_rest" whether the best
-    round holds x₀ to an RMS error below ``AT_REST_RMS`` (5 mm): a garment that is moving in x₀
+    ``max_rounds`` (otherwise X̄ is the round with the smallest RMS error); "at_rest" whether
+    the best round holds x₀ to an RMS error below ``AT_REST_RMS`` (5 mm): a garment that is moving in x₀
     (a capture that starts mid-motion) is in no static equilibrium, and callers then keep x₀ as
     the rest shape (garment_sim.equilibrium_part, fit-physics); "error_mm" per round
     (max and RMS of x_eq − x₀ over the vertices), "sag_mm": the first round's (X̄ = x₀), seconds.
@@ -152,7 +152,7 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
         r = x_eq - x0
         d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
         err, rms = float(d.max()), float(np.sqrt(np.mean(d ** 2)))
-        history.append({"max_mm": 1e3 * err, "rms_mm": 1e3 * float(np.sqrt(np.mean(d ** 2))),
+        history.append({"max_mm": 1e3 * err, "rms_mm": 1e3 * rms,
                         "steps": info["steps"], "equilibrium_converged": info["converged"]})
         if err < tol:
             best = (rms, X.copy(), r)
@@ -174,7 +174,8 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     sag = history[0]
     d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
     err, rms = float(d.max()), float(np.sqrt(np.mean(d ** 2)))
-    report = {"converged": bool(err < tol), "at_rest": bool(rms < AT_REST_RMS), "tol_mm": 1e3 * tol, "rounds": len(history), "error_mm": history,
+    report = {"converged": bool(err < tol), "at_rest": bool(rms < AT_REST_RMS), "tol_mm": 1e3 * tol,
+              "rounds": len(history), "error_mm": history,
               "sag_mm": {"max": sag["max_mm"], "rms": sag["rms_mm"]}, "final_max_mm": 1e3 * err,
               "final_rms_mm": 1e3 * rms,
               "rest_offset_mm": {"max": 1e3 * float(np.linalg.norm(X - x0, axis=1).max()),
