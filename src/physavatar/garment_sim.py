@@ -208,15 +208,21 @@ def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
 
 def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: np.ndarray, material: Material,
                      fps: float, settings: SimSettings | None = None, substeps: int = 1, progress: bool = False,
-                     callback=None, **options) -> np.ndarray:
+                     callback=None, rest_report: dict | None = None, **options) -> np.ndarray:
     """Simulate ``part`` on a body sequence [T, Nb, 3] starting at rest; returns [T, N, 3].
 
     Frame 0 of the body must be the pose the garment starts on (``part.vertices``; its rest
-    shape is ``part.rest_shape``). Boundary vertices follow the body surface point they start
-    on; seams are held by a stitch term. ``options``: more of :func:`physavatar.sim.simulate`'s
-    (max_substeps, resume, on_frame).
+    shape is ``part.rest_shape``, or with a material whose ``rest_shape`` is "equilibrium" and no
+    designed rest shape, the one in which ``part.vertices`` is the static equilibrium on body
+    frame 0: :func:`equilibrium_part`, its report into ``rest_report``). Boundary vertices follow
+    the body surface point they start on; seams are held by a stitch term. ``options``: more of
+    :func:`physavatar.sim.simulate`'s (max_substeps, resume, on_frame).
     """
     body_sequence = np.asarray(body_sequence, dtype=np.float64)
+    if material.rest_shape == "equilibrium" and part.rest is None:  # (a designed rest shape is kept)
+        part, report = equilibrium_part(part, body_sequence[0], body_faces, material, settings)
+        if rest_report is not None:
+            rest_report.update(report)
     targets = None
     if len(part.boundary):
         targets, _ = boundary_targets(part, body_sequence, body_faces, (settings or SimSettings()).dhat)
@@ -225,6 +231,32 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
                     settings=settings, progress=progress, callback=callback, x0=part.vertices,
                     extra_terms=part.terms(), contact_exclude=part.contact_exclusions(), **options)
 
+
+
+def equilibrium_part(part: GarmentPart, body, body_faces, material: Material,
+                     settings: SimSettings | None = None) -> tuple[GarmentPart, dict]:
+    """``part`` with the rest shape whose static equilibrium under gravity, its boundary pinned,
+    on ``body`` [Nb, 3] (the pose it is placed on), is ``part.vertices`` (sim.rest.equilibrium_rest
+    for ``material``; seams held by their stitches). Returns (part, report); a solve that missed
+    its tolerance is logged and its best round kept; a garment that is not at rest in
+    ``part.vertices`` (report["at_rest"] false: it moves there) keeps them as its rest shape."""
+    from .sim.rest import equilibrium_rest
+
+    X, report = equilibrium_rest(part.vertices, part.faces, material, part.boundary, body, body_faces, settings,
+                                 extra_terms=part.terms(), contact_exclude=part.contact_exclusions())
+    msg = (f"rest shape from static equilibrium: the template sagged {report['sag_mm']['max']:.2f} mm (max) with "
+           f"itself as rest, {report['final_max_mm']:.3f} mm with the rest found ({report['rounds']} rounds, "
+           f"{report['seconds']:.1f} s)")
+    log = logging.getLogger("physavatar.progress")
+    if not report["at_rest"]:  # moving in its first frame: no rest shape holds it there
+        log.warning(msg + f"; {report['final_rms_mm']:.1f} mm RMS left: the garment is not at rest in its first "
+                          "frame, simulated with it as rest shape")
+        return part, report
+    if report["converged"]:
+        log.info(msg)
+    else:
+        log.warning(msg + f"; tolerance {report['tol_mm']:.2f} mm not reached: the best round is kept")
+    return dataclasses.replace(part, rest=X), report
 
 
 def boundary_targets(part: GarmentPart, body_sequence: np.ndarray, body_faces: np.ndarray, dhat: float):

@@ -33,6 +33,7 @@ from ..errors import PhysavatarError
 CODIM_BASE_YOUNG = 0.076e6  # Pa
 CODIM_BASE_POISSON = 0.071
 CODIM_BASE_THICKNESS = 0.328e-3  # m
+REST_SHAPES = ("template", "equilibrium")  # Material.rest_shape
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +62,13 @@ class Material:
             on it (sim.offset.estimate_contact_offset) and records it, and every simulation of
             the material uses it unless its settings give a ``dmin``. 0 for presets and older
             files (no thickness).
+        rest_shape: the garment's stress-free shape in every simulation of the material:
+            "template" (the garment as placed, i.e. the captured first frame, loaded by gravity;
+            presets and older files) or "equilibrium" (the rest shape whose static equilibrium on
+            the body is that frame: sim.rest.equilibrium_rest, computed for this material by
+            ``garment_sim.simulate_on_body`` and so by ``animate``, ``evaluate`` and the tracker's
+            physics prediction). ``fit-physics --rest-shape equilibrium`` fits in that model and
+            records it. A garment with a designed rest shape (a sewing pattern) keeps that one.
     """
 
     density: float = 0.131
@@ -73,6 +81,7 @@ class Material:
     integrator: str = "euler"
     bdf2_blend: float = 1.0
     contact_offset: float = 0.0
+    rest_shape: str = "template"
 
     UNITS = {
         "density": "kg/m^2",
@@ -96,6 +105,8 @@ class Material:
             raise PhysavatarError(None, f"material bdf2_blend must be in [0, 1], got {self.bdf2_blend}")
         if not (np.isfinite(self.contact_offset) and 0.0 <= self.contact_offset < 0.05):
             raise PhysavatarError(None, f"material contact_offset must be in [0, 0.05) m, got {self.contact_offset}")
+        if self.rest_shape not in REST_SHAPES:
+            raise PhysavatarError(None, f"material rest_shape must be 'template' or 'equilibrium', got {self.rest_shape!r}")
 
     # -- derived quantities ------------------------------------------------------------------
 
@@ -174,6 +185,8 @@ class Material:
 
     def to_dict(self) -> dict:
         out = dataclasses.asdict(self)
+        if out["rest_shape"] == "template":  # the model of every file before session 27: keys unchanged
+            del out["rest_shape"]
         out["units"] = dict(self.UNITS)
         return out
 

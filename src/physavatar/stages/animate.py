@@ -111,14 +111,18 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
                                   "start outside the collider to be simulated")
         log.info("animate: the garment crossed the collider body in %d triangle pairs; pushed out "
                  "(largest move %.2f mm)", crossing, 1e3 * float(np.linalg.norm(moved - part.vertices, axis=1).max()))
-        part = replace(part, vertices=moved, rest=part.rest_shape)
+        # the rest shape stays the template's (no strain from the push), or with a material whose rest
+        # shape is the equilibrium, is solved for the pushed start that is simulated
+        keep = part.rest is not None or avatar.material.rest_shape != "equilibrium"
+        part = replace(part, vertices=moved, rest=part.rest_shape if keep else None)
     if settings is not None and settings.self_contact and not self_contact_possible(
             part.vertices, part.faces, settings.dhat, part.contact_exclusions()):
         settings = replace(settings, self_contact=False)
     t0 = time.time()
     cb = None if report is None else (lambda f, x, st: report(1))
+    rest_report = {}
     options = dict(settings=settings, progress=progress if report is None else False, callback=cb,
-                   max_substeps=max_substeps)
+                   max_substeps=max_substeps, rest_report=rest_report)
     reports = []
     if out is None:
         Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, on_frame=lambda c, r: reports.append(r),
@@ -144,6 +148,8 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
              "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps,
              "self_contact": bool(settings is not None and settings.self_contact),
+             "rest_shape": {"kind": "equilibrium" if rest_report else "template" if t.rest is None and garment is None
+                            else "designed"} | rest_report,
              "frames_with_lag": [f - n_warm for f, r in enumerate(reports, start=1) if r["lagged"] and f >= n_warm],
              "substeps_per_frame": [r["substeps"] for f, r in enumerate(reports, start=1) if f >= n_warm]}
     return AnimatedSequence(V, faces, labels, face_uvs, fps, avatar.root), stats

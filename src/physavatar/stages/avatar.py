@@ -62,7 +62,7 @@ def build_avatar(capture: str | Path | Capture, out: str | Path, *, material: st
         # no UVs): the avatar must carry the same UVs as its texture
         uv = load_npz(Path(texture_dir) / "atlas.npz").get("face_uvs")
         if uv is not None and uv.shape == (len(t.faces), 3, 2):
-            t = Template(t.vertices, t.faces, t.labels, t.boundary, np.asarray(uv, np.float64))
+            t = Template(t.vertices, t.faces, t.labels, t.boundary, np.asarray(uv, np.float64), t.rest)
     t.save(out / "template.ply")
     resolve_material(material).save(out / "material.json")
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ...errors import PhysavatarError
+from ...sim.material import REST_SHAPES
 from ..base import option, options
 
 GRADIENTS = ("fd", "exact")
@@ -41,6 +42,11 @@ class PhysicsConfig:
             None: estimated from the start frame, the garment's distance to the body where it
             rests on it (sim.offset.estimate_contact_offset; 0 when it does not rest on it at
             one distance, as a garment made in place with a design clearance); 0: none.
+        rest_shape: the garment's stress-free shape in the fitting simulations: ``"template"``
+            (the start frame, loaded by gravity) or ``"equilibrium"`` (sim.rest.equilibrium_rest:
+            the rest shape whose static equilibrium is the start frame, for the material of a first
+            fit with the template; then fitted again from that material; the material records it
+            and animate/evaluate/the tracker compute the same rest for it).
     """
 
     gradient: str = option("exact", "fd (the paper: finite differences + Adam) or exact (sensitivities + "
@@ -79,6 +85,10 @@ class PhysicsConfig:
                                                 "rests on the body; 0 = none; docs/physics.md)",
                                           flag="--contact-offset",
                                           check=lambda v: None if 0 <= v < 0.05 else "must be in [0, 0.05) m")
+    rest_shape: str = option("template", "the garment's rest shape in the fitting simulations: template (the start "
+                                          "frame, loaded by gravity) or equilibrium (the shape whose static "
+                                          "equilibrium is the start frame; a second fit; docs/physics.md)",
+                             flag="--rest-shape", choices=REST_SHAPES)
 
     def __post_init__(self) -> None:
         # the same checks, and messages, as the command line's (a config made in Python)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+
+import numpy as np
 from collections.abc import Callable
 from pathlib import Path
 
@@ -91,11 +93,16 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
             # one line per iteration: a bar alone shows nothing when output is not a terminal
             say(f"{iteration_line(row)}  {row['wall_time_s']:.0f} s")
 
-        result = fit_material(data, initial, cfg.gradient, cfg.iterations, cfg.fit_density,
-                              fit_settings(friction=cfg.friction, newton_tol=cfg.newton_tol,
-                                           integrator=cfg.fitting_integrator),
-                              workers=cfg.workers, substeps=cfg.substeps, callback=report,
-                              shape_weight=cfg.shape_weight, select_integrator=cfg.selects_integrator)
+        settings = fit_settings(friction=cfg.friction, newton_tol=cfg.newton_tol, integrator=cfg.fitting_integrator)
+
+        def fit(d, init):
+            return fit_material(d, init, cfg.gradient, cfg.iterations, cfg.fit_density, settings, workers=cfg.workers,
+                                substeps=cfg.substeps, callback=report, shape_weight=cfg.shape_weight,
+                                select_integrator=cfg.selects_integrator)
+
+        result = fit(data, initial)
+        if cfg.rest_shape == "equilibrium":
+            result, start_info["rest_shape"] = refit_at_equilibrium(data, result, settings, fit, say)
     result.start_state = start_info
     if proxy is not None:
         result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),
@@ -103,6 +110,37 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
     write_outputs(out, result)
     write_json_atomic(out / "config.json", {**to_dict(cfg), "source": str(source.resolve())})
     return result
+
+
+def refit_at_equilibrium(data, first, settings, fit, say) -> tuple[object, dict]:
+    """The fit again with the rest shape whose static equilibrium (for the material of the
+    ``first`` fit, on the window's first body frame) is the start frame (sim.rest.equilibrium_rest),
+    from that material; ``fit(data, initial)`` is the first fit's call. Returns (the second fit's
+    result, its material recording rest_shape "equilibrium"; report: the solve, the first fit's
+    RMS and material, and how far the rest shape for the final material is from the one fitted
+    with: the start frame's sag in the final material with the rest fitted with, ``refit_sag_mm``).
+    A start frame that is not at rest (sim.rest: the garment moves in it) keeps the first fit
+    (report["used"] false; its material records the template rest shape)."""
+    from ...sim.rest import equilibrium_rest, static_equilibrium
+
+    x0 = data.reference[0] if data.initial is None else data.initial
+    body = None if data.collider is None else data.collider[0]
+    mat = dataclasses.replace(first.material, rest_shape="equilibrium")
+    rest, report = equilibrium_rest(x0, data.faces, mat, data.boundary, body, data.collider_faces, settings)
+    line = (f"rest shape from static equilibrium: the start frame sags {report['sag_mm']['max']:.2f} mm (max) with "
+            f"itself as rest, {report['final_max_mm']:.3f} mm ({report['final_rms_mm']:.3f} RMS) with the rest found "
+            f"({report['rounds']} rounds, {report['seconds']:.0f} s)")
+    if not report["at_rest"]:  # the garment moves in the start frame: no static equilibrium is it
+        say(f"note: {line}: the start frame is not at rest; the fit with it as rest shape is kept")
+        return first, report | {"used": False}
+    say(line + "; fitting again from the first fit's material")
+    result = fit(dataclasses.replace(data, rest=rest), mat)
+    x_eq, _ = static_equilibrium(rest, data.faces, result.material, x0, data.boundary, body, data.collider_faces,
+                                 settings)
+    report |= {"first_fit": {"rms_mm": first.rms_mm, "stretch_ratio": first.material.stretch_ratio,
+                             "bend_ratio": first.material.bend_ratio},
+               "refit_sag_mm": 1e3 * float(np.linalg.norm(x_eq - x0, axis=1).max()), "used": True}
+    return result, report
 
 
 def contact_offset(given: float | None, data) -> tuple[float, dict]:

@@ -152,6 +152,10 @@ class PredictionConfig:
             known when tracking: a prior.
         newton_iterations: cap on the physics step's Newton iterations (capped too low, the step
             stays in the phase where the body sweeps into the cloth).
+        rest_shape: the garment's rest shape in the physics step: "material" (what the material
+            records: presets "template"; fit-physics --rest-shape equilibrium "equilibrium"),
+            "template" (the template, loaded by gravity) or "equilibrium" (the shape whose static
+            equilibrium on the template's body is the template; sim.rest, docs/physics.md).
     """
 
     init: str = option("mixed", "start of each frame: mixed (body and garment boundary skinned from body.npz, the rest "
@@ -166,6 +170,7 @@ class PredictionConfig:
     garment_residual: float = setting(0.5)
     material: str = setting("cotton")
     newton_iterations: int = setting(40)
+    rest_shape: str = setting("material")
 
 
 @dataclass(frozen=True)

@@ -141,7 +141,9 @@ class PhysicsPrediction:
     Args:
         vertices [V, 3], faces [F, 3], labels [V] (> 0 garment), boundary [V] bool: the template;
             its garment is the rest shape, its body part (label 0) the collider's topology.
-        material: :class:`physavatar.sim.Material` (a prior: the real one is not known yet).
+        material: :class:`physavatar.sim.Material` (a prior: the real one is not known yet); with
+            ``rest_shape`` "equilibrium" the garment's rest shape is the one whose static
+            equilibrium on the template's body is the template (garment_sim.equilibrium_part).
         fps: the capture's frame rate. settings: :class:`physavatar.sim.SimSettings` (dt is
             replaced by 1/fps).
         push_clearance: a tracked garment that intersects the body at t-1 is first pushed out
@@ -163,7 +165,12 @@ class PhysicsPrediction:
         self.boundary = part.boundary
         self.h = 1.0 / fps
         settings = replace(settings or SimSettings(), dt=self.h)
-        self.sim = ClothSim(part.vertices, part.faces, material, settings, part.boundary)
+        self.rest_report = None
+        if material.rest_shape == "equilibrium":  # the template is the static equilibrium (sim.rest)
+            from ...garment_sim import equilibrium_part
+
+            part, self.rest_report = equilibrium_part(part, V[self.body_ids], self.body_faces, material, settings)
+        self.sim = ClothSim(part.rest_shape, part.faces, material, settings, part.boundary)
         self.attachment = make_attachment(part.vertices[part.boundary], part.boundary, V[self.body_ids],
                                           self.body_faces, "sequence")
         # the intersection test of the start state (ipctk's CCD assumes an intersection-free start)
@@ -237,6 +244,8 @@ def physics_predictor(cap: Capture, cfg: PredictionConfig) -> PhysicsPrediction:
 
     t = cap.template
     material = Material.load(cfg.material) if cfg.material.endswith(".json") else preset(cfg.material)
+    if cfg.rest_shape != "material":
+        material = replace(material, rest_shape=cfg.rest_shape)
     return PhysicsPrediction(t.vertices, t.faces, t.labels, t.boundary, material, cap.fps,
                              SimSettings(max_newton_iterations=cfg.newton_iterations))
 

@@ -1,0 +1,185 @@
+"""The garment's rest shape from static equilibrium (docs/physics.md "Session 27").
+
+A captured garment's template is the garment *loaded*: hanging from its attachment under gravity
+and resting on the body. Taken as the stress-free rest shape it sags again as soon as a simulation
+starts. :func:`equilibrium_rest` finds the rest shape X̄ whose static equilibrium (gravity, the
+boundary pinned where it is, contact with the body) is the template x₀:
+
+    x_eq(X̄) = x₀,    x_eq(X̄) = the static equilibrium reached from x₀ with rest X̄.
+
+The membrane's rest frames and areas, the hinges' rest angles and weights and the lumped masses
+all come from X̄ (sim.mesh.ClothTopology). Solver: the fixed point X̄ ← X̄ − (x_eq(X̄) − x₀) of
+inverse statics, accelerated with Anderson mixing (Walker & Ni 2011) over the last ``memory``
+rounds. The fixed point takes ∂x_eq/∂X̄ as the identity, which is right for the stiff membrane
+and bending in their own modes; the mixing fits the rest of the Jacobian from the rounds' secants
+(a round that overshoots, error > 1.5 × the best, restarts it from the best round with a plain
+step), so no mixed derivative ∂²E/∂x∂X̄ (which the simulator does not have) is needed. Each round's
+equilibrium (:func:`static_equilibrium`) is the simulator's own implicit step repeated with the
+velocity reset to zero (a proximal-point iteration: every step minimises the static energy plus
+½‖x − xₖ‖²_M / h², so it ends where the static energy is stationary), frictionless and undamped
+(friction and damping vanish at rest: what is in equilibrium without them is in equilibrium with
+them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from ..errors import PhysavatarError
+from .material import Material
+from .settings import SimSettings
+
+EQ_STEP = 5.0  # [s] the proximal step: nearly static (0.5 s left the plain top's hem creeping: 0.21 mm RMS against 0.10)
+AT_REST_RMS = 5e-3  # [m] a start that no rest shape holds closer than this (RMS) is not at rest (is moving)
+SAFEGUARD = 1.5  # a round whose error exceeds the best one's by this factor restarts the mixing from the best
+
+
+def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> SimSettings:
+    """The settings of the equilibrium solve: ``settings``' contact model (d̂, d_min, self-contact,
+    gravity, membrane model) without friction and damping, implicit Euler with step ``h``, Newton to
+    a step below ``tol`` / 10 [m] in every vertex."""
+    s = settings or SimSettings()
+    return dataclasses.replace(s, dt=float(h), integrator="euler", friction=0.0, damping_mass=0.0,
+                               damping_stiffness=0.0, newton_norm="max", newton_tol=0.1 * tol / h,
+                               max_newton_iterations=max(s.max_newton_iterations, 200), keep_linearization=False)
+
+
+def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), body=None, body_faces=None,
+                       settings: SimSettings | None = None, *, h: float = EQ_STEP, tol: float = 1e-5,
+                       max_steps: int = 60, extra_terms=(), contact_exclude=None) -> tuple[np.ndarray, dict]:
+    """The static equilibrium of the cloth with rest shape ``rest`` [N, 3], reached from
+    ``x_start`` [N, 3] (v = 0): the boundary vertices stay at ``x_start``'s positions, the body
+    ``body`` [Nb, 3] / ``body_faces`` (None: no body) is still. Implicit steps of length ``h``
+    with the velocity reset to zero after each (frictionless, undamped; module docstring) until a
+    step moves no vertex by more than ``tol`` [m], at most ``max_steps``. Returns (x [N, 3],
+    {"steps", "last_move_m", "converged", "newton_iterations"})."""
+    from .simulate import feasible_thickness
+    from .solver import ClothSim
+
+    s = equilibrium_settings(settings, h, tol)
+    sim = ClothSim(rest, faces, material, s, boundary, extra_terms=extra_terms, contact_exclude=contact_exclude)
+    x = np.array(x_start, dtype=np.float64)
+    if body is not None:
+        body = np.asarray(body, np.float64)
+        sim.prepare(body, body_faces)
+        if sim.dmin > 0:
+            x, sim.settings = feasible_thickness(sim, x, body, body_faces)
+    else:
+        sim.prepare(None, None)
+    targets = x[sim.boundary].copy() if len(sim.boundary) else None
+    zero = np.zeros_like(x)
+    info = {"steps": 0, "last_move_m": np.inf, "converged": False, "newton_iterations": 0}
+    # the first step at the simulations' own step length sets the barrier stiffness κ as theirs is
+    # set (ipctk's adaptive κ scales with mass / h²; it persists across steps): the contact then
+    # holds the cloth at the distance theirs does
+    sim.set_dt((settings or SimSettings()).dt)
+    for k in range(max_steps):
+        x_new, _, st = sim.step(x, zero, body, body, body_faces, targets)
+        sim.set_dt(h)
+        move = float(np.max(np.linalg.norm(x_new - x, axis=1))) if len(x) else 0.0
+        info.update(steps=k + 1, last_move_m=move, newton_iterations=info["newton_iterations"] + st.newton_iterations)
+        x = x_new
+        if move < tol and k > 0:  # (not the first, short step)
+            info["converged"] = True
+            break
+    return x, info
+
+
+def _anderson(G: list[np.ndarray], F: list[np.ndarray], memory: int) -> np.ndarray:
+    """Anderson mixing (type II, Walker & Ni 2011) of the fixed point g: the next iterate from the
+    last rounds' g(Xₖ) (``G``) and residuals fₖ = g(Xₖ) − Xₖ (``F``), flat vectors."""
+    m = min(memory, len(F) - 1)
+    if m <= 0:
+        return G[-1]
+    dF = np.stack([F[-i] - F[-i - 1] for i in range(1, m + 1)], axis=1)
+    dG = np.stack([G[-i] - G[-i - 1] for i in range(1, m + 1)], axis=1)
+    gamma, *_ = np.linalg.lstsq(dF, F[-1], rcond=None)
+    return G[-1] - dG @ gamma
+
+
+def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body_faces=None,
+                     settings: SimSettings | None = None, *, tol: float = 1e-4, max_rounds: int = 12,
+                     memory: int = 3, h: float = EQ_STEP, extra_terms=(), contact_exclude=None,
+                     path=None) -> tuple[np.ndarray, dict]:
+    """The rest shape X̄ [N, 3] whose static equilibrium under gravity, pinned at ``boundary``
+    and in contact with ``body`` (frame 0; None: no body), is the loaded shape ``x0`` [N, 3]
+    (module docstring), to ``tol`` [m] in every vertex.
+
+    ``material``: its density and stiffnesses (and contact offset) decide X̄; ``settings``: the
+    contact model and gravity of the simulations that will use it (friction and damping are
+    ignored: they vanish at rest). ``path``: the file named in the messages about bad input.
+    Returns (X̄, report): report["converged"] says whether the tolerance was met within
+    ``max_rounds`` (otherwise X̄ is the round with the smallest RMS error); "at_rest" whether
+    the best round holds x₀ to an RMS error below ``AT_REST_RMS`` (5 mm): a garment that is moving in x₀
+    (a capture that starts mid-motion) is in no static equilibrium, and callers then keep x₀ as
+    the rest shape (garment_sim.equilibrium_part, fit-physics); "error_mm" per round
+    (max and RMS of x_eq − x₀ over the vertices), "sag_mm": the first round's (X̄ = x₀), seconds.
+    """
+    x0 = np.asarray(x0, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    b = np.unique(np.asarray(boundary, dtype=np.int64).reshape(-1))
+    if x0.ndim != 2 or x0.shape[1] != 3 or not np.isfinite(x0).all():
+        raise PhysavatarError(path, f"the garment for a rest shape must be finite vertices [N, 3], got {x0.shape}")
+    if len(b) and (b.min() < 0 or b.max() >= len(x0)):
+        raise PhysavatarError(path, f"boundary vertex ids out of range 0..{len(x0) - 1}")
+    if body is None and not len(b):
+        raise PhysavatarError(path, "a rest shape from static equilibrium needs something that holds the garment "
+                                    "(boundary vertices or a body): this one would fall")
+    if body is not None:
+        from ..geometry import count_intersections
+
+        body = np.asarray(body, np.float64)
+        if count_intersections(x0, F, body, np.asarray(body_faces, np.int64).reshape(-1, 3)):
+            raise PhysavatarError(path, "the garment intersects the body in the frame its rest shape is solved for; "
+                                        "it must start outside the body")
+    t0 = time.perf_counter()
+    free = np.ones(len(x0), bool)
+    free[b] = False
+    kw = dict(h=h, tol=0.1 * tol, extra_terms=extra_terms, contact_exclude=contact_exclude)
+    X = x0.copy()
+    G, R = [], []  # the fixed point's g(X) = X − (x_eq(X) − x0) and residuals, flat
+    best, history = (np.inf, X, np.zeros_like(X)), []
+    for _ in range(max_rounds):
+        try:
+            x_eq, info = static_equilibrium(X, F, material, x0, b, body, body_faces, settings, **kw)
+        except PhysavatarError as e:  # a degenerate rest triangle (ClothTopology): the iteration went too far
+            if not history:
+                raise PhysavatarError(path, e.problem) from None
+            break
+        r = x_eq - x0
+        d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
+        err, rms = float(d.max()), float(np.sqrt(np.mean(d ** 2)))
+        history.append({"max_mm": 1e3 * err, "rms_mm": 1e3 * rms,
+                        "steps": info["steps"], "equilibrium_converged": info["converged"]})
+        if err < tol:
+            best = (rms, X.copy(), r)
+            break
+        if len(history) >= 3 and min(e["rms_mm"] for e in history) > 10e3 * AT_REST_RMS:
+            break  # hopeless: the start is far from any static equilibrium (report["at_rest"])
+        if rms > SAFEGUARD * best[0]:  # the mixing overshot: a plain step from the best round, history cleared
+            G, R = [], []
+            X = best[1] - best[2]
+        else:
+            if rms < best[0]:  # the best round by RMS (a few hem vertices can stall the max)
+                best = (rms, X.copy(), r)
+            G.append((X - r).ravel())
+            R.append(-r.ravel())
+            G, R = G[-(memory + 1):], R[-(memory + 1):]
+            X = _anderson(G, R, memory).reshape(X.shape)
+        X[~free] = x0[~free]
+    _, X, r = best
+    sag = history[0]
+    d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
+    err, rms = float(d.max()), float(np.sqrt(np.mean(d ** 2)))
+    report = {"converged": bool(err < tol), "at_rest": bool(rms < AT_REST_RMS), "tol_mm": 1e3 * tol,
+              "rounds": len(history), "error_mm": history,
+              "sag_mm": {"max": sag["max_mm"], "rms": sag["rms_mm"]}, "final_max_mm": 1e3 * err,
+              "final_rms_mm": 1e3 * rms,
+              "rest_offset_mm": {"max": 1e3 * float(np.linalg.norm(X - x0, axis=1).max()),
+                                 "rms": 1e3 * float(np.sqrt(np.mean(np.sum((X - x0) ** 2, axis=1))))},
+              "method": f"fixed point with Anderson mixing (memory {memory}); equilibrium: implicit steps of "
+                        f"{h:g} s from rest, frictionless", "seconds": round(time.perf_counter() - t0, 2)}
+    return X, report

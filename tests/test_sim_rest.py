@@ -1,0 +1,192 @@
+"""The rest shape from static equilibrium (sim.rest.equilibrium_rest): a hanging strip's rest length
+against the analytic solution of a membrane hanging under its own weight, and three loaded cloths
+(a cantilever held by bending, a sheet pinned at its top and pushed out by a ball, a strip) that
+stay where they are with the rest shape found and sag with the loaded shape as rest."""
+
+import dataclasses
+
+import cloth_grid
+import numpy as np
+import pytest
+import trimesh
+from scipy.integrate import trapezoid
+from scipy.optimize import brentq
+
+from physavatar.errors import PhysavatarError
+from physavatar.sim import Material, preset, simulate
+from physavatar.sim.rest import equilibrium_rest, static_equilibrium
+
+
+def strip(nu, nv, width, length):
+    """A vertical strip in the xz plane, x in [0, width], z in [-length, 0] (top row at z = 0)."""
+    u, v = np.meshgrid(np.linspace(0, width, nu), np.linspace(0, length, nv), indexing="ij")
+    F = []
+    for i in range(nu - 1):
+        for j in range(nv - 1):
+            a = i * nv + j
+            F += [[a, a + nv + 1, a + 1], [a, a + nv, a + nv + 1]]
+    return np.c_[u.ravel(), np.zeros(u.size), -v.ravel()], np.array(F)
+
+
+def still_sim(rest, faces, material, x0, pinned, body=None, body_faces=None, frames=25):
+    """Max distance [mm] of each frame from x0 when simulated from x0 at rest (v = 0), 25 fps."""
+    bodies = np.zeros((frames + 1, 0, 3)) if body is None else np.repeat(body[None], frames + 1, 0)
+    bf = np.zeros((0, 3), np.int64) if body_faces is None else body_faces
+    Y = simulate(rest, faces, material, bodies, bf, pinned, x0=x0, fps=25)
+    return 1e3 * np.linalg.norm(Y - x0, axis=-1).max(axis=1)
+
+
+def test_a_hanging_strip_has_the_analytic_rest_length():
+    """A membrane strip (ν = 0, StVK) of loaded length L hangs from its top edge: at rest depth S
+    the first Piola stress κs λ (λ² − 1) / 2 carries the weight ρ g (L̄ − S) below, and ∫ λ dS = L.
+    The rest shape's length must be that L̄ (the extension is 7.9 mm) to 3 % of the extension."""
+    L, mat = 0.3, Material(density=0.1, stretch_stiffness=5.0, bend_stiffness=1e-7, poisson=0.0)
+    x0, F = strip(3, 21, 0.02, L)
+    top = np.flatnonzero(x0[:, 2] == 0)
+    X, rep = equilibrium_rest(x0, F, mat, top)
+    assert rep["converged"] and rep["final_max_mm"] < 0.1
+    rg, ks = mat.density * 9.81, mat.stretch_stiffness
+
+    def loaded_length(rest_length):
+        S = np.linspace(0, rest_length, 801)
+        lam = [brentq(lambda lm: ks * lm * (lm * lm - 1) / 2 - rg * (rest_length - s), 0.5, 2.0) for s in S]
+        return trapezoid(lam, S)
+
+    rest_length = brentq(lambda r: loaded_length(r) - L, 0.2, L)
+    ext_true, ext = L - rest_length, L - np.ptp(X[:, 2])
+    assert ext_true > 5e-3
+    assert abs(ext - ext_true) < 0.03 * ext_true, (ext, ext_true)
+    assert np.allclose(X[top], x0[top])  # the pinned edge stays
+
+
+def test_a_cantilever_stays_with_its_equilibrium_rest_and_sags_with_the_template():
+    """A 3 × 4 cm silk plate clamped along one side (two rows pinned), held out by bending alone:
+    with the loaded shape as rest it droops 7 mm; with the rest shape found it stays within
+    0.05 mm over a second of simulation (friction, implicit Euler at 25 fps: the model it is for)."""
+    V, F = strip(5, 9, 0.04, 0.03)
+    V = np.c_[V[:, 0], -V[:, 2], V[:, 1]]  # horizontal, sticking out along y
+    clamp = np.flatnonzero(V[:, 1] <= 0.03 / 8 + 1e-9)
+    mat = preset("silk")
+    X, rep = equilibrium_rest(V, F, mat, clamp)
+    assert rep["converged"] and rep["sag_mm"]["max"] > 3.0
+    assert np.abs(X - V).max() > 1e-3  # not the template
+    assert still_sim(X, F, mat, V, clamp).max() < 0.05
+    assert still_sim(V, F, mat, V, clamp)[-1] > 3.0
+
+
+def test_a_sheet_pushed_out_by_a_ball_stays_with_its_equilibrium_rest():
+    """A 30 cm sheet pinned at its top edge, pushed 1.5 cm out by a 10 cm ball and settled (its
+    static equilibrium for a flat rest sheet: x0 is reachable): the rest shape found keeps it
+    within 0.5 mm of x0 (the barrier's distance is where the rest shape cannot reach: measured
+    0.17 mm), the loaded shape as rest lets it sag by more than 3 mm (measured 9.8)."""
+    V, F = strip(9, 9, 0.3, 0.3)
+    top = np.flatnonzero(V[:, 2] == 0)
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    B0, BF = np.asarray(s.vertices), np.asarray(s.faces)
+    c0, c1 = np.array([0.15, -0.112, -0.2]), np.array([0.15, -0.085, -0.2])
+    bodies = np.stack([B0 + c0 + (c1 - c0) * t / 10 for t in range(11)])
+    mat = dataclasses.replace(preset("silk"), stretch_stiffness=5.0)
+    Y = simulate(V, F, mat, bodies, BF, top, fps=25)
+    x0, info = static_equilibrium(V, F, mat, Y[-1], top, bodies[-1], BF, max_steps=200)
+    assert info["converged"]
+    X, rep = equilibrium_rest(x0, F, mat, top, bodies[-1], BF)
+    assert rep["final_max_mm"] < 0.3 and rep["sag_mm"]["max"] > 3.0
+    assert still_sim(X, F, mat, x0, top, bodies[-1], BF).max() < 0.5
+    assert still_sim(x0, F, mat, x0, top, bodies[-1], BF)[-1] > 3.0
+
+
+def test_bad_input_gets_one_clear_message():
+    V, F = cloth_grid.grid(3, 0.1)
+    mat = preset("silk")
+    with pytest.raises(PhysavatarError, match="would fall"):
+        equilibrium_rest(V, F, mat, [])
+    with pytest.raises(PhysavatarError, match="out of range"):
+        equilibrium_rest(V, F, mat, [0, 99])
+    bad = V.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(PhysavatarError, match="finite"):
+        equilibrium_rest(bad, F, mat, [0])
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.03)
+    with pytest.raises(PhysavatarError, match="outside the body"):
+        equilibrium_rest(V, F, mat, [0], np.asarray(ball.vertices) + [0.05, 0.05, 0.0], np.asarray(ball.faces))
+
+
+def test_a_material_that_records_the_equilibrium_rest_gets_it_in_simulate_on_body():
+    """Material.rest_shape "equilibrium" (fit-physics --rest-shape equilibrium records it): every
+    simulation of the material through garment_sim.simulate_on_body (animate, evaluate) solves
+    the rest shape for the garment it simulates; the cloth pushed out by the ball then stays
+    (< 0.5 mm), with "template" it sags (> 3 mm). The record keeps the field, older files and
+    presets read as "template" and keep their keys; a bad value is one message."""
+    from physavatar.garment_sim import GarmentPart, simulate_on_body
+
+    V, F = strip(9, 9, 0.3, 0.3)
+    top = np.flatnonzero(V[:, 2] == 0)
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    B0, BF = np.asarray(s.vertices), np.asarray(s.faces)
+    bodies = np.stack([B0 + [0.15, -0.112 + 0.0027 * t, -0.2] for t in range(11)])
+    mat = dataclasses.replace(preset("silk"), stretch_stiffness=5.0)
+    x0, _ = static_equilibrium(V, F, mat, simulate(V, F, mat, bodies, BF, top, fps=25)[-1], top, bodies[-1], BF)
+    part = GarmentPart(np.arange(len(x0)), x0, F, top)
+    still = np.repeat(bodies[-1][None], 13, 0)
+    eq = dataclasses.replace(mat, rest_shape="equilibrium")
+    report = {}
+    X = simulate_on_body(part, still, BF, eq, 25.0, rest_report=report)
+    assert report["final_max_mm"] < 0.3
+    assert 1e3 * np.linalg.norm(X - x0, axis=-1).max() < 0.5
+    assert 1e3 * np.linalg.norm(simulate_on_body(part, still, BF, mat, 25.0)[-1] - x0, axis=-1).max() > 3.0
+    assert Material.from_dict(eq.to_dict()).rest_shape == "equilibrium"
+    assert "rest_shape" not in mat.to_dict() and Material.from_dict(mat.to_dict()).rest_shape == "template"
+    with pytest.raises(PhysavatarError, match="rest_shape"):
+        dataclasses.replace(mat, rest_shape="flat")
+
+
+def test_fit_physics_fits_at_the_equilibrium_rest_and_records_it(tmp_path):
+    """fit-physics --rest-shape equilibrium on a cantilever that does not move (the true sequence
+    is its loaded shape, held): with the loaded shape as rest every material sags and the fit's
+    RMS residual stays above 0.3 mm (measured 0.45: the fit stiffens it); the refit at the
+    equilibrium rest follows it to a tenth of that (measured 0.016 mm). material.json records
+    rest_shape "equilibrium" and the solve."""
+    from physavatar.data.material import FittedMaterial
+    from physavatar.stages.physics import run as fit_physics
+    from physavatar.stages.physics.config import PhysicsConfig
+
+    V, F = strip(5, 9, 0.04, 0.03)
+    V = np.c_[V[:, 0], -V[:, 2], V[:, 1]]
+    clamp = np.flatnonzero(V[:, 1] <= 0.03 / 8 + 1e-9)
+    T = 4
+    np.savez(tmp_path / "seq.npz", vertices=np.repeat(V[None], T, 0), faces=F, boundary=clamp, fps=25.0)
+    rms = {}
+    for rest in ("template", "equilibrium"):
+        fit_physics(tmp_path / "seq.npz", out=tmp_path / rest, config=PhysicsConfig(
+            window=T, iterations=2, integrator="euler", init="silk", rest_shape=rest))
+        fitted = FittedMaterial.load(tmp_path / rest / "material.json")
+        assert fitted.material.rest_shape == rest
+        rms[rest] = fitted.record["rms_mm"]
+    assert fitted.start_state["rest_shape"]["sag_mm"]["max"] > 0.5
+    assert rms["template"] > 0.3 and rms["equilibrium"] < 0.1 * rms["template"], rms
+    with pytest.raises(PhysavatarError, match="rest-shape"):
+        PhysicsConfig(rest_shape="flat")
+
+
+def test_a_garment_that_moves_in_its_first_frame_keeps_it_as_rest_shape():
+    """A soft strip held out 60° from the vertical by nothing (a pendulum at the top of its swing,
+    as a capture that starts mid-motion): no rest shape holds it there (bending is 1e-7 N·m), so
+    the report says it is not at rest and simulate_on_body simulates it with itself as rest
+    shape, exactly as the template material does."""
+    from physavatar.garment_sim import GarmentPart, simulate_on_body
+
+    V, F = strip(3, 11, 0.02, 0.2)
+    a = np.deg2rad(60)
+    V = np.c_[V[:, 0], -V[:, 2] * np.sin(a), V[:, 2] * np.cos(a)]
+    top = np.flatnonzero(np.abs(V[:, 2]) < 1e-12)
+    mat = Material(density=0.1, stretch_stiffness=50.0, bend_stiffness=1e-7, poisson=0.3)
+    _, rep = equilibrium_rest(V, F, mat, top)
+    assert not rep["at_rest"] and rep["final_rms_mm"] > 5.0
+    part = GarmentPart(np.arange(len(V)), V, F, top)
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=0.05)  # a body far off (the attachment's)
+    far = np.repeat((np.asarray(ball.vertices) + [0.0, 0.0, 0.25])[None], 4, 0)
+    report = {}
+    X = simulate_on_body(part, far, ball.faces, dataclasses.replace(mat, rest_shape="equilibrium"), 25.0,
+                         rest_report=report)
+    assert not report["at_rest"]
+    assert np.array_equal(X, simulate_on_body(part, far, ball.faces, mat, 25.0))
