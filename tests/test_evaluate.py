@@ -175,6 +175,19 @@ def test_random_draws_get_the_estimates_contact_offset(result, tiny_capture):
     np.testing.assert_allclose(m0["random_draws"]["garment_chamfer_x1e3"], m["random_draws"]["garment_chamfer_x1e3"],
                                rtol=1e-4)
     assert m3["random_draws"]["garment_chamfer_x1e3"] != m0["random_draws"]["garment_chamfer_x1e3"]
+    # the rest shape is the fit's model too (session 27, Material.rest_shape): an estimate with the
+    # equilibrium rest gets draws with it, and draws made with the template rest are not reused
+    from physavatar.body import Motion
+    from physavatar.data.avatar import Avatar
+    from physavatar.stages.evaluate import _reference_materials, _reuse_references
+
+    gt_root = tiny_capture / "ground_truth"
+    refs = _reference_materials(gt_root, 0, 5, 0.0, "equilibrium")
+    assert [r.material.rest_shape for r in refs[1:]] == ["equilibrium"] * 5 and refs[0].material.rest_shape == "template"
+    held = Motion.load(gt_root / "heldout" / "motion.npz")
+    rows, stale = _reuse_references(root / "refs0", Avatar.load(root / "avatar"), refs, 4, held)
+    assert sorted(stale) == sorted(f"random material (seed {s})" for s in range(5)) and "true material" in rows
+    assert all("'template'" in why and "'equilibrium'" in why for why in stale.values())
 
 
 def _check_random_median(m, refs, cap):

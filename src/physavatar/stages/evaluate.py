@@ -178,7 +178,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The reference materials: two independent simulations, side by side (physavatar.parallel),
     # or taken from a `reference_sequences` folder made earlier (`physavatar run` makes it while
     # tracking runs).
-    references_ = _reference_materials(gt_root, seed, random_draws, av.material.contact_offset)
+    references_ = _reference_materials(gt_root, seed, random_draws, av.material.contact_offset, av.material.rest_shape)
     refs = {r.row: r.material for r in references_}
     if oracle is not None:
         from ..data.material import FittedMaterial
@@ -245,14 +245,16 @@ class Reference(NamedTuple):
 
 
 def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS,
-                         contact_offset: float = 0.0) -> list[Reference]:
+                         contact_offset: float = 0.0, rest_shape: str = "template") -> list[Reference]:
     """The rows that need only the capture: the true material (when the capture has one, folder
     ``true``; with the thickness its file records) and each random draw (:func:`random_draw_row`,
-    folder ``random-<seed>``) with the contact thickness ``contact_offset`` [m] of the estimate it
-    is compared with (Material.contact_offset: the fit's model, docs/physics.md)."""
+    folder ``random-<seed>``) in the simulation model of the estimate it is compared with: its
+    contact thickness ``contact_offset`` [m] and its ``rest_shape`` (Material.contact_offset,
+    Material.rest_shape: the fit's model, docs/physics.md)."""
     true_path = gt_root / "material.json"
     return ([Reference("true material", "true", Material.load(true_path))] if true_path.exists() else []) + \
-        [Reference(random_draw_row(s), f"random-{s}", dataclasses.replace(random_material(s), contact_offset=contact_offset))
+        [Reference(random_draw_row(s), f"random-{s}", dataclasses.replace(random_material(s), contact_offset=contact_offset,
+                                                                          rest_shape=rest_shape))
          for s in random_seeds(seed, draws)]
 
 
@@ -344,9 +346,9 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
         if used is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
         used = Material.from_dict(used)
-        if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset) == mat:
-            stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm, the estimate's is "
-                          f"{1e3 * mat.contact_offset:.3f} mm")
+        if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset, rest_shape=mat.rest_shape) == mat:
+            stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm and rest shape "
+                          f"{used.rest_shape!r}, the estimate's are {1e3 * mat.contact_offset:.3f} mm and {mat.rest_shape!r}")
             continue
         if used != mat:
             raise PhysavatarError(folder / "sequence.json", f"{row} was simulated with {used.name!r}, "
