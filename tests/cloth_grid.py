@@ -1,5 +1,6 @@
-"""Simple meshes for simulator tests: a square cloth and an open tube."""
+"""Simple meshes for simulator tests: a square cloth and an open tube; whether a cloth crosses a body."""
 
+import ipctk
 import numpy as np
 
 
@@ -30,3 +31,13 @@ def tube(radius: float, z0: float, z1: float, n_around: int = 24, n_up: int = 6)
             p, q = j * n_around + i, j * n_around + (i + 1) % n_around
             F += [[p, q, q + n_around], [p, q + n_around, p + n_around]]
     return V, np.array(F)
+
+
+def body_crossings(x, F, B, Fb) -> bool:
+    """ipctk's exact test on the cloth (x, F) and the body (B, Fb) as one mesh, body–body pairs
+    left out (the body may intersect itself): True where the cloth crosses the body."""
+    X = np.vstack([x, B])
+    faces = np.vstack([F, Fb + len(x)])
+    mesh = ipctk.CollisionMesh(X, ipctk.edges(faces), faces)
+    mesh.can_collide = ipctk.make_static_obstacle_filter(len(x))
+    return ipctk.has_intersections(mesh, X)

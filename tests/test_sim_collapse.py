@@ -1,7 +1,6 @@
 """The collider's own collapse undone for a frame that pinches (sim.collapse, sim.simulate)."""
 
 import cloth_grid
-import ipctk
 import numpy as np
 import trimesh
 
@@ -34,12 +33,7 @@ def knee():
     return B0, B1, F
 
 
-def crosses(x, faces, body, body_faces):
-    X = np.vstack([x, body])
-    FF = np.vstack([faces, body_faces + len(x)])
-    mesh = ipctk.CollisionMesh(X, ipctk.edges(FF), FF)
-    mesh.can_collide = ipctk.make_static_obstacle_filter(len(x))
-    return ipctk.has_intersections(mesh, X)
+crosses = cloth_grid.body_crossings
 
 
 def test_uncollapse_moves_the_buried_vertices_onto_the_outer_surface():

@@ -30,15 +30,6 @@ def crossing_cloth_on_box():
     return V, F, x, deep
 
 
-def body_crossings(x, F, B, Fb):
-    """ipctk's exact test on the cloth and the body as one mesh (body–body pairs left out)."""
-    X = np.vstack([x, B])
-    faces = np.vstack([F, Fb + len(x)])
-    mesh = ipctk.CollisionMesh(X, ipctk.edges(faces), faces)
-    mesh.can_collide = ipctk.make_static_obstacle_filter(len(x))
-    return ipctk.has_intersections(mesh, X)
-
-
 def test_cloth_through_a_moving_body_after_a_pinch_is_out_after_one_step():
     """The cloth crosses the box's top face (12 vertices 1 cm inside) at the start of a step that
     follows a pinch (the solver state's ``crease_check``, which a lagging step sets), and the box
@@ -48,7 +39,7 @@ def test_cloth_through_a_moving_body_after_a_pinch_is_out_after_one_step():
     carries nothing, and cloth stayed inside and through the box."""
     V, F, x, deep = crossing_cloth_on_box()
     B0, Fb = box()
-    assert deep.sum() == 12 and np.sum(winding_numbers(x, B0, Fb) > 0.5) == 12 and body_crossings(x, F, B0, Fb)
+    assert deep.sum() == 12 and np.sum(winding_numbers(x, B0, Fb) > 0.5) == 12 and cloth_grid.body_crossings(x, F, B0, Fb)
     sim = ClothSim(V, F, Material(), SimSettings(friction=0.0), [])
     sim.set_state(sim.get_state() | {"crease_check": True})  # as after a step whose body lagged
     v, B = np.zeros_like(x), B0
@@ -58,7 +49,7 @@ def test_cloth_through_a_moving_body_after_a_pinch_is_out_after_one_step():
         B = B1
         assert st.body_gap == 0.0
         assert np.sum(winding_numbers(x, B, Fb) > 0.5) == 0, k
-        assert not body_crossings(x, F, B, Fb), k
+        assert not cloth_grid.body_crossings(x, F, B, Fb), k
         if k == 0:
             assert st.untangled_vertices >= 12  # the 12 inside, and the ring whose edges cross
     assert np.all(np.isfinite(x))
@@ -74,7 +65,7 @@ def test_untangle_leaves_cloth_outside_the_body_as_it_is():
     out, moved = untangle(sim.scene, V, F, B, Fb, np.ones(len(V), bool), 1e-3)
     assert out is V and len(moved) == 0
     out, moved = untangle(sim.scene, x, F, B, Fb, np.ones(len(V), bool), 1e-3)
-    assert len(moved) >= 12 and np.all(winding_numbers(out, B, Fb) < 0.5) and not body_crossings(out, F, B, Fb)
+    assert len(moved) >= 12 and np.all(winding_numbers(out, B, Fb) < 0.5) and not cloth_grid.body_crossings(out, F, B, Fb)
     # moved only where it was inside or next to it, to 2 d̂ above the top face
     far = np.linalg.norm(V[:, :2], axis=1) > 0.05
     np.testing.assert_array_equal(out[far], x[far])
@@ -97,7 +88,7 @@ def test_simulate_moves_cloth_that_crosses_the_body_out_before_the_frame_is_writ
     reports = []
     X = simulate(V, F, Material(), bodies, Fb, fps=25.0, settings=SimSettings(friction=0.0), x0=x,
                  on_frame=lambda c, r: reports.append(r))
-    crosses = [body_crossings(X[f], F, bodies[f], Fb) for f in range(5)]
+    crosses = [cloth_grid.body_crossings(X[f], F, bodies[f], Fb) for f in range(5)]
     inside = [int(np.sum(winding_numbers(X[f], bodies[f], Fb) > 0.5)) for f in range(5)]
     assert crosses == [True, False, False, False, False] and inside[1:] == [0, 0, 0, 0]
     assert reports[0]["untangled_vertices"] >= 12 and not any(r["lagged"] for r in reports)
