@@ -61,17 +61,6 @@ def uncollapse(vertices, faces, offset: float = OFFSET, near=None):
     return out, np.flatnonzero(moved)
 
 
-def uncollapse_sequence(bodies, faces, offset: float = OFFSET):
-    """([T, V, 3] bodies with every frame :func:`uncollapse`\\ d, vertices moved per frame [T])."""
-    B = np.asarray(bodies, np.float64)
-    out, counts = B.copy(), np.zeros(len(B), np.int64)
-    for t in range(len(B)):
-        v, ids = uncollapse(B[t], faces, offset)
-        if len(ids):
-            out[t], counts[t] = v, len(ids)
-    return out, counts
-
-
 def crosses(sim, x, body) -> bool:
     """Whether the cloth ``x`` crosses ``body`` (ipctk's exact test with the sim's scene and its own
     filter, every body triangle: the check ``stages.simulate`` makes on the written frame)."""

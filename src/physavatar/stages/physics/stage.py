@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-
-import numpy as np
 from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 from ...data.material import resolve_material
 from ...errors import PhysavatarError
