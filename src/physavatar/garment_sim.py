@@ -219,10 +219,9 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
     :func:`physavatar.sim.simulate`'s (max_substeps, resume, on_frame).
     """
     body_sequence = np.asarray(body_sequence, dtype=np.float64)
-    if material.rest_shape == "equilibrium" and part.rest is None:  # (a designed rest shape is kept)
-        part, report = equilibrium_part(part, body_sequence[0], body_faces, material, settings)
-        if rest_report is not None:
-            rest_report.update(report)
+    part, report = equilibrium_part(part, body_sequence[0], body_faces, material, settings)
+    if report is not None and rest_report is not None:
+        rest_report.update(report)
     targets = None
     if len(part.boundary):
         targets, _ = boundary_targets(part, body_sequence, body_faces, (settings or SimSettings()).dhat)
@@ -234,19 +233,21 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
 
 
 def equilibrium_part(part: GarmentPart, body, body_faces, material: Material,
-                     settings: SimSettings | None = None) -> tuple[GarmentPart, dict]:
-    """``part`` with the rest shape whose static equilibrium under gravity, its boundary pinned,
-    on ``body`` [Nb, 3] (the pose it is placed on), is ``part.vertices`` (sim.rest.equilibrium_rest
-    for ``material``; seams held by their stitches). Returns (part, report); a solve that missed
-    its tolerance is logged and its best round kept; a garment that is not at rest in
-    ``part.vertices`` (report["at_rest"] false: it moves there) keeps them as its rest shape."""
-    from .sim.rest import equilibrium_rest
+                     settings: SimSettings | None = None) -> tuple[GarmentPart, dict | None]:
+    """``part`` with the rest shape its ``material`` says (Material.rest_shape): with
+    "equilibrium" and no designed rest shape (``part.rest``, which is kept), the one whose static
+    equilibrium under gravity, its boundary pinned, on ``body`` [Nb, 3] (the pose it is placed on),
+    is ``part.vertices`` (sim.rest.equilibrium_rest; seams held by their stitches). Returns (part,
+    report; None where nothing was solved); a solve that missed its tolerance is logged and its
+    best round kept; a garment that is not at rest in ``part.vertices`` (report["at_rest"] false:
+    it moves there) keeps them as its rest shape."""
+    from .sim.rest import describe, equilibrium_rest
 
+    if material.rest_shape != "equilibrium" or part.rest is not None:
+        return part, None
     X, report = equilibrium_rest(part.vertices, part.faces, material, part.boundary, body, body_faces, settings,
                                  extra_terms=part.terms(), contact_exclude=part.contact_exclusions())
-    msg = (f"rest shape from static equilibrium: the template sagged {report['sag_mm']['max']:.2f} mm (max) with "
-           f"itself as rest, {report['final_max_mm']:.3f} mm with the rest found ({report['rounds']} rounds, "
-           f"{report['seconds']:.1f} s)")
+    msg = describe(report, "the template")
     log = logging.getLogger("physavatar.progress")
     if not report["at_rest"]:  # moving in its first frame: no rest shape holds it there
         log.warning(msg + f"; {report['final_rms_mm']:.1f} mm RMS left: the garment is not at rest in its first "

@@ -183,3 +183,10 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
               "method": f"fixed point with Anderson mixing (memory {memory}); equilibrium: implicit steps of "
                         f"{h:g} s from rest, frictionless", "seconds": round(time.perf_counter() - t0, 2)}
     return X, report
+
+
+def describe(report: dict, subject: str) -> str:
+    """One line on an :func:`equilibrium_rest` solve of ``subject`` (e.g. "the template")."""
+    return (f"rest shape from static equilibrium: {subject} sags {report['sag_mm']['max']:.2f} mm (max) with itself "
+            f"as rest, {report['final_max_mm']:.3f} mm ({report['final_rms_mm']:.3f} RMS) with the rest found "
+            f"({report['rounds']} rounds, {report['seconds']:.1f} s)")

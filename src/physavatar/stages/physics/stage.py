@@ -121,15 +121,13 @@ def refit_at_equilibrium(data, first, settings, fit, say) -> tuple[object, dict]
     with: the start frame's sag in the final material with the rest fitted with, ``refit_sag_mm``).
     A start frame that is not at rest (sim.rest: the garment moves in it) keeps the first fit
     (report["used"] false; its material records the template rest shape)."""
-    from ...sim.rest import equilibrium_rest, static_equilibrium
+    from ...sim.rest import describe, equilibrium_rest, static_equilibrium
 
     x0 = data.reference[0] if data.initial is None else data.initial
     body = None if data.collider is None else data.collider[0]
     mat = dataclasses.replace(first.material, rest_shape="equilibrium")
     rest, report = equilibrium_rest(x0, data.faces, mat, data.boundary, body, data.collider_faces, settings)
-    line = (f"rest shape from static equilibrium: the start frame sags {report['sag_mm']['max']:.2f} mm (max) with "
-            f"itself as rest, {report['final_max_mm']:.3f} mm ({report['final_rms_mm']:.3f} RMS) with the rest found "
-            f"({report['rounds']} rounds, {report['seconds']:.0f} s)")
+    line = describe(report, "the start frame")
     if not report["at_rest"]:  # the garment moves in the start frame: no static equilibrium is it
         say(f"note: {line}: the start frame is not at rest; the fit with it as rest shape is kept")
         return first, report | {"used": False}

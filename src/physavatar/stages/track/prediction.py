@@ -154,7 +154,7 @@ class PhysicsPrediction:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, boundary: np.ndarray,
                  material, fps: float, settings=None, push_clearance: float = 1e-3):
         from ...garment.garment import make_attachment
-        from ...garment_sim import split_template
+        from ...garment_sim import equilibrium_part, split_template
         from ...sim import ClothSim, SimSettings
         from ...sim.contact import ContactScene
 
@@ -165,11 +165,8 @@ class PhysicsPrediction:
         self.boundary = part.boundary
         self.h = 1.0 / fps
         settings = replace(settings or SimSettings(), dt=self.h)
-        self.rest_report = None
-        if material.rest_shape == "equilibrium":  # the template is the static equilibrium (sim.rest)
-            from ...garment_sim import equilibrium_part
-
-            part, self.rest_report = equilibrium_part(part, V[self.body_ids], self.body_faces, material, settings)
+        # with the material's rest shape "equilibrium": the template is the static equilibrium (sim.rest)
+        part, self.rest_report = equilibrium_part(part, V[self.body_ids], self.body_faces, material, settings)
         self.sim = ClothSim(part.rest_shape, part.faces, material, settings, part.boundary)
         self.attachment = make_attachment(part.vertices[part.boundary], part.boundary, V[self.body_ids],
                                           self.body_faces, "sequence")
