@@ -59,13 +59,17 @@ def test_reused_sequence_gives_the_same_row_and_bad_ones_are_refused(result, tin
     av = Avatar.load(root / "avatar")
     held = Motion.load(tiny_capture / "ground_truth" / "heldout" / "motion.npz")
     seq, stats = animate(av, held, progress=False)
-    seq.save(root / "seq", {"command": "animate"}, ply=False)
+    seq.save(root / "seq", {"command": "animate"} | stats, ply=False)
     n = m["heldout_frames"]
-    reused = _reuse_sequence(root / "seq", av, n)
+    reused = _reuse_sequence(root / "seq", av, n, av.material, held)
     assert reused.vertices.shape[0] == n
     np.testing.assert_allclose(reused.vertices, seq.vertices[:n], atol=1e-6)  # float32 on disk
     with pytest.raises(PhysavatarError, match="frames"):
         _reuse_sequence(root / "seq", av, len(seq.vertices) + 1)
+    # ... one animated on another motion (its key, recorded by animate, is not the held-out motion's)
+    other = Motion(held.name, held.fps, held.bone_names, held.rotations.copy(), held.root_translation + [0, 0, 0.01])
+    with pytest.raises(PhysavatarError, match="another motion"):
+        _reuse_sequence(root / "seq", av, n, av.material, other)
     save_npz_atomic(root / "seq" / "sequence.npz", vertices=seq.vertices.astype(np.float32), faces=seq.faces,
                     labels=seq.labels, fps=np.float64(seq.fps * 2))
     with pytest.raises(PhysavatarError, match="fps"):
@@ -289,3 +293,27 @@ def test_references_of_another_held_out_motion_are_simulated_again(tmp_path, tin
     rows = got["rows"]
     assert rows["true material"]["garment"] == rows["estimated material"]["garment"]
     assert "true material" in got["references_simulated_again"]
+
+
+def test_the_animate_stage_records_the_motion_evaluate_compares(result, tiny_capture, tmp_path):
+    """The key the `animate` stage records (its motion loaded from a file, sliced by --max-frames)
+    is the key `evaluate --sequence` computes from the held-out motion: `run`'s own reuse passes,
+    and a file with one pose changed does not."""
+    from physavatar.body import Motion
+    from physavatar.data.avatar import Avatar
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.animate import AnimateConfig, run as animate_stage
+    from physavatar.stages.evaluate import _reuse_sequence
+
+    _, root = result
+    av = Avatar.load(root / "avatar")
+    npz = tiny_capture / "ground_truth" / "heldout" / "motion.npz"
+    held = Motion.load(npz)
+    animate_stage(root / "avatar", out=tmp_path / "seq", config=AnimateConfig(motion=str(npz), max_frames=3),
+                  progress=False)
+    assert len(_reuse_sequence(tmp_path / "seq", av, 3, av.material, held).vertices) == 3
+    changed = held.rotations.copy()
+    changed[2, 1] += 0.05
+    with pytest.raises(PhysavatarError, match="another motion"):
+        _reuse_sequence(tmp_path / "seq", av, 3, av.material, Motion(held.name, held.fps, held.bone_names, changed,
+                                                                     held.root_translation))

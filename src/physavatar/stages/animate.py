@@ -21,6 +21,7 @@ from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinnin
 from ..data.animated import AnimatedSequence
 from ..data.sim_frames import FrameStore, garment_run_key
 from ..errors import PhysavatarError
+from ..files import content_key
 from ..geometry import count_intersections
 from ..garment_sim import simulate_on_body, split_template
 from ..sim import SimSettings
@@ -55,6 +56,16 @@ def _warmup(avatar: Avatar, motion: Motion, bone_names, warmup_s: float,
     d_tr = np.abs(m.root_translation[0] - t0).max()
     n_warm = 0 if (d_rot < 1e-6 and d_tr < 1e-6) else max(2, int(round(warmup_s * fps)))
     return m, rest, n_warm
+
+
+def sequence_motion_key(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> str:
+    """The content key (files.content_key) of the motion :func:`animate` simulates for ``motion``:
+    at the avatar's fps, over its bones, with the warm-up frames. ``animate`` records it with its frame
+    count (``motion_key``, ``motion_frames``), so a sequence reused for another motion is caught
+    (evaluate --sequence)."""
+    m, _, n_warm = _warmup(avatar, motion, avatar.bone_names, warmup_s)
+    return content_key(m.rotations, m.root_translation, fps=float(m.fps), bones=list(m.bone_names),
+                       warmup_frames=n_warm)
 
 
 def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> int:
@@ -147,6 +158,7 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     stats = {"frames": int(len(V)), "warmup_frames": n_warm, "simulation_s": round(secs, 2),
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
              "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps,
+             "motion_key": sequence_motion_key(avatar, motion, warmup_s), "motion_frames": int(len(m.rotations)),
              "self_contact": bool(settings is not None and settings.self_contact),
              "rest_shape": {"kind": "equilibrium" if rest_report else "template" if t.rest is None and garment is None
                             else "designed"} | rest_report,

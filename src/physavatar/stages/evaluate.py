@@ -168,7 +168,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The four garment rows.
     seqs = {}
     t0 = time.time()
-    est = _reuse_sequence(sequence, av, len(gt), av.material) if sequence is not None else None
+    est = _reuse_sequence(sequence, av, len(gt), av.material, held_all) if sequence is not None else None
     if est is None:
         est, _ = animate(av, held, progress=progress)
     else:
@@ -357,9 +357,13 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
     return rows, stale
 
 
-def _reuse_sequence(path, av, n_frames: int, material: Material | None = None):
+def _reuse_sequence(path, av, n_frames: int, material: Material | None = None, motion: Motion | None = None):
     """The ``animate`` output at ``path`` (checked against the avatar, the frame count and, when
-    given, ``material``: the one its sequence.json records must be it)."""
+    given, ``material``: the one its sequence.json records must be it, and ``motion``: the motion
+    it was animated on, with evaluate's warm-up, must be its first frames; a sequence made before
+    animate recorded its motion is taken as it is)."""
+    from .animate import sequence_motion_key
+
     path = Path(path)
     if not (path / SEQUENCE_NPZ).is_file():
         raise PhysavatarError(path, f"no {SEQUENCE_NPZ} (pass an `animate` output folder)")
@@ -372,10 +376,17 @@ def _reuse_sequence(path, av, n_frames: int, material: Material | None = None):
         raise PhysavatarError(path, f"sequence has {len(seq.vertices)} frames, the evaluation needs {n_frames}")
     if abs(seq.fps - av.fps) > 1e-6:
         raise PhysavatarError(path, f"sequence runs at {seq.fps} fps, the avatar at {av.fps}")
-    used = read_json(path / SEQUENCE_META).get("material") if (path / SEQUENCE_META).is_file() else None
+    meta = read_json(path / SEQUENCE_META) if (path / SEQUENCE_META).is_file() else {}
+    used = meta.get("material")
     if material is not None and used is not None and Material.from_dict(used) != material:
         raise PhysavatarError(path / SEQUENCE_META, f"sequence was simulated with material {used.get('name')!r}, "
                               f"the avatar's is {material.name!r}: not an animation of this avatar")
+    key, n = meta.get("motion_key"), int(meta.get("motion_frames", 0))
+    if motion is not None and key is not None and (
+            n > motion.frames or key != sequence_motion_key(av, motion.slice(0, n))):
+        raise PhysavatarError(path / SEQUENCE_META, "sequence was animated on another motion than the held-out one "
+                              f"({motion.name!r}, its first {n} frames, with a 1-s warm-up): animate the avatar "
+                              "with --motion ground_truth/heldout/motion.npz, or leave out --sequence")
     seq.vertices = seq.vertices[:n_frames]
     return seq
 
