@@ -142,6 +142,7 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     X = x0.copy()
     G, R = [], []  # the fixed point's g(X) = X − (x_eq(X) − x0) and residuals, flat
     best, history = (np.inf, X, np.zeros_like(X)), []
+    alpha = 1.0  # the restarts' step length: halved on each restart without a better round in between
     for _ in range(max_rounds):
         try:
             x_eq, info = static_equilibrium(X, F, material, x0, b, body, body_faces, settings, **kw)
@@ -159,12 +160,13 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
             break
         if len(history) >= 3 and min(e["rms_mm"] for e in history) > 10e3 * AT_REST_RMS:
             break  # hopeless: the start is far from any static equilibrium (report["at_rest"])
-        if rms > SAFEGUARD * best[0]:  # the mixing overshot: a plain step from the best round, history cleared
+        if rms > SAFEGUARD * best[0]:  # overshot: a shorter plain step from the best round, history cleared
             G, R = [], []
-            X = best[1] - best[2]
+            alpha *= 0.5  # (the same step again would repeat the same round: session 28's dress stalled so)
+            X = best[1] - alpha * best[2]
         else:
             if rms < best[0]:  # the best round by RMS (a few hem vertices can stall the max)
-                best = (rms, X.copy(), r)
+                best, alpha = (rms, X.copy(), r), 1.0
             G.append((X - r).ravel())
             R.append(-r.ravel())
             G, R = G[-(memory + 1):], R[-(memory + 1):]
