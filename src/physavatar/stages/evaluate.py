@@ -294,12 +294,12 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     av = build_avatar(cap, out / "avatar", material=refs[0].material)
     n_sim = simulated_frames(av, held)
     t0 = time.time()
-    jobs = [Job(r.row, animate_job, (av.root, r.material, held), total=n_sim) for r in refs]
+    jobs = [Job(r.row, animate_job, (av.root, r.material, held), {"rest_shape": True}, total=n_sim) for r in refs]
     seqs = run_jobs(jobs, progress=progress, title="reference materials: simulating")
     t = av.template
-    for r, V in zip(refs, seqs):
+    for r, (V, rest) in zip(refs, seqs):
         AnimatedSequence(V, t.faces, t.labels, None, av.fps, av.root).save(
-            out / r.folder, {"command": "reference-sims", "material": r.material.to_dict(),
+            out / r.folder, {"command": "reference-sims", "material": r.material.to_dict(), "rest_shape": rest,
                              "motion": held.name, "seed": seed}, ply=False)
     write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames),
                                                 "motion_key": motion_key(held), "seed": seed,
@@ -346,10 +346,14 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
     rows, stale = {}, {}
     for row, name, mat in refs:
         folder = path / name
-        used = read_json(folder / SEQUENCE_META).get("material") if (folder / SEQUENCE_META).is_file() else None
-        if used is None:
+        meta = read_json(folder / SEQUENCE_META) if (folder / SEQUENCE_META).is_file() else {}
+        if meta.get("material") is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
-        used = Material.from_dict(used)
+        used = Material.from_dict(meta["material"])
+        if used.rest_shape == "equilibrium" and (meta.get("rest_shape") or {}).get("at_rest") is False:
+            # its garment moved in the start frame: simulated with the template as rest (equilibrium_part),
+            # the model an estimate records then (refit_at_equilibrium keeps its first fit)
+            used = dataclasses.replace(used, rest_shape="template")
         if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset, rest_shape=mat.rest_shape) == mat:
             stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm and rest shape "
                           f"{used.rest_shape!r}, the estimate's are {1e3 * mat.contact_offset:.3f} mm and {mat.rest_shape!r}")
