@@ -45,7 +45,7 @@ from ..errors import PhysavatarError
 from ..files import content_key, load_npz, read_json, write_json_atomic, write_text_atomic
 from ..geometry import submesh
 from ..sim import Material
-from ..sim.material import REST_SHAPES
+from ..sim.material import FIT_REST_SHAPE, REST_SHAPES
 from .base import camera_list, option, setting
 
 log = logging.getLogger(__name__)
@@ -576,7 +576,7 @@ class ReferencesConfig:
                                                 "estimated on the template, as fit-physics estimates it)",
                                           flag="--contact-offset",
                                           check=lambda v: None if 0 <= v < 0.05 else "must be in [0, 0.05) m")
-    rest_shape: str = option("template", "the random draws' rest shape, the fit's (fit-physics --rest-shape): "
+    rest_shape: str = option(FIT_REST_SHAPE, "the random draws' rest shape, the fit's (fit-physics --rest-shape): "
                                          "template or equilibrium", flag="--rest-shape", choices=REST_SHAPES)
 
 
