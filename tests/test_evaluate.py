@@ -192,6 +192,23 @@ def test_random_draws_get_the_estimates_contact_offset(result, tiny_capture):
     rows, stale = _reuse_references(root / "refs0", Avatar.load(root / "avatar"), refs, 4, held)
     assert sorted(stale) == sorted(f"random material (seed {s})" for s in range(5)) and "true material" in rows
     assert all("'template'" in why and "'equilibrium'" in why for why in stale.values())
+    # draws made with the equilibrium rest whose garment was not at rest in its start frame were
+    # simulated with the template (garment_sim.equilibrium_part), the model an estimate then records
+    # (its fit kept the template): they are reused; draws whose rest shape was solved are not
+    import shutil
+
+    for at_rest, n_stale in ((False, 0), (True, 5)):
+        refs_eq = root / f"refs_eq_{at_rest}"
+        shutil.copytree(root / "refs0", refs_eq)
+        for s in range(5):
+            meta_path = refs_eq / f"random-{s}" / "sequence.json"
+            meta = json.loads(meta_path.read_text())
+            meta["material"]["rest_shape"] = "equilibrium"
+            meta["rest_shape"] = {"kind": "equilibrium", "at_rest": at_rest}
+            meta_path.write_text(json.dumps(meta))
+        rows, stale = _reuse_references(refs_eq, Avatar.load(root / "avatar"), _reference_materials(gt_root, 0, 5),
+                                        4, held)
+        assert len(stale) == n_stale and len(rows) == 6 - n_stale, at_rest
 
 
 def _check_random_median(m, refs, cap):

@@ -116,3 +116,24 @@ def test_a_stage_remade_by_hand_runs_the_stages_after_it_again(tmp_path, monkeyp
     (out / "a" / "a.txt").write_text("2")  # `a` re-made by hand with other options
     assert run_all() == ["a"] and (out / "b" / "b.txt").read_text() == "from 2"
     assert run_all() == ["a", "b"]
+
+
+def test_references_are_drawn_in_the_fits_model(tiny_capture, tmp_path, monkeypatch):
+    """`run`'s reference-sims step draws its random materials with the contact thickness and the
+    rest shape the fit will record (session 28: with --rest-shape equilibrium the draws made with
+    the template rest were simulated again by evaluate): both follow physics.pipeline_config."""
+    import dataclasses
+
+    from physavatar.pipeline import RunConfig, plan
+    from physavatar.stages import physics
+
+    def refs(out):
+        return next(s for s in plan(tiny_capture, out, RunConfig()) if s.name == "references").config
+
+    assert refs(tmp_path / "a").rest_shape == physics.pipeline_config(True).rest_shape
+    base = physics.pipeline_config
+    monkeypatch.setattr(physics, "pipeline_config",
+                        lambda quick=False: dataclasses.replace(base(quick), rest_shape="equilibrium",
+                                                                contact_offset=0.002))
+    cfg = refs(tmp_path / "b")
+    assert (cfg.rest_shape, cfg.contact_offset) == ("equilibrium", 0.002)

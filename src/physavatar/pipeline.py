@@ -126,8 +126,10 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         # The true- and random-material rows need nothing fitted: simulated on the second core
         # while tracking (single-threaded) runs on the first.
         # The random draws get the thickness the fit will use (given, or estimated on the template).
-        refs_cfg = evaluate.ReferencesConfig(frames=cfg.eval_frames,
-                                             contact_offset=physics.pipeline_config(cfg.quick).contact_offset)
+        # ... and the rest shape its material will record (Material.rest_shape)
+        fit_cfg = physics.pipeline_config(cfg.quick)
+        refs_cfg = evaluate.ReferencesConfig(frames=cfg.eval_frames, contact_offset=fit_cfg.contact_offset,
+                                             rest_shape=fit_cfg.rest_shape)
         steps.insert(0, Step("references", "physavatar.stages.evaluate:run_references", refs_cfg, cap,
                              "references.json", background=True))
         inputs = cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track"),

@@ -35,6 +35,7 @@ from .settings import SimSettings
 EQ_STEP = 5.0  # [s] the proximal step: nearly static (0.5 s left the plain top's hem creeping: 0.21 mm RMS against 0.10)
 AT_REST_RMS = 5e-3  # [m] a start that no rest shape holds closer than this (RMS) is not at rest (is moving)
 SAFEGUARD = 1.5  # a round whose error exceeds the best one's by this factor restarts the mixing from the best
+MOVING_RMS = 20 * AT_REST_RMS  # [m] a first round (rest = x0) that drifts this far (RMS) from x0: a moving start
 
 
 def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> SimSettings:
@@ -49,12 +50,14 @@ def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> 
 
 def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), body=None, body_faces=None,
                        settings: SimSettings | None = None, *, h: float = EQ_STEP, tol: float = 1e-5,
-                       max_steps: int = 60, extra_terms=(), contact_exclude=None) -> tuple[np.ndarray, dict]:
+                       max_steps: int = 60, extra_terms=(), contact_exclude=None,
+                       give_up_rms: float = np.inf) -> tuple[np.ndarray, dict]:
     """The static equilibrium of the cloth with rest shape ``rest`` [N, 3], reached from
     ``x_start`` [N, 3] (v = 0): the boundary vertices stay at ``x_start``'s positions, the body
     ``body`` [Nb, 3] / ``body_faces`` (None: no body) is still. Implicit steps of length ``h``
     with the velocity reset to zero after each (frictionless, undamped; module docstring) until a
-    step moves no vertex by more than ``tol`` [m], at most ``max_steps``. Returns (x [N, 3],
+    step moves no vertex by more than ``tol`` [m], at most ``max_steps``, or until it is more than
+    ``give_up_rms`` [m] (RMS) from ``x_start`` (info["gave_up"]). Returns (x [N, 3],
     {"steps", "last_move_m", "converged", "newton_iterations"})."""
     from .simulate import feasible_thickness
     from .solver import ClothSim
@@ -85,6 +88,9 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
         if move < tol and k > 0:  # (not the first, short step)
             info["converged"] = True
             break
+        if np.sqrt(np.mean(np.sum((x - x_start) ** 2, axis=1))) > give_up_rms:
+            info["gave_up"] = True  # farther than ``give_up_rms`` (RMS) from the start: stopped there
+            break
     return x, info
 
 
@@ -113,7 +119,8 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     ignored: they vanish at rest). ``path``: the file named in the messages about bad input.
     Returns (X̄, report): report["converged"] says whether the tolerance was met within
     ``max_rounds`` (otherwise X̄ is the round with the smallest RMS error); "at_rest" whether
-    the best round holds x₀ to an RMS error below ``AT_REST_RMS`` (5 mm): a garment that is moving in x₀
+    the best round holds x₀ to an RMS error below ``AT_REST_RMS`` (5 mm; the solve stops at once when its
+    first round, x₀ as rest, drifts more than ``MOVING_RMS``, 100 mm RMS): a garment that is moving in x₀
     (a capture that starts mid-motion) is in no static equilibrium, and callers then keep x₀ as
     the rest shape (garment_sim.equilibrium_part, fit-physics); "error_mm" per round
     (max and RMS of x_eq − x₀ over the vertices), "sag_mm": the first round's (X̄ = x₀), seconds.
@@ -142,9 +149,11 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     X = x0.copy()
     G, R = [], []  # the fixed point's g(X) = X − (x_eq(X) − x0) and residuals, flat
     best, history = (np.inf, X, np.zeros_like(X)), []
+    alpha = 1.0  # the restarts' step length: halved on each restart without a better round in between
     for _ in range(max_rounds):
         try:
-            x_eq, info = static_equilibrium(X, F, material, x0, b, body, body_faces, settings, **kw)
+            x_eq, info = static_equilibrium(X, F, material, x0, b, body, body_faces, settings, **kw,
+                                            give_up_rms=np.inf if history else MOVING_RMS)
         except PhysavatarError as e:  # a degenerate rest triangle (ClothTopology): the iteration went too far
             if not history:
                 raise PhysavatarError(path, e.problem) from None
@@ -157,14 +166,17 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
         if err < tol:
             best = (rms, X.copy(), r)
             break
-        if len(history) >= 3 and min(e["rms_mm"] for e in history) > 10e3 * AT_REST_RMS:
+        if info.get("gave_up") or (len(history) >= 3 and min(e["rms_mm"] for e in history) > 10e3 * AT_REST_RMS):
+            if rms < best[0]:
+                best = (rms, X.copy(), r)
             break  # hopeless: the start is far from any static equilibrium (report["at_rest"])
-        if rms > SAFEGUARD * best[0]:  # the mixing overshot: a plain step from the best round, history cleared
+        if rms > SAFEGUARD * best[0]:  # overshot: a shorter plain step from the best round, history cleared
             G, R = [], []
-            X = best[1] - best[2]
+            alpha *= 0.5  # (the same step again would repeat the same round: session 28's dress stalled so)
+            X = best[1] - alpha * best[2]
         else:
             if rms < best[0]:  # the best round by RMS (a few hem vertices can stall the max)
-                best = (rms, X.copy(), r)
+                best, alpha = (rms, X.copy(), r), 1.0
             G.append((X - r).ravel())
             R.append(-r.ravel())
             G, R = G[-(memory + 1):], R[-(memory + 1):]

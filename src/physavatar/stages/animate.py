@@ -186,12 +186,14 @@ def _with_garment(t, body_ids, part):
     return faces, labels, face_uvs
 
 
-def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, **kw) -> np.ndarray:
+def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, rest_shape: bool = False, **kw):
     """:func:`animate` of the avatar at ``avatar_dir`` with ``material`` instead of its own, as a
-    :class:`physavatar.parallel.Job`; returns the vertices [T, V, 3]."""
+    :class:`physavatar.parallel.Job`; returns the vertices [T, V, 3] (with ``rest_shape``: and the
+    rest shape it simulated with, animate's ``stats["rest_shape"]``)."""
     av = Avatar.load(avatar_dir)
     av.material = material
-    return animate(av, motion, progress=False, report=report, **kw)[0].vertices
+    seq, stats = animate(av, motion, progress=False, report=report, **kw)
+    return (seq.vertices, stats["rest_shape"]) if rest_shape else seq.vertices
 
 
 @dataclass(frozen=True)

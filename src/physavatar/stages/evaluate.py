@@ -45,6 +45,7 @@ from ..errors import PhysavatarError
 from ..files import content_key, load_npz, read_json, write_json_atomic, write_text_atomic
 from ..geometry import submesh
 from ..sim import Material
+from ..sim.material import FIT_REST_SHAPE, REST_SHAPES
 from .base import camera_list, option, setting
 
 log = logging.getLogger(__name__)
@@ -259,7 +260,8 @@ def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS,
 
 
 def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | None = None, seed: int = 0,
-                        random_draws: int = RANDOM_DRAWS, contact_offset: float | None = None, progress=True) -> Path:
+                        random_draws: int = RANDOM_DRAWS, contact_offset: float | None = None,
+                        rest_shape: str = "template", progress=True) -> Path:
     """The true- and random-material rows of :func:`evaluate` simulated ahead of time.
 
     They depend on the capture alone (its template, body shape and frame-1 pose; the held-out
@@ -270,8 +272,9 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
 
     The random draws are simulated with the contact thickness the fit will use
     (``contact_offset``, ``--contact-offset``; None: estimated on the template as fit-physics
-    estimates it, physics.stage.template_contact_offset); references.json records it, and
-    :func:`evaluate` does not reuse draws made with another thickness than the avatar's.
+    estimates it, physics.stage.template_contact_offset) and the rest shape the fit's material
+    will record (``rest_shape``, Material.rest_shape: `run` passes its fit's); references.json
+    records both, and :func:`evaluate` does not reuse draws made in another model than the avatar's.
     """
     from .physics.stage import template_contact_offset
     from .avatar import build_avatar
@@ -287,22 +290,23 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     if frames:
         held = held.slice(0, frames)
     offset, offset_info = template_contact_offset(cap.template, contact_offset)
-    refs = _reference_materials(gt_root, seed, random_draws, offset)
+    refs = _reference_materials(gt_root, seed, random_draws, offset, rest_shape)
     av = build_avatar(cap, out / "avatar", material=refs[0].material)
     n_sim = simulated_frames(av, held)
     t0 = time.time()
-    jobs = [Job(r.row, animate_job, (av.root, r.material, held), total=n_sim) for r in refs]
+    jobs = [Job(r.row, animate_job, (av.root, r.material, held), {"rest_shape": True}, total=n_sim) for r in refs]
     seqs = run_jobs(jobs, progress=progress, title="reference materials: simulating")
     t = av.template
-    for r, V in zip(refs, seqs):
+    for r, (V, rest) in zip(refs, seqs):
         AnimatedSequence(V, t.faces, t.labels, None, av.fps, av.root).save(
-            out / r.folder, {"command": "reference-sims", "material": r.material.to_dict(),
+            out / r.folder, {"command": "reference-sims", "material": r.material.to_dict(), "rest_shape": rest,
                              "motion": held.name, "seed": seed}, ply=False)
     write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames),
                                                 "motion_key": motion_key(held), "seed": seed,
                                                 "random_seeds": random_seeds(seed, random_draws),
                                                 "rows": [r.row for r in refs], "folders": [r.folder for r in refs],
                                                 "contact_offset_m": offset, "contact_offset": offset_info,
+                                                "rest_shape": rest_shape,
                                                 "seconds": round(time.time() - t0, 1)})
     return out
 
@@ -342,10 +346,14 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
     rows, stale = {}, {}
     for row, name, mat in refs:
         folder = path / name
-        used = read_json(folder / SEQUENCE_META).get("material") if (folder / SEQUENCE_META).is_file() else None
-        if used is None:
+        meta = read_json(folder / SEQUENCE_META) if (folder / SEQUENCE_META).is_file() else {}
+        if meta.get("material") is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
-        used = Material.from_dict(used)
+        used = Material.from_dict(meta["material"])
+        if used.rest_shape == "equilibrium" and (meta.get("rest_shape") or {}).get("at_rest") is False:
+            # its garment moved in the start frame: simulated with the template as rest (equilibrium_part),
+            # the model an estimate records then (refit_at_equilibrium keeps its first fit)
+            used = dataclasses.replace(used, rest_shape="template")
         if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset, rest_shape=mat.rest_shape) == mat:
             stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm and rest shape "
                           f"{used.rest_shape!r}, the estimate's are {1e3 * mat.contact_offset:.3f} mm and {mat.rest_shape!r}")
@@ -579,6 +587,8 @@ class ReferencesConfig:
                                                 "estimated on the template, as fit-physics estimates it)",
                                           flag="--contact-offset",
                                           check=lambda v: None if 0 <= v < 0.05 else "must be in [0, 0.05) m")
+    rest_shape: str = option(FIT_REST_SHAPE, "the random draws' rest shape, the fit's (fit-physics --rest-shape): "
+                                         "template or equilibrium", flag="--rest-shape", choices=REST_SHAPES)
 
 
 def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), avatar: Path,
@@ -593,4 +603,4 @@ def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), 
 def run_references(capture: Path, *, out: Path, config: ReferencesConfig = ReferencesConfig(), progress=None) -> Path:
     """:func:`reference_sequences` as a stage (``physavatar reference-sims``)."""
     return reference_sequences(capture, out, frames=config.frames, seed=config.seed, random_draws=config.random_draws,
-                               contact_offset=config.contact_offset, progress=progress)
+                               contact_offset=config.contact_offset, rest_shape=config.rest_shape, progress=progress)

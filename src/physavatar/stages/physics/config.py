@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ...errors import PhysavatarError
-from ...sim.material import REST_SHAPES
+from ...sim.material import FIT_REST_SHAPE, REST_SHAPES
 from ..base import option, options
 
 GRADIENTS = ("fd", "exact")
@@ -46,7 +46,8 @@ class PhysicsConfig:
             (the start frame, loaded by gravity) or ``"equilibrium"`` (sim.rest.equilibrium_rest:
             the rest shape whose static equilibrium is the start frame, for the material of a first
             fit with the template; then fitted again from that material; the material records it
-            and animate/evaluate/the tracker compute the same rest for it).
+            and animate/evaluate/the tracker compute the same rest for it; the default since session 28;
+            a start frame not at rest keeps the first fit).
     """
 
     gradient: str = option("exact", "fd (the paper: finite differences + Adam) or exact (sensitivities + "
@@ -85,7 +86,7 @@ class PhysicsConfig:
                                                 "rests on the body; 0 = none; docs/physics.md)",
                                           flag="--contact-offset",
                                           check=lambda v: None if 0 <= v < 0.05 else "must be in [0, 0.05) m")
-    rest_shape: str = option("template", "the garment's rest shape in the fitting simulations: template (the start "
+    rest_shape: str = option(FIT_REST_SHAPE, "the garment's rest shape in the fitting simulations: template (the start "
                                           "frame, loaded by gravity) or equilibrium (the shape whose static "
                                           "equilibrium is the start frame; a second fit; docs/physics.md)",
                              flag="--rest-shape", choices=REST_SHAPES)
