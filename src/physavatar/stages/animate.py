@@ -68,6 +68,17 @@ def sequence_motion_key(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -
                        warmup_frames=n_warm)
 
 
+def check_sequence_motion(meta_file: Path, meta: dict, avatar: Avatar, motion: Motion) -> None:
+    """Refuse (naming ``meta_file``) a sequence whose recorded motion (``meta``: its sequence.json)
+    is not the first frames of ``motion`` with a 1-s warm-up (evaluate's); a sequence made before
+    animate recorded its motion passes."""
+    key, n = meta.get("motion_key"), int(meta.get("motion_frames", 0))
+    if key is not None and (n > motion.frames or key != sequence_motion_key(avatar, motion.slice(0, n))):
+        raise PhysavatarError(meta_file, "sequence was animated on another motion than the held-out one "
+                              f"({motion.name!r}, its first {n} frames, with a 1-s warm-up): animate the avatar "
+                              "with --motion ground_truth/heldout/motion.npz, or leave out --sequence")
+
+
 def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> int:
     """Frames :func:`animate` simulates for ``motion`` (warm-up included, the rest pose excluded)."""
     m, _, n_warm = _warmup(avatar, motion, avatar.bone_names, warmup_s)

@@ -367,11 +367,8 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
 
 def _reuse_sequence(path, av, n_frames: int, material: Material | None = None, motion: Motion | None = None):
     """The ``animate`` output at ``path`` (checked against the avatar, the frame count and, when
-    given, ``material``: the one its sequence.json records must be it, and ``motion``: the motion
-    it was animated on, with evaluate's warm-up, must be its first frames; a sequence made before
-    animate recorded its motion is taken as it is)."""
-    from .animate import sequence_motion_key
-
+    given, ``material`` and ``motion``: those its sequence.json records must be them)."""
+    from .animate import check_sequence_motion
     path = Path(path)
     if not (path / SEQUENCE_NPZ).is_file():
         raise PhysavatarError(path, f"no {SEQUENCE_NPZ} (pass an `animate` output folder)")
@@ -389,12 +386,8 @@ def _reuse_sequence(path, av, n_frames: int, material: Material | None = None, m
     if material is not None and used is not None and Material.from_dict(used) != material:
         raise PhysavatarError(path / SEQUENCE_META, f"sequence was simulated with material {used.get('name')!r}, "
                               f"the avatar's is {material.name!r}: not an animation of this avatar")
-    key, n = meta.get("motion_key"), int(meta.get("motion_frames", 0))
-    if motion is not None and key is not None and (
-            n > motion.frames or key != sequence_motion_key(av, motion.slice(0, n))):
-        raise PhysavatarError(path / SEQUENCE_META, "sequence was animated on another motion than the held-out one "
-                              f"({motion.name!r}, its first {n} frames, with a 1-s warm-up): animate the avatar "
-                              "with --motion ground_truth/heldout/motion.npz, or leave out --sequence")
+    if motion is not None:
+        check_sequence_motion(path / SEQUENCE_META, meta, av, motion)
     seq.vertices = seq.vertices[:n_frames]
     return seq
 
