@@ -155,33 +155,6 @@ def test_bending_toward_moved_hinges_keeps_a_fold_and_flattens_noise():
     with pytest.raises(ValueError, match="moved"):
         FlowPrediction(F, solve, F, bend_reference="bent", **kw)
 
-def test_the_default_bending_reference_keeps_a_fold_the_template_rule_flattens():
-    """The tracking default (``FlowConfig``: "moved" since session 28, threshold ``bend_moved``)
-    in the flow lift of the folded sheet above: a 60-degree fold the garment made (the template
-    is flat), seen on one half, is followed to within 2 mm, where the template's hinges ("rest",
-    the default before) leave the unseen half more than 0.1 m off; on the flat sheet with
-    sub-millimetre noise the default lift is the template rule's to the bit."""
-    from physavatar.stages.track import FlowConfig
-
-    cfg = FlowConfig()
-    V0, F = _grid(9, 0.4)
-    solve = np.ones(len(V0), bool)
-    kw = {"smoothness": 0.0, "iterations": 15, "rest": V0, "iso_weight": 10.0, "bend_weight": 10.0}
-    left = np.flatnonzero(V0[:, 0] < 1e-9)
-
-    def lift(ref, start, truth):
-        fp = FlowPrediction(F, solve, F, bend_reference=ref, bend_moved=cfg.bend_moved, **kw)
-        return fp.lift(start, _observe(truth, F, left))
-
-    start = _fold(V0, 60.0)
-    truth = start + [0.008, -0.005, 0.004]
-    err = {ref: np.linalg.norm(lift(ref, start, truth) - truth, axis=1).max() for ref in (cfg.bend_reference, "rest")}
-    assert err[cfg.bend_reference] < 2e-3 and err["rest"] > 0.1, err
-    noisy = V0 + np.random.default_rng(0).normal(0.0, 5e-4, V0.shape) * [0.0, 0.0, 1.0]
-    truth = V0 + [0.008, -0.005, 0.004]
-    assert np.array_equal(lift(cfg.bend_reference, noisy, truth), lift("rest", noisy, truth))
-
-
 def test_patterned_opponents_tells_a_hue_pattern_from_a_plain_colour_with_noise():
     """The hue-only texture shows a pattern in the opponent channels; a plain red cloth rendered
     with per-pixel noise (as a path tracer's) shows none, though its noise is as strong."""

@@ -215,11 +215,11 @@ class FlowConfig:
             coarse to fine, for errors of several pixels an aliased texture hides.
         bend_reference: what the bending terms hold: "rest" (the template's hinge distances) or
             "start" (those of the mesh each lift starts from: the previous frame, the estimate) or
-            "moved" (default since session 28: per hinge, the start's where its distance differs
-            from the template's by more than ``bend_moved``, the template's elsewhere: a fold the
-            garment has made is kept, the template's holds where the garment still has it; skirt
-            5.08 -> 4.78 mm, demo 48 frames 0.955 -> 0.917, tops 0.629 -> 0.607 and 2.84 -> 2.78;
-            docs/tracking.md).
+            "moved" (per hinge, the start's where its distance differs from the template's by
+            more than ``bend_moved``, the template's elsewhere: a fold the garment has made is
+            kept; session 28: tracking skirt 5.08 -> 4.78 mm, demo 48 frames 0.955 -> 0.917, tops
+            0.629 -> 0.607 and 2.84 -> 2.78, but the whole demo's held-out garment CD 0.0432 ->
+            0.0472 and motion PSNR 27.97 -> 27.52 dB, so not the default; docs/tracking.md).
         correction_bend_reference: the same for the corrections alone ("": as ``bend_reference``):
             "rest", "start", "moved" or "previous" (the hinges of the tracked frame t-1, fixed
             through the frame's corrections).
@@ -283,7 +283,7 @@ class FlowConfig:
     prior: float = setting(0.0)
     channels: str = setting("colour")
     coarse: int = setting(0)
-    bend_reference: str = setting("moved")
+    bend_reference: str = setting("rest")
     correction_bend_reference: str = setting("")
     bend_moved: float = setting(0.002)
     bend_views: int = setting(2)
