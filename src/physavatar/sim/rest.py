@@ -13,7 +13,7 @@ inverse statics, accelerated with Anderson mixing (Walker & Ni 2011) over the la
 rounds. The fixed point takes ∂x_eq/∂X̄ as the identity, which is right for the stiff membrane
 and bending in their own modes; the mixing fits the rest of the Jacobian from the rounds' secants
 (a round that overshoots, error > 1.5 × the best, restarts it from the best round with a plain
-step), so no mixed derivative ∂²E/∂x∂X̄ (which the simulator does not have) is needed. Each round's
+step, halved on each restart that finds no better round), so no mixed derivative ∂²E/∂x∂X̄ (which the simulator does not have) is needed. Each round's
 equilibrium (:func:`static_equilibrium`) is the simulator's own implicit step repeated with the
 velocity reset to zero (a proximal-point iteration: every step minimises the static energy plus
 ½‖x − xₖ‖²_M / h², so it ends where the static energy is stationary), frictionless and undamped
@@ -36,6 +36,7 @@ EQ_STEP = 5.0  # [s] the proximal step: nearly static (0.5 s left the plain top'
 AT_REST_RMS = 5e-3  # [m] a start that no rest shape holds closer than this (RMS) is not at rest (is moving)
 SAFEGUARD = 1.5  # a round whose error exceeds the best one's by this factor restarts the mixing from the best
 MOVING_RMS = 20 * AT_REST_RMS  # [m] a first round (rest = x0) that drifts this far (RMS) from x0: a moving start
+HOPELESS_RMS = 10 * AT_REST_RMS  # [m] three rounds with no better RMS error than this: no rest shape holds the start
 
 
 def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> SimSettings:
@@ -166,7 +167,7 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
         if err < tol:
             best = (rms, X.copy(), r)
             break
-        if info.get("gave_up") or (len(history) >= 3 and min(e["rms_mm"] for e in history) > 10e3 * AT_REST_RMS):
+        if info.get("gave_up") or (len(history) >= 3 and min(e["rms_mm"] for e in history) > 1e3 * HOPELESS_RMS):
             if rms < best[0]:
                 best = (rms, X.copy(), r)
             break  # hopeless: the start is far from any static equilibrium (report["at_rest"])

@@ -197,14 +197,14 @@ def _with_garment(t, body_ids, part):
     return faces, labels, face_uvs
 
 
-def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, rest_shape: bool = False, **kw):
+def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, **kw) -> tuple[np.ndarray, dict]:
     """:func:`animate` of the avatar at ``avatar_dir`` with ``material`` instead of its own, as a
-    :class:`physavatar.parallel.Job`; returns the vertices [T, V, 3] (with ``rest_shape``: and the
-    rest shape it simulated with, animate's ``stats["rest_shape"]``)."""
+    :class:`physavatar.parallel.Job`; returns the vertices [T, V, 3] and the rest shape it
+    simulated with (animate's ``stats["rest_shape"]``)."""
     av = Avatar.load(avatar_dir)
     av.material = material
     seq, stats = animate(av, motion, progress=False, report=report, **kw)
-    return (seq.vertices, stats["rest_shape"]) if rest_shape else seq.vertices
+    return seq.vertices, stats["rest_shape"]
 
 
 @dataclass(frozen=True)

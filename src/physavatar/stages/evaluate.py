@@ -196,7 +196,7 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     if todo:
         n_sim = simulated_frames(av, held)
         jobs = [Job(row, animate_job, (av.root, mat, held), total=n_sim) for row, mat in todo]
-        for (row, _), V in zip(todo, run_jobs(jobs, progress=progress, title="evaluate: simulating")):
+        for (row, _), (V, _) in zip(todo, run_jobs(jobs, progress=progress, title="evaluate: simulating")):
             seqs[row] = V
     metrics["seconds"]["references"] = round(time.time() - t0 - metrics["seconds"]["animate_estimated"], 1)
     # LBS: the garment skinned with weights transferred from the body (no physics).
@@ -294,7 +294,7 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     av = build_avatar(cap, out / "avatar", material=refs[0].material)
     n_sim = simulated_frames(av, held)
     t0 = time.time()
-    jobs = [Job(r.row, animate_job, (av.root, r.material, held), {"rest_shape": True}, total=n_sim) for r in refs]
+    jobs = [Job(r.row, animate_job, (av.root, r.material, held), total=n_sim) for r in refs]
     seqs = run_jobs(jobs, progress=progress, title="reference materials: simulating")
     t = av.template
     for r, (V, rest) in zip(refs, seqs):
