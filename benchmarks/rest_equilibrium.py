@@ -117,7 +117,7 @@ def foreign_case(name: str, capture: Path, work: Path, draws: int) -> dict:
         res["seconds"][f"fit_{rest}"] = round(time.time() - t, 1)
     refs = work / "references"
     if not (refs / "references.json").exists():
-        reference_sequences(capture, refs, random_draws=draws, progress=False)
+        reference_sequences(capture, refs, random_draws=draws, rest_shape="template", progress=False)
     seqs = {}
     for rest in ("template", "equilibrium"):
         av_dir = work / f"avatar-{rest}"

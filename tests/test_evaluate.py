@@ -92,7 +92,7 @@ def test_reference_sims_ahead_of_time_give_the_same_rows(result, tiny_capture):
     from physavatar.stages.evaluate import evaluate, reference_sequences
 
     m, root = result
-    reference_sequences(tiny_capture, root / "refs", progress=False)
+    reference_sequences(tiny_capture, root / "refs", rest_shape="template", progress=False)
     _check_random_median(m, root / "refs", tiny_capture)
     # an oracle (fit-physics on the true meshes) that found the true material: its row is the true row
     from physavatar.sim import Material
@@ -150,7 +150,7 @@ def test_random_draws_get_the_estimates_contact_offset(result, tiny_capture):
 
     m, root = result
     off = 0.003
-    reference_sequences(tiny_capture, root / "refs3", contact_offset=off, progress=False)
+    reference_sequences(tiny_capture, root / "refs3", contact_offset=off, rest_shape="template", progress=False)
     info = json.loads((root / "refs3" / "references.json").read_text())
     assert info["contact_offset_m"] == off and info["contact_offset"]["method"] == "given"
     for s in range(5):
@@ -161,7 +161,7 @@ def test_random_draws_get_the_estimates_contact_offset(result, tiny_capture):
     true = json.loads((root / "refs3" / "true" / "sequence.json").read_text())["material"]
     assert true["contact_offset"] == 0.0
     # the default (the tiny capture's template does not rest on the body at one distance): none
-    reference_sequences(tiny_capture, root / "refs0", progress=False)
+    reference_sequences(tiny_capture, root / "refs0", rest_shape="template", progress=False)
     assert json.loads((root / "refs0" / "references.json").read_text())["contact_offset_m"] == 0.0
     assert _least_body_distance(root / "refs0" / "random-0") < off - 1e-3  # the test can tell them apart
     # an avatar fitted with 3 mm reuses the 3-mm draws
@@ -192,23 +192,31 @@ def test_random_draws_get_the_estimates_contact_offset(result, tiny_capture):
     rows, stale = _reuse_references(root / "refs0", Avatar.load(root / "avatar"), refs, 4, held)
     assert sorted(stale) == sorted(f"random material (seed {s})" for s in range(5)) and "true material" in rows
     assert all("'template'" in why and "'equilibrium'" in why for why in stale.values())
-    # draws made with the equilibrium rest whose garment was not at rest in its start frame were
-    # simulated with the template (garment_sim.equilibrium_part), the model an estimate then records
-    # (its fit kept the template): they are reused; draws whose rest shape was solved are not
+    # a draw with the equilibrium rest whose garment was not at rest in its start frame was simulated
+    # with the template (garment_sim.equilibrium_part), the model an estimate then records (its fit
+    # kept the template): its sequence.json records that model, and an estimate with the template
+    # reuses it; one whose rest shape was solved, or a folder that recorded "equilibrium" for a draw
+    # not at rest (session 28), is simulated again
     import shutil
 
-    for at_rest, n_stale in ((False, 0), (True, 5)):
-        refs_eq = root / f"refs_eq_{at_rest}"
+    from physavatar.stages.animate import simulated_material
+
+    eq = dataclasses.replace(refs[1].material, rest_shape="equilibrium")
+    assert simulated_material(eq, {"kind": "equilibrium", "at_rest": False}).rest_shape == "template"
+    assert simulated_material(eq, {"kind": "equilibrium", "at_rest": True}) == eq
+    assert simulated_material(refs[0].material, {"kind": "template"}) == refs[0].material
+    for at_rest, recorded, n_stale in ((False, "template", 0), (True, "equilibrium", 5), (False, "equilibrium", 5)):
+        refs_eq = root / f"refs_eq_{at_rest}_{recorded}"
         shutil.copytree(root / "refs0", refs_eq)
         for s in range(5):
             meta_path = refs_eq / f"random-{s}" / "sequence.json"
             meta = json.loads(meta_path.read_text())
-            meta["material"]["rest_shape"] = "equilibrium"
+            meta["material"]["rest_shape"] = recorded
             meta["rest_shape"] = {"kind": "equilibrium", "at_rest": at_rest}
             meta_path.write_text(json.dumps(meta))
         rows, stale = _reuse_references(refs_eq, Avatar.load(root / "avatar"), _reference_materials(gt_root, 0, 5),
                                         4, held)
-        assert len(stale) == n_stale and len(rows) == 6 - n_stale, at_rest
+        assert len(stale) == n_stale and len(rows) == 6 - n_stale, (at_rest, recorded)
 
 
 def _check_random_median(m, refs, cap):
@@ -300,7 +308,7 @@ def test_references_of_another_held_out_motion_are_simulated_again(tmp_path, tin
 
     cap = tmp_path / "cap"
     shutil.copytree(tiny_capture, cap)
-    reference_sequences(cap, tmp_path / "refs", frames=3, random_draws=1, progress=False)
+    reference_sequences(cap, tmp_path / "refs", frames=3, random_draws=1, rest_shape="template", progress=False)
     path = cap / "ground_truth" / "heldout" / "motion.npz"
     m = Motion.load(path)
     m.root_translation = m.root_translation + [0.0, 0.01, 0.0]  # the body 1 cm to the side

@@ -37,6 +37,8 @@ AT_REST_RMS = 5e-3  # [m] a start that no rest shape holds closer than this (RMS
 SAFEGUARD = 1.5  # a round whose error exceeds the best one's by this factor restarts the mixing from the best
 MOVING_RMS = 20 * AT_REST_RMS  # [m] a first round (rest = x0) that drifts this far (RMS) from x0: a moving start
 HOPELESS_RMS = 10 * AT_REST_RMS  # [m] three rounds with no better RMS error than this: no rest shape holds the start
+STALLED_RMS = 2 * AT_REST_RMS  # [m] a best round above this that STALL_ROUNDS later rounds do not better: stalled
+STALL_ROUNDS = 3
 
 
 def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> SimSettings:
@@ -95,6 +97,15 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
     return x, info
 
 
+def _stalled(rms_mm: list[float]) -> bool:
+    """Whether the rounds' RMS errors [mm] have stalled far from at rest: the best one is above
+    ``STALLED_RMS`` and the last ``STALL_ROUNDS`` rounds did not better it. Such a start is not at
+    rest whatever the remaining rounds do (report["at_rest"] false: the caller keeps the template),
+    so stopping changes only the time."""
+    k = int(np.argmin(rms_mm))
+    return rms_mm[k] > 1e3 * STALLED_RMS and len(rms_mm) - 1 - k >= STALL_ROUNDS
+
+
 def _anderson(G: list[np.ndarray], F: list[np.ndarray], memory: int) -> np.ndarray:
     """Anderson mixing (type II, Walker & Ni 2011) of the fixed point g: the next iterate from the
     last rounds' g(Xₖ) (``G``) and residuals fₖ = g(Xₖ) − Xₖ (``F``), flat vectors."""
@@ -121,7 +132,8 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     Returns (X̄, report): report["converged"] says whether the tolerance was met within
     ``max_rounds`` (otherwise X̄ is the round with the smallest RMS error); "at_rest" whether
     the best round holds x₀ to an RMS error below ``AT_REST_RMS`` (5 mm; the solve stops at once when its
-    first round, x₀ as rest, drifts more than ``MOVING_RMS``, 100 mm RMS): a garment that is moving in x₀
+    first round, x₀ as rest, drifts more than ``MOVING_RMS``, 100 mm RMS, and after ``STALL_ROUNDS``
+    rounds that do not better a best round above ``STALLED_RMS``, 10 mm RMS): a garment that is moving in x₀
     (a capture that starts mid-motion) is in no static equilibrium, and callers then keep x₀ as
     the rest shape (garment_sim.equilibrium_part, fit-physics); "error_mm" per round
     (max and RMS of x_eq − x₀ over the vertices), "sag_mm": the first round's (X̄ = x₀), seconds.
@@ -171,6 +183,8 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
             if rms < best[0]:
                 best = (rms, X.copy(), r)
             break  # hopeless: the start is far from any static equilibrium (report["at_rest"])
+        if _stalled([e["rms_mm"] for e in history]):
+            break  # far from at rest and no better round for STALL_ROUNDS rounds (the demo's draw: 12 rounds, 573 s)
         if rms > SAFEGUARD * best[0]:  # overshot: a shorter plain step from the best round, history cleared
             G, R = [], []
             alpha *= 0.5  # (the same step again would repeat the same round: session 28's dress stalled so)

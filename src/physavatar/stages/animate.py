@@ -197,6 +197,16 @@ def _with_garment(t, body_ids, part):
     return faces, labels, face_uvs
 
 
+def simulated_material(material, rest: dict):
+    """``material`` in the model a sequence was simulated in, from animate's ``stats["rest_shape"]``
+    (``rest``): with the equilibrium rest shape but a garment that was not at rest in its start frame
+    (``rest["at_rest"]`` false), the template was the rest shape (garment_sim.equilibrium_part),
+    the model a fit records then too (physics.stage.refit_at_equilibrium keeps its first fit)."""
+    if material.rest_shape == "equilibrium" and rest.get("at_rest") is False:
+        return replace(material, rest_shape="template")
+    return material
+
+
 def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, **kw) -> tuple[np.ndarray, dict]:
     """:func:`animate` of the avatar at ``avatar_dir`` with ``material`` instead of its own, as a
     :class:`physavatar.parallel.Job`; returns the vertices [T, V, 3] and the rest shape it

@@ -261,7 +261,7 @@ def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS,
 
 def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | None = None, seed: int = 0,
                         random_draws: int = RANDOM_DRAWS, contact_offset: float | None = None,
-                        rest_shape: str = "template", progress=True) -> Path:
+                        rest_shape: str = FIT_REST_SHAPE, progress=True) -> Path:
     """The true- and random-material rows of :func:`evaluate` simulated ahead of time.
 
     They depend on the capture alone (its template, body shape and frame-1 pose; the held-out
@@ -274,12 +274,13 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     (``contact_offset``, ``--contact-offset``; None: estimated on the template as fit-physics
     estimates it, physics.stage.template_contact_offset) and the rest shape the fit's material
     will record (``rest_shape``, Material.rest_shape: `run` passes its fit's); references.json
-    records both, and :func:`evaluate` does not reuse draws made in another model than the avatar's.
+    records both, each draw's sequence.json the model it was simulated in (animate.simulated_material),
+    and :func:`evaluate` does not reuse draws made in another model than the avatar's.
     """
     from .physics.stage import template_contact_offset
     from .avatar import build_avatar
     from ..parallel import Job, run_jobs
-    from .animate import animate_job, simulated_frames
+    from .animate import animate_job, simulated_frames, simulated_material
 
     cap = load_capture(capture)
     gt_root = cap.ground_truth
@@ -299,7 +300,8 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     t = av.template
     for r, (V, rest) in zip(refs, seqs):
         AnimatedSequence(V, t.faces, t.labels, None, av.fps, av.root).save(
-            out / r.folder, {"command": "reference-sims", "material": r.material.to_dict(), "rest_shape": rest,
+            out / r.folder, {"command": "reference-sims", "material": simulated_material(r.material, rest).to_dict(),
+                             "rest_shape": rest,
                              "motion": held.name, "seed": seed}, ply=False)
     write_json_atomic(out / "references.json", {"capture": str(cap.root), "frames": int(held.frames),
                                                 "motion_key": motion_key(held), "seed": seed,
@@ -349,11 +351,7 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
         meta = read_json(folder / SEQUENCE_META) if (folder / SEQUENCE_META).is_file() else {}
         if meta.get("material") is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
-        used = Material.from_dict(meta["material"])
-        if used.rest_shape == "equilibrium" and (meta.get("rest_shape") or {}).get("at_rest") is False:
-            # its garment moved in the start frame: simulated with the template as rest (equilibrium_part),
-            # the model an estimate records then (refit_at_equilibrium keeps its first fit)
-            used = dataclasses.replace(used, rest_shape="template")
+        used = Material.from_dict(meta["material"])  # the model simulated (simulated_material)
         if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset, rest_shape=mat.rest_shape) == mat:
             stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm and rest shape "
                           f"{used.rest_shape!r}, the estimate's are {1e3 * mat.contact_offset:.3f} mm and {mat.rest_shape!r}")
