@@ -35,6 +35,13 @@ so it may be --out itself). Figures without a target (garment p95 and body track
 fit residual on the tracked and the true meshes and its tracking share, the texture error) are
 under `checks` too, with `pass` null and target "reported".
 
+--reuse-tracking keeps each case's finished tracking (and the appearance fitted on it) although
+its recorded hash differs from today's, e.g. after a tracking setting was added whose default
+does what the run did (session 29: the skirt's run predates `prediction.rest_shape`, whose default
+"material" with the carry's cotton preset is the template rest it used): the new hashes are
+recorded in run.json, the old ones kept as `hash_before_reuse`, so `run` redoes only the
+physics and what follows. It is the caller's word that the tracking code did not change.
+
 --add-dense adds the dense CD figures (and their checks) to the cases of an existing --out file
 whose runs have finished, without running anything else.
 
@@ -437,6 +444,36 @@ def pass_count(checks: dict) -> str:
     return f"{sum(judged)}/{len(judged)} pass ({len(checks) - len(judged)} reported without a target)"
 
 
+def reuse_tracking(capture: Path, run_dir: Path, rc) -> list[str]:
+    """--reuse-tracking: record today's hash for the finished ``track`` step of ``run_dir`` (and
+    for ``appearance`` when it was up to date with that tracking), keeping the old ones as
+    ``hash_before_reuse``. Returns the steps re-recorded. Nothing changes for a run whose track
+    step did not finish or whose hash is today's."""
+    from physavatar.files import read_json, write_json_atomic
+    from physavatar.pipeline import plan, step_hash
+
+    rec_path = run_dir / "run.json"
+    if not rec_path.is_file():
+        return []
+    rec = read_json(rec_path)
+    steps = {st.name: st for st in plan(capture, run_dir, rc)}
+    tr = rec.get("track", {})
+    if "track" not in steps or tr.get("status") != "ok" or not (run_dir / "track" / steps["track"].done_file).exists():
+        return []
+    old = dict(rec)
+    new_hash = step_hash(steps["track"], run_dir, rec)
+    if tr.get("hash") == new_hash:
+        return []
+    done = ["track"]
+    rec["track"] = tr | {"hash": new_hash, "hash_before_reuse": tr.get("hash")}
+    app = rec.get("appearance", {})
+    if "appearance" in steps and app.get("status") == "ok" and app.get("hash") == step_hash(steps["appearance"], run_dir, old):
+        rec["appearance"] = app | {"hash": step_hash(steps["appearance"], run_dir, rec), "hash_before_reuse": app["hash"]}
+        done.append("appearance")
+    write_json_atomic(rec_path, rec)
+    return done
+
+
 def _metrics(run_dir: Path) -> dict:
     return json.loads((run_dir / "evaluate" / "metrics.json").read_text())
 
@@ -468,6 +505,8 @@ def main(argv=None) -> int:
                     help="surface points of the dense CD rows (0: none)")
     ap.add_argument("--before", default=None,
                     help="an earlier result file: its date, code and checks are kept under `before`")
+    ap.add_argument("--reuse-tracking", action="store_true",
+                    help="keep each case's finished tracking (and appearance) although its hash differs from today's")
     ap.add_argument("--add-dense", action="store_true",
                     help="only add the dense CD rows and their checks to the finished cases of --out")
     args = ap.parse_args(argv)
@@ -488,6 +527,7 @@ def main(argv=None) -> int:
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                           "load_average_start": list(os.getloadavg())},
               "config": {"full": args.full, "run": "physavatar run " + ("" if args.full else "--quick"),
+                         "reuse_tracking": args.reuse_tracking,
                          "cases": [c.to_dict() for c in cases]},
               "figures": {}, "checks": {}}
     if args.before:  # an earlier file's checks beside today's (read now: --out may be the same file)
@@ -502,6 +542,11 @@ def main(argv=None) -> int:
         run_dir = work / cfg.name / "run"
         rc = RunConfig(quick=not args.full)
         from physavatar.errors import PhysavatarError
+
+        if args.reuse_tracking:
+            kept = reuse_tracking(cap, run_dir, rc)
+            if kept:
+                print(f"[{cfg.name}] --reuse-tracking: kept the finished {', '.join(kept)} (today's hash recorded)", flush=True)
 
         try:
             record = run(cap, run_dir, rc, say=lambda s, n=cfg.name: print(f"[{n}] {s}", flush=True))

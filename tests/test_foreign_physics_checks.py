@@ -114,3 +114,43 @@ def test_every_figure_is_under_checks_the_untargeted_ones_reported():
     assert c["s:tracking_body_mean"]["pass"] is None and c["s:texture_psnr_body"]["value"] == 21.0
     judged = [k for k, v in c.items() if v["pass"] is not None]
     assert len(judged) == 8 and FC.pass_count(c).startswith(f"{sum(c[k]['pass'] for k in judged)}/8 pass")
+
+
+def test_reuse_tracking_records_todays_hash_so_run_skips_only_the_tracking(tiny_capture, tmp_path):
+    """--reuse-tracking: a finished track step recorded under an old hash (a setting added since)
+    is marked done with today's hash, judged by the pipeline's own is_done; the appearance fitted
+    on it follows only when it was up to date with that tracking; a stale physics step is left to
+    run again, and an unfinished tracking is not touched."""
+    from physavatar.files import read_json, write_json_atomic
+    from physavatar.pipeline import RunConfig, is_done, plan, step_hash
+
+    rc = RunConfig(quick=True)
+    out = tmp_path / "run"
+    (out / "track").mkdir(parents=True)
+    (out / "track" / "tracked.npz").write_bytes(b"x")
+    (out / "appearance").mkdir()
+    (out / "appearance" / "texture.png").write_bytes(b"x")
+    steps = {st.name: st for st in plan(tiny_capture, out, rc)}
+    rec = {"track": {"hash": "old-track", "status": "ok"}}
+    rec["appearance"] = {"hash": step_hash(steps["appearance"], out, rec), "status": "ok"}  # made on that tracking
+    rec["physics"] = {"hash": "old-physics", "status": "ok"}
+    write_json_atomic(out / "run.json", rec)
+    assert not is_done(steps["track"], out, rec["track"], step_hash(steps["track"], out, rec))
+
+    assert FC.reuse_tracking(tiny_capture, out, rc) == ["track", "appearance"]
+    new = read_json(out / "run.json")
+    for name in ("track", "appearance"):
+        assert is_done(steps[name], out, new[name], step_hash(steps[name], out, new)), name
+    assert new["track"]["hash_before_reuse"] == "old-track"
+    assert new["physics"] == rec["physics"]
+    assert FC.reuse_tracking(tiny_capture, out, rc) == []  # already today's: nothing to do
+
+    # an appearance made on other tracking than the recorded one stays stale
+    rec["appearance"]["hash"] = "other"
+    write_json_atomic(out / "run.json", rec)
+    assert FC.reuse_tracking(tiny_capture, out, rc) == ["track"]
+    # an unfinished tracking is not reused
+    rec["track"]["status"] = "failed"
+    write_json_atomic(out / "run.json", rec)
+    assert FC.reuse_tracking(tiny_capture, out, rc) == []
+    assert read_json(out / "run.json") == rec
