@@ -263,6 +263,9 @@ def main():
                     help="the CMU clips also corrected by body.clearance.part_clearance (thigh out of the belly, "
                          "calf out of the thigh, hand off the body; docs/simulation.md \"Session 23\"), as "
                          "`simulate` and `animate` do by default; --no-part-clearance: the clips as retargeted")
+    ap.add_argument("--knee-collapse", action="store_true",
+                    help="the CMU clips also corrected by body.clearance.knee_collapse_rules (the knee opened where "
+                         "calf and thigh pass through each other; opt-in, docs/simulation.md \"Session 29\")")
     ap.add_argument("--partial", action="store_true",
                     help="check the frames written so far by the (interrupted or running) runs in --work, simulate nothing")
     args = ap.parse_args()
@@ -282,7 +285,7 @@ def main():
         path = MOTIONS / clip
         if not wanted(name):
             continue
-        cached = work / f"{name}{'-full' if args.full else ''}{'-parts' if args.part_clearance else ''}.npz"
+        cached = work / f"{name}{'-full' if args.full else ''}{'-parts' if args.part_clearance else ''}{'-knee' if args.knee_collapse else ''}.npz"
         if cached.exists():  # the clip retargeted with arm clearance (minutes on a loaded machine)
             specs[name] = str(cached)
             continue
@@ -291,6 +294,9 @@ def main():
             continue
         m = load_motion(str(path), fps, 4.0, body=body)
         m, _, _ = with_clearances(m, str(path), lambda: body, 0.03, args.part_clearance)  # as `simulate` does
+        if args.knee_collapse:
+            from physavatar.body.clearance import knee_collapse_rules, part_clearance
+            m = part_clearance(m, body, knee_collapse_rules())[0]
         if not args.full:
             m = m.slice(start, start + int(round(duration * fps)) + 1)
         m.save(cached)
@@ -423,7 +429,7 @@ def target_row(garment, over, spec, edge, duration, warmup, args) -> dict:
     cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
                                         max_substeps=args.max_substeps, self_contact=not args.no_self_contact, over=over)
     mat, ss = resolve_material(cfg.material, option="--material"), SimSettings()
-    part, bodies, bf, n_warm, _, _ = simulate_stage._on_motion(garment, spec, 25.0, cfg, mat, ss, None)
+    part, bodies, bf, n_warm, *_ = simulate_stage._on_motion(garment, spec, 25.0, cfg, mat, ss, None)
     part, _ = repaired_start(part, bodies[0], bf, ss.dhat, cfg.repair_limit, garment)
     T, rep = boundary_targets(part, bodies, bf, ss.dhat)
     ids = part.boundary
@@ -477,7 +483,7 @@ def _write(args, rows, load0, edge, duration, warmup, fps):
         "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None, **{k: v for k, v in stamp.items() if k != "date"}},
         "config": {"garment": "dress (layered cases: their rows' garment)", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
                    "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,
-                   "self_contact": not args.no_self_contact, "part_clearance": args.part_clearance,
+                   "self_contact": not args.no_self_contact, "part_clearance": args.part_clearance, "knee_collapse": args.knee_collapse,
                    "clip_excerpts": None if args.full else {k: [s, s + int(round(duration * fps))]
                                                             for k, (_, s) in CLIPS.items()}},
         "figures": rows,

@@ -242,3 +242,44 @@ def test_a_run_resumes_on_other_thread_counts_but_not_on_other_settings():
     assert key(SimSettings(ccd_threads=2)) == default
     assert key(SimSettings(dhat=2e-3)) != default and key(SimSettings(max_penalty_iterations=20)) != default
     assert run_settings(None) is None
+
+
+@pytest.mark.parametrize("ends_short", [False, True])
+def test_a_frame_whose_body_catches_up_before_its_end_is_not_stuck(ends_short, monkeypatch):
+    """Session 29: after a frame whose last attempt (max_substeps) lagged, the next frame is
+    retried in shorter steps unless that frame's body was still short of its pose at the frame's
+    end ("stuck": no room for the cloth at the pose). The solver's steps are real; the lag is
+    reported by a wrapper of ``_frame``: frame 1 lags in its first step in every attempt (and in
+    its last step too when ``ends_short``), frame 2's first attempt lags in every step."""
+    import sys
+
+    S = sys.modules["physavatar.sim.simulate"]  # (the package exports the function under that name)
+
+    V, F, seq, BF, pins = rising_sphere(frames=4)
+    real, calls = S._frame, []
+
+    def frame(sim, x, v, b0, b1, faces, tb0, tb1, n, fps, stop_on_lag=False):
+        x, v, stats = real(sim, x, v, b0, b1, faces, tb0, tb1, n, fps, stop_on_lag)
+        f = next(i for i in range(len(seq)) if np.array_equal(seq[i], b1))
+        calls.append((f, n))
+        if f == 1:
+            stats[0].body_gap = 1e-5
+            if ends_short:
+                stats[-1].body_gap = 1e-5
+        if f == 2 and sum(c[0] == 2 for c in calls) == 1:
+            for s in stats:
+                s.body_gap = 1e-5
+        return x, v, stats
+
+    monkeypatch.setattr(S, "_frame", frame)
+    reports, stuck = {}, {}
+
+    def on_frame(ck, report):
+        reports[ck.frame], stuck[ck.frame] = report, ck.solver["stuck"]
+
+    simulate(V, F, MAT, seq, BF, pins, None, fps=25.0, max_substeps=2, on_frame=on_frame)
+    assert [n for f, n in calls if f == 1] == [1, 2]  # lagged, retried once, up to max_substeps
+    assert stuck[1] == ends_short
+    # frame 2: retried in shorter steps after a frame that caught up; one attempt after a stuck one
+    assert reports[2]["attempts"] == (1 if ends_short else 2)
+    assert [n for f, n in calls if f == 2] == ([1] if ends_short else [1, 2])

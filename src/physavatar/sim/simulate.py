@@ -305,9 +305,10 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 if held[f] and not lagged and crosses(sim, x, original):
                     lagged = True  # clear of the uncollapsed body, through the one given: the crease rule on that
                 # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
-                # the body's pose) is not undone by shorter steps: no retries until a frame passes
+                # the body's pose: the body still short of it at the frame's end) is not undone by
+                # shorter steps: no retries until a frame passes
                 if not lagged or last:
-                    stuck = lagged and (stuck or n >= max_substeps)
+                    stuck = lagged and stats_frame[-1].body_gap > 0 and (stuck or n >= max_substeps)
                     break
                 if creasable is None:
                     creasable = body_creases(sim.settings, bodies[f - 1], bodies[f], collider_faces, saved[0])
