@@ -293,10 +293,8 @@ def main():
             print(f"{name}: {path} missing, skipped")
             continue
         m = load_motion(str(path), fps, 4.0, body=body)
-        m, _, _ = with_clearances(m, str(path), lambda: body, 0.03, args.part_clearance)  # as `simulate` does
-        if args.knee_collapse:
-            from physavatar.body.clearance import knee_collapse_rules, part_clearance
-            m = part_clearance(m, body, knee_collapse_rules())[0]
+        m, _, _ = with_clearances(m, str(path), lambda: body, 0.03, args.part_clearance,
+                                  args.knee_collapse)  # as `simulate` does
         if not args.full:
             m = m.slice(start, start + int(round(duration * fps)) + 1)
         m.save(cached)

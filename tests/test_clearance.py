@@ -182,3 +182,29 @@ def test_knee_collapse_opens_the_knee_until_no_vertex_is_buried(body):
         if not (_winding(Motion("t", 25.0, names, r, np.zeros((1, 3))).pose(body).vertices[0], F, leg) > 1).any():
             break
     assert 0 < deg < 25 and np.degrees(angle[deep]) <= deg + 3
+
+
+def test_knee_collapse_option_is_the_rule_after_the_default_ones(body):
+    """`--knee-collapse` (simulate, animate; body.load.with_part_clearance): off by default; on, the
+    motion is the default rules' result with body.clearance.knee_collapse_rules applied after them
+    (what benchmarks/motion_suite.py --knee-collapse measured), and its summary names the knee."""
+    from physavatar.body.clearance import default_rules, knee_collapse_rules
+    from physavatar.body.load import describe_part_clearance, with_part_clearance
+    from physavatar.stages.animate import AnimateConfig
+    from physavatar.stages.simulate import SimulateConfig
+
+    assert not SimulateConfig().knee_collapse and not AnimateConfig().knee_collapse
+    idx = {n: i for i, n in enumerate(body.bone_names)}
+    T = 40
+    a = np.clip(1 - np.abs(np.arange(T) - 20) / 8, 0, 1)
+    R = np.zeros((T, len(idx), 3))
+    R[:, idx["lowerleg01.L"], 0] = 2.1 * a * a * (3 - 2 * a)  # the heel to the buttock
+    m = Motion("t", 25.0, body.bone_names, R, np.zeros((T, 3)))
+    assert with_part_clearance(m, "walk", body, True, knee_collapse=True) == (m, None)  # not motion capture
+    m2, summary = with_part_clearance(m, "clip.bvh", body, True, knee_collapse=True)
+    ref = part_clearance(part_clearance(m, body, default_rules())[0], body, knee_collapse_rules())[0]
+    np.testing.assert_array_equal(m2.rotations, ref.rotations)
+    assert "knee-collapse.L" in summary and summary["knee-collapse.L"]["max_angle_deg"] > 1.0
+    assert "knee-collapse.L" in describe_part_clearance(summary)
+    m1, _ = with_part_clearance(m, "clip.bvh", body, True)  # the default: no collapse rule
+    assert not np.array_equal(m1.rotations, m2.rotations)

@@ -72,16 +72,22 @@ def with_arm_clearance(motion: Motion, spec: str, body: BodyModel, clearance: fl
     return m2, summary
 
 
-def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool) -> tuple[Motion, dict | None]:
+def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool,
+                        knee_collapse: bool = False) -> tuple[Motion, dict | None]:
     """Motion capture with the parts a garment covers kept apart (:func:`body.clearance.part_clearance`:
-    thigh out of the belly, calf out of the thigh, hands off the body) when ``on``; other motions
-    and ``on=False`` unchanged. Returns the motion and, per rule that turned a bone, the frames
-    turned, the largest turn [deg] and the closest distance before and after [m] (None when
-    nothing was done)."""
-    if not on or not is_capture(spec):
+    thigh out of the belly, calf out of the thigh, hands off the body) when ``on``, and then, with
+    ``knee_collapse``, the knee opened where calf and thigh pass through each other
+    (:func:`body.clearance.knee_collapse_rules`, ``--knee-collapse``); other motions and both off
+    unchanged. Returns the motion and, per rule that turned a bone, the frames turned, the largest
+    turn [deg] and the closest distance (a collapse rule: minus the deepest buried vertex) before and
+    after [m] (None when nothing was done)."""
+    if not (on or knee_collapse) or not is_capture(spec):
         return motion, None
-    from .clearance import part_clearance
-    m2, info = part_clearance(motion, body)
+    from .clearance import default_rules, knee_collapse_rules, part_clearance
+    m2, info = part_clearance(motion, body, default_rules()) if on else (motion, {})
+    if knee_collapse:
+        m2, more = part_clearance(m2, body, knee_collapse_rules())
+        info = info | more
     summary = {}
     for name, d in info.items():
         turned = d["angle_rad"] > 1e-3
@@ -93,18 +99,19 @@ def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool) ->
     return m2, summary or None
 
 
-def with_clearances(motion: Motion, spec: str, make_body, arm: float, parts: bool) -> tuple[Motion, dict | None, dict | None]:
-    """Motion capture with both corrections of ``simulate`` and ``animate`` applied: arm clearance
-    (``arm`` [m], :func:`with_arm_clearance`) and then part clearance (``parts``,
+def with_clearances(motion: Motion, spec: str, make_body, arm: float, parts: bool,
+                    knee_collapse: bool = False) -> tuple[Motion, dict | None, dict | None]:
+    """Motion capture with the corrections of ``simulate`` and ``animate`` applied: arm clearance
+    (``arm`` [m], :func:`with_arm_clearance`) and then part clearance (``parts``, ``knee_collapse``:
     :func:`with_part_clearance`). ``make_body()`` gives the collider they measure on; it is built
     only when a correction applies. Returns the motion and the two summaries."""
     if arm < 0:
         raise PhysavatarError(None, "option --arm-clearance: must be >= 0")
-    if not (arm or parts) or not is_capture(spec):
+    if not (arm or parts or knee_collapse) or not is_capture(spec):
         return motion, None, None
     body = make_body()
     motion, arm_info = with_arm_clearance(motion, spec, body, arm)
-    motion, parts_info = with_part_clearance(motion, spec, body, parts)
+    motion, parts_info = with_part_clearance(motion, spec, body, parts, knee_collapse)
     return motion, arm_info, parts_info
 
 

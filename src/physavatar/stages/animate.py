@@ -232,6 +232,12 @@ class AnimateConfig(GarmentFileOptions):
                                          "thigh, hand into the body): bones turned by at most 20-40 deg "
                                          "(body.clearance; docs/motions.md; --no-part-clearance keeps the clip as retargeted)",
                                   flag="--part-clearance/--no-part-clearance")
+    knee_collapse: bool = option(False, "with a .bvh/AMASS motion: also open the knee where calf and thigh pass "
+                                        "through each other (at most 25 deg; body.clearance.knee_collapse_rules): "
+                                        "the cloth caught in that fold has no place outside the body. Off by "
+                                        "default: it clears the CMU hop's knee pinch but costs the CMU walk 4 "
+                                        "frames (docs/simulation.md, Session 29)",
+                                 flag="--knee-collapse/--no-knee-collapse")
     max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
                                check=lambda v: None if v >= 1 else "must be at least 1")
     self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
@@ -279,7 +285,7 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
     av = Avatar.load(avatar)
     m = load_motion(config.motion, av.fps, config.duration)
     m, info, parts = with_clearances(m, config.motion, lambda: BodyModel(av.shape, topology="collider"),
-                                     config.arm_clearance, config.part_clearance)
+                                     config.arm_clearance, config.part_clearance, config.knee_collapse)
     if config.max_frames:
         m = m.slice(0, config.max_frames)
     settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)

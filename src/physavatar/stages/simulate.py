@@ -101,6 +101,12 @@ class SimulateConfig(GarmentFileOptions):
                                          "the thigh, hand into the body): bones turned by at most 20-40 deg "
                                          "(body.clearance; docs/motions.md; --no-part-clearance keeps the clip as retargeted)",
                                   flag="--part-clearance/--no-part-clearance")
+    knee_collapse: bool = option(False, "with a .bvh/AMASS motion: also open the knee where calf and thigh pass "
+                                        "through each other (at most 25 deg; body.clearance.knee_collapse_rules): "
+                                        "the cloth caught in that fold has no place outside the body. Off by "
+                                        "default: it clears the CMU hop's knee pinch but costs the CMU walk 4 "
+                                        "frames (docs/simulation.md, Session 29)",
+                                 flag="--knee-collapse/--no-knee-collapse")
     edge_length: float = option(0.02, "garment edge length [m] (with --garment KIND)")
     over: str | None = option(None, "with --motion: built-in garments worn over --garment, innermost first "
                                     "(comma-separated: dress, skirt, tshirt), simulated together with it as one cloth, "
@@ -325,7 +331,7 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
         part = _layered(part, cfg.over, body, cfg)
     mot = load_motion(motion, fps, cfg.duration)
     mot, clearance_info, parts_info = with_clearances(mot, motion, lambda: body, cfg.arm_clearance,
-                                                      cfg.part_clearance)
+                                                      cfg.part_clearance, cfg.knee_collapse)
     rots, trs = mot.rotations, mot.root_translation
     # the garment is made for the rest pose: a motion that starts elsewhere (a BVH clip) is
     # reached by a transition first, as `animate` does, so the garment never starts inside the body
