@@ -97,3 +97,29 @@ def test_a_physics_step_depends_on_its_arguments_alone():
         a = chained(frames[k - 2], frames[k - 1], frames[k - 1], frames[k])
         b = PhysicsPrediction(V, F, labels, boundary, mat, 25.0)(frames[k - 2], frames[k - 1], frames[k - 1], frames[k])
         assert a is not None and np.array_equal(a, b), k
+
+
+def test_a_fitted_contact_thickness_lifts_the_tracked_start_off_the_body():
+    """fit-physics' material.json records a contact thickness (Material.contact_offset, ipctk's
+    d_min: 3.07 mm on the foreign skirt). A tracked frame is not held that far off the body, and
+    ipctk's barrier is undefined closer than d_min: the step raised "unable to project matrix onto
+    positive semi-definite cone" on every frame of the skirt (session 29). The start is now lifted
+    to the thickness first (sim.simulate.feasible_thickness), so the step runs and ends with every
+    cloth-body pair at least d_min apart (ipctk's own distances, sim.offset.start_distance)."""
+    from physavatar.sim.offset import start_distance
+
+    ball = _cloth_over_ball()[4]
+    ball = np.concatenate([ball, ball[-1:] + [0.0, 0.0, 0.02]])  # the ball rises on into the cloth
+    V, F, labels, boundary, bodies, body_ids, body_faces, part, mat, G, frames = _cloth_over_ball_simulated(ball)
+    dmin = 0.003
+    g = part.vertex_ids
+    # the simulation without a thickness leaves the cloth closer than d_min to the ball in frame 2
+    assert start_distance(G[2], part.faces, bodies[2], body_faces, part.boundary) < 0.5 * dmin
+    thick = PhysicsPrediction(V, F, labels, boundary, replace(mat, contact_offset=dmin), 25.0)
+    thin = PhysicsPrediction(V, F, labels, boundary, mat, 25.0)(frames[1], frames[2], frames[2], frames[3])
+    x = thick(frames[1], frames[2], frames[2], frames[3])
+    assert x is not None and thick.last_stats.n_contacts > 0
+    assert start_distance(x[g], part.faces, bodies[3], body_faces, part.boundary) > 0.95 * dmin
+    # the thickness moves the cloth off the ball by about d_min, not more
+    shift = np.linalg.norm(x[g] - thin[g], axis=1)
+    assert 0.5 * dmin < shift.max() < 3 * dmin, shift.max()

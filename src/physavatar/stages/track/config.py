@@ -149,13 +149,15 @@ class PredictionConfig:
         material: simulator material of the physics prediction and of ``flow.carry`` "physics": a
             preset name or a material .json (fit-physics' material.json: the paper's loop, a second
             tracking pass with the material fitted on the first). The garment's material is not
-            known when tracking: a prior.
+            known when tracking: a prior. A material with a contact thickness (``contact_offset``,
+            which fit-physics records) first lifts each step's start off the body to it (session 29).
         newton_iterations: cap on the physics step's Newton iterations (capped too low, the step
             stays in the phase where the body sweeps into the cloth).
         rest_shape: the garment's rest shape in the physics step: "material" (what the material
             records: presets "template"; fit-physics --rest-shape equilibrium "equilibrium"),
             "template" (the template, loaded by gravity) or "equilibrium" (the shape whose static
-            equilibrium on the template's body is the template; sim.rest, docs/physics.md).
+            equilibrium on the template's body is the template; sim.rest, docs/physics.md). Session
+            29: a better one-step prediction on the foreign skirt, the same tracking (docs/tracking.md).
     """
 
     init: str = option("mixed", "start of each frame: mixed (body and garment boundary skinned from body.npz, the rest "

@@ -179,6 +179,7 @@ class PhysicsPrediction:
         # arguments alone, so a resumed tracking run predicts what an uninterrupted one does.
         self.sim.prepare(V[self.body_ids], self.body_faces)
         self._state0 = self.sim.get_state()
+        self._settings0, self._scene_dmin0 = self.sim.settings, self.sim.scene.dmin
         self.push_clearance = push_clearance
         self.last_stats = None
         self.pushed = False
@@ -211,11 +212,27 @@ class PhysicsPrediction:
                 return None
         targets = attachment_positions(self.attachment, bt1)
         self.sim.set_state(self._state0)
+        x = self._thickness(x, bt)
         x1, _, self.last_stats = self.sim.step(x, velocity * dv[g] / self.h, bt, bt1, self.body_faces, targets)
         out = prev.copy()
         out[b] = bt1
         out[g] = x1
         return out
+
+    def _thickness(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
+        """``x`` lifted off ``body`` to the material's contact thickness (``contact_offset``,
+        ipctk's d_min, which fit-physics' material.json records: its barrier is undefined closer
+        than that, and a tracked frame is not held off the body by it), the sim's thickness
+        lowered for this step where the lift cannot reach it (sim.simulate.feasible_thickness)."""
+        from ...sim.simulate import feasible_thickness
+
+        self.sim.settings, self.sim.scene.dmin = self._settings0, self._scene_dmin0
+        if self.sim.dmin <= 0:
+            return x
+        x, settings = feasible_thickness(self.sim, x, body, self.body_faces)
+        if settings.dmin != self._settings0.dmin:
+            self.sim.settings, self.sim.scene.dmin = settings, settings.dmin
+        return x
 
     def feasible(self, x: np.ndarray, body: np.ndarray) -> np.ndarray | None:
         """[Ng, 3] the garment ``x`` that intersects ``body`` made intersection-free, or None:
