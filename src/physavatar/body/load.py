@@ -72,6 +72,12 @@ def with_arm_clearance(motion: Motion, spec: str, body: BodyModel, clearance: fl
     return m2, summary
 
 
+KNEE_COLLAPSE_HELP = ("with a .bvh/AMASS motion: also open the knee where calf and thigh pass through each other "
+                      "(at most 25 deg; body.clearance.knee_collapse_rules): the cloth caught in that fold has no "
+                      "place outside the body. Off by default: it clears the CMU hop's knee pinch but costs the CMU "
+                      "walk 4 frames (docs/simulation.md, Session 29)")  # simulate's and animate's --knee-collapse
+
+
 def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool,
                         knee_collapse: bool = False) -> tuple[Motion, dict | None]:
     """Motion capture with the parts a garment covers kept apart (:func:`body.clearance.part_clearance`:

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..data.avatar import Avatar
 from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
+from ..body.load import KNEE_COLLAPSE_HELP
 from ..data.animated import AnimatedSequence
 from ..data.sim_frames import FrameStore, garment_run_key
 from ..errors import PhysavatarError
@@ -232,11 +233,7 @@ class AnimateConfig(GarmentFileOptions):
                                          "thigh, hand into the body): bones turned by at most 20-40 deg "
                                          "(body.clearance; docs/motions.md; --no-part-clearance keeps the clip as retargeted)",
                                   flag="--part-clearance/--no-part-clearance")
-    knee_collapse: bool = option(False, "with a .bvh/AMASS motion: also open the knee where calf and thigh pass "
-                                        "through each other (at most 25 deg; body.clearance.knee_collapse_rules): "
-                                        "the cloth caught in that fold has no place outside the body. Off by "
-                                        "default: it clears the CMU hop's knee pinch but costs the CMU walk 4 "
-                                        "frames (docs/simulation.md, Session 29)",
+    knee_collapse: bool = option(False, KNEE_COLLAPSE_HELP,
                                  flag="--knee-collapse/--no-knee-collapse")
     max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
                                check=lambda v: None if v >= 1 else "must be at least 1")

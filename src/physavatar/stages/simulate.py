@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..body import BodyModel, Motion
-from ..body.load import load_motion, with_clearances
+from ..body.load import KNEE_COLLAPSE_HELP, load_motion, with_clearances
 from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
 from ..data.garment_sequence import GarmentSequence
 from ..data.material import resolve_material
@@ -101,11 +101,7 @@ class SimulateConfig(GarmentFileOptions):
                                          "the thigh, hand into the body): bones turned by at most 20-40 deg "
                                          "(body.clearance; docs/motions.md; --no-part-clearance keeps the clip as retargeted)",
                                   flag="--part-clearance/--no-part-clearance")
-    knee_collapse: bool = option(False, "with a .bvh/AMASS motion: also open the knee where calf and thigh pass "
-                                        "through each other (at most 25 deg; body.clearance.knee_collapse_rules): "
-                                        "the cloth caught in that fold has no place outside the body. Off by "
-                                        "default: it clears the CMU hop's knee pinch but costs the CMU walk 4 "
-                                        "frames (docs/simulation.md, Session 29)",
+    knee_collapse: bool = option(False, KNEE_COLLAPSE_HELP,
                                  flag="--knee-collapse/--no-knee-collapse")
     edge_length: float = option(0.02, "garment edge length [m] (with --garment KIND)")
     over: str | None = option(None, "with --motion: built-in garments worn over --garment, innermost first "
