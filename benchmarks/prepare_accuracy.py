@@ -129,7 +129,8 @@ def collider_crossings(cap) -> int:
     return int(count_intersections(t.vertices[ids], faces, posed[0], model.faces))
 
 
-def run_pipeline(capture: Path, out: Path, quick: bool = True, eval_frames: int | None = None) -> dict:
+def run_pipeline(capture: Path, out: Path, quick: bool = True, eval_frames: int | None = None,
+                 random_draws: int | None = None) -> dict:
     """``physavatar run [--quick] [--eval-frames N]`` (a subprocess, resumed when ``out`` exists);
     the numbers compared."""
     import subprocess
@@ -138,9 +139,11 @@ def run_pipeline(capture: Path, out: Path, quick: bool = True, eval_frames: int 
     env = dict(os.environ, PYTHONPATH=str(HERE.parent / "src"))
     proc = subprocess.run([sys.executable, "-m", "physavatar", "run", str(capture), str(out)]
                           + (["--quick"] if quick else [])
-                          + (["--eval-frames", str(eval_frames)] if eval_frames else []),
+                          + (["--eval-frames", str(eval_frames)] if eval_frames else [])
+                          + (["--random-draws", str(random_draws)] if random_draws else []),
                           env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=False)
-    info = {"wall_seconds": time.time() - t, "run": str(out), "quick": quick, "eval_frames": eval_frames}
+    info = {"wall_seconds": time.time() - t, "run": str(out), "quick": quick, "eval_frames": eval_frames,
+            "random_draws": random_draws}
     if proc.returncode == 0:
         return run_numbers(out) | info
     # a stage failed: its one-line error, and the tracking error when the tracking finished
@@ -168,20 +171,20 @@ def run_numbers(out: Path) -> dict:
 
 def compare_runs(preset: str, original: Path, prepared: Path, work: Path, results: dict, checks: dict,
                  quick: bool = True, original_run: Path | None = None, eval_frames: int | None = None,
-                 prepared_first: bool = False) -> None:
+                 prepared_first: bool = False, random_draws: int | None = None) -> None:
     """Run both captures (or take the original's numbers from ``original_run``, a run folder of the
     same settings) and check the prepared one's numbers against the original's."""
     if prepared_first:  # the run that may fail first (its stage's line is the news)
-        b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick, eval_frames)
+        b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick, eval_frames, random_draws)
     if original_run is not None:
         cfg = json.loads((original_run / "run.json").read_text()).get("_config", {})
         if bool(cfg.get("quick")) != quick:
             raise SystemExit(f"{original_run}: run with quick={cfg.get('quick')}, not comparable with quick={quick}")
         a = run_numbers(original_run) | {"run": str(original_run), "quick": quick}
     else:
-        a = run_pipeline(original, work / "runs" / preset / "original", quick, eval_frames)
+        a = run_pipeline(original, work / "runs" / preset / "original", quick, eval_frames, random_draws)
     if not prepared_first:
-        b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick, eval_frames)
+        b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick, eval_frames, random_draws)
     def ratio(key):  # None where the prepared run did not measure it (a stage failed)
         return b[key] / a[key] if key in b else None
 
@@ -279,6 +282,8 @@ def main() -> int:
                          "the ground truth cut to them, as benchmarks/prepare_tracking.py cuts them)")
     ap.add_argument("--eval-frames", type=int, default=None,
                     help="with --run: `run --eval-frames N` (the first N held-out frames) for both captures")
+    ap.add_argument("--random-draws", type=int, default=None,
+                    help="with --run: `run --random-draws N` (the random-material reference row's draws) for both")
     ap.add_argument("--prepared-first", action="store_true",
                     help="with --run: run the prepared capture before the original one")
     ap.add_argument("--cases", default="no_template,no_template_no_masks")
@@ -348,13 +353,15 @@ def main() -> int:
                                                   "pass": bool(r["body"]["mean_mm"] <= 15)}
             if args.run and case == "no_template":
                 compare_runs(preset, cap, dst, work, results, checks, quick=not args.full, original_run=args.original_run,
-                             eval_frames=args.eval_frames, prepared_first=args.prepared_first)
+                             eval_frames=args.eval_frames, prepared_first=args.prepared_first,
+                             random_draws=args.random_draws)
     if args.pose2sim is not None or args.pose2sim_prepared is not None:
         pose2sim_case(args.pose2sim, work, args.pose2sim_prepared, results, checks)
     result = {"benchmark": "prepare_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                           "load_average_start": list(load_start), "load_average_end": list(os.getloadavg())},
               "config": to_dict(PrepareConfig()), "body_fit": fit, "frames": args.frames, "eval_frames": args.eval_frames,
+              "random_draws": args.random_draws,
               "body_given": str(args.body_npz) if args.body_npz is not None else ("true" if not fit else None), "cases": results, "checks": checks}
     for k, c in checks.items():
         v = "not measured" if c["value"] is None else f"{c['value']:.4f}"
