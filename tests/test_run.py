@@ -145,9 +145,11 @@ def test_random_draws_reach_the_references(tiny_capture, tmp_path):
     from physavatar.pipeline import RunConfig, _odd_positive, plan
     from physavatar.stages.evaluate import RANDOM_DRAWS
 
-    def refs(cfg):
-        return next(s for s in plan(tiny_capture, tmp_path / "o", cfg) if s.name == "references").config
+    def cfg_of(cfg, name):
+        return next(s for s in plan(tiny_capture, tmp_path / "o", cfg) if s.name == name).config
 
-    assert refs(RunConfig()).random_draws == RANDOM_DRAWS
-    assert refs(RunConfig(random_draws=1)).random_draws == 1
+    assert cfg_of(RunConfig(), "references").random_draws == cfg_of(RunConfig(), "evaluate").random_draws == RANDOM_DRAWS
+    # reference-sims simulates them, evaluate reads them: both the same
+    assert cfg_of(RunConfig(random_draws=1), "references").random_draws == 1
+    assert cfg_of(RunConfig(random_draws=1), "evaluate").random_draws == 1
     assert _odd_positive(2) is not None and _odd_positive(3) is None

@@ -156,7 +156,8 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         if cfg.motion is None:  # the animate stage ran the held-out motion: reuse it
             inputs["sequence"] = ("step", "animate")
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run",
-                          evaluate.EvaluateConfig(frames=cfg.eval_frames), inputs, "metrics.json"))
+                          evaluate.EvaluateConfig(frames=cfg.eval_frames, random_draws=cfg.random_draws), inputs,
+                          "metrics.json"))
     elif _holds_out(capture, cfg.holdout):
         # Any capture: the cameras tracking held out are scored (the tracked meshes, textured and lit).
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run", evaluate.EvaluateConfig(),
