@@ -8,7 +8,7 @@ Two `physavatar run` folders (the original capture's and the prepared one's, as
 ``benchmarks/prepare_accuracy.py --run`` leaves them). Each avatar is held still in its frame-1
 pose for ``--frames`` frames with the true material (animate, no motion), and the drop of the
 garment's free part (vertices over 30 cm from a boundary vertex) is measured, for: the original
-garment; the same without its designed rest shape; the prepared garment; the prepared garment
+garment (and without its designed rest shape, when it has one); the prepared garment; the prepared garment
 with the true boundary (its vertices within 2 cm of the original's boundary points); the prepared
 garment on the true body. Plus the garments' open loops and their pieces above z = 1.2 m (the
 straps). Writes a JSON with ``checks`` (reported, no target).
@@ -94,9 +94,10 @@ def main() -> int:
     to, tp = orig().template, prep().template
     drops = {}
     drops["original"] = drop_mm(orig(), mat, args.frames)
-    av = orig()
-    av.template = Template(to.vertices, to.faces, to.labels, to.boundary, to.face_uvs, None)
-    drops["original, rest = frame-1 shape"] = drop_mm(av, mat, args.frames)
+    if to.rest is not None:  # a designed rest shape (the demo's has none: rest = frame 1, as a prepared one)
+        av = orig()
+        av.template = Template(to.vertices, to.faces, to.labels, to.boundary, to.face_uvs, None)
+        drops["original, rest = frame-1 shape"] = drop_mm(av, mat, args.frames)
     drops["prepared"] = drop_mm(prep(), mat, args.frames)
     av = prep()
     b = (tp.labels > 0) & boundary_from_points(tp.vertices, to.vertices[to.boundary], 0.02)
