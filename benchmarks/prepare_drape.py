@@ -80,6 +80,9 @@ def main() -> int:
     ap.add_argument("--prepared", type=Path, required=True, help="the prepared capture's run folder")
     ap.add_argument("--material", type=Path, required=True, help="the true material.json")
     ap.add_argument("--frames", type=int, default=25)
+    ap.add_argument("--also", type=Path, action="append", default=[],
+                    help="another prepared capture of the same body.npz (e.g. `prepare --labels` with the true "
+                         "template): its template on the prepared avatar, dropped and described too")
     ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_drape_demo_s30.json")
     args = ap.parse_args()
     from physavatar.capture import Template
@@ -115,13 +118,24 @@ def main() -> int:
                            np.r_[np.zeros(nb, np.int64), tp.labels[gp]], np.r_[np.zeros(nb, bool), tp.boundary[gp]],
                            None, None)
     drops["prepared garment on the true body"] = drop_mm(av, mat, args.frames)
+    shapes = {"original": garment_shape(to), "prepared": garment_shape(tp)}
+    from physavatar.capture import load_capture
+
+    for other in args.also:
+        t = load_capture(other).template
+        if not np.allclose(t.vertices[t.labels == 0], tp.vertices[tp.labels == 0]):
+            raise SystemExit(f"{other}: its body is not the prepared avatar's (give the same body.npz)")
+        av = prep()
+        av.template = t
+        drops[f"prepared, template of {other}"] = drop_mm(av, mat, args.frames)
+        shapes[str(other)] = garment_shape(t)
     for k, v in drops.items():
         print(f"{k:50s} free-part drop {v:7.1f} mm")
     result = {"benchmark": "prepare_drape", "date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(load0),
                           "load_average_end": list(os.getloadavg())},
               "original": str(args.original), "prepared": str(args.prepared), "frames": args.frames,
-              "free_part_drop_mm": drops, "garment": {"original": garment_shape(to), "prepared": garment_shape(tp)},
+              "free_part_drop_mm": drops, "garment": shapes,
               "checks": {f"drop/{k}": {"value": v, "target": "reported", "unit": "mm (mean z change, free part)",
                                        "pass": True} for k, v in drops.items()}}
     args.results.parent.mkdir(parents=True, exist_ok=True)
