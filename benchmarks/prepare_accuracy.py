@@ -102,6 +102,8 @@ def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
         "chosen": int(pt.boundary.sum()), "true": int(tpl.boundary.sum())}
     out["template"] = {"vertices": len(pt.vertices), "garment_vertices": int(pt.garment_mask.sum())}
     rep = json.loads((prepared / "prepare.json").read_text())
+    out["clear"] = rep["numbers"].get("clear")  # the 'clear' step's own report (session 30)
+    out["collider_crossings_frame0"] = collider_crossings(prep)
     out["seconds"] = rep["seconds"]
     out["steps"] = rep["steps"]
     if rep["steps"].get("body", "").startswith("fitted"):
@@ -115,16 +117,33 @@ def evaluate(original: Path, prepared: Path, masks_computed: bool) -> dict:
     return out
 
 
-def run_pipeline(capture: Path, out: Path, quick: bool = True) -> dict:
-    """``physavatar run [--quick]`` (a subprocess, resumed when ``out`` exists); the numbers compared."""
+def collider_crossings(cap) -> int:
+    """ipctk's crossing pairs between a capture's template garment and its body's collider in the
+    first frame's pose: what ``reference-sims``, ``animate`` and ``fit-physics`` start from."""
+    from physavatar.geometry import count_intersections, submesh
+    from physavatar.stages.prepare.posing import pose_body
+
+    t = cap.template
+    model, posed = pose_body(cap.body, [0], topology="collider")
+    ids, faces = submesh(t.faces, t.labels > 0)
+    return int(count_intersections(t.vertices[ids], faces, posed[0], model.faces))
+
+
+def run_pipeline(capture: Path, out: Path, quick: bool = True, eval_frames: int | None = None,
+                 random_draws: int | None = None) -> dict:
+    """``physavatar run [--quick] [--eval-frames N]`` (a subprocess, resumed when ``out`` exists);
+    the numbers compared."""
     import subprocess
 
     t = time.time()
     env = dict(os.environ, PYTHONPATH=str(HERE.parent / "src"))
     proc = subprocess.run([sys.executable, "-m", "physavatar", "run", str(capture), str(out)]
-                          + (["--quick"] if quick else []), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                          text=True, check=False)
-    info = {"wall_seconds": time.time() - t, "run": str(out), "quick": quick}
+                          + (["--quick"] if quick else [])
+                          + (["--eval-frames", str(eval_frames)] if eval_frames else [])
+                          + (["--random-draws", str(random_draws)] if random_draws else []),
+                          env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=False)
+    info = {"wall_seconds": time.time() - t, "run": str(out), "quick": quick, "eval_frames": eval_frames,
+            "random_draws": random_draws}
     if proc.returncode == 0:
         return run_numbers(out) | info
     # a stage failed: its one-line error, and the tracking error when the tracking finished
@@ -146,21 +165,26 @@ def run_numbers(out: Path) -> dict:
     return {"tracking_garment_mm": m["tracking"]["garment"]["mean_mm"],
             "tracking_body_mm": m["tracking"]["body"]["mean_mm"],
             "heldout_garment_chamfer_x1e3": m["rows"]["estimated material"]["garment"]["chamfer_x1e3"],
-            "heldout_garment_fscore_1cm": m["rows"]["estimated material"]["garment"]["fscore@1cm"]}
+            "heldout_garment_fscore_1cm": m["rows"]["estimated material"]["garment"]["fscore@1cm"],
+            "material": {k: v for k, v in m.items() if "material" in k and k != "rows"}}
 
 
 def compare_runs(preset: str, original: Path, prepared: Path, work: Path, results: dict, checks: dict,
-                 quick: bool = True, original_run: Path | None = None) -> None:
+                 quick: bool = True, original_run: Path | None = None, eval_frames: int | None = None,
+                 prepared_first: bool = False, random_draws: int | None = None) -> None:
     """Run both captures (or take the original's numbers from ``original_run``, a run folder of the
     same settings) and check the prepared one's numbers against the original's."""
+    if prepared_first:  # the run that may fail first (its stage's line is the news)
+        b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick, eval_frames, random_draws)
     if original_run is not None:
         cfg = json.loads((original_run / "run.json").read_text()).get("_config", {})
         if bool(cfg.get("quick")) != quick:
             raise SystemExit(f"{original_run}: run with quick={cfg.get('quick')}, not comparable with quick={quick}")
         a = run_numbers(original_run) | {"run": str(original_run), "quick": quick}
     else:
-        a = run_pipeline(original, work / "runs" / preset / "original", quick)
-    b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick)
+        a = run_pipeline(original, work / "runs" / preset / "original", quick, eval_frames, random_draws)
+    if not prepared_first:
+        b = run_pipeline(prepared, work / "runs" / preset / "prepared", quick, eval_frames, random_draws)
     def ratio(key):  # None where the prepared run did not measure it (a stage failed)
         return b[key] / a[key] if key in b else None
 
@@ -253,6 +277,15 @@ def main() -> int:
                     help="with --run: the original capture's existing run folder (same budgets) instead of running it")
     ap.add_argument("--resume", action="store_true",
                     help="with --work: keep a capture already prepared there, and resume its run (tracking resumes per frame)")
+    ap.add_argument("--frames", type=int, default=None,
+                    help="the demo preset: its first N frames only (an excerpt in --work, hard links; body.npz and "
+                         "the ground truth cut to them, as benchmarks/prepare_tracking.py cuts them)")
+    ap.add_argument("--eval-frames", type=int, default=None,
+                    help="with --run: `run --eval-frames N` (the first N held-out frames) for both captures")
+    ap.add_argument("--random-draws", type=int, default=None,
+                    help="with --run: `run --random-draws N` (the random-material reference row's draws) for both")
+    ap.add_argument("--prepared-first", action="store_true",
+                    help="with --run: run the prepared capture before the original one")
     ap.add_argument("--cases", default="no_template,no_template_no_masks")
     ap.add_argument("--pose2sim", type=Path, default=None,
                     help="also import + prepare the real Pose2Sim clip at this path (../shared/data/pose2sim); "
@@ -268,6 +301,13 @@ def main() -> int:
     results, checks = {}, {}
     for preset in [p for p in args.presets.split(",") if p and p != "none"]:
         cap = args.demo if preset == "demo" else work / preset
+        if preset == "demo" and args.frames:
+            from prepare_tracking import excerpt
+
+            if not (work / "excerpt" / "capture.json").is_file():
+                shutil.rmtree(work / "excerpt", ignore_errors=True)
+                excerpt(args.demo, work / "excerpt", args.frames)
+            cap = work / "excerpt"
         if not (cap / "capture.json").is_file():
             from physavatar.synth import PRESETS, synthesize
 
@@ -299,6 +339,9 @@ def main() -> int:
             checks[f"{name}/boundary_mean_m"] = {
                 "value": r["boundary"]["chosen_to_true_mean"], "target": "<= 0.02", "unit": "m (chosen to true)",
                 "pass": bool(r["boundary"]["chosen_to_true_mean"] <= 0.02)}
+            checks[f"{name}/collider_crossings_frame0"] = {
+                "value": r["collider_crossings_frame0"], "target": "0", "pass": r["collider_crossings_frame0"] == 0,
+                "unit": "ipctk crossing pairs, template garment vs the body's collider, first frame"}
             checks[f"{name}/mesh_mean_mm"] = {
                 "value": r["mesh"]["to_true_mean_mm"], "target": "<= 5", "unit": "mm (mesh to true surface)",
                 "pass": bool(r["mesh"]["to_true_mean_mm"] <= 5)}
@@ -309,13 +352,16 @@ def main() -> int:
                 checks[f"{name}/body_mean_mm"] = {"value": r["body"]["mean_mm"], "target": "<= 15", "unit": "mm",
                                                   "pass": bool(r["body"]["mean_mm"] <= 15)}
             if args.run and case == "no_template":
-                compare_runs(preset, cap, dst, work, results, checks, quick=not args.full, original_run=args.original_run)
+                compare_runs(preset, cap, dst, work, results, checks, quick=not args.full, original_run=args.original_run,
+                             eval_frames=args.eval_frames, prepared_first=args.prepared_first,
+                             random_draws=args.random_draws)
     if args.pose2sim is not None or args.pose2sim_prepared is not None:
         pose2sim_case(args.pose2sim, work, args.pose2sim_prepared, results, checks)
     result = {"benchmark": "prepare_accuracy", "date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                           "load_average_start": list(load_start), "load_average_end": list(os.getloadavg())},
-              "config": to_dict(PrepareConfig()), "body_fit": fit,
+              "config": to_dict(PrepareConfig()), "body_fit": fit, "frames": args.frames, "eval_frames": args.eval_frames,
+              "random_draws": args.random_draws,
               "body_given": str(args.body_npz) if args.body_npz is not None else ("true" if not fit else None), "cases": results, "checks": checks}
     for k, c in checks.items():
         v = "not measured" if c["value"] is None else f"{c['value']:.4f}"

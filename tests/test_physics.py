@@ -666,3 +666,35 @@ def test_lm_step_is_the_box_constrained_minimum_of_the_damped_model():
         assert model(new - theta) <= ref.fun * (1 + 1e-9) + 1e-9
         delta = new - theta
         assert np.isclose(predicted, res @ res - np.sum((res + J @ delta) ** 2))
+
+
+def test_proxy_start_is_freed_of_body_edges_through_its_chords():
+    """The proxy's chords over a convex body can cut it where no vertex is near it: a fine
+    half-cylinder 4 mm over a long 64-sided body cylinder (its vertices 50 cm away, at the
+    ends). A vertex-wise push (session 29's on_proxy) leaves those crossings; on_proxy's start
+    is intersection-free by ipctk's exact test (session 30: the prepared demo's proxy crossed the
+    collider in 6 pairs, and fit-physics stopped in equilibrium_rest)."""
+    import trimesh
+
+    from physavatar.garment.garment import push_out
+    from physavatar.geometry import count_intersections
+    from physavatar.stages.physics.proxy import PROXY_CLEARANCE, make_proxy, on_proxy
+
+    na, nz = 41, 31
+    T, Z = np.meshgrid(np.linspace(0, np.pi, na), np.linspace(-0.15, 0.15, nz), indexing="ij")
+    V = np.c_[0.1 * np.cos(T).ravel(), 0.1 * np.sin(T).ravel(), Z.ravel()]
+    idx = np.arange(na * nz).reshape(na, nz)
+    F = np.concatenate([np.c_[idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()],
+                        np.c_[idx[:-1, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()]])
+    body = trimesh.creation.cylinder(radius=0.096, height=1.0, sections=64)
+    B, BF = np.asarray(body.vertices), np.asarray(body.faces)
+    assert count_intersections(V, F, B, BF) == 0  # the fine garment is clear
+    d = PhysicsData(np.repeat(V[None], 3, 0), F, idx[0], collider=np.repeat(B[None], 3, 0), collider_faces=BF, rest=V)
+    p = make_proxy(d.rest, d.faces, d.boundary, 60)
+    q = on_proxy(d, p)
+    mapped = p.map(V)
+    vertexwise, _ = push_out(mapped, p.faces, [(B, BF)], PROXY_CLEARANCE)
+    assert count_intersections(vertexwise, p.faces, B, BF) > 0  # the case
+    assert count_intersections(q.initial, q.faces, B, BF) == 0
+    np.testing.assert_array_equal(q.initial[q.boundary], mapped[q.boundary])  # the attachment stays
+    np.testing.assert_allclose(q.rest - p.map(V), q.initial - mapped)  # the rest moves with the start

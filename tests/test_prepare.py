@@ -320,6 +320,15 @@ def test_prepared_tiny_round_trip(prepared_tiny, tiny_capture):
     assert d.max() < 1e-4, d.max()
     info = json.loads((prepared_tiny / "prepare.json").read_text())
     assert info["steps"]["masks"] == "given" and info["steps"]["body"] == "given"
+    # the garment starts clear of the body's collider in the first frame's pose, as the
+    # simulating stages need (ipctk's exact test; the 'clear' step, clear.py)
+    from physavatar.geometry import count_intersections, submesh
+    from physavatar.stages.prepare.posing import pose_body
+
+    model, posed = pose_body(cap.body, [0], topology="collider")
+    gidx, gfaces = submesh(t.faces, t.labels > 0)
+    assert count_intersections(t.vertices[gidx], gfaces, posed[0], model.faces) == 0
+    assert info["numbers"]["clear"]["crossing_pairs_after"] == 0 and "clear" in info["steps"]
 
 
 def test_boundary_override_from_points(prepared_tiny, tiny_capture, tmp_path):

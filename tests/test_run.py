@@ -137,3 +137,19 @@ def test_references_are_drawn_in_the_fits_model(tiny_capture, tmp_path, monkeypa
                                                                 contact_offset=0.002))
     cfg = refs(tmp_path / "b")
     assert (cfg.rest_shape, cfg.contact_offset) == ("equilibrium", 0.002)
+
+
+def test_random_draws_reach_the_references(tiny_capture, tmp_path):
+    """`run --random-draws N` sets the reference-sims step's draws (the default stays the
+    evaluation's RANDOM_DRAWS); an even count is refused by the option's check."""
+    from physavatar.pipeline import RunConfig, _odd_positive, plan
+    from physavatar.stages.evaluate import RANDOM_DRAWS
+
+    def cfg_of(cfg, name):
+        return next(s for s in plan(tiny_capture, tmp_path / "o", cfg) if s.name == name).config
+
+    assert cfg_of(RunConfig(), "references").random_draws == cfg_of(RunConfig(), "evaluate").random_draws == RANDOM_DRAWS
+    # reference-sims simulates them, evaluate reads them: both the same
+    assert cfg_of(RunConfig(random_draws=1), "references").random_draws == 1
+    assert cfg_of(RunConfig(random_draws=1), "evaluate").random_draws == 1
+    assert _odd_positive(2) is not None and _odd_positive(3) is None

@@ -66,6 +66,16 @@ def _positive(v):
     return None if v >= 1 else "must be at least 1"
 
 
+def _odd_positive(v):
+    return None if v >= 1 and v % 2 == 1 else "use an odd number of draws (the row is the median draw)"
+
+
+def evaluate_random_draws() -> int:
+    from .stages.evaluate import RANDOM_DRAWS
+
+    return RANDOM_DRAWS
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """``physavatar run``'s settings (saved in ``OUT/run.json``)."""
@@ -73,6 +83,8 @@ class RunConfig:
     quick: bool = option(False, "smaller budgets for every stage (tests, previews)")
     track_frames: int | None = option(None, "track only the first N frames", check=_positive)
     eval_frames: int | None = option(None, "animate / evaluate only the first N held-out frames", check=_positive)
+    random_draws: int = option(evaluate_random_draws(), "random materials the evaluation of a synthetic capture "
+                               "simulates (odd; the row is the median draw)", check=_odd_positive)
     motion: str | None = option(None, "motion to animate (built-in name, .bvh, .npz); default: the synthetic "
                                 "capture's held-out motion (then also evaluated), else 'dance'")
     holdout: tuple[str, ...] | None = option(None, "cameras held out of tracking and scored by evaluate, CAM,CAM "
@@ -129,7 +141,7 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         # ... and the rest shape its material will record (Material.rest_shape)
         fit_cfg = physics.pipeline_config(cfg.quick)
         refs_cfg = evaluate.ReferencesConfig(frames=cfg.eval_frames, contact_offset=fit_cfg.contact_offset,
-                                             rest_shape=fit_cfg.rest_shape)
+                                             rest_shape=fit_cfg.rest_shape, random_draws=cfg.random_draws)
         steps.insert(0, Step("references", "physavatar.stages.evaluate:run_references", refs_cfg, cap,
                              "references.json", background=True))
         inputs = cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track"),
@@ -144,7 +156,8 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         if cfg.motion is None:  # the animate stage ran the held-out motion: reuse it
             inputs["sequence"] = ("step", "animate")
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run",
-                          evaluate.EvaluateConfig(frames=cfg.eval_frames), inputs, "metrics.json"))
+                          evaluate.EvaluateConfig(frames=cfg.eval_frames, random_draws=cfg.random_draws), inputs,
+                          "metrics.json"))
     elif _holds_out(capture, cfg.holdout):
         # Any capture: the cameras tracking held out are scored (the tracked meshes, textured and lit).
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run", evaluate.EvaluateConfig(),

@@ -308,11 +308,15 @@ def on_proxy(data: PhysicsData, proxy) -> PhysicsData:
     if data.collider is not None and data.collider_faces is not None:
         # the proxy's flat triangles cut chords through the fine surface; over a convex body
         # part they can dip into it at rest (IPC needs an intersection-free start, and a
-        # trapped proxy cannot sag like the garment): push them out to PROXY_CLEARANCE
-        from ...garment.garment import push_out
+        # trapped proxy cannot sag like the garment): push them out to PROXY_CLEARANCE, and
+        # free the body edges through a proxy triangle whose corners are clear, which a
+        # vertex-wise push does not see (garment.push_clear; session 30: the prepared demo's
+        # proxy crossed the collider in 6 pairs and equilibrium_rest refused its start). The
+        # attachment stays where the fine one is; crossings left are refused downstream.
+        from ...garment.garment import push_clear
 
-        moved, _ = push_out(initial, proxy.faces, [(data.collider[0], data.collider_faces)], PROXY_CLEARANCE)
-        moved[b] = initial[b]  # the attachment stays where the fine one is
+        moved, _ = push_clear(initial, proxy.faces, data.collider[0], data.collider_faces, PROXY_CLEARANCE,
+                              fixed=b)
         offset = moved - initial
     return PhysicsData(
         reference=ref, faces=proxy.faces, boundary=b, collider=data.collider, collider_faces=data.collider_faces,

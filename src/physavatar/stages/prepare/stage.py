@@ -406,13 +406,24 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
         labs.append(np.full(len(Vg), g, np.int64))
         bflags.append(b)
         n += len(Vg)
-    Vt, Ft = np.concatenate(verts), np.concatenate(faces)
+    Vt, Ft, Lt, Bt = np.concatenate(verts), np.concatenate(faces), np.concatenate(labs), np.concatenate(bflags)
+    seconds["uv"] = time.time() - t
+
+    # -- the garment off the fitted body's collider, where the simulation starts (clear.py)
+    t = time.time()
+    from .clear import clear_of_collider, describe
+
+    Vt, numbers["clear"] = clear_of_collider(Vt, Ft, Lt, Bt, body, source=src)
+    steps["clear"] = describe(numbers["clear"])
+    seconds["clear"] = time.time() - t
+
+    t = time.time()
     uvs = atlas(Vt, Ft)
-    Template(Vt, Ft, np.concatenate(labs), np.concatenate(bflags), uvs).save(tmp / "template" / "mesh.ply")
+    Template(Vt, Ft, Lt, Bt, uvs).save(tmp / "template" / "mesh.ply")
     steps["uv"] = "xatlas"
     numbers["template"] = {"vertices": len(Vt), "faces": len(Ft), "garments": [int(p[0]) for p in pieces],
-                           "boundary": int(np.concatenate(bflags).sum())}
-    seconds["uv"] = time.time() - t
+                           "boundary": int(Bt.sum())}
+    seconds["uv"] += time.time() - t
 
 
 def _jsonable(x):
