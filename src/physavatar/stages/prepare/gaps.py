@@ -52,7 +52,9 @@ def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclud
     """(``mask`` [n] with each join's way added, band [n] bool: the ways and the third corners of
     their edges' faces, [{'gap': m, 'through_garment': m or inf, 'climb': m, 'vertices': k, 'way':
     vertex ids}] per join). Ways run over vertices outside ``mask`` and ``exclude`` (a hull's
-    bridges); see the module's docstring for which local tops are joined to what."""
+    bridges); see the module's docstring for which local tops are joined to what. Of local tops
+    within ``top_reach`` of each other through the garment (a strap's top two vertices wide) the
+    one with the shortest gap is joined."""
     V = np.asarray(vertices, np.float64)
     n = len(V)
     mask = np.asarray(mask, bool)
@@ -70,7 +72,12 @@ def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclud
     da, pred = dijkstra(_graph(E, w, across, n), indices=tops, limit=max_gap, return_predecessors=True)
     dg = dijkstra(_graph(E, w, inside, n), indices=tops, limit=ratio * max_gap)
     Fs = np.sort(np.asarray(faces), axis=1)
-    for i, u in enumerate(tops):
+    best = np.where(mask[None, :] & (dg > ratio * da) & (V[None, :, 2] - V[tops, 2][:, None] >= climb * da), da, np.inf)
+    joined: list[int] = []
+    for i in np.argsort(best.min(1)):  # the shortest first; a top beside a joined one is not joined again
+        u = tops[i]
+        if any(dg[i, t] <= top_reach for t in joined):
+            continue
         ok = mask & np.isfinite(da[i]) & (dg[i] > ratio * da[i]) & (V[:, 2] - V[u, 2] >= climb * da[i])
         ok[u] = False
         if not ok.any():
@@ -80,6 +87,7 @@ def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclud
         while way[-1] != u:
             way.append(int(pred[i, way[-1]]))
         way = np.asarray(way[::-1])
+        joined.append(u)
         out[way] = True
         band[way] = True
         for a, b in zip(way[:-1], way[1:]):  # the third corners of the faces on the way's edges

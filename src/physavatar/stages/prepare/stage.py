@@ -364,9 +364,10 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     contact_pieces = pieces
     if V_hull is not None:
         hp = garment_pieces(V_hull, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge,
-                            max_gap=cfg.segment.strap_gap)
+                            max_gap=cfg.segment.strap_gap, gap_vertices=V)
         if [(g, f.shape) for g, _, f in hp] == [(g, f.shape) for g, _, f in pieces]:
             contact_pieces = hp
+        numbers["contact_pieces_on_hull"] = contact_pieces is hp
     if not pieces:
         raise PhysavatarError(src, "the garment region of the first-frame mesh has no usable surface piece")
     from ...files import save_npz_atomic
