@@ -83,6 +83,9 @@ def main() -> int:
     ap.add_argument("--also", type=Path, action="append", default=[],
                     help="another prepared capture of the same body.npz (e.g. `prepare --labels` with the true "
                          "template): its template on the prepared avatar, dropped and described too")
+    ap.add_argument("--only-prepared", action="store_true",
+                    help="leave out the prepared avatar's variants (true boundary, true body): the original, the "
+                         "prepared and each --also")
     ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_drape_demo_s30.json")
     args = ap.parse_args()
     from physavatar.capture import Template
@@ -102,22 +105,23 @@ def main() -> int:
         av.template = Template(to.vertices, to.faces, to.labels, to.boundary, to.face_uvs, None)
         drops["original, rest = frame-1 shape"] = drop_mm(av, mat, args.frames)
     drops["prepared"] = drop_mm(prep(), mat, args.frames)
-    av = prep()
-    b = (tp.labels > 0) & boundary_from_points(tp.vertices, to.vertices[to.boundary], 0.02)
-    av.template = Template(tp.vertices, tp.faces, tp.labels, b, tp.face_uvs, tp.rest)
-    drops[f"prepared, true boundary ({int(b.sum())} vertices)"] = drop_mm(av, mat, args.frames)
-    # the prepared garment on the original avatar's (true) body
-    bo = to.labels == 0
-    nb = int(bo.sum())
-    gp = tp.labels > 0
-    remap = -np.ones(len(tp.vertices), np.int64)
-    remap[gp] = nb + np.arange(gp.sum())
-    av = orig()
-    av.template = Template(np.concatenate([to.vertices[bo], tp.vertices[gp]]),
-                           np.concatenate([to.faces[bo[to.faces].all(1)], remap[tp.faces[gp[tp.faces].all(1)]]]),
-                           np.r_[np.zeros(nb, np.int64), tp.labels[gp]], np.r_[np.zeros(nb, bool), tp.boundary[gp]],
-                           None, None)
-    drops["prepared garment on the true body"] = drop_mm(av, mat, args.frames)
+    if not args.only_prepared:
+        av = prep()
+        b = (tp.labels > 0) & boundary_from_points(tp.vertices, to.vertices[to.boundary], 0.02)
+        av.template = Template(tp.vertices, tp.faces, tp.labels, b, tp.face_uvs, tp.rest)
+        drops[f"prepared, true boundary ({int(b.sum())} vertices)"] = drop_mm(av, mat, args.frames)
+        # the prepared garment on the original avatar's (true) body
+        bo = to.labels == 0
+        nb = int(bo.sum())
+        gp = tp.labels > 0
+        remap = -np.ones(len(tp.vertices), np.int64)
+        remap[gp] = nb + np.arange(gp.sum())
+        av = orig()
+        av.template = Template(np.concatenate([to.vertices[bo], tp.vertices[gp]]),
+                               np.concatenate([to.faces[bo[to.faces].all(1)], remap[tp.faces[gp[tp.faces].all(1)]]]),
+                               np.r_[np.zeros(nb, np.int64), tp.labels[gp]], np.r_[np.zeros(nb, bool), tp.boundary[gp]],
+                               None, None)
+        drops["prepared garment on the true body"] = drop_mm(av, mat, args.frames)
     shapes = {"original": garment_shape(to), "prepared": garment_shape(tp)}
     from physavatar.capture import load_capture
 

@@ -118,6 +118,7 @@ class SegmentConfig:
     garments: int = option(1, "number of garments to separate by colour", flag="--garments",
                            check=lambda v: None if 1 <= v <= 15 else "must be 1..15")
     min_piece: float = setting(0.05)  # garment pieces smaller than this share of the garment are dropped
+    strap_gap: float = setting(0.25)  # [m] a garment's local top joins higher garment across at most this (gaps.py; 0: off)
 
 
 @dataclass(frozen=True)

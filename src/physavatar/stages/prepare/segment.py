@@ -410,14 +410,18 @@ def user_labels(path: Path, vertices: np.ndarray, source: tuple[np.ndarray, np.n
 
 def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, body_vertices: np.ndarray,
                    body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05,
-                   exclude: np.ndarray | None = None, cut_outline: bool = True) -> list[tuple[int, np.ndarray, np.ndarray]]:
+                   exclude: np.ndarray | None = None, cut_outline: bool = True, max_gap: float = 0.25,
+                   joins: list | None = None, gap_vertices: np.ndarray | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """[(label, vertices [n, 3], faces [m, 3])] one open surface per garment label: the faces
     at least two of whose corners carry it (a strap one or two vertices wide stays joined; a
     vertex of another label between two separate parts of it joins them, :func:`join_parts`) and
     none of which is in ``exclude`` [n] (a hull's bridges: cloth ends at its hem), without bow-tie
     vertices or small pieces, every vertex at least ``clearance`` outside the body (moved along
-    the body's normal when not)."""
+    the body's normal when not). A strap cut over the shoulder is joined again across the body
+    (at most ``max_gap`` long, 0: not; :func:`gaps.close_gaps`, on ``gap_vertices`` when given: the
+    same joins for the same mesh elsewhere), each join appended to ``joins``."""
     from ...capture import check_template_mesh
+    from .gaps import close_gaps
     from ...geometry.closest import MeshQuery
 
     q = MeshQuery(body_vertices, body_faces, spacing=0.02)
@@ -425,6 +429,12 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
     for g in sorted(set(labels.tolist()) - {LABEL_BODY}):
         lab_g = join_parts(labels == g, faces, exclude)
         keep = lab_g[faces].sum(1) >= 2
+        if max_gap > 0:
+            lab_g, band, info = close_gaps(lab_g, vertices if gap_vertices is None else gap_vertices, faces, exclude,
+                                           max_gap=max_gap)
+            keep = (lab_g[faces].sum(1) >= 2) | band[faces].all(1)
+            if joins is not None:
+                joins.extend({"garment": int(g), **{k: v for k, v in j.items() if k != "way"}} for j in info)
         if exclude is not None:
             keep &= ~exclude[faces].any(1)
         for _ in range(10):  # faces at a vertex joining separate fans go, until none is left

@@ -355,14 +355,19 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
                               "margin of the body): give --labels, or a smaller --garment-margin")
     # the garments are cut out without the hull's bridges: cloth ends at its hem
     cut = np.where(bridge, LABEL_BODY, labels) if bridge is not None else labels
-    pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge)
+    joins: list = []
+    pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge,
+                            max_gap=cfg.segment.strap_gap, joins=joins)
+    numbers["strap_joins"] = joins
     # the boundary's contact test is set for the hull too (the refined surface of a strap or a
     # bodice lies on the body all along): the same pieces at their hull positions
     contact_pieces = pieces
     if V_hull is not None:
-        hp = garment_pieces(V_hull, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge)
+        hp = garment_pieces(V_hull, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge,
+                            max_gap=cfg.segment.strap_gap, gap_vertices=V)
         if [(g, f.shape) for g, _, f in hp] == [(g, f.shape) for g, _, f in pieces]:
             contact_pieces = hp
+        numbers["contact_pieces_on_hull"] = contact_pieces is hp
     if not pieces:
         raise PhysavatarError(src, "the garment region of the first-frame mesh has no usable surface piece")
     from ...files import save_npz_atomic

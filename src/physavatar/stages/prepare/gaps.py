@@ -1,0 +1,100 @@
+"""Cut straps joined again (session 30): a strap that lies on the skin over the shoulder is one
+vertex wide at the prepared mesh's edge length, and a segmentation (or the true labels moved onto
+the reconstructed surface) that labels a few of its vertices body cuts it, so the back of a dress
+hangs from nothing. Such a cut leaves a garment part whose top ends in the open: a vertex with no
+garment above it within ``top_reach`` through the garment (a local top). :func:`close_gaps` joins
+each local top to the nearest garment vertex across the body (the shortest way over vertices
+outside the garment, at most ``max_gap`` long) that lies higher (the way climbs at least ``climb``
+of its length) and is far through the garment (over ``ratio`` times the gap, or not reached): the
+cut strap's other end. The join is a band about one edge wide (the way's vertices and the third
+corners of its edges' faces, whose faces the cut keeps). Not specific to a garment: a hem, a hole
+in the cloth (its way round about 1.6 times across) or a neckline's side (no climb to a garment
+above it) is left as it is; z is up, as everywhere in the project."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+
+from ...geometry.mesh import mesh_edges
+
+
+def _graph(E: np.ndarray, w: np.ndarray, sel: np.ndarray, n: int) -> sp.csr_matrix:
+    e, ww = E[sel], w[sel]
+    return sp.coo_matrix((np.r_[ww, ww], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+
+
+def local_tops(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, reach: float) -> np.ndarray:
+    """[k] the garment vertices (``mask``) with no garment vertex higher within ``reach`` through
+    the garment and a garment neighbour (not a stray vertex)."""
+    V = np.asarray(vertices, np.float64)
+    E = mesh_edges(faces)
+    inside = mask[E[:, 0]] & mask[E[:, 1]]
+    deg = np.bincount(E[inside].ravel(), minlength=len(V))
+    # a top is higher than every garment neighbour: the candidates, then their reach
+    higher = np.zeros(len(V), bool)
+    e = E[inside]
+    higher[e[V[e[:, 1], 2] > V[e[:, 0], 2], 0]] = True
+    higher[e[V[e[:, 0], 2] > V[e[:, 1], 2], 1]] = True
+    cand = np.flatnonzero(mask & ~higher & (deg >= 1))
+    if not len(cand):
+        return cand
+    w = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    d = dijkstra(_graph(E, w, inside, len(V)), indices=cand, limit=reach)
+    zmax = np.where(np.isfinite(d), V[:, 2][None, :], -np.inf).max(1)
+    return cand[zmax <= V[cand, 2]]
+
+
+def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclude: np.ndarray | None = None,
+               max_gap: float = 0.25, ratio: float = 2.0, climb: float = 0.3,
+               top_reach: float = 0.1) -> tuple[np.ndarray, np.ndarray, list]:
+    """(``mask`` [n] with each join's way added, band [n] bool: the ways and the third corners of
+    their edges' faces, [{'gap': m, 'through_garment': m or inf, 'climb': m, 'vertices': k, 'way':
+    vertex ids}] per join). Ways run over vertices outside ``mask`` and ``exclude`` (a hull's
+    bridges); see the module's docstring for which local tops are joined to what. Of local tops
+    within ``top_reach`` of each other through the garment (a strap's top two vertices wide) the
+    one with the shortest gap is joined."""
+    V = np.asarray(vertices, np.float64)
+    n = len(V)
+    mask = np.asarray(mask, bool)
+    out, band = mask.copy(), np.zeros(n, bool)
+    allowed = np.ones(n, bool) if exclude is None else ~np.asarray(exclude, bool)
+    E = mesh_edges(faces)
+    w = np.linalg.norm(V[E[:, 0]] - V[E[:, 1]], axis=1)
+    inside = mask[E[:, 0]] & mask[E[:, 1]]
+    across = ~inside & allowed[E[:, 0]] & allowed[E[:, 1]]
+    tops = local_tops(mask, V, faces, top_reach)
+    tops = tops[allowed[tops]]
+    info = []
+    if not len(tops):
+        return out, band, info
+    da, pred = dijkstra(_graph(E, w, across, n), indices=tops, limit=max_gap, return_predecessors=True)
+    dg = dijkstra(_graph(E, w, inside, n), indices=tops, limit=ratio * max_gap)
+    Fs = np.sort(np.asarray(faces), axis=1)
+    best = np.where(mask[None, :] & (dg > ratio * da) & (V[None, :, 2] - V[tops, 2][:, None] >= climb * da), da, np.inf)
+    joined: list[int] = []
+    for i in np.argsort(best.min(1)):  # the shortest first; a top beside a joined one is not joined again
+        u = tops[i]
+        if any(dg[i, t] <= top_reach for t in joined):
+            continue
+        ok = mask & np.isfinite(da[i]) & (dg[i] > ratio * da[i]) & (V[:, 2] - V[u, 2] >= climb * da[i])
+        ok[u] = False
+        if not ok.any():
+            continue
+        v = int(np.argmin(np.where(ok, da[i], np.inf)))
+        way = [v]
+        while way[-1] != u:
+            way.append(int(pred[i, way[-1]]))
+        way = np.asarray(way[::-1])
+        joined.append(u)
+        out[way] = True
+        band[way] = True
+        for a, b in zip(way[:-1], way[1:]):  # the third corners of the faces on the way's edges
+            e0, e1 = min(a, b), max(a, b)
+            on = ((Fs[:, 0] == e0) & ((Fs[:, 1] == e1) | (Fs[:, 2] == e1))) | ((Fs[:, 1] == e0) & (Fs[:, 2] == e1))
+            band[Fs[on].ravel()] = True
+        info.append({"gap": round(float(da[i, v]), 4), "through_garment": float(dg[i, v]),
+                     "climb": round(float(V[v, 2] - V[u, 2]), 4), "vertices": int(len(way)), "way": way.tolist()})
+    band &= allowed
+    return out, band, info

@@ -1,0 +1,81 @@
+"""A strap cut across by the labels is joined again (stages/prepare/gaps.py, session 30)."""
+
+import numpy as np
+import trimesh
+from scipy.sparse.csgraph import connected_components
+
+from physavatar.geometry.mesh import adjacency
+from physavatar.stages.prepare.gaps import close_gaps
+from physavatar.stages.prepare.segment import garment_pieces
+
+
+def _wall(n: int = 31, h: float = 0.02):
+    """A vertical grid (x across, z up) of 2-cm edges, x -0.3 .. 0.3, z 0 .. 0.6."""
+    i, j = np.divmod(np.arange(n * n), n)
+    V = np.stack([(j - n // 2) * h, np.zeros(n * n), i * h], 1)
+    q = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    F = np.concatenate([np.stack([q, q + 1, q + n + 1], 1), np.stack([q, q + n + 1, q + n], 1)])
+    return V, F
+
+
+def _ring(V):
+    """A panel (z <= 0.1) and a strap two vertices wide going up at x = -0.12 .. -0.1, over at
+    z = 0.5 .. 0.52 and down at x = 0.1 .. 0.12 (a dress's strap over the shoulder, flattened)."""
+    x, z = V[:, 0].round(3), V[:, 2].round(3)
+    panel = z <= 0.1
+    up = ((np.abs(x + 0.11) < 0.015) | (np.abs(x - 0.11) < 0.015)) & (z <= 0.52)
+    over = (np.abs(z - 0.51) < 0.015) & (x >= -0.12) & (x <= 0.12)
+    return panel | up | over
+
+
+def _loops(F):
+    m = trimesh.Trimesh(faces=F, process=False)
+    e = m.edges_sorted
+    uniq, counts = np.unique(e, axis=0, return_counts=True)
+    b = uniq[counts == 1]
+    ids, inv = np.unique(b, return_inverse=True)
+    A = adjacency(np.c_[inv.reshape(-1, 2), inv.reshape(-1, 2)[:, :1]], len(ids))
+    return connected_components(A, directed=False)[0]
+
+
+def test_a_strap_cut_over_the_top_is_one_garment_piece_again():
+    """The strap's back (x = 0.1 .. 0.12) labelled body from z 0.38 to 0.48 (its top kept):
+    without the join the garment is one piece with one open loop (the ring's window is open to the
+    cut) and the cut's faces are missing; with it, the back's top (a local top, z = 0.36) joins the
+    strap above across the 6-vertex cut, the only join: the window is a loop of its own again (2
+    loops, as uncut) and faces run along x = 0.1 up the cut. The panel's flat top beside the window
+    and the strap's top are left as they are."""
+    V, F = _wall()
+    whole = _ring(V)
+    x, z = V[:, 0].round(3), V[:, 2].round(3)
+    cut = whole & ~((x > 0.09) & (z > 0.37) & (z < 0.49))
+    body = trimesh.creation.icosphere(2, radius=0.1)
+    BV, BF = body.vertices - [0, 0, 2.0], np.asarray(body.faces)
+
+    (_, V0, F0), = garment_pieces(V, F, whole.astype(np.int64), BV, BF, max_gap=0)
+    assert _loops(F0) == 2  # the uncut ring: outline and window
+    (_, Vc, Fc), = garment_pieces(V, F, cut.astype(np.int64), BV, BF, max_gap=0)
+    assert _loops(Fc) == 1
+    assert not ((np.abs(Vc[Fc].mean(1)[:, 0] - 0.11) < 0.02) & (np.abs(Vc[Fc].mean(1)[:, 2] - 0.43) < 0.03)).any()
+
+    joins = []
+    (_, Vj, Fj), = garment_pieces(V, F, cut.astype(np.int64), BV, BF, joins=joins)
+    assert len(joins) == 1, joins
+    assert np.isclose(joins[0]["climb"], 0.5 - 0.36, atol=0.021) and joins[0]["gap"] < 0.2
+    assert _loops(Fj) == 2
+    c = Vj[Fj].mean(1)
+    for zc in np.arange(0.38, 0.49, 0.02):  # faces along the cut, within an edge of the strap's line
+        assert ((np.abs(c[:, 0] - 0.11) < 0.03) & (np.abs(c[:, 2] - zc) < 0.015)).any(), zc
+    assert np.abs(Vj[:, 0]).max() <= 0.3 + 1e-9
+
+
+def test_a_hole_and_a_level_gap_are_not_joined():
+    """close_gaps joins only a local top to garment above it, far through the garment: a panel
+    with a hole (its rim's top is below more garment, but near through it) and two strips side by
+    side at the same height (no climb) stay as they are."""
+    V, F = _wall()
+    x, z = V[:, 0].round(3), V[:, 2].round(3)
+    panel = (z <= 0.3) & ~((np.abs(x) <= 0.06) & (z >= 0.1) & (z <= 0.2))
+    strips = (np.isclose(x, -0.2) | np.isclose(x, -0.12)) & (z > 0.3) & (z <= 0.5)
+    out, band, info = close_gaps(panel | strips, V, F)
+    assert info == [] and not band.any() and np.array_equal(out, panel | strips)
