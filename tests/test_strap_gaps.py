@@ -1,5 +1,7 @@
 """A strap cut across by the labels is joined again (stages/prepare/gaps.py, session 30)."""
 
+import json
+
 import numpy as np
 import trimesh
 from scipy.sparse.csgraph import connected_components
@@ -62,6 +64,7 @@ def test_a_strap_cut_over_the_top_is_one_garment_piece_again():
     (_, Vj, Fj), = garment_pieces(V, F, cut.astype(np.int64), BV, BF, joins=joins)
     assert len(joins) == 1, joins
     assert np.isclose(joins[0]["climb"], 0.5 - 0.36, atol=0.021) and joins[0]["gap"] < 0.2
+    json.dumps(joins, allow_nan=False)  # prepare.json takes it as it is: strict JSON, no inf
     assert _loops(Fj) == 2
     c = Vj[Fj].mean(1)
     for zc in np.arange(0.38, 0.49, 0.02):  # faces along the cut, within an edge of the strap's line

@@ -50,7 +50,8 @@ def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclud
                max_gap: float = 0.25, ratio: float = 2.0, climb: float = 0.3,
                top_reach: float = 0.1) -> tuple[np.ndarray, np.ndarray, list]:
     """(``mask`` [n] with each join's way added, band [n] bool: the ways and the third corners of
-    their edges' faces, [{'gap': m, 'through_garment': m or inf, 'climb': m, 'vertices': k, 'way':
+    their edges' faces, [{'gap': m, 'through_garment': m, or None where the garment does not
+    reach it within ``ratio`` × ``max_gap``, 'climb': m, 'vertices': k, 'way':
     vertex ids}] per join). Ways run over vertices outside ``mask`` and ``exclude`` (a hull's
     bridges); see the module's docstring for which local tops are joined to what. Of local tops
     within ``top_reach`` of each other through the garment (a strap's top two vertices wide) the
@@ -94,7 +95,8 @@ def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclud
             e0, e1 = min(a, b), max(a, b)
             on = ((Fs[:, 0] == e0) & ((Fs[:, 1] == e1) | (Fs[:, 2] == e1))) | ((Fs[:, 1] == e0) & (Fs[:, 2] == e1))
             band[Fs[on].ravel()] = True
-        info.append({"gap": round(float(da[i, v]), 4), "through_garment": float(dg[i, v]),
+        through = round(float(dg[i, v]), 4) if np.isfinite(dg[i, v]) else None  # JSON has no inf
+        info.append({"gap": round(float(da[i, v]), 4), "through_garment": through,
                      "climb": round(float(V[v, 2] - V[u, 2]), 4), "vertices": int(len(way)), "way": way.tolist()})
     band &= allowed
     return out, band, info
