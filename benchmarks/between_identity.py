@@ -58,7 +58,8 @@ def run(scene_file: str, mode: str, out: str):
     X = simulate_on_body(part, z["bodies"], z["body_faces"], preset(str(z["material"])), fps,
                          settings=SimSettings(dt=1.0 / fps, self_contact=True),
                          on_frame=lambda c, r: reports.append(r), **options)
-    np.savez(out, X=X, substeps=np.array([r["substeps"] for r in reports]))
+    np.savez(out, X=X, substeps=np.array([r["substeps"] for r in reports]),
+             newton=np.array([r["newton_iterations"] for r in reports]), lagged=np.array([r["lagged"] for r in reports]))
 
 
 def main():
@@ -83,7 +84,7 @@ def main():
     load0 = os.getloadavg()
     runs = {"new": [("linear-1", None), ("skinned-1", None), ("linear-16", None), ("skinned-16", None)],
             "baseline": [("linear-1", None), ("linear-16", None)]}
-    out = {}
+    out, summary = {}, {}
     with tempfile.TemporaryDirectory(prefix="between-") as tmp:
         scene = str(Path(tmp) / "scene.npz")
         np.savez(scene, **arrays, fps=fps, material=material, shape=body.shape.as_array(), topology=body.topology,
@@ -96,6 +97,9 @@ def main():
                                env=os.environ | {"PYTHONPATH": str(src)})
                 z = np.load(f)
                 out[f"{code}:{mode}"] = (z["X"], z["substeps"])
+                summary[f"{code}:{mode}"] = {"frames_split": [i + 1 for i, n in enumerate(z["substeps"]) if n > 1],
+                                             "steps": int(z["substeps"].sum()), "newton_iterations": int(z["newton"].sum()),
+                                             "frames_with_lag": [i + 1 for i, g in enumerate(z["lagged"]) if g]}
                 print(f"{code:8s} {mode:10s} frames split: {[i + 1 for i, n in enumerate(z['substeps']) if n > 1]}",
                       flush=True)
     same = lambda a, b: bool(np.array_equal(out[a][0], out[b][0], equal_nan=True))  # noqa: E731
@@ -116,7 +120,7 @@ def main():
                           [round(v, 2) for v in load0], "load_average_1_5_15min_end": [round(v, 2) for v in os.getloadavg()]},
               "scene": {"garment_vertices": len(arrays["vertices"]), "frames": args.frames, "fps": fps},
               "frames_split_with_max_substeps_16": split16,
-              "max_difference_skinned_16_vs_linear_16_m": diff, "checks": checks}
+              "max_difference_skinned_16_vs_linear_16_m": diff, "runs": summary, "checks": checks}
     Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(checks, indent=1))
 
