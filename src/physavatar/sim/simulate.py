@@ -245,7 +245,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             boundary vertices (``boundary_indices`` order) carried by a body (an attachment,
             garment.attachment_positions): the in-between targets are its ride on the in-between
             bodies plus the linear blend of the targets' differences from its ride at the frames.
-            None: targets interpolated linearly.
+            None (or ``boundary_targets`` None): targets interpolated linearly.
 
     Returns:
         [T, N, 3] garment positions per frame (frame 0 = initial state; with ``resume``, the
@@ -276,6 +276,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             return np.asarray(boundary_targets(frame, bodies[frame]))[order]
         return np.asarray(boundary_targets[frame])[order]
 
+    ride = boundary_ride if boundary_targets is not None else None  # targets that stay put do not ride
     out = np.full((T,) + x.shape, np.nan)
     # the contact scene's rest positions are the body where it is built: ipctk's edge-edge
     # mollifier thresholds come from them, so a resumed run builds it at frame 0 too, as an
@@ -313,7 +314,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 sim.stall_exit = not last
                 sim.crease_on = crease
                 path = None if collider_between is None or n == 1 else between_bodies(
-                    collider_between, f, n, bodies[f - 1], bodies[f], boundary_ride, tb0, tb1, order)
+                    collider_between, f, n, bodies[f - 1], bodies[f], ride, tb0, tb1, order)
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
                                            stop_on_lag=not last, path=path)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
