@@ -101,3 +101,21 @@ def test_poses_must_match_the_body(body):
         PoseBetween(body, np.zeros((2, 3, 3)), np.zeros((2, 3)))
     with pytest.raises(IndexError):
         PoseBetween(body, *body.rest_pose(2))(0, [0.5])
+
+
+def test_simulate_poses_the_in_betweens_from_the_motion_it_simulates(body, tmp_path):
+    """`simulate --motion` (stages.simulate._on_motion) hands the simulator the poses of its
+    collider sequence, warm-up transition included: s = 0 and 1 of every frame are its frames."""
+    from physavatar.body import Motion, builtin_motion
+    from physavatar.data.material import resolve_material
+    from physavatar.sim import SimSettings
+    from physavatar.stages import simulate as stage
+
+    twist = builtin_motion("twist", body.bone_names, 25.0, 1.0)
+    Motion("clip", 25.0, twist.bone_names, twist.rotations[12:16], twist.root_translation[12:16]).save(tmp_path / "c.npz")
+    cfg = stage.SimulateConfig(warmup=0.2, edge_length=0.05, preview=False)
+    _, bodies, _, n_warm, *_, between = stage._on_motion("skirt", str(tmp_path / "c.npz"), 25.0, cfg,
+                                                         resolve_material("cotton"), SimSettings(), None)
+    assert n_warm == 5 and len(between) == len(bodies) == 9
+    for f in range(1, len(bodies)):
+        np.testing.assert_allclose(between(f, [0.0, 1.0]), bodies[f - 1:f + 1], atol=1e-12)
