@@ -266,9 +266,9 @@ def main():
     ap.add_argument("--knee-collapse", action="store_true",
                     help="the CMU clips also corrected by body.clearance.knee_collapse_rules (the knee opened where "
                          "calf and thigh pass through each other; opt-in, docs/simulation.md \"Session 29\")")
-    ap.add_argument("--skinned-between", action=argparse.BooleanOptionalAction, default=True,
-                    help="a frame split into sub-steps poses the body in between from the motion (body.between), as "
-                         "`simulate` does by default; --no-skinned-between: vertex by vertex (before session 30)")
+    ap.add_argument("--skinned-between", action=argparse.BooleanOptionalAction, default=False,
+                    help="a frame split into sub-steps poses the body in between from the motion (body.between, "
+                         "`simulate --skinned-between`); default: vertex by vertex, as `simulate` does by default")
     ap.add_argument("--partial", action="store_true",
                     help="check the frames written so far by the (interrupted or running) runs in --work, simulate nothing")
     args = ap.parse_args()
