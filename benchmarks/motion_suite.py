@@ -14,6 +14,8 @@ the garment alone, seams left out as ``simulate`` does), NaN.
 By default a quick run (a few minutes on 2 cores): a 4-cm dress, 1-s excerpts (the CMU clips'
 hops and strides), a 0.4-s warm-up. ``--full``: the 2-cm dress, the clips whole, 4 s of each
 built-in motion, a 1-s warm-up. ``--max-substeps 1`` runs the old fixed one step per frame.
+``--skinned-between``: frames split into sub-steps pose the body in between from the motion
+(body.between, ``simulate --skinned-between``; session 30), instead of vertex by vertex.
 
     python benchmarks/motion_suite.py [--full] [--only NAME ...] [--max-substeps N] [--out FILE]
     python benchmarks/motion_suite.py --full --partial --only cmu-walk --work DIR   # a run not finished: its frames so far

@@ -119,3 +119,10 @@ def test_simulate_poses_the_in_betweens_from_the_motion_it_simulates(body, tmp_p
     assert n_warm == 5 and len(between) == len(bodies) == 9
     for f in range(1, len(bodies)):
         np.testing.assert_allclose(between(f, [0.0, 1.0]), bodies[f - 1:f + 1], atol=1e-12)
+
+
+def test_the_skinned_in_betweens_are_opt_in():
+    from physavatar.stages.animate import AnimateConfig
+    from physavatar.stages.simulate import SimulateConfig
+
+    assert not SimulateConfig().skinned_between and not AnimateConfig().skinned_between
