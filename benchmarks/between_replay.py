@@ -4,7 +4,8 @@ vertices, closest distance, the largest body move in the step): how session 30 t
 CMU walk's simulated frame 27 on the skinned in-between path (docs/simulation.md "Session 30").
 
     python benchmarks/motion_suite.py --only cmu-walk --work W --skinned-between --edge 0.02   # caches W/cmu-walk-parts.npz
-    python benchmarks/between_replay.py W/cmu-walk-parts.npz skinned 27 27 OUT   # or: linear
+    python benchmarks/between_replay.py W/cmu-walk-parts.npz skinned 27 27 OUT   # or: linear, skinned-noride
+``skinned-noride``: the body skinned in between, the attached targets on the straight line.
 """
 
 import json
@@ -38,6 +39,8 @@ def main():
     simulate0 = G.simulate
 
     def simulate(*a, on_frame=None, **kw):
+        if mode == "skinned-noride":
+            kw.pop("boundary_ride", None)
         def each(ck, r):
             if on_frame:
                 on_frame(ck, r)
@@ -51,7 +54,7 @@ def main():
 
     S.ClothSim.step, G.simulate = step, simulate
     cfg = stage.SimulateConfig(edge_length=0.02, duration=1.0, warmup=0.4, preview=False,
-                               skinned_between=mode == "skinned")
+                               skinned_between=mode.startswith("skinned"))
     stage.run(out=out, config=cfg, garment="dress", motion=motion)
 
 
