@@ -4,8 +4,8 @@ motion_suite runs side by side, and how far the straight in-between strays from 
 Reads the result files and work folders of two ``benchmarks/motion_suite.py`` runs of the same
 motions (``--before``: the old code or ``--no-skinned-between``; ``--after``: this tree's
 default) and writes per motion: frames, frames with lag, body and self intersection, NaN,
-s/frame, mean and max sub-steps, Newton iterations (every simulated frame's, warm-up included,
-from the run's config.json), and whether the written frames are bit-identical. Also per motion,
+s/frame, mean and max sub-steps, Newton iterations and steps (summed over the written frames'
+reports, the run's config.json ``per_frame``), and whether the written frames are bit-identical. Also per motion,
 from its poses (the motion's frames, no warm-up; Anny's collider): the largest distance between
 the straight in-between and the skinned one half-way through a frame, over the body and over
 the frames (``chord_error_mm``: max and 95th percentile over frames of the per-frame max).
