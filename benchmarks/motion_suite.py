@@ -14,6 +14,8 @@ the garment alone, seams left out as ``simulate`` does), NaN.
 By default a quick run (a few minutes on 2 cores): a 4-cm dress, 1-s excerpts (the CMU clips'
 hops and strides), a 0.4-s warm-up. ``--full``: the 2-cm dress, the clips whole, 4 s of each
 built-in motion, a 1-s warm-up. ``--max-substeps 1`` runs the old fixed one step per frame.
+``--skinned-between``: frames split into sub-steps pose the body in between from the motion
+(body.between, ``simulate --skinned-between``; session 30), instead of vertex by vertex.
 
     python benchmarks/motion_suite.py [--full] [--only NAME ...] [--max-substeps N] [--out FILE]
     python benchmarks/motion_suite.py --full --partial --only cmu-walk --work DIR   # a run not finished: its frames so far
@@ -266,6 +268,9 @@ def main():
     ap.add_argument("--knee-collapse", action="store_true",
                     help="the CMU clips also corrected by body.clearance.knee_collapse_rules (the knee opened where "
                          "calf and thigh pass through each other; opt-in, docs/simulation.md \"Session 29\")")
+    ap.add_argument("--skinned-between", action=argparse.BooleanOptionalAction, default=False,
+                    help="a frame split into sub-steps poses the body in between from the motion (body.between, "
+                         "`simulate --skinned-between`); default: vertex by vertex, as `simulate` does by default")
     ap.add_argument("--partial", action="store_true",
                     help="check the frames written so far by the (interrupted or running) runs in --work, simulate nothing")
     args = ap.parse_args()
@@ -339,7 +344,7 @@ def main():
     for name, (garment, over, spec) in cases.items():
         cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
                                             max_substeps=args.max_substeps, self_contact=not args.no_self_contact,
-                                            over=over)
+                                            over=over, skinned_between=args.skinned_between)
         done = work / name / "config.json"
         t0 = time.perf_counter()
         reused = args.reuse and done.exists()
@@ -365,6 +370,7 @@ def main():
                "reused": bool(reused),
                "resumed_after_frame": rec.get("resumed_after_frame"),
                "mean_substeps": float(np.mean(steps)) if steps else 1.0, "max_substeps": int(max(steps, default=1)),
+               "newton_iterations": int(sum(rec["per_frame"]["newton_iterations"])),
                "max_lag_m": float(max(rec["per_frame"]["lag_m"], default=0.0))}
         rows[name] = row
         print(f"{name:15s} {frames:6d} {len(row['frames_with_lag']):4d} {len(body_x):6d} {len(self_x):6d} "
@@ -384,7 +390,8 @@ def partial_row(run: Path, garment, over, spec, edge, duration, warmup, args) ->
     from physavatar.sim.contact import ContactScene
 
     cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
-                                        max_substeps=args.max_substeps, self_contact=not args.no_self_contact, over=over)
+                                        max_substeps=args.max_substeps, self_contact=not args.no_self_contact, over=over,
+                                        skinned_between=args.skinned_between)
     mat = resolve_material(cfg.material, option="--material")
     part, bodies, bf, n_warm, *_ = simulate_stage._on_motion(garment, spec, 25.0, cfg, mat, SimSettings(), None)
     folder = run / "frames"
@@ -425,7 +432,8 @@ def target_row(garment, over, spec, edge, duration, warmup, args) -> dict:
     from physavatar.stages.garment_file import repaired_start
 
     cfg = simulate_stage.SimulateConfig(edge_length=edge, duration=duration, warmup=warmup, preview=False,
-                                        max_substeps=args.max_substeps, self_contact=not args.no_self_contact, over=over)
+                                        max_substeps=args.max_substeps, self_contact=not args.no_self_contact, over=over,
+                                        skinned_between=args.skinned_between)
     mat, ss = resolve_material(cfg.material, option="--material"), SimSettings()
     part, bodies, bf, n_warm, *_ = simulate_stage._on_motion(garment, spec, 25.0, cfg, mat, ss, None)
     part, _ = repaired_start(part, bodies[0], bf, ss.dhat, cfg.repair_limit, garment)
@@ -482,6 +490,7 @@ def _write(args, rows, load0, edge, duration, warmup, fps):
         "config": {"garment": "dress (layered cases: their rows' garment)", "edge_length": edge, "material": "cotton", "fps": fps, "full": args.full,
                    "duration_s": duration, "warmup_s": warmup, "max_substeps": args.max_substeps,
                    "self_contact": not args.no_self_contact, "part_clearance": args.part_clearance, "knee_collapse": args.knee_collapse,
+                   "skinned_between": args.skinned_between,
                    "clip_excerpts": None if args.full else {k: [s, s + int(round(duration * fps))]
                                                             for k, (_, s) in CLIPS.items()}},
         "figures": rows,

@@ -258,8 +258,8 @@ def test_a_frame_whose_body_catches_up_before_its_end_is_not_stuck(ends_short, m
     V, F, seq, BF, pins = rising_sphere(frames=4)
     real, calls = S._frame, []
 
-    def frame(sim, x, v, b0, b1, faces, tb0, tb1, n, fps, stop_on_lag=False):
-        x, v, stats = real(sim, x, v, b0, b1, faces, tb0, tb1, n, fps, stop_on_lag)
+    def frame(sim, x, v, b0, b1, faces, tb0, tb1, n, fps, stop_on_lag=False, **kw):
+        x, v, stats = real(sim, x, v, b0, b1, faces, tb0, tb1, n, fps, stop_on_lag, **kw)
         f = next(i for i in range(len(seq)) if np.array_equal(seq[i], b1))
         calls.append((f, n))
         if f == 1:

@@ -9,6 +9,7 @@ Used by synthetic captures (ground-truth garment motion), ``physavatar simulate`
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -208,23 +209,29 @@ def split_template(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
 
 def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: np.ndarray, material: Material,
                      fps: float, settings: SimSettings | None = None, substeps: int = 1, progress: bool = False,
-                     callback=None, rest_report: dict | None = None, **options) -> np.ndarray:
+                     callback=None, rest_report: dict | None = None, between=None, **options) -> np.ndarray:
     """Simulate ``part`` on a body sequence [T, Nb, 3] starting at rest; returns [T, N, 3].
 
     Frame 0 of the body must be the pose the garment starts on (``part.vertices``; its rest
     shape is ``part.rest_shape``, or with a material whose ``rest_shape`` is "equilibrium" and no
     designed rest shape, the one in which ``part.vertices`` is the static equilibrium on body
     frame 0: :func:`equilibrium_part`, its report into ``rest_report``). Boundary vertices follow
-    the body surface point they start on; seams are held by a stitch term. ``options``: more of
-    :func:`physavatar.sim.simulate`'s (max_substeps, resume, on_frame).
+    the body surface point they start on; seams are held by a stitch term. ``between``: the body
+    in between frames made from its poses (body.between.PoseBetween; sim.simulate's
+    ``collider_between``), the boundary targets riding it there too; None: the linear path.
+    ``options``: more of :func:`physavatar.sim.simulate`'s (max_substeps, resume, on_frame).
     """
     body_sequence = np.asarray(body_sequence, dtype=np.float64)
     part, report = equilibrium_part(part, body_sequence[0], body_faces, material, settings)
     if report is not None and rest_report is not None:
         rest_report.update(report)
-    targets = None
+    targets = ride = None
     if len(part.boundary):
-        targets, _ = boundary_targets(part, body_sequence, body_faces, (settings or SimSettings()).dhat)
+        targets, report = boundary_targets(part, body_sequence, body_faces, (settings or SimSettings()).dhat)
+        if between is not None:
+            ride = functools.partial(attachment_positions, report["attachment"])
+    if between is not None:
+        options |= {"collider_between": between, "boundary_ride": ride}
     return simulate(part.rest_shape, part.faces, material, body_sequence, body_faces,
                     boundary_indices=part.boundary, boundary_targets=targets, fps=fps, substeps=substeps,
                     settings=settings, progress=progress, callback=callback, x0=part.vertices,
@@ -267,7 +274,8 @@ def boundary_targets(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
     :func:`sewn_points`); in frames where the attached patch's own triangles would pass through
     each other (the skin under it folds) an as-rigid-as-possible fit of the patch replaces the
     ride (garment.unfold_targets); then the boundary's own edges are kept from being carried
-    through a bending body (garment.keep_clear)."""
+    through a bending body (garment.keep_clear). The report's "attachment": the ride
+    (garment.Attachment)."""
     att = make_attachment(sewn_points(part.vertices, part.boundary, part.seams), part.boundary, body_sequence[0],
                           body_faces, "sequence")
     targets = attachment_positions(att, body_sequence)
@@ -281,7 +289,7 @@ def boundary_targets(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
     if lifted["frames_lifted"]:
         log.info("boundary targets lifted off the body in %d frames (at most %.2f mm; floor %.3f mm)",
                  lifted["frames_lifted"], 1e3 * lifted["max_lift_m"], 1e3 * lifted["floor_m"])
-    return targets, {"unfold": unfolded, "keep_clear": lifted}
+    return targets, {"unfold": unfolded, "keep_clear": lifted, "attachment": att}
 
 
 def sewn_points(vertices, boundary, seams) -> np.ndarray:

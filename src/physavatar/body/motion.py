@@ -103,11 +103,7 @@ class Motion:
         i0 = np.clip(np.floor(t).astype(int), 0, self.frames - 1)
         i1 = np.clip(i0 + 1, 0, self.frames - 1)
         a = (t - i0)[:, None]
-        R0 = axis_angle_to_matrix(self.rotations[i0])
-        R1 = axis_angle_to_matrix(self.rotations[i1])
-        rel = matrix_to_axis_angle(np.swapaxes(R0, -1, -2) @ R1)
-        R = R0 @ axis_angle_to_matrix(rel * a[:, :, None])
-        rot = matrix_to_axis_angle(R)
+        rot = slerp_rotations(self.rotations[i0], self.rotations[i1], a)
         tr = (1 - a) * self.root_translation[i0] + a * self.root_translation[i1]
         return Motion(self.name, fps, self.bone_names, rot, tr, dict(self.meta))
 
@@ -119,6 +115,17 @@ class Motion:
         """Pose ``body`` with this motion -> PosedBody."""
         m = self.for_bones(body.bone_names) if self.bone_names != body.bone_names else self
         return body.pose(m.rotations, m.root_translation)
+
+
+def slerp_rotations(r0: np.ndarray, r1: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Axis-angle rotations [..., B, 3] a fraction ``a`` [..., 1] of the way from ``r0`` to ``r1``
+    along the shortest arc of each bone's rotation (R0 exp(a log(R0ᵀ R1))): how a motion is
+    resampled (:meth:`Motion.resample`) and how sim sub-steps pose the body in between frames
+    (body.between)."""
+    R0 = axis_angle_to_matrix(r0)
+    R1 = axis_angle_to_matrix(r1)
+    rel = matrix_to_axis_angle(np.swapaxes(R0, -1, -2) @ R1)
+    return matrix_to_axis_angle(R0 @ axis_angle_to_matrix(rel * np.asarray(a)[..., None]))
 
 
 # -- built-in motions ----------------------------------------------------------------------------

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..data.avatar import Avatar
 from ..body import BodyModel, Motion, axis_angle_to_matrix, linear_blend_skinning, matrix_to_axis_angle
+from ..body.between import BETWEEN_HELP, PoseBetween, between_key
 from ..body.load import KNEE_COLLAPSE_HELP
 from ..data.animated import AnimatedSequence
 from ..data.sim_frames import FrameStore, garment_run_key
@@ -88,7 +89,7 @@ def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> i
 
 def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
             progress=True, report=None, max_substeps: int = 16,
-            out: Path | None = None, garment=None) -> tuple[AnimatedSequence, dict]:
+            out: Path | None = None, garment=None, skinned_between: bool = False) -> tuple[AnimatedSequence, dict]:
     """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats).
     ``progress``: see :mod:`physavatar.progress`; ``report``: called with 1 after every simulated
     frame instead (:mod:`physavatar.parallel`). ``max_substeps``: implicit steps a frame may be
@@ -97,7 +98,9 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     avatar, motion and settings from there (data.sim_frames; the caller removes it). ``garment``: a
     GarmentPart on the zero pose of Anny in the avatar's shape (collider topology; a garment file
     fitted there, stages.garment_file) worn instead of the avatar's own: the warm-up starts from
-    that pose, and the sequence holds the avatar's body and that garment."""
+    that pose, and the sequence holds the avatar's body and that garment. ``skinned_between``: a
+    frame split into sub-steps poses the collider in between from the motion (body.between);
+    False (the default): vertex by vertex."""
     fps = avatar.fps
     body = BodyModel(avatar.shape, topology="collider")
     m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s, zero_start=garment is not None)
@@ -144,15 +147,16 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     t0 = time.time()
     cb = None if report is None else (lambda f, x, st: report(1))
     rest_report = {}
+    between = PoseBetween(body, rots, trs) if skinned_between else None
     options = dict(settings=settings, progress=progress if report is None else False, callback=cb,
-                   max_substeps=max_substeps, rest_report=rest_report)
+                   max_substeps=max_substeps, rest_report=rest_report, between=between)
     reports = []
     if out is None:
         Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, on_frame=lambda c, r: reports.append(r),
                               **options)
     else:
         key = garment_run_key(part, posed.vertices, body.faces, avatar.material, settings, fps,
-                              max_substeps=max_substeps)
+                              max_substeps=max_substeps, **between_key(between, max_substeps))
         store = FrameStore(out, key, len(posed.vertices))
         Xg = simulate_on_body(part, posed.vertices, body.faces, avatar.material, fps, resume=store.resume(),
                               on_frame=store.write, **options)
@@ -241,6 +245,7 @@ class AnimateConfig(GarmentFileOptions):
                                       "triangles)")
     garment: str = option("", "a garment file (OBJ, PLY, glTF, npz) worn instead of the avatar's own: fitted onto "
                               "the avatar's body, simulated with the avatar's material (as simulate --garment)")
+    skinned_between: bool = option(False, BETWEEN_HELP, flag="--skinned-between/--linear-between")
 
 
 def pipeline_config(motion: str, eval_frames: int | None) -> AnimateConfig:
@@ -288,7 +293,8 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
     settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)
     garment, imported = _file_garment(av, config, settings, progress) if config.garment else (None, None)
     seq, stats = animate(av, m, warmup_s=config.warmup, settings=settings, progress=progress,
-                         max_substeps=config.max_substeps, out=out, garment=garment)
+                         max_substeps=config.max_substeps, out=out, garment=garment,
+                         skinned_between=config.skinned_between)
     seq.save(Path(out), {"command": "animate", "motion_spec": config.motion, "config": to_dict(config),
                          "arm_clearance": info, "part_clearance": parts, "garment_import": imported, **stats})
     FrameStore(out, "", 0).remove()  # the sequence is written: the per-frame record is no longer needed

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..body import BodyModel, Motion
+from ..body.between import BETWEEN_HELP, PoseBetween, between_key
 from ..body.load import KNEE_COLLAPSE_HELP, load_motion, with_clearances
 from ..data.garment_sequence import FILE as GARMENT_SEQUENCE
 from ..data.garment_sequence import GarmentSequence
@@ -77,6 +78,9 @@ class SimulateConfig(GarmentFileOptions):
         over: built-in garments layered over the garment (comma-separated, innermost first;
             garment_sim.layered), or None.
         preview: write preview.mp4.
+        skinned_between: a frame split into sub-steps poses the body in between from the motion
+            (body.between.PoseBetween); False (the default): vertex by vertex (the collider's
+            straight path).
     """
 
     material: str = option("cotton", "silk, cotton, denim, or a material .json")
@@ -109,6 +113,7 @@ class SimulateConfig(GarmentFileOptions):
                                     "each with its own boundary, in contact with each other (self-contact); "
                                     "e.g. --garment skirt --over tshirt")
     preview: bool = option(True, "write preview.mp4")
+    skinned_between: bool = option(False, BETWEEN_HELP, flag="--skinned-between/--linear-between")
 
 
 @dataclass
@@ -165,18 +170,18 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     if cfg.over and (capture is not None or collider is not None or garment is None or motion is None):
         _bad_option("--over", "layers built-in garments over --garment on --motion (Anny's body): give both")
     n_warm = 0  # leading frames simulated but not written (--motion's transition)
-    clearance_info = parts_info = None
+    clearance_info = parts_info = between = None  # between: the body between frames from its poses
     imported = None  # what reading, fitting and repairing a garment file did (config.json)
     if capture is not None:
-        part, bodies, body_faces, fps = _from_capture(Path(capture))
+        part, bodies, body_faces, fps, between = _from_capture(Path(capture))
     elif collider is not None:
         if garment is None or not Path(garment).exists():
             _bad_option("--garment", "with --collider, give a garment mesh file (.ply with label/boundary, or .npz)")
         bodies, body_faces = load_mesh_sequence(collider)
         part, imported = garment_file(Path(garment), cfg, bodies[0], body_faces)
     elif garment is not None and motion is not None:
-        part, bodies, body_faces, n_warm, clearance_info, parts_info, imported = _on_motion(garment, motion, fps, cfg, mat,
-                                                                                sim_settings, progress)
+        part, bodies, body_faces, n_warm, clearance_info, parts_info, imported, between = _on_motion(
+            garment, motion, fps, cfg, mat, sim_settings, progress)
     else:
         _bad_option("--capture/--garment/--collider",
                     "say what to simulate: --capture C, or --garment KIND --motion M, or --collider SEQ --garment FILE")
@@ -194,7 +199,7 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     sim_settings = replace(sim_settings, self_contact=self_contact)
     t0 = time.time()
     X, reports, store, resumed = _simulate_frames(out, part, bodies, body_faces, mat, fps, sim_settings, cfg, n_warm,
-                                                  progress)
+                                                  progress, between if cfg.skinned_between else None)
     secs = time.time() - t0
     X, bodies = X[n_warm:], bodies[n_warm:]
     reports = [(f - n_warm, r) for f, r in enumerate(reports, start=1) if f >= n_warm]  # (written frame, report)
@@ -226,13 +231,14 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
 
 
 def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps: float, settings: SimSettings,
-                     cfg: SimulateConfig, n_warm: int, progress):
+                     cfg: SimulateConfig, n_warm: int, progress, between=None):
     """Simulate every frame, writing each as it is finished (out/frames/, data.sim_frames; the
     written frames' PLY meshes in out/meshes/), resuming an interrupted run of the same inputs
     and settings from its last frame. Returns (positions [T, N, 3] of every simulated frame,
-    per-frame reports of frames 1..T−1, the FrameStore, the frame resumed after or None)."""
+    per-frame reports of frames 1..T−1, the FrameStore, the frame resumed after or None).
+    ``between``: the body in between frames from its poses (garment_sim.simulate_on_body)."""
     key = garment_run_key(part, bodies, body_faces, mat, settings, fps, substeps=cfg.substeps,
-                          max_substeps=cfg.max_substeps)
+                          max_substeps=cfg.max_substeps, **between_key(between, max(cfg.substeps, cfg.max_substeps)))
     store = FrameStore(out, key, len(bodies))
     ck = store.resume()
     if ck is None and n_warm == 0:
@@ -246,7 +252,7 @@ def _simulate_frames(out: Path, part: GarmentPart, bodies, body_faces, mat, fps:
             write_ply(out / "meshes" / f"{checkpoint.frame - n_warm:06d}.ply", PlyMesh(checkpoint.x, part.faces))
 
     simulate_on_body(part, bodies, body_faces, mat, fps, settings=settings, substeps=cfg.substeps,
-                     max_substeps=cfg.max_substeps, resume=ck, on_frame=on_frame, progress=progress)
+                     max_substeps=cfg.max_substeps, resume=ck, on_frame=on_frame, progress=progress, between=between)
     X, reports = store.positions(part.vertices)
     return X, reports, store, None if ck is None else ck.frame
 
@@ -293,8 +299,8 @@ def _text(value) -> str | None:
 
 
 def _from_capture(capture: Path):
-    """(garment part, body vertices [T, Nb, 3], body faces, fps) of a capture's template posed by
-    its body motion."""
+    """(garment part, body vertices [T, Nb, 3], body faces, fps, the body between frames:
+    body.between.PoseBetween) of a capture's template posed by its body motion."""
     from ..capture import load_capture
 
     cap = load_capture(capture)
@@ -306,12 +312,13 @@ def _from_capture(capture: Path):
                               f"its body has {len(body_ids)} vertices but Anny's {cap.body.topology!r} topology "
                               f"has {len(body.rest_vertices)}")
     m = Motion("capture", cap.fps, cap.body.bone_names, cap.body.rotations, cap.body.root_translation)
-    return part, m.pose(body).vertices, body_faces, cap.fps
+    m = m.for_bones(body.bone_names) if m.bone_names != body.bone_names else m  # as Motion.pose does
+    return part, m.pose(body).vertices, body_faces, cap.fps, PoseBetween(body, m.rotations, m.root_translation)
 
 
 def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settings, progress):
     """(garment part, body vertices, body faces, warm-up frames, arm clearance summary, part
-    clearance summary, import report) of a built-in garment, or a garment file (fitted onto Anny's rest pose), on the Anny
+    clearance summary, import report, the body between frames: body.between.PoseBetween) of a built-in garment, or a garment file (fitted onto Anny's rest pose), on the Anny
     collider driven by ``motion``."""
     body = BodyModel(topology="collider")
     imported = None
@@ -338,7 +345,8 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
         n_warm = max(2, int(round(cfg.warmup * fps)))
         wr, wt = transition(np.zeros_like(rots[0]), np.zeros(3), rots[0], trs[0], n_warm)
         rots, trs = np.concatenate([wr, rots]), np.concatenate([wt, trs])
-    return part, body.pose(rots, trs).vertices, body.faces, n_warm, clearance_info, parts_info, imported
+    return (part, body.pose(rots, trs).vertices, body.faces, n_warm, clearance_info, parts_info, imported,
+            PoseBetween(body, rots, trs))
 
 
 def garment_file(path: Path, cfg: SimulateConfig | None = None, body_vertices=None, body_faces=None):
