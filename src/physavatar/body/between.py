@@ -70,6 +70,7 @@ BETWEEN_HELP = ("a frame split into sub-steps poses the body in between from the
 
 def between_key(between, max_substeps: int) -> dict:
     """What a run's resume key (data.sim_frames.garment_run_key) adds for its in-between bodies:
-    {"between": "skinned"} where they come from the poses and a frame can be split, else nothing
-    (the key of a run before session 30)."""
-    return {"between": "skinned"} if between is not None and max_substeps > 1 else {}
+    {"between": "skinned-body"} where they come from the poses and a frame can be split (the
+    attached targets on their straight line since session 31; session 30's "skinned" also carried
+    them on the in-between body), else nothing (the key of a run before session 30)."""
+    return {"between": "skinned-body"} if between is not None and max_substeps > 1 else {}
