@@ -121,8 +121,13 @@ def test_simulate_poses_the_in_betweens_from_the_motion_it_simulates(body, tmp_p
         np.testing.assert_allclose(between(f, [0.0, 1.0]), bodies[f - 1:f + 1], atol=1e-12)
 
 
-def test_the_skinned_in_betweens_are_opt_in():
-    from physavatar.stages.animate import AnimateConfig
+def test_the_skinned_in_betweens_are_the_default():
+    """On by default since session 31 (simulate, animate and the animate function evaluate calls);
+    --linear-between turns them off."""
+    import inspect
+
+    from physavatar.stages.animate import AnimateConfig, animate
     from physavatar.stages.simulate import SimulateConfig
 
-    assert not SimulateConfig().skinned_between and not AnimateConfig().skinned_between
+    assert SimulateConfig().skinned_between and AnimateConfig().skinned_between
+    assert inspect.signature(animate).parameters["skinned_between"].default is True

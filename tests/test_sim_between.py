@@ -145,3 +145,20 @@ def test_a_garment_on_a_skinned_path_keeps_its_attached_targets_on_the_chord(rec
         if j == 1:  # the ride would be 5 mm out
             ride = attachment_positions(report["attachment"], b1)
             assert np.linalg.norm(ride - tg, axis=1).min() > 4e-3
+
+
+def test_a_run_on_the_skinned_path_resumes_with_the_same_frames():
+    """The skinned in-betweens (the default since session 31) depend on the frame and the step
+    alone, so a run resumed from a frame's checkpoint writes the later frames bit for bit as the
+    uninterrupted run (here with the curtain swept by the turning paddle, in contact)."""
+    B, BF = paddle()
+    angles = [-np.pi / 4, -np.pi / 8, 0.0, np.pi / 8]
+    frames = np.stack([turn(B, a) for a in angles])
+    V, F, pins = curtain()
+    between = lambda f, s: np.stack([turn(B, -np.pi / 4 + (f - 1 + t) * np.pi / 8) for t in s])  # noqa: E731
+    kw = dict(fps=25.0, substeps=2, max_substeps=8, settings=SimSettings(damping_mass=0.5), collider_between=between)
+    saved = {}
+    whole = simulate(V, F, MAT, frames, BF, pins, None, on_frame=lambda ck, r: saved.setdefault(ck.frame, ck), **kw)
+    resumed = simulate(V, F, MAT, frames, BF, pins, None, resume=saved[1], **kw)
+    assert np.isnan(resumed[0]).all() and np.array_equal(resumed[1:], whole[1:])
+    assert np.linalg.norm(whole[-1] - V, axis=1).max() > 0.01  # the paddle reached the curtain

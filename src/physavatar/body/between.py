@@ -63,9 +63,9 @@ class PoseBetween:
 
 
 BETWEEN_HELP = ("a frame split into sub-steps poses the body in between from the motion (each bone's rotation "
-                "slerped, body.between) instead of vertex by vertex (--linear-between, the default: the chord of a "
-                "turning limb's arc). Off by default: fewer Newton iterations on the quick motion suite, but "
-                "the 2-cm CMU walk lags in one frame it passes without (docs/simulation.md, Session 30)")  # simulate's and animate's option
+                "slerped, body.between; the default) instead of vertex by vertex (--linear-between: the chord of a "
+                "turning limb's arc); the attached targets take the straight line either way. Clean on the motion "
+                "suite with fewer Newton iterations (docs/simulation.md, Session 31)")  # simulate's and animate's option
 
 
 def between_key(between, max_substeps: int) -> dict:
