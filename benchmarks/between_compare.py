@@ -13,7 +13,8 @@ the frames (``chord_error_mm``: max and 95th percentile over frames of the per-f
     python benchmarks/between_compare.py --before B.json:WORK_B --after A.json:WORK_A [--out FILE]
 
 Writes benchmarks/results/motion_suite_between_s30.json (``checks``: after, no more lagging,
-crossing or NaN frames than before, per motion).
+crossing or NaN frames than before, per motion; and no more Newton iterations than before over
+the motions, ``total:newton_iterations``, since session 31).
 """
 
 from __future__ import annotations
@@ -84,6 +85,11 @@ def main():
         print(f"{name:15s} newton {before['newton_iterations']:5d} -> {after['newton_iterations']:5d}  s/frame "
               f"{before['s_per_frame']:.2f} -> {after['s_per_frame']:.2f}  lag {before['frames_with_lag']} -> "
               f"{after['frames_with_lag']}  chord {rows[name]['chord_error_mm']['max_mm']} mm", flush=True)
+    total = {side: sum(r[side]["newton_iterations"] for r in rows.values()) for side in ("before", "after")}
+    checks["total:newton_iterations"] = {"value": total["after"], "before": total["before"],
+                                         "target": f"<= {total['before']} (before)", "unit": "iterations",
+                                         "pass": total["after"] <= total["before"]}
+    print(f"total newton {total['before']} -> {total['after']}", flush=True)
     out = {"benchmark": "motion_suite_between", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(
                timespec="seconds"), "machine": {"cores": os.cpu_count(), "load_average_1_5_15min": os.getloadavg()},
            "before": {"code_commit": rb.get("code_commit"), "config": rb["config"], "date": rb["date"]},

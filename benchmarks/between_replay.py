@@ -4,8 +4,10 @@ vertices, closest distance, the largest body move in the step): how session 30 t
 CMU walk's simulated frame 27 on the skinned in-between path (docs/simulation.md "Session 30").
 
     python benchmarks/motion_suite.py --only cmu-walk --work W --skinned-between --edge 0.02   # caches W/cmu-walk-parts.npz
-    python benchmarks/between_replay.py W/cmu-walk-parts.npz skinned 27 27 OUT   # or: linear, skinned-noride
-``skinned-noride``: the body skinned in between, the attached targets on the straight line.
+    python benchmarks/between_replay.py W/cmu-walk-parts.npz skinned 27 27 OUT   # or: linear
+``skinned``: the body skinned in between, the attached targets on the straight line (session 31;
+session 30's mode of that name also carried the targets on the in-between body, its
+``skinned-noride`` is today's ``skinned``: replay session 30's at commit f6e6bf5).
 """
 
 import json
@@ -39,8 +41,6 @@ def main():
     simulate0 = G.simulate
 
     def simulate(*a, on_frame=None, **kw):
-        if mode == "skinned-noride":
-            kw.pop("boundary_ride", None)
         def each(ck, r):
             if on_frame:
                 on_frame(ck, r)
@@ -54,7 +54,7 @@ def main():
 
     S.ClothSim.step, G.simulate = step, simulate
     cfg = stage.SimulateConfig(edge_length=0.02, duration=1.0, warmup=0.4, preview=False,
-                               skinned_between=mode.startswith("skinned"))
+                               skinned_between=mode == "skinned")
     stage.run(out=out, config=cfg, garment="dress", motion=motion)
 
 

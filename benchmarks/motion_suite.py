@@ -14,8 +14,9 @@ the garment alone, seams left out as ``simulate`` does), NaN.
 By default a quick run (a few minutes on 2 cores): a 4-cm dress, 1-s excerpts (the CMU clips'
 hops and strides), a 0.4-s warm-up. ``--full``: the 2-cm dress, the clips whole, 4 s of each
 built-in motion, a 1-s warm-up. ``--max-substeps 1`` runs the old fixed one step per frame.
-``--skinned-between``: frames split into sub-steps pose the body in between from the motion
-(body.between, ``simulate --skinned-between``; session 30), instead of vertex by vertex.
+Frames split into sub-steps pose the body in between from the motion (body.between, as
+``simulate`` does by default since session 31; the attached targets on the straight line);
+``--no-skinned-between``: vertex by vertex (``simulate --linear-between``).
 
     python benchmarks/motion_suite.py [--full] [--only NAME ...] [--max-substeps N] [--out FILE]
     python benchmarks/motion_suite.py --full --partial --only cmu-walk --work DIR   # a run not finished: its frames so far
@@ -268,9 +269,9 @@ def main():
     ap.add_argument("--knee-collapse", action="store_true",
                     help="the CMU clips also corrected by body.clearance.knee_collapse_rules (the knee opened where "
                          "calf and thigh pass through each other; opt-in, docs/simulation.md \"Session 29\")")
-    ap.add_argument("--skinned-between", action=argparse.BooleanOptionalAction, default=False,
+    ap.add_argument("--skinned-between", action=argparse.BooleanOptionalAction, default=True,
                     help="a frame split into sub-steps poses the body in between from the motion (body.between, "
-                         "`simulate --skinned-between`); default: vertex by vertex, as `simulate` does by default")
+                         "as `simulate` does by default); --no-skinned-between: vertex by vertex (`--linear-between`)")
     ap.add_argument("--partial", action="store_true",
                     help="check the frames written so far by the (interrupted or running) runs in --work, simulate nothing")
     args = ap.parse_args()

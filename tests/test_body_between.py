@@ -83,8 +83,8 @@ def test_the_frames_are_met_bit_for_bit_and_corrections_blended(body):
     given1 = frames[2].copy()
     given1[:10] += 0.003  # a correction after skinning
     n = 4
-    B, T = between_bodies(between, 2, n, frames[1], given1)
-    assert T is None and B.shape == (n + 1,) + frames[1].shape
+    B = between_bodies(between, 2, n, frames[1], given1)
+    assert B.shape == (n + 1,) + frames[1].shape
     assert np.array_equal(B[0], frames[1]) and np.array_equal(B[-1], given1)
     skinned = between(2, np.arange(n + 1) / n)
     for k in range(1, n):
@@ -121,8 +121,13 @@ def test_simulate_poses_the_in_betweens_from_the_motion_it_simulates(body, tmp_p
         np.testing.assert_allclose(between(f, [0.0, 1.0]), bodies[f - 1:f + 1], atol=1e-12)
 
 
-def test_the_skinned_in_betweens_are_opt_in():
-    from physavatar.stages.animate import AnimateConfig
+def test_the_skinned_in_betweens_are_the_default():
+    """On by default since session 31 (simulate, animate and the animate function evaluate calls);
+    --linear-between turns them off."""
+    import inspect
+
+    from physavatar.stages.animate import AnimateConfig, animate
     from physavatar.stages.simulate import SimulateConfig
 
-    assert not SimulateConfig().skinned_between and not AnimateConfig().skinned_between
+    assert SimulateConfig().skinned_between and AnimateConfig().skinned_between
+    assert inspect.signature(animate).parameters["skinned_between"].default is True

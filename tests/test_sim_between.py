@@ -1,6 +1,7 @@
 """Sub-steps on the body's own path (sim.simulate ``collider_between``): a frame split into n
-steps takes its in-between bodies (and attached targets) from the path given, meets the frames
-bit for bit, and without one steps along the straight line exactly as before."""
+steps takes its in-between bodies from the path given (its attached targets stay on the straight
+line between the frames' targets), meets the frames bit for bit, and without one steps along the
+straight line exactly as before."""
 
 import numpy as np
 import pytest
@@ -66,44 +67,42 @@ def recorded(monkeypatch):
     return steps
 
 
-def test_sub_steps_take_their_bodies_and_targets_from_the_path_given(recorded):
-    """With ``collider_between`` and ``boundary_ride``, step k of n is given the path's bodies
-    at k/n and (k+1)/n and the targets at (k+1)/n (sim.simulate.between_bodies: the frames
-    themselves bit for bit at the ends); with n = 1 the path is never asked; without it, the
-    straight line (1 − w)·b0 + w·b1, bit for bit the formula before session 30."""
+def test_sub_steps_take_their_bodies_from_the_path_given_and_their_targets_from_the_chord(recorded):
+    """With ``collider_between``, step k of n is given the path's bodies at k/n and (k+1)/n
+    (sim.simulate.between_bodies: the frames themselves bit for bit at the ends) and the attached
+    targets on the straight line between the frames' targets, (1 − w)·t0 + w·t1 bit for bit
+    (session 31: they no longer ride the in-between body); with n = 1 the path is never asked;
+    without it, the straight line for both, bit for bit the formula before session 30."""
     B, BF = paddle()
     frames = np.stack([turn(B, 0.0), turn(B, 0.3), turn(B, 0.6)])
     V, F, pins = curtain()
-    V = V + [0.2, 0.0, 0.0]  # out of reach: only the bodies' path is checked here
+    V = V + [0.2, 0.0, 0.0]  # out of reach: only the path given is checked here
     calls = []
 
     def between(f, s):
         calls.append((f, tuple(s)))
         return np.stack([turn(B, 0.3 * (f - 1 + t)) for t in s])
 
-    def ride(bodies):  # the pins carried by the paddle: turned with it
-        return np.stack([turn(V[pins], np.arctan2(b[0, 1], b[0, 0]) - np.arctan2(B[0, 1], B[0, 0])) for b in bodies])
-
     targets = np.stack([turn(V[pins], a) for a in (0.0, 0.3, 0.6)])
-    targets[2] += 0.001  # a target corrected after riding: blended in
+    targets[2] += 0.001  # a target corrected after riding
     kw = dict(fps=25.0, substeps=4, settings=SimSettings(damping_mass=0.5))
-    simulate(V, F, MAT, frames, BF, pins, targets, collider_between=between, boundary_ride=ride, **kw)
+    simulate(V, F, MAT, frames, BF, pins, targets, collider_between=between, **kw)
     assert [c[0] for c in calls] == [1, 2] and calls[0][1] == (0.0, 0.25, 0.5, 0.75, 1.0)
     assert len(recorded) == 8
     for k, (b0, b1, tg) in enumerate(recorded):
         f, j = 1 + k // 4, k % 4
-        a0, a1 = 0.3 * (f - 1 + j / 4), 0.3 * (f - 1 + (j + 1) / 4)
+        a0, a1, w = 0.3 * (f - 1 + j / 4), 0.3 * (f - 1 + (j + 1) / 4), (j + 1) / 4
         np.testing.assert_allclose(b0, turn(B, a0), atol=1e-12)
         np.testing.assert_allclose(b1, turn(B, a1), atol=1e-12)
-        w = (j + 1) / 4
-        expect = turn(V[pins], a1) + (w * 0.001 if f == 2 else 0.0)
-        np.testing.assert_allclose(tg, expect, atol=1e-12)
+        assert np.array_equal(tg, (1 - w) * targets[f - 1] + w * targets[f])
+        if j == 1:  # half-way: the chord is r (1 − cos 0.15) inside the turn (r = 0.46 m: 5.2 mm)
+            sag = np.linalg.norm(turn(V[pins], a1)[:, :2], axis=1) - np.linalg.norm(tg[:, :2], axis=1)
+            np.testing.assert_allclose(sag, np.linalg.norm(V[pins, :2], axis=1) * (1 - np.cos(0.15)), atol=1e-3)
     assert np.array_equal(recorded[3][1], frames[1]) and np.array_equal(recorded[4][0], frames[1])
     assert np.array_equal(recorded[7][1], frames[2]) and np.array_equal(recorded[7][2], targets[2])
 
     recorded.clear(), calls.clear()
-    simulate(V, F, MAT, frames, BF, pins, targets, collider_between=between, boundary_ride=ride,
-             **(kw | {"substeps": 1}))
+    simulate(V, F, MAT, frames, BF, pins, targets, collider_between=between, **(kw | {"substeps": 1}))
     assert calls == [] and len(recorded) == 2
 
     recorded.clear()
@@ -115,3 +114,51 @@ def test_sub_steps_take_their_bodies_and_targets_from_the_path_given(recorded):
         assert np.array_equal(b1, (1 - w1) * frames[f - 1] + w1 * frames[f])
         assert np.array_equal(tg, (1 - w1) * targets[f - 1] + w1 * targets[f])
 
+
+def test_a_garment_on_a_skinned_path_keeps_its_attached_targets_on_the_chord(recorded):
+    """garment_sim.simulate_on_body with ``between`` (as `simulate --skinned-between` calls it):
+    the in-between bodies are the turn given, the attached vertices' targets the straight line
+    between the frames' targets (garment_sim.boundary_targets), bit for bit, not their ride on the
+    turning body — which half-way through a step of the turn lies r (1 − cos θ/2) further out."""
+    from physavatar.garment import attachment_positions
+    from physavatar.garment_sim import GarmentPart, boundary_targets, simulate_on_body
+
+    B, BF = paddle()
+    frames = np.stack([turn(B, a) for a in (0.0, 0.3, 0.6)])
+    V, F, pins = curtain()
+    V = V + [0.2, 0.0, 0.0]  # hanging beside the paddle's tip, out of its reach
+    part = GarmentPart(np.arange(len(V)), V, F, pins)
+    settings = SimSettings(damping_mass=0.5)
+    targets, report = boundary_targets(part, frames, BF, settings.dhat)
+    np.testing.assert_allclose(targets, np.stack([turn(V[pins], a) for a in (0.0, 0.3, 0.6)]), atol=1e-9)
+
+    def between(f, s):
+        return np.stack([turn(B, 0.3 * (f - 1 + t)) for t in s])
+
+    simulate_on_body(part, frames, BF, MAT, 25.0, settings, substeps=4, between=between)
+    assert len(recorded) == 8
+    for k, (b0, b1, tg) in enumerate(recorded):
+        f, j = 1 + k // 4, k % 4
+        a1, w = 0.3 * (f - 1 + (j + 1) / 4), (j + 1) / 4
+        np.testing.assert_allclose(b1, turn(B, a1), atol=1e-12)  # the body on the turn
+        assert np.array_equal(tg, (1 - w) * targets[f - 1] + w * targets[f])  # the targets on the chord
+        if j == 1:  # the ride would be 5 mm out
+            ride = attachment_positions(report["attachment"], b1)
+            assert np.linalg.norm(ride - tg, axis=1).min() > 4e-3
+
+
+def test_a_run_on_the_skinned_path_resumes_with_the_same_frames():
+    """The skinned in-betweens (the default since session 31) depend on the frame and the step
+    alone, so a run resumed from a frame's checkpoint writes the later frames bit for bit as the
+    uninterrupted run (here with the curtain swept by the turning paddle, in contact)."""
+    B, BF = paddle()
+    angles = [-np.pi / 4, -np.pi / 8, 0.0, np.pi / 8]
+    frames = np.stack([turn(B, a) for a in angles])
+    V, F, pins = curtain()
+    between = lambda f, s: np.stack([turn(B, -np.pi / 4 + (f - 1 + t) * np.pi / 8) for t in s])  # noqa: E731
+    kw = dict(fps=25.0, substeps=2, max_substeps=8, settings=SimSettings(damping_mass=0.5), collider_between=between)
+    saved = {}
+    whole = simulate(V, F, MAT, frames, BF, pins, None, on_frame=lambda ck, r: saved.setdefault(ck.frame, ck), **kw)
+    resumed = simulate(V, F, MAT, frames, BF, pins, None, resume=saved[1], **kw)
+    assert np.isnan(resumed[0]).all() and np.array_equal(resumed[1:], whole[1:])
+    assert np.linalg.norm(whole[-1] - V, axis=1).max() > 0.01  # the paddle reached the curtain

@@ -9,7 +9,6 @@ Used by synthetic captures (ground-truth garment motion), ``physavatar simulate`
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 from dataclasses import dataclass
 
@@ -218,20 +217,18 @@ def simulate_on_body(part: GarmentPart, body_sequence: np.ndarray, body_faces: n
     frame 0: :func:`equilibrium_part`, its report into ``rest_report``). Boundary vertices follow
     the body surface point they start on; seams are held by a stitch term. ``between``: the body
     in between frames made from its poses (body.between.PoseBetween; sim.simulate's
-    ``collider_between``), the boundary targets riding it there too; None: the linear path.
+    ``collider_between``; the boundary targets stay on their straight line); None: the linear path.
     ``options``: more of :func:`physavatar.sim.simulate`'s (max_substeps, resume, on_frame).
     """
     body_sequence = np.asarray(body_sequence, dtype=np.float64)
     part, report = equilibrium_part(part, body_sequence[0], body_faces, material, settings)
     if report is not None and rest_report is not None:
         rest_report.update(report)
-    targets = ride = None
+    targets = None
     if len(part.boundary):
-        targets, report = boundary_targets(part, body_sequence, body_faces, (settings or SimSettings()).dhat)
-        if between is not None:
-            ride = functools.partial(attachment_positions, report["attachment"])
+        targets, _ = boundary_targets(part, body_sequence, body_faces, (settings or SimSettings()).dhat)
     if between is not None:
-        options |= {"collider_between": between, "boundary_ride": ride}
+        options |= {"collider_between": between}
     return simulate(part.rest_shape, part.faces, material, body_sequence, body_faces,
                     boundary_indices=part.boundary, boundary_targets=targets, fps=fps, substeps=substeps,
                     settings=settings, progress=progress, callback=callback, x0=part.vertices,

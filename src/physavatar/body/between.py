@@ -63,13 +63,14 @@ class PoseBetween:
 
 
 BETWEEN_HELP = ("a frame split into sub-steps poses the body in between from the motion (each bone's rotation "
-                "slerped, body.between) instead of vertex by vertex (--linear-between, the default: the chord of a "
-                "turning limb's arc). Off by default: fewer Newton iterations on the quick motion suite, but "
-                "the 2-cm CMU walk lags in one frame it passes without (docs/simulation.md, Session 30)")  # simulate's and animate's option
+                "slerped, body.between; the default) instead of vertex by vertex (--linear-between: the chord of a "
+                "turning limb's arc); the attached targets take the straight line either way. Clean on the motion "
+                "suite with fewer Newton iterations (docs/simulation.md, Session 31)")  # simulate's and animate's option
 
 
 def between_key(between, max_substeps: int) -> dict:
     """What a run's resume key (data.sim_frames.garment_run_key) adds for its in-between bodies:
-    {"between": "skinned"} where they come from the poses and a frame can be split, else nothing
-    (the key of a run before session 30)."""
-    return {"between": "skinned"} if between is not None and max_substeps > 1 else {}
+    {"between": "skinned-body"} where they come from the poses and a frame can be split (the
+    attached targets on their straight line since session 31; session 30's "skinned" also carried
+    them on the in-between body), else nothing (the key of a run before session 30)."""
+    return {"between": "skinned-body"} if between is not None and max_substeps > 1 else {}

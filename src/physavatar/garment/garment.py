@@ -102,9 +102,8 @@ def keep_clear(attachment: Attachment, targets: np.ndarray, faces: np.ndarray, b
     The floor is ``clearance`` or, when smaller, the least distance of those primitives to the
     body at frame 0 (frame 0, where the garment starts, is never changed). Frame after frame,
     the targets must be reachable from the last frame's along the straight path between frames
-    (the simulator's sub-steps without skinned in-betweens; with them, body.between, the targets
-    ride the in-between body and keep their lift, blended linearly: the check is of the straight
-    path, the lift carried along the arc, sim.simulate.between_bodies) without any of those
+    (the simulator's sub-steps take them so, with or without skinned in-between bodies,
+    body.between; the check is of the straight body path, not of the skinned one) without any of those
     primitives coming closer to the body than half the floor (half their start distance after a
     frame that failed; ipctk's exact CCD, Tight Inclusion), and end at least the floor away from it. A frame whose own targets pass is
     kept as it is (bit for bit); otherwise each boundary vertex keeps a lift along its

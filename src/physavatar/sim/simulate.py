@@ -203,7 +203,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
              settings: SimSettings | None = None, x0=None, v0=None, callback=None,
              progress: ProgressLike = False, max_substeps: int | None = None,
              resume: Checkpoint | None = None, on_frame=None, extra_terms=(), contact_exclude=None,
-             collider_between=None, boundary_ride=None):
+             collider_between=None):
     """Simulate a garment on a moving body for a whole sequence.
 
     Args:
@@ -220,8 +220,8 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             max_substeps: at most (default ``substeps``: a fixed count). In between the count is
             decided per frame (:func:`substep_count`, and twice as many when a frame's step
             gave up and the body lagged). dt = 1 / (fps · steps of the frame). In between,
-            body and targets are interpolated linearly, vertex by vertex, unless
-            ``collider_between`` is given.
+            the boundary targets are interpolated linearly, vertex by vertex, and so is the
+            body unless ``collider_between`` is given.
         settings: :class:`SimSettings` (its dt is replaced by the one above); default: the
             defaults with the material's integrator (the one it was fitted with).
         x0, v0: [N, 3] initial positions / velocities (default rest, zero).
@@ -240,12 +240,9 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             in-between bodies from it, plus the linear blend of the differences between the
             frames simulated (``collider_sequence``, or an uncollapsed frame, sim.collapse) and
             its s = 0 and 1, so the sequence meets those frames exactly (:func:`between_bodies`).
-            None: the linear path (the only one with a single step per frame).
-        boundary_ride: with ``collider_between``, ``ride(bodies [S, Nb, 3]) -> [S, K, 3]``, the
-            boundary vertices (``boundary_indices`` order) carried by a body (an attachment,
-            garment.attachment_positions): the in-between targets are its ride on the in-between
-            bodies plus the linear blend of the targets' differences from its ride at the frames.
-            None (or ``boundary_targets`` None): targets interpolated linearly.
+            None: the linear path (the only one with a single step per frame). The boundary
+            targets stay on their straight line either way (riding the in-between body, they
+            pinched the 2-cm dress on the CMU walk: docs/simulation.md "Session 31").
 
     Returns:
         [T, N, 3] garment positions per frame (frame 0 = initial state; with ``resume``, the
@@ -276,7 +273,6 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             return np.asarray(boundary_targets(frame, bodies[frame]))[order]
         return np.asarray(boundary_targets[frame])[order]
 
-    ride = boundary_ride if boundary_targets is not None else None  # targets that stay put do not ride
     out = np.full((T,) + x.shape, np.nan)
     # the contact scene's rest positions are the body where it is built: ipctk's edge-edge
     # mollifier thresholds come from them, so a resumed run builds it at frame 0 too, as an
@@ -314,7 +310,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 sim.stall_exit = not last
                 sim.crease_on = crease
                 path = None if collider_between is None or n == 1 else between_bodies(
-                    collider_between, f, n, bodies[f - 1], bodies[f], ride, tb0, tb1, order)
+                    collider_between, f, n, bodies[f - 1], bodies[f])
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
                                            stop_on_lag=not last, path=path)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
@@ -371,31 +367,24 @@ def _uncollapsed(bodies, f: int, faces):
     return bodies
 
 
-def between_bodies(between, f: int, n: int, body0, body1, ride=None, tb0=None, tb1=None, order=None):
-    """(bodies [n + 1, Nb, 3], targets [n + 1, K, 3] or None) at the times f − 1 + k/n of a frame
-    simulated in ``n`` steps, from ``between`` (simulate's ``collider_between``): its bodies plus
-    the linear blend of ``body0 − between(f, 0)`` and ``body1 − between(f, 1)``, with ``body0``
-    and ``body1`` themselves at k = 0 and n (bit for bit). Targets likewise from ``ride`` of those
-    bodies and the frames' targets ``tb0``, ``tb1`` (sorted boundary order: ``order`` sorts the
-    ride's), or None without ``ride`` (then interpolated linearly, :func:`_frame`)."""
+def between_bodies(between, f: int, n: int, body0, body1) -> np.ndarray:
+    """The bodies [n + 1, Nb, 3] at the times f − 1 + k/n of a frame simulated in ``n`` steps,
+    from ``between`` (simulate's ``collider_between``): its bodies plus the linear blend of
+    ``body0 − between(f, 0)`` and ``body1 − between(f, 1)``, with ``body0`` and ``body1``
+    themselves at k = 0 and n (bit for bit)."""
     s = np.arange(n + 1) / n
     w = s[:, None, None]
     skinned = np.asarray(between(f, s), np.float64)
     B = skinned + (1 - w) * (body0 - skinned[0]) + w * (body1 - skinned[-1])
     B[0], B[-1] = body0, body1
-    if ride is None or tb1 is None:
-        return B, None
-    carried = np.asarray(ride(B))[:, order]
-    T = carried + (1 - w) * (tb0 - carried[0]) + w * (tb1 - carried[-1])
-    T[0], T[-1] = tb0, tb1
-    return B, T
+    return B
 
 
 def _frame(sim: ClothSim, x, v, body0, body1, body_faces, tb0, tb1, n: int, fps: float, stop_on_lag=False,
            path=None):
     """One frame in ``n`` implicit steps: (x, v, StepStats of each); with ``stop_on_lag``, up to
-    the first step whose body lagged. ``path``: (bodies [n + 1, Nb, 3], targets [n + 1, K, 3] or
-    None) at the steps' ends (:func:`between_bodies`); None: both interpolated linearly."""
+    the first step whose body lagged. ``path``: the bodies [n + 1, Nb, 3] at the steps' ends
+    (:func:`between_bodies`); None: interpolated linearly. The targets are interpolated linearly."""
     sim.set_dt(1.0 / (fps * n))
     stats = []
     for k in range(n):
@@ -404,13 +393,8 @@ def _frame(sim: ClothSim, x, v, body0, body1, body_faces, tb0, tb1, n: int, fps:
             b0 = (1 - w0) * body0 + w0 * body1
             b1 = (1 - w1) * body0 + w1 * body1
         else:
-            b0, b1 = path[0][k], path[0][k + 1]
-        if tb1 is None:
-            tgt = None
-        elif path is not None and path[1] is not None:
-            tgt = path[1][k + 1]
-        else:
-            tgt = (1 - w1) * tb0 + w1 * tb1
+            b0, b1 = path[k], path[k + 1]
+        tgt = None if tb1 is None else (1 - w1) * tb0 + w1 * tb1
         x, v, st = sim.step(x, v, b0, b1, body_faces, tgt)
         stats.append(st)
         if stop_on_lag and st.body_gap > 0:

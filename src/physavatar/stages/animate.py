@@ -89,7 +89,7 @@ def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> i
 
 def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
             progress=True, report=None, max_substeps: int = 16,
-            out: Path | None = None, garment=None, skinned_between: bool = False) -> tuple[AnimatedSequence, dict]:
+            out: Path | None = None, garment=None, skinned_between: bool = True) -> tuple[AnimatedSequence, dict]:
     """Drive ``avatar`` with ``motion`` (resampled to the avatar's fps). Returns (sequence, stats).
     ``progress``: see :mod:`physavatar.progress`; ``report``: called with 1 after every simulated
     frame instead (:mod:`physavatar.parallel`). ``max_substeps``: implicit steps a frame may be
@@ -99,8 +99,8 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     GarmentPart on the zero pose of Anny in the avatar's shape (collider topology; a garment file
     fitted there, stages.garment_file) worn instead of the avatar's own: the warm-up starts from
     that pose, and the sequence holds the avatar's body and that garment. ``skinned_between``: a
-    frame split into sub-steps poses the collider in between from the motion (body.between);
-    False (the default): vertex by vertex."""
+    frame split into sub-steps poses the collider in between from the motion (body.between; the
+    default since session 31); False: vertex by vertex."""
     fps = avatar.fps
     body = BodyModel(avatar.shape, topology="collider")
     m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s, zero_start=garment is not None)
@@ -245,7 +245,7 @@ class AnimateConfig(GarmentFileOptions):
                                       "triangles)")
     garment: str = option("", "a garment file (OBJ, PLY, glTF, npz) worn instead of the avatar's own: fitted onto "
                               "the avatar's body, simulated with the avatar's material (as simulate --garment)")
-    skinned_between: bool = option(False, BETWEEN_HELP, flag="--skinned-between/--linear-between")
+    skinned_between: bool = option(True, BETWEEN_HELP, flag="--skinned-between/--linear-between")
 
 
 def pipeline_config(motion: str, eval_frames: int | None) -> AnimateConfig:

@@ -79,8 +79,9 @@ class SimulateConfig(GarmentFileOptions):
             garment_sim.layered), or None.
         preview: write preview.mp4.
         skinned_between: a frame split into sub-steps poses the body in between from the motion
-            (body.between.PoseBetween); False (the default): vertex by vertex (the collider's
-            straight path).
+            (body.between.PoseBetween; the default since session 31), the attached targets on
+            their straight path; False: the body vertex by vertex too (the collider's straight
+            path).
     """
 
     material: str = option("cotton", "silk, cotton, denim, or a material .json")
@@ -113,7 +114,7 @@ class SimulateConfig(GarmentFileOptions):
                                     "each with its own boundary, in contact with each other (self-contact); "
                                     "e.g. --garment skirt --over tshirt")
     preview: bool = option(True, "write preview.mp4")
-    skinned_between: bool = option(False, BETWEEN_HELP, flag="--skinned-between/--linear-between")
+    skinned_between: bool = option(True, BETWEEN_HELP, flag="--skinned-between/--linear-between")
 
 
 @dataclass
