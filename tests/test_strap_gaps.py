@@ -82,3 +82,46 @@ def test_a_hole_and_a_level_gap_are_not_joined():
     strips = (np.isclose(x, -0.2) | np.isclose(x, -0.12)) & (z > 0.3) & (z <= 0.5)
     out, band, info = close_gaps(panel | strips, V, F)
     assert info == [] and not band.any() and np.array_equal(out, panel | strips)
+
+
+def _bent_ring(V):
+    """The flattened strap of ``_ring`` whose right side bends out between z = 0.3 and 0.5 (x =
+    0.11 + 0.1 sin(pi (z - 0.3) / 0.2), two to three vertices wide): the strap's own line, not the
+    straight way up."""
+    x, z = V[:, 0], V[:, 2]
+    panel = z <= 0.1 + 1e-9
+    left = (np.abs(x + 0.11) < 0.015) & (z <= 0.52 + 1e-9)
+    over = (np.abs(z - 0.51) < 0.015) & (x >= -0.12 - 1e-9) & (x <= 0.12 + 1e-9)
+    xc = 0.11 + np.where((z > 0.3) & (z < 0.5), 0.1 * np.sin(np.pi * (z - 0.3) / 0.2), 0.0)
+    right = (np.abs(x - xc) < 0.021) & (z <= 0.52 + 1e-9)
+    return panel | left | over | right
+
+
+def test_the_join_follows_the_garment_evidence_not_the_shortest_way():
+    """The right side's bend (z 0.32 .. 0.48) labelled body, the images' evidence (log-odds) +3 on
+    the whole strap, -3 on the skin. The join (the only one, from the lower part's top) runs, at
+    length x (1 + 4 P(body)), along the bend: every way vertex on the strap; the shortest way
+    (evidence_weight 0, session 30's) goes straight up over the skin, most of its vertices off it.
+    Which top joins and its climb do not change. With ``widen`` the band's side vertices the
+    evidence calls cloth are garment too, none of the skin's."""
+    V, F = _wall()
+    whole = _bent_ring(V)
+    x, z = V[:, 0], V[:, 2]
+    cut = whole & ~((x > 0.09) & (z > 0.31) & (z < 0.49))
+    evidence = np.where(whole, 3.0, -3.0)
+
+    _, _, short = close_gaps(cut, V, F, evidence=evidence, evidence_weight=0)
+    out, band, info = close_gaps(cut, V, F, evidence=evidence)
+    assert len(short) == len(info) == 1, (short, info)
+    assert np.isclose(info[0]["climb"], short[0]["climb"], atol=0.021)
+    on_short = whole[short[0]["way"]].mean()
+    on_new = whole[info[0]["way"]].mean()
+    assert on_short < 0.5, on_short  # the straight way up crosses the skin
+    assert on_new == 1.0, on_new  # the evidence's way stays on the strap
+    assert info[0]["gap"] > info[0]["shortest"]  # longer than the shortest, as the bend is
+    assert (V[info[0]["way"], 0] > 0.15).any()  # it reaches the bend's far side
+
+    wide, band_w, _ = close_gaps(cut, V, F, evidence=evidence, widen=0.0)
+    added = wide & ~out
+    assert added.any() and whole[added].all()
+    assert not (wide & ~whole & ~out).any()
