@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from ...geometry.mesh import mesh_edges
+from ...geometry.mesh import adjacency, mesh_edges
 
 
 def _graph(E: np.ndarray, w: np.ndarray, sel: np.ndarray, n: int) -> sp.csr_matrix:
@@ -49,7 +49,7 @@ def local_tops(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, reach:
 def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclude: np.ndarray | None = None,
                max_gap: float = 0.25, ratio: float = 2.0, climb: float = 0.3,
                top_reach: float = 0.1, evidence: np.ndarray | None = None,
-               evidence_weight: float = 4.0, widen: float | None = None) -> tuple[np.ndarray, np.ndarray, list]:
+               evidence_weight: float = 4.0, widen: int = 0) -> tuple[np.ndarray, np.ndarray, list]:
     """(``mask`` [n] with each join's way added, band [n] bool: the ways and the third corners of
     their edges' faces, [{'gap': m, 'through_garment': m, or None where the garment does not
     reach it within ``ratio`` × ``max_gap``, 'climb': m, 'vertices': k, 'way':
@@ -81,6 +81,7 @@ def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclud
         dw, pred = _evidence_ways(E, w, across, mask, tops, evidence, evidence_weight, max_gap)
     dg = dijkstra(_graph(E, w, inside, n), indices=tops, limit=ratio * max_gap)
     Fs = np.sort(np.asarray(faces), axis=1)
+    A = adjacency(faces, n).tocsr()
     best = np.where(mask[None, :] & (dg > ratio * da) & (V[None, :, 2] - V[tops, 2][:, None] >= climb * da), da, np.inf)
     joined: list[int] = []
     for i in np.argsort(best.min(1)):  # the shortest first; a top beside a joined one is not joined again
@@ -104,9 +105,13 @@ def close_gaps(mask: np.ndarray, vertices: np.ndarray, faces: np.ndarray, exclud
             e0, e1 = min(a, b), max(a, b)
             on = ((Fs[:, 0] == e0) & ((Fs[:, 1] == e1) | (Fs[:, 2] == e1))) | ((Fs[:, 1] == e0) & (Fs[:, 2] == e1))
             band[Fs[on].ravel()] = True
-        if widen is not None and evidence is not None:  # the band's sides the images call cloth: garment
-            side = band & ~out & allowed & (np.asarray(evidence) > widen)
-            out |= side
+        ring = np.zeros(n, bool)
+        ring[way] = True
+        for _ in range(widen):  # the band ``widen`` rings wider than the way: garment, about a strap's width
+            ring |= (A @ ring.astype(np.int8)) > 0
+            ring &= allowed
+        out |= ring
+        band |= ring
         through = round(float(dg[i, v]), 4) if np.isfinite(dg[i, v]) else None  # JSON has no inf
         length = float(np.linalg.norm(np.diff(V[way], axis=0), axis=1).sum())
         info.append({"gap": round(length, 4), "shortest": round(float(da[i].min(where=ok, initial=np.inf)), 4),

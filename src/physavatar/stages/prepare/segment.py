@@ -415,7 +415,7 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
                    body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05,
                    exclude: np.ndarray | None = None, cut_outline: bool = True, max_gap: float = 0.25,
                    joins: list | None = None, gap_vertices: np.ndarray | None = None,
-                   evidence: np.ndarray | None = None, evidence_weight: float = 4.0, widen: float | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
+                   evidence: np.ndarray | None = None, evidence_weight: float = 4.0, widen: int = 0) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """[(label, vertices [n, 3], faces [m, 3])] one open surface per garment label: the faces
     at least two of whose corners carry it (a strap one or two vertices wide stays joined; a
     vertex of another label between two separate parts of it joins them, :func:`join_parts`) and

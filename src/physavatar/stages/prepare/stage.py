@@ -359,7 +359,7 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge,
                             max_gap=cfg.segment.strap_gap, joins=joins, evidence=evidence,
                             evidence_weight=cfg.segment.strap_evidence,
-                            widen=0.0 if cfg.segment.strap_widen else None)
+                            widen=cfg.segment.strap_widen)
     numbers["strap_joins"] = joins
     # the boundary's contact test is set for the hull too (the refined surface of a strap or a
     # bodice lies on the body all along): the same pieces at their hull positions
@@ -368,7 +368,7 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
         hp = garment_pieces(V_hull, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge,
                             max_gap=cfg.segment.strap_gap, gap_vertices=V, evidence=evidence,
                             evidence_weight=cfg.segment.strap_evidence,
-                            widen=0.0 if cfg.segment.strap_widen else None)
+                            widen=cfg.segment.strap_widen)
         if [(g, f.shape) for g, _, f in hp] == [(g, f.shape) for g, _, f in pieces]:
             contact_pieces = hp
         numbers["contact_pieces_on_hull"] = contact_pieces is hp
