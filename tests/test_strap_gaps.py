@@ -102,8 +102,7 @@ def test_the_join_follows_the_garment_evidence_not_the_shortest_way():
     the whole strap, -3 on the skin. The join (the only one, from the lower part's top) runs, at
     length x (1 + 4 P(body)), along the bend: every way vertex on the strap; the shortest way
     (evidence_weight 0, session 30's) goes straight up over the skin, most of its vertices off it.
-    Which top joins and its climb do not change. With ``widen`` the band's side vertices the
-    evidence calls cloth are garment too, none of the skin's."""
+    Which top joins and its climb do not change."""
     V, F = _wall()
     whole = _bent_ring(V)
     x, z = V[:, 0], V[:, 2]
@@ -121,7 +120,35 @@ def test_the_join_follows_the_garment_evidence_not_the_shortest_way():
     assert info[0]["gap"] > info[0]["shortest"]  # longer than the shortest, as the bend is
     assert (V[info[0]["way"], 0] > 0.15).any()  # it reaches the bend's far side
 
-    wide, band_w, _ = close_gaps(cut, V, F, evidence=evidence, widen=0.0)
-    added = wide & ~out
-    assert added.any() and whole[added].all()
-    assert not (wide & ~whole & ~out).any()
+
+
+def test_a_widened_band_covers_the_cut_strap_across():
+    """The session-30 ring's strap is two vertices wide (x = 0.10, 0.12); cut from z 0.38 to 0.48,
+    the one-vertex way (``widen`` 0) labels garment only about half of the cut strap's vertices;
+    one ring wider (``widen`` 1, prepare's default) all of them, and no vertex farther than one
+    edge from the way. The faces across the strap are kept by ``garment_pieces``: the piece has
+    faces at both x = 0.10 .. 0.12 and the way's other side all along the cut."""
+    V, F = _wall()
+    whole = _ring(V)
+    x, z = V[:, 0].round(3), V[:, 2].round(3)
+    gone = whole & (x > 0.09) & (z > 0.37) & (z < 0.49)
+    cut = whole & ~gone
+    one, _, info = close_gaps(cut, V, F)
+    wide, band, info_w = close_gaps(cut, V, F, widen=1)
+    assert [j["way"] for j in info] == [j["way"] for j in info_w]
+    assert one[gone].mean() < 0.7, one[gone].mean()
+    assert wide[gone].all()
+    way = V[info_w[0]["way"]]
+    d = np.linalg.norm(V[wide & ~cut][:, None] - way[None], axis=2).min(1)
+    assert d.max() <= 0.02 * np.sqrt(2) + 1e-9
+    joins = []
+    (_, Vj, Fj), = garment_pieces(V, F, cut.astype(np.int64), *_far_body(), joins=joins, widen=1)
+    c = Vj[Fj].mean(1)
+    for zc in np.arange(0.39, 0.48, 0.02):
+        row = c[(np.abs(c[:, 2] - zc) < 0.011) & (c[:, 0] > 0.05)]
+        assert row[:, 0].max() - row[:, 0].min() >= 0.03, zc  # faces across the strap, not one edge
+
+
+def _far_body():
+    b = trimesh.creation.icosphere(2, radius=0.1)
+    return b.vertices - [0, 0, 2.0], np.asarray(b.faces)
