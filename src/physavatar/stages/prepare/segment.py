@@ -415,7 +415,8 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
                    body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05,
                    exclude: np.ndarray | None = None, cut_outline: bool = True, max_gap: float = 0.25,
                    joins: list | None = None, gap_vertices: np.ndarray | None = None,
-                   evidence: np.ndarray | None = None, evidence_weight: float = 4.0, widen: int = 0) -> list[tuple[int, np.ndarray, np.ndarray]]:
+                   evidence: np.ndarray | None = None, evidence_weight: float = 4.0, widen: int = 0,
+                   fill_bowties: int = 2) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """[(label, vertices [n, 3], faces [m, 3])] one open surface per garment label: the faces
     at least two of whose corners carry it (a strap one or two vertices wide stays joined; a
     vertex of another label between two separate parts of it joins them, :func:`join_parts`) and
@@ -443,12 +444,18 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
                 joins.extend({"garment": int(g), **{k: v for k, v in j.items() if k != "way"}} for j in info)
         if exclude is not None:
             keep &= ~exclude[faces].any(1)
-        for _ in range(10):  # faces at a vertex joining separate fans go, until none is left
-            ids, F = _face_submesh(faces, keep)
-            V = vertices[ids]
-            bad = _bowtie_vertices(F, len(V))
+        for r in range(fill_bowties + 10):  # a vertex joining separate fans of faces (a bow-tie):
+            ids, F = _face_submesh(faces, keep)  # its missing faces are added (``fill_bowties``
+            V = vertices[ids]  # rounds: a strap that meets the rest at a vertex stays joined), then
+            bad = _bowtie_vertices(F, len(V))  # the faces at those left go, until none is left
             if not len(bad):
                 break
+            if r < fill_bowties:
+                add = np.isin(faces, ids[bad]).any(1) & ~keep
+                if exclude is not None:
+                    add &= ~exclude[faces].any(1)
+                keep |= add
+                continue
             fk = np.flatnonzero(keep)
             keep[fk[np.isin(F, bad).any(1)]] = False
         if not keep.any():
