@@ -152,3 +152,26 @@ def test_a_widened_band_covers_the_cut_strap_across():
 def _far_body():
     b = trimesh.creation.icosphere(2, radius=0.1)
     return b.vertices - [0, 0, 2.0], np.asarray(b.faces)
+
+
+def test_a_strap_one_vertex_wide_is_not_cut_at_its_bow_ties():
+    """Two panels (z <= 0.1, z >= 0.3) joined by a strip one vertex wide (x = 0): the faces with two
+    garment corners meet at each strip vertex in two fans (bow-ties, not allowed in a template).
+    Removing their faces (``fill_bowties=0``, before session 31) cuts the strip: two pieces, no face
+    between the panels' edges; adding each bow-tie vertex's missing faces first keeps one piece with faces
+    all along the strip, within an edge of it."""
+    V, F = _wall()
+    x, z = V[:, 0].round(3), V[:, 2].round(3)
+    m = (z <= 0.1) | (z >= 0.3) | ((x == 0) & (z > 0.1) & (z < 0.3))
+    for fill, n_pieces in ((0, 2), (2, 1)):
+        (_, Vg, Fg), = garment_pieces(V, F, m.astype(np.int64), *_far_body(), max_gap=0, min_share=0.0,
+                                      fill_bowties=fill)
+        parts = trimesh.Trimesh(Vg, Fg, process=False).split(only_watertight=False)
+        assert len(parts) == n_pieces, (fill, len(parts))
+        c = Vg[Fg].mean(1)
+        mid = c[(c[:, 2] > 0.11) & (c[:, 2] < 0.29)]
+        rows = [bool((np.abs(mid[:, 2] - zc) < 0.011).any()) for zc in np.arange(0.12, 0.29, 0.02)]
+        if fill:
+            assert np.abs(mid[:, 0]).max() < 0.02 and all(rows), rows
+        else:
+            assert not any(rows[1:-1]), rows  # only the panels' own edge faces at the ends
