@@ -421,11 +421,13 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
     at least two of whose corners carry it (a strap one or two vertices wide stays joined; a
     vertex of another label between two separate parts of it joins them, :func:`join_parts`) and
     none of which is in ``exclude`` [n] (a hull's bridges: cloth ends at its hem), without bow-tie
-    vertices or small pieces, every vertex at least ``clearance`` outside the body (moved along
+    vertices (each first given its missing faces, ``fill_bowties`` rounds; the faces at those left
+    removed) or small pieces, every vertex at least ``clearance`` outside the body (moved along
     the body's normal when not). A strap cut over the shoulder is joined again across the body
     (at most ``max_gap`` long, 0: not; :func:`gaps.close_gaps`, on ``gap_vertices`` when given: the
     same joins for the same mesh elsewhere; along the segmentation's per-vertex garment log-odds
-    ``evidence`` when given), each join appended to ``joins``."""
+    ``evidence`` when given, the band ``widen`` rings wider than its way), each join appended to
+    ``joins``."""
     from ...capture import check_template_mesh
     from .gaps import close_gaps
     from ...geometry.closest import MeshQuery
