@@ -119,6 +119,8 @@ class SegmentConfig:
                            check=lambda v: None if 1 <= v <= 15 else "must be 1..15")
     min_piece: float = setting(0.05)  # garment pieces smaller than this share of the garment are dropped
     strap_gap: float = setting(0.25)  # [m] a garment's local top joins higher garment across at most this (gaps.py; 0: off)
+    strap_evidence: float = setting(0.0)  # a join's way costs length x (1 + this x P(body)) (gaps.py; 0: the shortest)
+    strap_widen: int = setting(1)  # a join's band: the way and this many rings of vertices around it are garment
 
 
 @dataclass(frozen=True)

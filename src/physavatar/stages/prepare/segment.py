@@ -286,6 +286,7 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
         logit_p, info["photo"] = photo_term(logit, photo, faces, cfg)
         before = cut(logit)
         garment, info["photo"]["kept_for_topology"] = keep_topology(before, cut(logit_p), faces, np.argsort(logit_p))
+        logit = logit_p
     else:
         garment = cut(logit)
     if bridge.any() and (garment & ~bridge).any():
@@ -299,7 +300,9 @@ def segment(vertices: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, 
     if cfg.garments > 1 and (labels > 0).sum() >= cfg.garments:
         labels = _split_by_colour(labels, colour, faces, cfg.garments)
     info["garment_vertices"] = int((labels > 0).sum())
-    return labels, info | {"signed_distance": sd, "colour": colour, "bridge_mask": bridge}
+    # the unary evidence (log-odds garment : body per vertex, before the cut's smoothing): the
+    # strap joins (gaps.py) follow it where the cut left a strap body
+    return labels, info | {"signed_distance": sd, "colour": colour, "bridge_mask": bridge, "logit": logit}
 
 
 def _components(mask: np.ndarray, faces: np.ndarray, n: int):
@@ -411,15 +414,20 @@ def user_labels(path: Path, vertices: np.ndarray, source: tuple[np.ndarray, np.n
 def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, body_vertices: np.ndarray,
                    body_faces: np.ndarray, clearance: float = 0.003, min_share: float = 0.05,
                    exclude: np.ndarray | None = None, cut_outline: bool = True, max_gap: float = 0.25,
-                   joins: list | None = None, gap_vertices: np.ndarray | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
+                   joins: list | None = None, gap_vertices: np.ndarray | None = None,
+                   evidence: np.ndarray | None = None, evidence_weight: float = 4.0, widen: int = 0,
+                   fill_bowties: int = 2) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """[(label, vertices [n, 3], faces [m, 3])] one open surface per garment label: the faces
     at least two of whose corners carry it (a strap one or two vertices wide stays joined; a
     vertex of another label between two separate parts of it joins them, :func:`join_parts`) and
     none of which is in ``exclude`` [n] (a hull's bridges: cloth ends at its hem), without bow-tie
-    vertices or small pieces, every vertex at least ``clearance`` outside the body (moved along
+    vertices (each first given its missing faces, ``fill_bowties`` rounds; the faces at those left
+    removed) or small pieces, every vertex at least ``clearance`` outside the body (moved along
     the body's normal when not). A strap cut over the shoulder is joined again across the body
     (at most ``max_gap`` long, 0: not; :func:`gaps.close_gaps`, on ``gap_vertices`` when given: the
-    same joins for the same mesh elsewhere), each join appended to ``joins``."""
+    same joins for the same mesh elsewhere; along the segmentation's per-vertex garment log-odds
+    ``evidence`` when given, the band ``widen`` rings wider than its way), each join appended to
+    ``joins``."""
     from ...capture import check_template_mesh
     from .gaps import close_gaps
     from ...geometry.closest import MeshQuery
@@ -431,18 +439,25 @@ def garment_pieces(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, 
         keep = lab_g[faces].sum(1) >= 2
         if max_gap > 0:
             lab_g, band, info = close_gaps(lab_g, vertices if gap_vertices is None else gap_vertices, faces, exclude,
-                                           max_gap=max_gap)
+                                           max_gap=max_gap, evidence=evidence, evidence_weight=evidence_weight,
+                                           widen=widen)
             keep = (lab_g[faces].sum(1) >= 2) | band[faces].all(1)
             if joins is not None:
                 joins.extend({"garment": int(g), **{k: v for k, v in j.items() if k != "way"}} for j in info)
         if exclude is not None:
             keep &= ~exclude[faces].any(1)
-        for _ in range(10):  # faces at a vertex joining separate fans go, until none is left
-            ids, F = _face_submesh(faces, keep)
-            V = vertices[ids]
-            bad = _bowtie_vertices(F, len(V))
+        for r in range(fill_bowties + 10):  # a vertex joining separate fans of faces (a bow-tie):
+            ids, F = _face_submesh(faces, keep)  # its missing faces are added (``fill_bowties``
+            V = vertices[ids]  # rounds: a strap that meets the rest at a vertex stays joined), then
+            bad = _bowtie_vertices(F, len(V))  # the faces at those left go, until none is left
             if not len(bad):
                 break
+            if r < fill_bowties:
+                add = np.isin(faces, ids[bad]).any(1) & ~keep
+                if exclude is not None:
+                    add &= ~exclude[faces].any(1)
+                keep |= add
+                continue
             fk = np.flatnonzero(keep)
             keep[fk[np.isin(F, bad).any(1)]] = False
         if not keep.any():

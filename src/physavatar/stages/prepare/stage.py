@@ -310,7 +310,7 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     BV, BF = posed[0], np.asarray(model.faces, np.int64)
 
     t = time.time()
-    bridge = None
+    bridge, evidence = None, None
     if cfg.segment.labels is not None:
         labels = user_labels(cfg.segment.labels, V, src_mesh)
         steps["segmentation"] = f"from {cfg.segment.labels}"
@@ -340,7 +340,7 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
             task.advance(garment=info["garment_vertices"])
         numbers["segmentation"] = {k: v for k, v in info.items() if not isinstance(v, np.ndarray)}
         numbers["_distance"] = info["signed_distance"]
-        bridge = info["bridge_mask"]
+        bridge, evidence = info["bridge_mask"], info["logit"]
         if on_body is not None:
             # the hull's underside (a hem to the legs) is body; an unseen top (a strap over the
             # shoulder, which the cameras see only edge-on) keeps the segmentation's label
@@ -357,14 +357,18 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     cut = np.where(bridge, LABEL_BODY, labels) if bridge is not None else labels
     joins: list = []
     pieces = garment_pieces(V, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge,
-                            max_gap=cfg.segment.strap_gap, joins=joins)
+                            max_gap=cfg.segment.strap_gap, joins=joins, evidence=evidence,
+                            evidence_weight=cfg.segment.strap_evidence,
+                            widen=cfg.segment.strap_widen)
     numbers["strap_joins"] = joins
     # the boundary's contact test is set for the hull too (the refined surface of a strap or a
     # bodice lies on the body all along): the same pieces at their hull positions
     contact_pieces = pieces
     if V_hull is not None:
         hp = garment_pieces(V_hull, F, cut, BV, BF, min_share=cfg.segment.min_piece, exclude=bridge,
-                            max_gap=cfg.segment.strap_gap, gap_vertices=V)
+                            max_gap=cfg.segment.strap_gap, gap_vertices=V, evidence=evidence,
+                            evidence_weight=cfg.segment.strap_evidence,
+                            widen=cfg.segment.strap_widen)
         if [(g, f.shape) for g, _, f in hp] == [(g, f.shape) for g, _, f in pieces]:
             contact_pieces = hp
         numbers["contact_pieces_on_hull"] = contact_pieces is hp
@@ -373,7 +377,8 @@ def _template(src, tmp, raw, cfg, V, F, src_mesh, src_labels, body, masks_of, st
     from ...files import save_npz_atomic
 
     save_npz_atomic(tmp / "prepare" / "first_frame_mesh.npz", vertices=V, faces=F, labels=labels,
-                    bridge=bridge if bridge is not None else np.zeros(len(V), bool))
+                    bridge=bridge if bridge is not None else np.zeros(len(V), bool),
+                    **({} if evidence is None else {"evidence": evidence}))
     seconds["segmentation"] = time.time() - t
 
     t = time.time()
