@@ -145,12 +145,14 @@ def test_simulate_layers_a_tshirt_over_a_skirt_on_the_walk(tmp_path):
         stage.run(out=tmp_path / "bad", config=stage.SimulateConfig(over="jacket"), garment="skirt", motion="walk")
 
 
-def test_simulate_refuses_layers_that_start_closer_than_dhat_with_one_message(tmp_path, monkeypatch):
+def test_simulate_refuses_layers_that_start_closer_than_dhat_with_one_message(tmp_path, monkeypatch, caplog):
     """Layers stacked without the push over (a skirt on a skirt: coincident) are refused before the
-    first step, the message naming the option, d̂ and the garments that start closest."""
+    first step, the message naming the option, d̂ and the garments that start closest; no
+    "simulated without self-contact" warning before it (nothing is simulated)."""
     from physavatar.stages import simulate as stage
 
     monkeypatch.setattr(stage, "layered", lambda parts, *body: layered(parts))  # stacked as they are
     cfg = stage.SimulateConfig(edge_length=0.08, duration=0.2, preview=False, over="skirt")
     with pytest.raises(PhysavatarError, match=r"--over.*closer than d̂ = 0.001 m.*0.000 mm apart: skirt and skirt"):
         stage.run(out=tmp_path / "out", config=cfg, garment="skirt", motion="walk")
+    assert "without self-contact" not in caplog.text

@@ -193,7 +193,8 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     if part.layer is not None:  # the repair may have pushed a garment into the one over it: layered again
         part = layered(split_layers(part), bodies[0], body_faces)
     exclude = part.contact_exclusions()  # the primitives that touch at sewn seams
-    self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat, exclude)
+    self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat, exclude,
+                                                                warn=not cfg.over)  # layers: refused below
     if cfg.over and cfg.self_contact and not self_contact:
         _bad_option("--over", f"the layers start closer than d̂ = {sim_settings.dhat} m to each other (or a garment "
                               f"to itself: {_closest_pair(part, garment, cfg.over, sim_settings.dhat, exclude)}), "
