@@ -49,6 +49,7 @@ from physavatar.body import BUILTIN, BodyModel, Motion  # noqa: E402
 from physavatar.body.load import load_motion, with_clearances  # noqa: E402
 from physavatar.body.motion import _x, _y, _z, bone_vertex_mask  # noqa: E402
 from physavatar.data.garment_sequence import GarmentSequence  # noqa: E402
+from physavatar.errors import PhysavatarError  # noqa: E402
 from physavatar.files import write_json_atomic  # noqa: E402
 from physavatar.sim.simulate import self_intersecting_frames  # noqa: E402
 from physavatar.stages import simulate as simulate_stage  # noqa: E402
@@ -350,7 +351,15 @@ def main():
         t0 = time.perf_counter()
         reused = args.reuse and done.exists()
         if not reused:  # (an interrupted run in work/name resumes)
-            simulate_stage.run(out=work / name, config=cfg, garment=garment, motion=spec)
+            try:
+                simulate_stage.run(out=work / name, config=cfg, garment=garment, motion=spec)
+            except PhysavatarError as e:  # refused before its first step (e.g. layers closer than d̂): a failing row
+                rows[name] = {"garment": garment if over is None else f"{garment} under {over}", "refused": str(e),
+                              "frames": 0, **{k: [] for k in ("frames_with_lag", "frames_with_body_intersection",
+                                                             "frames_with_self_intersection", "frames_with_nan")}}
+                print(f"{name:15s} refused: {e}", flush=True)
+                _write(args, rows, load0, edge, duration, warmup, fps)
+                continue
         wall = time.perf_counter() - t0
         rec = json.loads(done.read_text())
         seq = GarmentSequence.load(work / name, finite=False)
@@ -461,6 +470,8 @@ def _checks(rows: dict) -> dict:
                     "frames_with_nan"):
             checks[f"{name}:{key}"] = {"value": len(row[key]), "target": "0 frames", "unit": "frames",
                                        "pass": not row[key]}
+        if "refused" in row:
+            checks[f"{name}:simulated"] = {"value": row["refused"], "target": "simulated", "pass": False}
     return checks
 
 

@@ -109,6 +109,28 @@ def test_push_over_puts_a_garment_outside_the_one_under_it():
     assert np.array_equal(again[1].boundary, np.arange(30))
 
 
+def test_push_over_leaves_a_garment_below_the_hem_beside_it_not_lifted_onto_it():
+    """Session 31 (layers-dance at 2 cm refused): the outer tube (r = 0.098, 1.5-cm rings) goes on
+    0.3 m past the inner one's hem (r = 0.1, z = 0.3), still inside its radius. Its rings past the
+    hem are beside the inner garment, not under it: they must not be lifted onto the hem (which
+    crumpled the outer garment into itself, its layers then closer than d̂). Checked: the rings
+    stay in their order along z, nothing moves more than the push the covered part needs
+    (2 mm inside + 1.25 × the 4-mm gap: 7 mm, plus the facets' sagitta), and ipctk finds the
+    layered start free of contacts within d̂ and of self-intersection."""
+    body = tube(0.08, -0.2, 0.8, 24, 8)
+    inner = tube(0.1, 0.0, 0.3, 24, 6)
+    outer_V, outer_F = tube(0.098, 0.0, 0.6, 30, 40)
+    V = push_over(outer_V, outer_F, [inner], *body, gap=0.004)
+    z = V[:, 2].reshape(40, 30)
+    assert np.all(z[1:].min(1) > z[:-1].max(1))  # no ring pulled past the next
+    assert np.linalg.norm(V - outer_V, axis=1).max() < 0.002 + 1.25 * 0.004 + 0.1 * (1 - np.cos(np.pi / 24)) + 1e-3
+    assert self_intersecting_frames(V[None], outer_F) == []
+    part = layered([GarmentPart(np.arange(len(inner[0])), *inner, np.arange(24)),
+                    GarmentPart(np.arange(len(V)), outer_V, outer_F, np.arange(30))], *body)
+    assert np.array_equal(part.vertices[len(inner[0]):], V)
+    assert self_contact_possible(part.vertices, part.faces, 1e-3)
+
+
 def test_simulate_layers_a_tshirt_over_a_skirt_on_the_walk(tmp_path):
     from physavatar.stages import simulate as stage
 
@@ -121,3 +143,16 @@ def test_simulate_layers_a_tshirt_over_a_skirt_on_the_walk(tmp_path):
     assert r.bad_frames == [] and r.self_intersecting_frames == [] and r.lagged_frames == []
     with pytest.raises(PhysavatarError, match="--over"):
         stage.run(out=tmp_path / "bad", config=stage.SimulateConfig(over="jacket"), garment="skirt", motion="walk")
+
+
+def test_simulate_refuses_layers_that_start_closer_than_dhat_with_one_message(tmp_path, monkeypatch, caplog):
+    """Layers stacked without the push over (a skirt on a skirt: coincident) are refused before the
+    first step, the message naming the option, d̂ and the garments that start closest; no
+    "simulated without self-contact" warning before it (nothing is simulated)."""
+    from physavatar.stages import simulate as stage
+
+    monkeypatch.setattr(stage, "layered", lambda parts, *body: layered(parts))  # stacked as they are
+    cfg = stage.SimulateConfig(edge_length=0.08, duration=0.2, preview=False, over="skirt")
+    with pytest.raises(PhysavatarError, match=r"--over.*closer than d̂ = 0.001 m.*0.000 mm apart: skirt and skirt"):
+        stage.run(out=tmp_path / "out", config=cfg, garment="skirt", motion="walk")
+    assert "without self-contact" not in caplog.text

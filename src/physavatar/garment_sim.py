@@ -120,6 +120,10 @@ def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_G
     that is too low moves out along that normal, a triangle above a poking vertex is lifted, and
     the vertices around a moved one follow halfway (the cloth stays smooth), as garment.garment.
     push_out does against a closed body (whose inside/outside test an open garment has not).
+    A vertex whose closest point on the other garment is on that garment's rim (its open edges: a
+    hem, a waistband, an armhole) is beside it, not under or over it: only its distance counts
+    there (at least ``gap``), not its height along the normal (which would lift a dress's skirt
+    below a shorter skirt's hem onto the hem, crumpling it into itself: session 31).
     """
     from .geometry import MeshQuery, adjacency, vertex_normals
 
@@ -132,8 +136,9 @@ def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_G
         N = vertex_normals(Vu, Fu)
         _, _, _, qb = body.closest(Vu)
         N *= np.where(((Vu - qb) * N).sum(1) < 0, -1.0, 1.0)[:, None]  # away from the body
-        surfaces.append((Vu, Fu, N, MeshQuery(Vu, Fu)))
+        surfaces.append((Vu, Fu, N, MeshQuery(Vu, Fu), _rim(Fu, len(Vu))))
     A = adjacency(F, len(V))
+    rim = _rim(F, len(V))
     for _ in range(iterations):
         delta = np.zeros_like(V)
 
@@ -141,19 +146,19 @@ def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_G
             longer = np.linalg.norm(d, axis=1) > np.linalg.norm(delta[idx], axis=1)
             delta[idx[longer]] = d[longer]
 
-        for Vu, Fu, N, Q in surfaces:
+        for Vu, Fu, N, Q, rim_u in surfaces:
             d, f, w, q = Q.closest(V, max_dist=reach)
             n = np.einsum("nk,nkd->nd", w, N[Fu[f]])
             n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-            low = np.flatnonzero((d < reach) & (((V - q) * n).sum(1) < gap))
+            low = np.flatnonzero((np.where(rim_u(f, w), d < gap, d < reach)) & (((V - q) * n).sum(1) < gap))
             propose(low, q[low] + 1.25 * gap * n[low] - V[low])
             d2, f2, w2, q2 = MeshQuery(V, F).closest(Vu, max_dist=reach)
             above = ((q2 - Vu) * N).sum(1)  # how far V's surface is above each under-garment vertex
-            poke = np.flatnonzero((d2 < reach) & (above < gap))
+            poke = np.flatnonzero(np.where(rim(f2, w2), d2 < gap, d2 < reach) & (above < gap))
             for k in range(3):
                 propose(F[f2[poke], k], N[poke] * (1.25 * gap - above[poke])[:, None])
         if not delta.any():  # vertices clear: edges and triangles too? (ipctk, at half the gap)
-            for Vu, Fu, N, Q in surfaces:
+            for Vu, Fu, N, Q, _ in surfaces:
                 for ids, up in _close_pairs(V, F, Vu, Fu, 0.5 * gap):
                     n = N[up].sum(0)
                     propose(ids, np.tile(gap * n / max(np.linalg.norm(n), 1e-30), (len(ids), 1)))
@@ -163,6 +168,33 @@ def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_G
         spread = (A @ delta) / np.maximum(A @ moved.astype(float), 1.0)[:, None]
         V += np.where(moved[:, None], delta, 0.5 * spread)
     return V
+
+
+def _rim(F, n: int):
+    """A test rim(f [K], w [K, 3]) -> [K] bool: whether the closest points given by triangle f
+    and barycentric coordinates w (geometry.MeshQuery.closest; exact zeros off the triangle's
+    interior) lie on the mesh's open edges (edges of one triangle) or their vertices."""
+    F = np.asarray(F, np.int64)
+    E = np.sort(F[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    keys, count = np.unique(E[:, 0] * n + E[:, 1], return_counts=True)
+    open_keys = keys[count == 1]
+    on_rim = np.zeros(n, bool)
+    on_rim[np.concatenate([open_keys // n, open_keys % n])] = True
+
+    def test(f, w):
+        corners = F[f]
+        nz = w > 0
+        k = nz.sum(1)
+        out = np.zeros(len(f), bool)
+        one = k == 1
+        out[one] = on_rim[corners[one][nz[one]]]
+        two = np.flatnonzero(k == 2)
+        if len(two):
+            ab = np.sort(corners[two][nz[two]].reshape(-1, 2), axis=1)
+            out[two] = np.isin(ab[:, 0] * n + ab[:, 1], open_keys)
+        return out
+
+    return test
 
 
 def _close_pairs(V, F, Vu, Fu, dist: float):

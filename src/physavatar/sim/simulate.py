@@ -143,12 +143,12 @@ def feasible_thickness(sim, x, body, body_faces):
     return x, dataclasses.replace(s, dmin=max(thickness, 1e-9))
 
 
-def self_contact_possible(vertices, faces, dhat: float, exclude=None) -> bool:
+def self_contact_possible(vertices, faces, dhat: float, exclude=None, warn: bool = True) -> bool:
     """Whether the garment's start leaves every pair of its own non-adjacent triangles ≥ d̂
     apart (ipctk), as self-contact needs, apart from the pairs ``exclude`` [P, 2] leaves out
     (seam_exclusions: the primitives that touch at a sewn seam). Layers closer than d̂ would
     start inside the barrier; the simulation then runs without self-contact and says so
-    (config.json ``self_contact``)."""
+    (config.json ``self_contact``; ``warn``: log that, where the caller does not refuse instead)."""
     from .contact import cloth_filter
 
     F = np.asarray(faces, np.int32)
@@ -158,7 +158,7 @@ def self_contact_possible(vertices, faces, dhat: float, exclude=None) -> bool:
     c = ipctk.NormalCollisions()
     c.build(mesh, V, dhat)
     ok = len(c) == 0
-    if not ok:
+    if not ok and warn:
         logging.getLogger("physavatar.progress").warning(
             "the garment's own triangles start closer than d̂ = %g m to each other: simulated without self-contact", dhat)
     return ok

@@ -193,10 +193,12 @@ def run(*, out: Path, config: SimulateConfig, capture: Path | None = None, garme
     if part.layer is not None:  # the repair may have pushed a garment into the one over it: layered again
         part = layered(split_layers(part), bodies[0], body_faces)
     exclude = part.contact_exclusions()  # the primitives that touch at sewn seams
-    self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat, exclude)
+    self_contact = cfg.self_contact and self_contact_possible(part.vertices, part.faces, sim_settings.dhat, exclude,
+                                                                warn=not cfg.over)  # layers: refused below
     if cfg.over and cfg.self_contact and not self_contact:
         _bad_option("--over", f"the layers start closer than d̂ = {sim_settings.dhat} m to each other (or a garment "
-                              "to itself), so they cannot be simulated in contact")
+                              f"to itself: {_closest_pair(part, garment, cfg.over, sim_settings.dhat, exclude)}), "
+                              "so they cannot be simulated in contact")
     sim_settings = replace(sim_settings, self_contact=self_contact)
     t0 = time.time()
     X, reports, store, resumed = _simulate_frames(out, part, bodies, body_faces, mat, fps, sim_settings, cfg, n_warm,
@@ -264,6 +266,28 @@ def _layers_record(garment, over: str | None, part: GarmentPart) -> list | None:
         return None
     names = [str(garment)] + _over_names(over)
     return [{"garment": n, "vertices": int(np.sum(part.layer == i))} for i, n in enumerate(names)]
+
+
+def _closest_pair(part: GarmentPart, garment, over: str, dhat: float, exclude) -> str:
+    """Which garments of a layered ``part`` start closest (ipctk's contacts within ``dhat``), in words."""
+    import ipctk
+
+    from ..sim.contact import cloth_filter
+
+    F = np.asarray(part.faces, np.int32)
+    mesh = ipctk.CollisionMesh(part.vertices, ipctk.edges(F), F)
+    mesh.can_collide = cloth_filter(len(part.vertices), exclude)
+    c = ipctk.NormalCollisions()
+    c.build(mesh, part.vertices, dhat)
+    if not len(c):
+        return "none found"
+    E = mesh.edges
+    d = [np.sqrt(c[k].compute_distance(c[k].dof(part.vertices, E, F))) for k in range(len(c))]
+    k = int(np.argmin(d))
+    names = [str(garment)] + _over_names(over)
+    lay = sorted({int(part.layer[i]) for i in c[k].vertex_ids(E, F) if i >= 0})
+    who = " and ".join(names[i] for i in lay) + (" with itself" if len(lay) == 1 else "")
+    return f"{len(c)} pairs, the closest {d[k] * 1e3:.3f} mm apart: {who}"
 
 
 def _over_names(over: str) -> list[str]:
