@@ -156,3 +156,27 @@ def test_simulate_refuses_layers_that_start_closer_than_dhat_with_one_message(tm
     with pytest.raises(PhysavatarError, match=r"--over.*closer than d̂ = 0.001 m.*0.000 mm apart: skirt and skirt"):
         stage.run(out=tmp_path / "out", config=cfg, garment="skirt", motion="walk")
     assert "without self-contact" not in caplog.text
+
+
+def test_a_stitched_seam_is_not_a_rim_for_push_over():
+    """Session 31's rim rule (push_over: a vertex whose closest point on the other garment is on
+    its open edges is beside it, only its distance counts) must not take a garment file's seam
+    (panels stitched, not welded: open edges in the mesh) for a hem. Two panels sewn along x = 0
+    (_book): closest points on the seam's edges and vertices are rims without the seam pairs and
+    are not with them; points on a panel's far edge are rims either way, points inside a
+    triangle never; the seam's end on the panels' bottom edge is a rim (the hem's corner)."""
+    from physavatar.garment_sim import _rim
+    from physavatar.geometry import MeshQuery
+
+    V, F, seams, far = _book(n=8, size=0.2, angle_deg=0.0)
+    Q = MeshQuery(V, F)
+    at_seam = np.array([[-0.01, 0.05, 0.0], [-0.01, 0.1, 0.0], [-0.02, 0.063, 0.0]])  # beyond the seam, in the plane
+    at_far = np.array([[0.21, 0.05, 0.0], [0.21, 0.13, 0.0]])
+    inside = np.array([[0.037, 0.061, 0.01]])
+    _, f, w, q = Q.closest(np.vstack([at_seam, at_far, inside]))
+    assert np.allclose(q[:3, 0], 0.0) and np.allclose(q[3:5, 0], 0.2)
+    plain, sewn = _rim(F, len(V)), _rim(F, len(V), seams)
+    assert plain(f, w).tolist() == [True, True, True, True, True, False]
+    assert sewn(f, w).tolist() == [False, False, False, True, True, False]
+    _, f0, w0, _ = Q.closest(np.array([[-0.02, -0.02, 0.0]]))  # the corner where seam and hem meet
+    assert sewn(f0, w0).tolist() == [True]

@@ -78,8 +78,8 @@ def layered(parts: list[GarmentPart], body_vertices=None, body_faces=None, gap: 
     placed = []
     for i, p in enumerate(parts):
         if i and body_vertices is not None:
-            p = dataclasses.replace(p, vertices=push_over(p.vertices, p.faces, [(q.vertices, q.faces) for q in placed],
-                                                          body_vertices, body_faces, gap))
+            p = dataclasses.replace(p, vertices=push_over(p.vertices, p.faces, [(q.vertices, q.faces, q.seams) for q in placed],
+                                                          body_vertices, body_faces, gap, seams=p.seams))
         placed.append(p)
     offsets = np.cumsum([0] + [len(p.vertices) for p in placed])
     seams = [p.seams + o for p, o in zip(placed, offsets) if p.seams is not None and len(p.seams)]
@@ -111,9 +111,9 @@ def split_layers(part: GarmentPart) -> list[GarmentPart]:
 
 
 def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_GAP, reach: float = 0.03,
-              iterations: int = 30) -> np.ndarray:
+              iterations: int = 30, seams=None) -> np.ndarray:
     """A garment's vertices V [N, 3] (triangles F) moved out over the garments ``under`` (a list
-    of (vertices, faces)) so that it lies at least ``gap`` outside each of them, both ways: every
+    of (vertices, faces) or (vertices, faces, seams)) so that it lies at least ``gap`` outside each of them, both ways: every
     vertex of V within ``reach`` of an under-garment at least ``gap`` above its surface, and every
     under-garment vertex at least ``gap`` below V's surface. Outside is away from the body: each
     under-garment's vertex normals are turned to face away from the closest body point. A vertex
@@ -123,7 +123,9 @@ def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_G
     A vertex whose closest point on the other garment is on that garment's rim (its open edges: a
     hem, a waistband, an armhole) is beside it, not under or over it: only its distance counts
     there (at least ``gap``), not its height along the normal (which would lift a dress's skirt
-    below a shorter skirt's hem onto the hem, crumpling it into itself: session 31).
+    below a shorter skirt's hem onto the hem, crumpling it into itself: session 31). An open edge
+    both of whose ends are sewn (``seams`` [S, 2] vertex pairs, V's own; an under-garment's third
+    item: a garment file's panels, stitched, not welded) is a seam, not a rim.
     """
     from .geometry import MeshQuery, adjacency, vertex_normals
 
@@ -131,14 +133,14 @@ def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_G
     F = np.asarray(F, dtype=np.int64)
     body = MeshQuery(body_vertices, body_faces)
     surfaces = []
-    for Vu, Fu in under:
+    for Vu, Fu, *sewn in under:
         Vu, Fu = np.asarray(Vu, np.float64), np.asarray(Fu, np.int64)
         N = vertex_normals(Vu, Fu)
         _, _, _, qb = body.closest(Vu)
         N *= np.where(((Vu - qb) * N).sum(1) < 0, -1.0, 1.0)[:, None]  # away from the body
-        surfaces.append((Vu, Fu, N, MeshQuery(Vu, Fu), _rim(Fu, len(Vu))))
+        surfaces.append((Vu, Fu, N, MeshQuery(Vu, Fu), _rim(Fu, len(Vu), sewn[0] if sewn else None)))
     A = adjacency(F, len(V))
-    rim = _rim(F, len(V))
+    rim = _rim(F, len(V), seams)
     for _ in range(iterations):
         delta = np.zeros_like(V)
 
@@ -170,14 +172,20 @@ def push_over(V, F, under: list, body_vertices, body_faces, gap: float = LAYER_G
     return V
 
 
-def _rim(F, n: int):
+def _rim(F, n: int, seams=None):
     """A test rim(f [K], w [K, 3]) -> [K] bool: whether the closest points given by triangle f
     and barycentric coordinates w (geometry.MeshQuery.closest; exact zeros off the triangle's
-    interior) lie on the mesh's open edges (edges of one triangle) or their vertices."""
+    interior) lie on the mesh's open edges (edges of one triangle) or their vertices, leaving out
+    the open edges both of whose ends are sewn (``seams`` [S, 2] vertex pairs: a seam of panels
+    stitched together, not welded, is inside the garment)."""
     F = np.asarray(F, np.int64)
     E = np.sort(F[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
     keys, count = np.unique(E[:, 0] * n + E[:, 1], return_counts=True)
     open_keys = keys[count == 1]
+    if seams is not None and len(seams):
+        sewn = np.zeros(n, bool)
+        sewn[np.asarray(seams, np.int64).ravel()] = True
+        open_keys = open_keys[~(sewn[open_keys // n] & sewn[open_keys % n])]
     on_rim = np.zeros(n, bool)
     on_rim[np.concatenate([open_keys // n, open_keys % n])] = True
 
