@@ -47,7 +47,7 @@ def garment_run_key(part, bodies, body_faces, material, settings, fps: float, **
                        settings=run_settings(settings), fps=fps, **meta)
 
 
-RESULT_NEUTRAL = ("ccd_threads",)  # SimSettings fields that change no result (same bits)
+RESULT_NEUTRAL = ("ccd_threads", "candidate_threads")  # SimSettings fields that change no result (same bits)
 
 
 def run_settings(settings) -> dict | None:

@@ -98,6 +98,11 @@ class SimSettings:
             result is a minimum over the candidates, the same bits on any number of threads;
             1 by default: two were slower on a loaded 2-core machine, and process pools run
             one simulation per core (docs/simulation.md "Speed").
+        candidate_threads: threads of ipctk's candidate builds (the broad phase of every CCD
+            and barrier set; with ``deterministic``). The candidates then come in a
+            schedule-dependent order; the barrier sets built from them are sorted
+            (contact.canonical_order), so a run is the same bits on any number
+            (docs/simulation.md "Session 32").
         contact_preview: r > 0: the Newton directions of a step's first iteration and of those
             after a CCD-cut step take, in their matrix, the Hessian of the barrier with d̂₂ = r d̂
             (r ≤ 2, pairs within d̂₂, the same κ) in place of the barrier's own (Barrier.
@@ -164,6 +169,7 @@ class SimSettings:
     keep_linearization: bool = False
     deterministic: bool = True
     ccd_threads: int = 1
+    candidate_threads: int = 2
     contact_preview: float = 0.0
     max_body_move: float = 0.08
     lag_radius: float = 0.05
