@@ -71,9 +71,11 @@ class ContactScene:
         self._collisions_at = None
         self.covers_last_point = False  # solver bookkeeping: candidates valid at its iterate
         self.ccd_threads = 1  # narrow-phase CCD threads (order-independent; ClothSim sets it)
-        # candidate-build threads (ClothSim sets it; 0: ipctk's own setting, not deterministic):
-        # the build's order then depends on the schedule, the barrier sets do not (canonical_order)
+        # candidate-build threads (ClothSim sets it; ≤ 1: ipctk's setting, one thread in the
+        # deterministic solver); with more the candidates come in a schedule-dependent order, so
+        # ``canonical`` must be on: barrier sets in a canonical order (canonical_order)
         self.build_threads = 1
+        self.canonical = False
 
     # -- collision sets ------------------------------------------------------------------------
 
@@ -99,7 +101,8 @@ class ContactScene:
         """The active barrier set at X (from the current candidates; cached for repeated X)."""
         if self._collisions_at is None or not np.array_equal(self._collisions_at, X):
             self.collisions.build(self.candidates, self.mesh, X, self.dhat, self.dmin)
-            canonical_order(self.collisions)
+            if self.canonical:
+                canonical_order(self.collisions)
             self._collisions_at = X.copy()
         return self.collisions
 
@@ -111,7 +114,8 @@ class ContactScene:
         if c is None or not np.array_equal(X0, X):
             c = ipctk.NormalCollisions()
             c.build(self.candidates, self.mesh, X, distance, self.dmin)
-            canonical_order(c)
+            if self.canonical:
+                canonical_order(c)
             self._preview = (X.copy(), c)
         return c
 
@@ -122,8 +126,8 @@ class ContactScene:
         candidates (each candidate's time of impact does not depend on the others), so the
         result is the same bits on any number of threads and in any candidate order. The
         candidate build runs on ``build_threads``: with more than one its candidates come in a
-        schedule-dependent order, which the barrier sets built from them do not keep
-        (:func:`canonical_order`).
+        schedule-dependent order, which the barrier sets built from them do not keep when
+        ``canonical`` is on (:func:`canonical_order`).
         """
         self.prepare_segment(X0, X1)
         with ipctk_threads(self.ccd_threads):
@@ -144,7 +148,7 @@ class ContactScene:
 
 class ipctk_threads:
     """``with ipctk_threads(k)``: ipctk (TBB) on k threads inside, on one again after (the
-    deterministic solver's setting, ClothSim.step); k ≤ 1 or 0 leaves ipctk's setting alone."""
+    deterministic solver's setting, ClothSim.step); k ≤ 1 leaves ipctk's setting alone."""
 
     def __init__(self, k: int):
         self.k = int(k)

@@ -156,6 +156,7 @@ class ClothSim:
                                   s.self_contact, exclude=self.contact_exclude, prescribed=self.boundary)
         self.scene.ccd_threads = s.ccd_threads if s.deterministic else 0
         self.scene.build_threads = s.candidate_threads if s.deterministic else 0
+        self.scene.canonical = s.candidate_threads > 0  # (0: the candidates' own order, one thread)
         free = np.ones(n_total)
         free[self.boundary] = 0.0
         free[self.n:] = 0.0
