@@ -9,6 +9,8 @@ exposes the term protocol (terms.py) on the stacked positions X [N + Nb, 3].
 
 from __future__ import annotations
 
+from operator import attrgetter
+
 import ipctk
 import numpy as np
 
@@ -187,7 +189,7 @@ def canonical_order(collisions):
                 if c.vertex0_id > c.vertex1_id:
                     c.vertex0_id, c.vertex1_id = c.vertex1_id, c.vertex0_id
                     changed = True
-        keys = [(getattr(c, a), getattr(c, b)) for c in items]
+        keys = list(map(attrgetter(a, b), items))
         order = sorted(range(len(keys)), key=keys.__getitem__)
         if changed or any(i != j for i, j in enumerate(order)):
             setattr(collisions, kind, [items[i] for i in order])
