@@ -149,19 +149,21 @@ class ContactScene:
 
 
 class ipctk_threads:
-    """``with ipctk_threads(k)``: ipctk (TBB) on k threads inside, on one again after (the
-    deterministic solver's setting, ClothSim.step); k ≤ 1 leaves ipctk's setting alone."""
+    """``with ipctk_threads(k)``: ipctk (TBB) on k threads inside, its setting before after (one
+    in the deterministic solver, ClothSim.step); k ≤ 1 leaves ipctk's setting alone."""
 
     def __init__(self, k: int):
         self.k = int(k)
+        self.before = None
 
     def __enter__(self):
         if self.k > 1:
+            self.before = ipctk.get_num_threads()
             ipctk.set_num_threads(self.k)
 
     def __exit__(self, *exc):
         if self.k > 1:
-            ipctk.set_num_threads(1)
+            ipctk.set_num_threads(self.before)
 
 
 _ORDER_KEYS = (("vv_collisions", ("vertex0_id", "vertex1_id")), ("ev_collisions", ("edge_id", "vertex_id")),
