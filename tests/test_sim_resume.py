@@ -240,6 +240,8 @@ def test_a_run_resumes_on_other_thread_counts_but_not_on_other_settings():
 
     default = key(SimSettings())
     assert key(SimSettings(ccd_threads=2)) == default
+    # candidate builds on 1 or 2 threads sort the barrier sets: the same bits as each other, not as 0's
+    assert key(SimSettings(candidate_threads=2)) == key(SimSettings(candidate_threads=1)) != default
     assert key(SimSettings(dhat=2e-3)) != default and key(SimSettings(max_penalty_iterations=20)) != default
     assert run_settings(None) is None
 

@@ -47,18 +47,22 @@ def garment_run_key(part, bodies, body_faces, material, settings, fps: float, **
                        settings=run_settings(settings), fps=fps, **meta)
 
 
-RESULT_NEUTRAL = ("ccd_threads",)  # SimSettings fields that change no result (same bits)
+RESULT_NEUTRAL = ("ccd_threads", "candidate_threads")  # SimSettings fields that change no result (same bits)
 
 
 def run_settings(settings) -> dict | None:
     """The SimSettings of a run as its fingerprint holds them: every field but the ones that
     change no result (``RESULT_NEUTRAL``: thread counts, bit-identical on any number), so a run
-    resumes on another thread count."""
+    resumes on another thread count; ``candidate_threads`` only as whether it is ≥ 1 (the barrier
+    sets sorted: docs/simulation.md "Session 32")."""
     if settings is None:
         return None
     import dataclasses
 
-    return {k: v for k, v in dataclasses.asdict(settings).items() if k not in RESULT_NEUTRAL}
+    out = {k: v for k, v in dataclasses.asdict(settings).items() if k not in RESULT_NEUTRAL}
+    if getattr(settings, "candidate_threads", 0) > 0:  # sorted barrier sets: other bits than 0's (any k ≥ 1 alike)
+        out["canonical_contacts"] = True
+    return out
 
 
 class FrameStore:

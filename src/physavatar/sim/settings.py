@@ -98,6 +98,14 @@ class SimSettings:
             result is a minimum over the candidates, the same bits on any number of threads;
             1 by default: two were slower on a loaded 2-core machine, and process pools run
             one simulation per core (docs/simulation.md "Speed").
+        candidate_threads: k ≥ 1: ipctk's candidate builds (the broad phase of every CCD and
+            barrier set) on k threads (with ``deterministic``), and every barrier set sorted into a
+            canonical order (contact.canonical_order): a threaded build lists its candidates in a
+            schedule-dependent order, the sorted sets and their sums are the same bits for any k.
+            0 (default): one thread, the sets in the candidates' own order (the bits of the
+            code before session 32; no sorting, ~3 % of a demo frame). Two threads halve a build
+            on an idle 2-core machine but lost on the shared one measured (docs/simulation.md
+            "Session 32").
         contact_preview: r > 0: the Newton directions of a step's first iteration and of those
             after a CCD-cut step take, in their matrix, the Hessian of the barrier with d̂₂ = r d̂
             (r ≤ 2, pairs within d̂₂, the same κ) in place of the barrier's own (Barrier.
@@ -164,6 +172,7 @@ class SimSettings:
     keep_linearization: bool = False
     deterministic: bool = True
     ccd_threads: int = 1
+    candidate_threads: int = 0
     contact_preview: float = 0.0
     max_body_move: float = 0.08
     lag_radius: float = 0.05

@@ -155,6 +155,8 @@ class ClothSim:
         self.scene = CandidateScene(self.topo.rest, self.topo.faces, body_vertices, body_faces, s.dhat, self.dmin,
                                   s.self_contact, exclude=self.contact_exclude, prescribed=self.boundary)
         self.scene.ccd_threads = s.ccd_threads if s.deterministic else 0
+        self.scene.build_threads = s.candidate_threads if s.deterministic else 0
+        self.scene.canonical = s.candidate_threads > 0  # (0: the candidates' own order, one thread)
         free = np.ones(n_total)
         free[self.boundary] = 0.0
         free[self.n:] = 0.0
