@@ -17,7 +17,9 @@ points, seed 0) against the held-out truth re-expressed on the variant's templat
 (`stages.prepare.truth.carry_truth`, as `prepare` does). Variants replace one part of the prepared
 avatar at a time by the truth: the body (shape and pose), the boundary (the template's garment
 vertices within 2 cm of a true boundary point), the labels, the garment mesh (the original
-garment, its labels and boundary, on the prepared body), and some of their combinations. The
+garment, its labels and boundary, on the prepared body), and some of their combinations; and the
+warm-up (``animate(warmup_s=0)``: its least, 2 frames; or no simulated warm-up: the template
+skinned to the held-out motion's first pose, :func:`skinned_start`). The
 garment simulation sees only the garment part, its boundary and the Anny collider (the template's
 body vertices are skinned, not simulated), so a garment is put on another body by taking that
 body's body.npz. Writes ``checks`` (reported figures, no target); W/NAME/result.json caches each.
