@@ -4,7 +4,9 @@ The body follows the motion by linear blend skinning with the avatar's transferr
 garment is simulated with the avatar's material, its boundary vertices attached to the posed
 Anny collider, starting at rest. A motion whose first pose differs from the capture's frame-1
 pose is preceded by a warm-up transition (spherical interpolation of every bone), simulated
-but not returned, so the garment never starts from a jump.
+but not returned, so the garment never starts from a jump; it lasts as long as the body's largest
+move needs at a gentle speed (WARMUP_SPEED), at most ``warmup_s`` (session 32: a fitted body's
+centimetre of pose error is crossed in 2-3 frames, not a second).
 """
 
 from __future__ import annotations
@@ -34,20 +36,46 @@ from .garment_file import GarmentFileOptions, nonnegative
 log = logging.getLogger("physavatar.progress")
 
 
+def _ease(n: int) -> np.ndarray:
+    """The n transition frames' fractions of the way (smoothstep in time; the motion's first frame is 1)."""
+    s = np.arange(n) / max(n, 1)
+    return s * s * (3 - 2 * s)
+
+
 def transition(r0: np.ndarray, t0: np.ndarray, r1: np.ndarray, t1: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """n poses easing from (r0 [B,3], t0 [3]) to just before (r1, t1) (smoothstep in time)."""
-    s = np.arange(n) / max(n, 1)
-    s = s * s * (3 - 2 * s)
+    s = _ease(n)
     R0, R1 = axis_angle_to_matrix(r0), axis_angle_to_matrix(r1)
     rel = matrix_to_axis_angle(np.swapaxes(R0, -1, -2) @ R1)  # [B, 3]
     R = R0[None] @ axis_angle_to_matrix(s[:, None, None] * rel[None])
     return matrix_to_axis_angle(R), (1 - s)[:, None] * t0 + s[:, None] * t1
 
 
+WARMUP_SPEED = 0.5  # [m/s] the fastest a body point may move in a warm-up transition (smoothstep's peak)
+
+
+def warmup_frames(move: float, fps: float, warmup_s: float) -> int:
+    """Frames of a warm-up whose body moves at most ``move`` [m] (its farthest point, start pose to
+    the motion's first): 0 without a move; else the fewest (at least 2) whose largest step is within
+    WARMUP_SPEED, at most ``warmup_s`` (at least 2 frames). A warm-up is simulated time: the
+    garment, at rest in the start pose, evolves under gravity through it, so a needlessly long one
+    (a second to cross a fitted body's centimetres of pose error) starts the motion with a garment
+    that has been falling for a second where the capture's started at rest (issue 23, session 32)."""
+    if move <= 1e-6:
+        return 0
+    n_max = max(2, int(round(warmup_s * fps)))
+    for n in range(2, n_max):
+        if np.diff(np.r_[_ease(n), 1.0]).max() * move * fps <= WARMUP_SPEED:
+            return n
+    return n_max
+
+
 def _warmup(avatar: Avatar, motion: Motion, bone_names, warmup_s: float,
-            zero_start: bool = False) -> tuple[Motion, Motion, int]:
-    """(motion, rest pose) for ``bone_names`` at the avatar's fps, and the warm-up frame count:
-    from the rest pose, or from the zero pose with ``zero_start`` (a garment fitted there)."""
+            zero_start: bool = False, body: BodyModel | None = None) -> tuple[Motion, Motion, int]:
+    """(motion, rest pose) for ``bone_names`` at the avatar's fps, and the warm-up frame count
+    (:func:`warmup_frames` of the collider's largest move): from the rest pose, or from the zero
+    pose with ``zero_start`` (a garment fitted there). ``body``: Anny in the avatar's shape,
+    collider topology (made here when not given)."""
     fps = avatar.fps
     m = motion.resample(fps).for_bones(bone_names)
     rest = Motion("rest", fps, avatar.bone_names, avatar.rest_rotations[None], avatar.rest_translation[None])
@@ -56,8 +84,15 @@ def _warmup(avatar: Avatar, motion: Motion, bone_names, warmup_s: float,
     t0 = np.zeros(3) if zero_start else rest.root_translation[0]
     d_rot = np.abs(axis_angle_to_matrix(m.rotations[0]) - axis_angle_to_matrix(r0)).max()
     d_tr = np.abs(m.root_translation[0] - t0).max()
-    n_warm = 0 if (d_rot < 1e-6 and d_tr < 1e-6) else max(2, int(round(warmup_s * fps)))
-    return m, rest, n_warm
+    if d_rot < 1e-6 and d_tr < 1e-6:
+        return m, rest, 0
+    body = body or BodyModel(avatar.shape, topology="collider")
+    start = Motion("start", fps, list(m.bone_names), r0[None], t0[None]).for_bones(body.bone_names)
+    first = m.slice(0, 1).for_bones(body.bone_names)
+    ends = body.pose(np.concatenate([start.rotations, first.rotations]),
+                     np.concatenate([start.root_translation, first.root_translation])).vertices
+    move = float(np.linalg.norm(ends[1] - ends[0], axis=1).max())
+    return m, rest, max(2, warmup_frames(move, fps, warmup_s))
 
 
 def sequence_motion_key(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> str:
@@ -103,7 +138,7 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     default since session 31); False: vertex by vertex."""
     fps = avatar.fps
     body = BodyModel(avatar.shape, topology="collider")
-    m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s, zero_start=garment is not None)
+    m, rest, n_warm = _warmup(avatar, motion, body.bone_names, warmup_s, zero_start=garment is not None, body=body)
     rots, trs = m.rotations, m.root_translation
     if n_warm:
         r0, t0 = (np.zeros_like(rots[0]), np.zeros(3)) if garment is not None else (rest.rotations[0],
@@ -226,7 +261,8 @@ def animate_job(avatar_dir: str | Path, material, motion: Motion, report=None, *
 class AnimateConfig(GarmentFileOptions):
     motion: str = option("", "built-in name, .bvh or .npz", check=lambda v: None if v else "give a motion")
     duration: float = option(4.0, "seconds (built-in motions)", check=lambda v: None if v > 0 else "must be positive")
-    warmup: float = option(1.0, "seconds of transition from the capture pose to the motion's first pose",
+    warmup: float = option(1.0, "at most this many seconds of transition from the capture pose to the motion's first "
+                                "pose (shorter where the body moves less: its points at most 0.5 m/s)",
                            check=nonnegative)
     max_frames: int | None = option(None, "at most this many frames",
                                     check=lambda v: None if v >= 1 else "must be at least 1")
