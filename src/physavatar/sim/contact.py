@@ -180,7 +180,7 @@ def canonical_order(collisions):
     keeps the orientation of the first. Canonical, the set and its sums are the same bits for
     any candidate order, hence any number of build threads (docs/simulation.md "Session 32").
     A pair of primitives is one collision, so the ids are a total order. A few hundred
-    collisions a set on the demo dress: ~0.3 ms."""
+    collisions a set on the demo dress: 1.1–1.3 ms, mostly pybind11 attribute access."""
     for kind, (a, b) in _ORDER_KEYS:
         items = getattr(collisions, kind)
         if not items:
