@@ -161,7 +161,7 @@ def _unhashed(config, prefix: str = "") -> set[str]:
 # and settings added later (session 18: a run that does not record them ran with them off; session
 # 24: nor with fit_blend, it kept the whole fit)
 UNRECORDED = {"flow.channels": "luma", "flow.highpass": 0.0, "flow.texture_blur": 0.0, "flow.plain": "patterned",
-              "flow.silhouette": 0.0, "flow.fit_blend": 1.0}
+              "flow.silhouette": 0.0, "flow.fit_blend": 1.0, "fit.first_vertex_iters": 0}
 
 
 def _check_resume(out: Path, saved: dict, wanted: dict) -> None:
@@ -308,6 +308,12 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                         term.update(init)
             res = fit_frame(model, init, pyramid, cfg, first=(i == 0), iso=iso, normal=normal, solve=solve,
                             collision=collision, anchor=anchor)
+            if i == 0 and cfg.fit.first_vertex_iters > 0:  # the template's own error at frame 1
+                for term in (collision, anchor):
+                    if term is not None:
+                        term.update(init)
+                res = fit_frame(model, init, pyramid, cfg, first=False, iso=iso, normal=normal, solve=solve,
+                                collision=collision, anchor=anchor, refine_first=True)
             # the chain's stages, kept for diagnosis: the start (prediction and corrections) and the fit
             extra = {} if i == 0 else dict(start_vertices=np.asarray(init, np.float32), fit_vertices=res.vertices)
             res.vertices = starts.refine(i, res.vertices, None if i == 0 else init)
