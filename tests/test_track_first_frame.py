@@ -19,9 +19,11 @@ import shutil
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import trimesh
 
 from physavatar.capture import Template, load_capture
+from physavatar.errors import PhysavatarError
 from physavatar.metrics import vertex_error_mm
 from physavatar.stages.track import track
 from test_track import FAST, body_capture  # noqa: F401  (the module's capture fixture)
@@ -56,3 +58,5 @@ def test_frame_one_is_held_and_its_vertex_fit_does_not_undo_a_pushed_template(bo
     del cfg["fit"]["first_vertex_iters"]
     (tmp_path / "held" / "config.json").write_text(json.dumps(cfg))
     assert track(pushed, tmp_path / "held", one, progress=False).computed == []
+    with pytest.raises(PhysavatarError, match="first_vertex_iters"):
+        track(pushed, tmp_path / "bad", replace(one, fit=replace(one.fit, first_vertex_iters=-1)), progress=False)

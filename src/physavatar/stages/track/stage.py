@@ -62,6 +62,8 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"option --scale: must be in (0, 1], got {fit.scale}")
     if fit.iters < 1 or fit.iters_first < 1:
         raise PhysavatarError(None, "options --iters/--iters-first: need at least one iteration")
+    if fit.first_vertex_iters < 0:
+        raise PhysavatarError(None, f"fit.first_vertex_iters must be >= 0 (0: frame 1 held), got {fit.first_vertex_iters}")
     if pred.init not in ("mixed", "lbs", "velocity"):
         raise PhysavatarError(None, f"init must be 'mixed', 'lbs' or 'velocity', got {pred.init!r}")
     if fit.vertex_optimizer not in ("uniform", "adam"):
