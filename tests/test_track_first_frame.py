@@ -6,8 +6,8 @@ The capture of tests/test_track.py (Anny walking, four 64-px cameras, noisy per-
 true vertices known) with its template pushed 2 cm out along the vertex normals (half a pixel at
 the body). Held, frame 1's error is the push to the micrometre. Fitted (the later frames' loss,
 regularisers and step sizes on frame 1's images, after the colour fit on the pushed template),
-the vertices move but do not come back: the colours fitted on the pushed surface make it a
-minimum of the photometric loss (measured 20.0 -> 22.6 mm; on the demo's prepared capture 3.11
+the vertices move but do not come back: the colours fitted on the pushed surface leave the
+photometric loss no pull back towards the truth (measured 20.0 -> 22.6 mm; on the demo's prepared capture 3.11
 -> 5.31 mm, on its original 0 -> 2.04 mm: docs/prepare.md, session 32). The test pins that
 finding: if a change makes the frame-1 fit pull the template back, the default should be revisited.
 """
