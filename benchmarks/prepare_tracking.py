@@ -2,7 +2,7 @@
 
     python benchmarks/prepare_tracking.py --demo DEMO/capture --frames 12 --work W \
         [--original-track DEMO/run/track] [--results benchmarks/results/prepare_tracking_demo12.json] \
-        [--body-npz BODY.npz] [--no-true-motion]
+        [--body-npz BODY.npz] [--no-true-motion] [--first-vertex-iters N]
 
 The first ``--frames`` frames of the capture (hard links; body.npz and the ground truth cut to
 them) are tracked three ways with the tracking stage's defaults (``pipeline_config``, as
@@ -22,6 +22,9 @@ Scored as ``evaluate`` scores tracking (per-vertex distance to ``ground_truth/me
 ``prepare`` re-expresses on its template), per frame, and split into garment groups: the
 boundary, the free garment within 1.5 cm of the template's body, the rest; and by the
 vertices' first-frame error (the template's own error, which the tracker starts from).
+``--first-vertex-iters N`` tracks every case with frame 1's vertices fitted too
+(``FitConfig.first_vertex_iters``, off by default; session 32) into ``track/NAME_first{N}``, the
+original included (``--original-track`` is then not used).
 Writes a results JSON with ``checks``. Each step is skipped when its output exists in ``--work``
 (tracking resumes per frame).
 """
@@ -145,6 +148,8 @@ def main() -> int:
     ap.add_argument("--body-npz", type=Path, default=None,
                     help="give prepare this body.npz (e.g. an earlier run's fitted one) instead of fitting the body")
     ap.add_argument("--no-true-motion", action="store_true", help="skip the prepared_true_motion case")
+    ap.add_argument("--first-vertex-iters", type=int, default=0,
+                    help="track with frame 1's vertices fitted too, N iterations a level (0: held at the template)")
     args = ap.parse_args()
     from physavatar.stages.prepare import PrepareConfig
     from physavatar.stages.prepare import run as prepare
@@ -181,11 +186,15 @@ def main() -> int:
         shutil.copy(caps["original"] / "body.npz", dst / "body.npz")
     from physavatar.capture import load_capture
 
+    from dataclasses import replace
+
     cfg = pipeline_config(n)
+    k = args.first_vertex_iters
+    cfg = replace(cfg, fit=replace(cfg.fit, first_vertex_iters=k))
     results = {}
     for name, cap in caps.items():
-        out = w / "track" / name
-        if name == "original" and args.original_track is not None:
+        out = w / "track" / (f"{name}_first{k}" if k else name)
+        if name == "original" and args.original_track is not None and not k:
             out = args.original_track
         else:
             t = time.time()
@@ -217,7 +226,7 @@ def main() -> int:
     result = {"benchmark": "prepare_tracking", "date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "gpu": None,
                           "load_average_start": list(load_start), "load_average_end": list(os.getloadavg())},
-              "capture": str(args.demo), "frames": n, "seconds": seconds,
+              "capture": str(args.demo), "frames": n, "first_vertex_iters": k, "seconds": seconds,
               "body_npz_given": str(args.body_npz) if args.body_npz else None,
               "body_fit": {"mean_mm_per_frame": [round(float(x), 2) for x in fit_err], "mean_mm": float(fit_err.mean()),
                            "inside_masks": body.get("inside_masks", {}).get("mean")},

@@ -52,6 +52,9 @@ class FitConfig:
             (:class:`~physavatar.stages.track.fit.SmoothedSolve`); 0 optimizes the vertices directly.
         target_blur: Gaussian blur (px) of the target images and masks at each level, meant to
             match the splats' 0.3 px² low-pass (0: off).
+        first_vertex_iters: frame 1's vertices fitted too, after its colours, with at most this
+            many iterations per level (later frames' fit: their loss, regularisers and colour
+            steps, on frame 1's images); 0 keeps frame 1 at the template (a template that is exact at frame 1).
     """
 
     scale: float = option(0.25, "resolution factor of the finest level, in (0, 1]")
@@ -73,6 +76,7 @@ class FitConfig:
     uniform_quantile: float = setting(0.5)
     smoothing: float = setting(10.0)
     target_blur: float = setting(0.0)
+    first_vertex_iters: int = setting(0)
 
 
 def fit_scale(fit: FitConfig, cameras) -> float:

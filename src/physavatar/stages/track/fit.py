@@ -93,11 +93,14 @@ def _loss_terms(model: MeshGaussians, vertices, colors, log_scales, opacity_logi
 
 def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[View]], cfg: TrackConfig,
               first: bool, iso: IsometryLoss | None = None, normal: NormalLoss | None = None,
-              solve=None, collision: CollisionLoss | None = None, anchor: AnchorLoss | None = None) -> FrameResult:
+              solve=None, collision: CollisionLoss | None = None, anchor: AnchorLoss | None = None,
+              refine_first: bool = False) -> FrameResult:
     """Fit one frame over the pyramid (coarse to fine).
 
     ``first``: optimize colours, log-scales and opacity logits of ``model`` in place (vertices
     fixed); otherwise optimize ``vertices`` and colours, leaving scales and opacities alone.
+    ``refine_first`` (with ``first`` False): frame 1's vertex fit after its colour fit
+    (``fit.first_vertex_iters`` per level; colours as on later frames).
     Returns the fitted vertices and colours (also left in ``model.colors``).
     """
     fit = cfg.fit
@@ -121,8 +124,8 @@ def fit_frame(model: MeshGaussians, vertices: np.ndarray, pyramid: list[list[Vie
         log_scales, opac = model.log_scales, model.opacity_logits
         U.requires_grad_(True)
         groups = [(colors, fit.lr_colors_track), (U, fit.lr_vertices)]
-    n_levels = [fit.iters_first] * len(pyramid) if first else (
-        list(fit.level_iters) if fit.level_iters is not None else [fit.iters] * len(pyramid))
+    n_levels = [fit.iters_first] * len(pyramid) if first else [fit.first_vertex_iters] * len(pyramid) if refine_first \
+        else (list(fit.level_iters) if fit.level_iters is not None else [fit.iters] * len(pyramid))
     finest_px = pyramid[-1][0].camera.width
     total_iters = 0
     terms = {}

@@ -62,6 +62,8 @@ def _check_config(cfg: TrackConfig, capture: Capture) -> tuple[list[Camera], lis
         raise PhysavatarError(None, f"option --scale: must be in (0, 1], got {fit.scale}")
     if fit.iters < 1 or fit.iters_first < 1:
         raise PhysavatarError(None, "options --iters/--iters-first: need at least one iteration")
+    if fit.first_vertex_iters < 0:
+        raise PhysavatarError(None, f"fit.first_vertex_iters must be >= 0 (0: frame 1 held), got {fit.first_vertex_iters}")
     if pred.init not in ("mixed", "lbs", "velocity"):
         raise PhysavatarError(None, f"init must be 'mixed', 'lbs' or 'velocity', got {pred.init!r}")
     if fit.vertex_optimizer not in ("uniform", "adam"):
@@ -161,7 +163,7 @@ def _unhashed(config, prefix: str = "") -> set[str]:
 # and settings added later (session 18: a run that does not record them ran with them off; session
 # 24: nor with fit_blend, it kept the whole fit)
 UNRECORDED = {"flow.channels": "luma", "flow.highpass": 0.0, "flow.texture_blur": 0.0, "flow.plain": "patterned",
-              "flow.silhouette": 0.0, "flow.fit_blend": 1.0}
+              "flow.silhouette": 0.0, "flow.fit_blend": 1.0, "fit.first_vertex_iters": 0}
 
 
 def _check_resume(out: Path, saved: dict, wanted: dict) -> None:
@@ -308,6 +310,12 @@ def _track(cap: Capture, out: Path, cfg: TrackConfig, train: list[Camera], frame
                         term.update(init)
             res = fit_frame(model, init, pyramid, cfg, first=(i == 0), iso=iso, normal=normal, solve=solve,
                             collision=collision, anchor=anchor)
+            if i == 0 and cfg.fit.first_vertex_iters > 0:  # the template's own error at frame 1
+                for term in (collision, anchor):
+                    if term is not None:
+                        term.update(init)
+                res = fit_frame(model, init, pyramid, cfg, first=False, iso=iso, normal=normal, solve=solve,
+                                collision=collision, anchor=anchor, refine_first=True)
             # the chain's stages, kept for diagnosis: the start (prediction and corrections) and the fit
             extra = {} if i == 0 else dict(start_vertices=np.asarray(init, np.float32), fit_vertices=res.vertices)
             res.vertices = starts.refine(i, res.vertices, None if i == 0 else init)
