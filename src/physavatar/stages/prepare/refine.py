@@ -172,9 +172,9 @@ def _laplacian(F: np.ndarray, n: int):
     return sparse.diags(np.asarray(A.sum(1)).ravel()) - A
 
 
-def _offset_prior(V, L, body_q, target, conf, free, cfg: RefineConfig, fp: float, info: dict) -> None:
+def _offset_prior(V, L, body_q, target, conf, known, free, cfg: RefineConfig, fp: float, info: dict) -> None:
     """Where a seen vertex has no evidence of its own, the garment's height above the body that
-    its neighbours' evidence gives (a smooth field over the mesh, one sparse solve) bounds it: a
+    its neighbours' photo evidence gives (a smooth field over the mesh, one sparse solve) bounds it: a
     hull vertex higher above the body than that by more than ``offset_tol`` pixel footprints is
     a hull tail (a concavity no camera's silhouette carves, e.g. in front of the waist between the
     hands in the side views) and is drawn down to it with weight ``w_offset`` (in place of the
@@ -183,7 +183,6 @@ def _offset_prior(V, L, body_q, target, conf, free, cfg: RefineConfig, fp: float
     from scipy.sparse.linalg import spsolve
 
     h_hull, bp, _ = body_q.signed_distance(V)
-    known = conf > 0
     h_known = body_q.signed_distance(target[known])[0]
     c = np.zeros(len(V))
     c[known] = 1.0
@@ -220,7 +219,7 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
     info: dict = {"pixel_mm": round(fp * 1000, 2)}
     view_cos = view_cosines(V, N, cameras, 0.5 * edge)
     seen = (view_cos > cfg.unseen_cos).any(0)
-    body_q = None
+    body_q, photo_has = None, np.zeros(len(V), bool)
     if body_vertices is not None:
         from ...geometry.closest import MeshQuery
 
@@ -242,6 +241,7 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
         d = np.clip(d, 0.0, None)  # the hull contains the surface: inward only
         target[has] = V[has] - d[has, None] * N[has]
         conf[has] = cfg.w_photo * s[has]
+        photo_has = has
         info["_photo"] = np.where(used >= 2, has.astype(np.float64), np.nan)
         info["photo"] = {"vertices_with_evidence": int(has.sum()), "seen_by_two": int((used >= 2).sum()),
                          "moved_mean_mm": round(float(d[has].mean() * 1000), 2) if has.any() else 0.0}
@@ -258,8 +258,8 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
                                   "moved_mean_mm": round(float(np.linalg.norm(tgt - V[unseen], axis=1).mean() * 1000), 1)}
     # the hull itself, weakly, where a camera sees it and nothing else speaks
     L = _laplacian(F, len(V))
-    if cfg.w_offset > 0 and body_q is not None and (conf > 0).any():
-        _offset_prior(V, L, body_q, target, conf, seen & (conf == 0), cfg, fp, info)
+    if cfg.w_offset > 0 and body_q is not None and photo_has.any():
+        _offset_prior(V, L, body_q, target, conf, photo_has, seen & (conf == 0), cfg, fp, info)
     hull_anchor = (conf == 0) & seen
     conf[hull_anchor] = cfg.w_hull
     if not (conf > 0).any():
