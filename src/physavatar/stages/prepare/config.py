@@ -90,7 +90,8 @@ class RefineConfig:
     w_hull: float = setting(0.05)  # seen vertices without photo evidence keep to the hull this much
     w_offset: float = setting(1.0)  # seen vertices without evidence above their neighbours' height over the body (0: off)
     offset_tol: float = setting(5.0)  # by more than this many pixel footprints are drawn down to it
-    offset_smoothness: float = setting(1.0)  # Laplacian weight of that height field
+    offset_rings: float = setting(4.0)  # that height is the evidence's spread over about this many edges
+    offset_support: float = setting(0.2)  # and is used where the evidence's spread indicator is this or more
     body_margin: float = setting(0.0)  # [m] unseen parts land this far outside the body
     smoothness: float = setting(0.3)  # Laplacian weight of the displacement field
     chunk: int = setting(256)  # vertices per vectorised block

@@ -188,13 +188,18 @@ def _offset_prior(V, L, body_q, target, conf, known, free, cfg: RefineConfig, fp
     c[known] = 1.0
     rhs = np.zeros(len(V))
     rhs[known] = h_known
-    A = (sparse.diags(c) + cfg.offset_smoothness * L + sparse.identity(len(V)) * 1e-6).tocsc()
-    h = np.asarray(spsolve(A, rhs)).ravel()
-    tail = free & (h_hull > h + cfg.offset_tol * fp) & (h > 0)
+    # normalised convolution on the mesh: the evidence's heights and its indicator spread by the
+    # same screened Laplacian (decay length ``offset_rings`` edges); their ratio is the local
+    # mean height, the indicator's spread (1 amid evidence, falling away from it) its support
+    A = (sparse.diags(c) + L + sparse.identity(len(V)) / cfg.offset_rings ** 2).tocsc()
+    sol = np.asarray(spsolve(A, np.stack([rhs, c], 1)))
+    support = sol[:, 1]
+    h = sol[:, 0] / np.maximum(support, 1e-9)
+    tail = free & (support >= cfg.offset_support) & (h_hull > h + cfg.offset_tol * fp) & (h > 0)
     up = V - bp
     up /= np.maximum(np.linalg.norm(up, axis=1, keepdims=True), 1e-12)
     target[tail] = bp[tail] + h[tail, None] * up[tail]
-    conf[tail] = cfg.w_offset
+    conf[tail] = cfg.w_offset * support[tail]
     info["offset_prior"] = {"vertices": int(tail.sum()),
                             "moved_mean_mm": round(float(np.linalg.norm(target[tail] - V[tail], axis=1).mean() * 1000), 1)
                             if tail.any() else 0.0}
