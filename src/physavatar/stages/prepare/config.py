@@ -88,7 +88,7 @@ class RefineConfig:
     unseen_cos: float = setting(0.1)  # a vertex no camera sees (z-buffer) at a cosine above this is unseen
     w_body: float = setting(10.0)
     w_hull: float = setting(0.05)  # seen vertices without photo evidence keep to the hull this much
-    w_offset: float = setting(1.0)  # seen vertices without evidence above their neighbours' height over the body (0: off)
+    w_offset: float = setting(3.0)  # seen vertices without evidence above their neighbours' height over the body (0: off)
     offset_tol: float = setting(5.0)  # by more than this many pixel footprints are drawn down to it
     offset_rings: float = setting(4.0)  # that height is the evidence's spread over about this many edges
     offset_support: float = setting(0.2)  # and is used where the evidence's spread indicator is this or more
