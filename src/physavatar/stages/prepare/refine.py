@@ -13,6 +13,13 @@ hip, under the arms, between the legs under a skirt). Two kinds of evidence move
   Ponce's PMVS; Goesele et al.), restricted to the normal line because the hull is close.
   A depth that differs from the median of its neighbours' (two rings) by more than
   ``agree_px`` pixel footprints is a wrong peak and carries no evidence (:func:`agreeing`).
+  The search reaches down to the fitted body under each vertex (plus ``body_slack``, at most
+  ``search_max``) where that is deeper than ``search_in``: the surface lies between the hull and
+  the body, and a hull can be several centimetres loose where an occluder keeps every camera
+  from carving it (in front of the waist between the hands in the side views).
+* **The height over the body** where a seen vertex has no evidence (:func:`_offset_prior`): the
+  photo evidence's height above the body, spread over the mesh, bounds it; a hull vertex far
+  above that is a hull tail and is drawn down to it.
 * **The body prior** where no camera sees the surface: hull vertices that face away from every
   camera (the underside that closes the hull between a hem and the legs) are drawn to the
   fitted body's surface, which is the true surface under clothing there (as body-model priors
