@@ -242,7 +242,7 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
             # the surface lies between the hull and the body under it: search down to the body
             db = np.abs(body_q.signed_distance(V)[0])
             reach = np.clip(db + cfg.body_slack, cfg.search_in, cfg.search_max)
-            info["search_in_mm"] = {"median": round(float(np.median(reach)) * 1000, 1),
+            info["search_reach_mm"] = {"median": round(float(np.median(reach)) * 1000, 1),
                                     "beyond_search_in": int((reach > cfg.search_in + 1e-9).sum())}
         d, s, used = photo_depths(V, N, cameras, images, cfg, view_cos, fp, reach)
         has = s > 0
@@ -268,10 +268,10 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
             conf[unseen] = cfg.w_body
             info["body_prior"] = {"unseen_vertices": int(unseen.sum()),
                                   "moved_mean_mm": round(float(np.linalg.norm(tgt - V[unseen], axis=1).mean() * 1000), 1)}
-    # the hull itself, weakly, where a camera sees it and nothing else speaks
     L = _laplacian(F, len(V))
     if cfg.w_offset > 0 and body_q is not None and photo_has.any():
         _offset_prior(V, L, body_q, target, conf, photo_has, seen & (conf == 0), cfg, fp, info)
+    # the hull itself, weakly, where a camera sees it and nothing else speaks
     hull_anchor = (conf == 0) & seen
     conf[hull_anchor] = cfg.w_hull
     if not (conf > 0).any():
