@@ -71,6 +71,8 @@ class RefineConfig:
     body_prior: bool = option(True, "draw hull parts no camera sees onto the fitted body",
                               flag="--refine-body/--no-refine-body")
     search_in: float = setting(0.04)  # [m] how far inside the hull the surface is searched
+    search_max: float = setting(0.08)  # [m] deeper where the fitted body is: down to it (+ body_slack), up to this
+    body_slack: float = setting(0.01)  # [m] how far past the fitted body the search goes (the fit's error)
     search_out: float = setting(0.004)  # [m] and outside (the hull's own discretisation)
     step_px: float = setting(0.5)  # search step in pixel footprints
     patch: int = setting(5)  # patch of patch x patch samples on the tangent plane
@@ -86,6 +88,10 @@ class RefineConfig:
     unseen_cos: float = setting(0.1)  # a vertex no camera sees (z-buffer) at a cosine above this is unseen
     w_body: float = setting(10.0)
     w_hull: float = setting(0.05)  # seen vertices without photo evidence keep to the hull this much
+    w_offset: float = setting(3.0)  # seen vertices without evidence above their neighbours' height over the body (0: off)
+    offset_tol: float = setting(5.0)  # by more than this many pixel footprints are drawn down to it
+    offset_rings: float = setting(4.0)  # that height is the evidence's spread over about this many edges
+    offset_support: float = setting(0.2)  # and is used where the evidence's spread indicator is this or more
     body_margin: float = setting(0.0)  # [m] unseen parts land this far outside the body
     smoothness: float = setting(0.3)  # Laplacian weight of the displacement field
     chunk: int = setting(256)  # vertices per vectorised block

@@ -13,6 +13,13 @@ hip, under the arms, between the legs under a skirt). Two kinds of evidence move
   Ponce's PMVS; Goesele et al.), restricted to the normal line because the hull is close.
   A depth that differs from the median of its neighbours' (two rings) by more than
   ``agree_px`` pixel footprints is a wrong peak and carries no evidence (:func:`agreeing`).
+  The search reaches down to the fitted body under each vertex (plus ``body_slack``, at most
+  ``search_max``) where that is deeper than ``search_in``: the surface lies between the hull and
+  the body, and a hull can be several centimetres loose where an occluder keeps every camera
+  from carving it (in front of the waist between the hands in the side views).
+* **The height over the body** where a seen vertex has no evidence (:func:`_offset_prior`): the
+  photo evidence's height above the body, spread over the mesh, bounds it; a hull vertex far
+  above that is a hull tail and is drawn down to it.
 * **The body prior** where no camera sees the surface: hull vertices that face away from every
   camera (the underside that closes the hull between a hem and the legs) are drawn to the
   fitted body's surface, which is the true surface under clothing there (as body-model priors
@@ -70,10 +77,12 @@ def view_cosines(V: np.ndarray, N: np.ndarray, cameras: list, spacing: float) ->
 
 
 def photo_depths(V: np.ndarray, N: np.ndarray, cameras: list, images: dict[str, np.ndarray], cfg: RefineConfig,
-                 view_cos: np.ndarray, footprint: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 view_cos: np.ndarray, footprint: float,
+                 reach: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(offset along -N [V] m, score [V], cameras used [V]) of the most photo-consistent position
     of each vertex on its normal line; score -1 where fewer than two cameras see it well
-    (``view_cos`` [C, V] from :func:`view_cosines`)."""
+    (``view_cos`` [C, V] from :func:`view_cosines`). ``reach`` [V] (m): how far inward each
+    vertex is searched (default ``cfg.search_in`` for all)."""
     nV, nC = len(V), len(cameras)
     cosw = np.where(view_cos > cfg.min_cos, view_cos, 0.0)
     # the best-facing cameras of each vertex
@@ -81,7 +90,8 @@ def photo_depths(V: np.ndarray, N: np.ndarray, cameras: list, images: dict[str, 
     order = np.argsort(-cosw, axis=0)[:k]  # [k, V]
     wsel = np.take_along_axis(cosw, order, 0)  # [k, V]
     used = (wsel > 0).sum(0)
-    offsets = np.arange(-cfg.search_out, cfg.search_in + 1e-9, cfg.step_px * footprint)
+    reach = np.full(nV, cfg.search_in) if reach is None else np.asarray(reach, np.float64)
+    offsets = np.arange(-cfg.search_out, float(reach.max(initial=cfg.search_in)) + 1e-9, cfg.step_px * footprint)
     h = cfg.patch_px * footprint
     g = np.arange(cfg.patch) - (cfg.patch - 1) / 2
     ga, gb = [x.ravel() * h for x in np.meshgrid(g, g, indexing="ij")]  # [P]
@@ -115,10 +125,11 @@ def photo_depths(V: np.ndarray, N: np.ndarray, cameras: list, images: dict[str, 
                 ww = w[a] * w[b]
                 num += ww * (x[a] * x[b]).mean(-1)
                 den += ww
-        ncc = np.where(den > 0, num / np.maximum(den, 1e-9), -1.0)
+        within = offsets[None] <= reach[ids, None] + 1e-9  # [n, O]
+        ncc = np.where((den > 0) & within, num / np.maximum(den, 1e-9), -1.0)
         j = np.argmax(ncc, 1)
         top = ncc[np.arange(len(ids)), j]
-        med = np.median(ncc, 1)
+        med = np.nanmedian(np.where(within, ncc, np.nan), 1)
         good = (top >= cfg.min_score) & (top - med >= cfg.min_peak)
         best[ids] = np.where(good, offsets[j], 0.0)
         score[ids] = np.where(good, top, -1.0)
@@ -168,6 +179,39 @@ def _laplacian(F: np.ndarray, n: int):
     return sparse.diags(np.asarray(A.sum(1)).ravel()) - A
 
 
+def _offset_prior(V, L, body_q, target, conf, known, free, cfg: RefineConfig, fp: float, info: dict) -> None:
+    """Where a seen vertex has no evidence of its own, the garment's height above the body that
+    its neighbours' photo evidence gives (a smooth field over the mesh, one sparse solve) bounds it: a
+    hull vertex higher above the body than that by more than ``offset_tol`` pixel footprints is
+    a hull tail (a concavity no camera's silhouette carves, e.g. in front of the waist between the
+    hands in the side views) and is drawn down to it with weight ``w_offset`` (in place of the
+    hull anchor). Changes ``target`` and ``conf`` in place."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    h_hull, bp, _ = body_q.signed_distance(V)
+    h_known = body_q.signed_distance(target[known])[0]
+    c = np.zeros(len(V))
+    c[known] = 1.0
+    rhs = np.zeros(len(V))
+    rhs[known] = h_known
+    # normalised convolution on the mesh: the evidence's heights and its indicator spread by the
+    # same screened Laplacian (decay length ``offset_rings`` edges); their ratio is the local
+    # mean height, the indicator's spread (1 amid evidence, falling away from it) its support
+    A = (sparse.diags(c) + L + sparse.identity(len(V)) / cfg.offset_rings ** 2).tocsc()
+    sol = np.asarray(spsolve(A, np.stack([rhs, c], 1)))
+    support = sol[:, 1]
+    h = sol[:, 0] / np.maximum(support, 1e-9)
+    tail = free & (support >= cfg.offset_support) & (h_hull > h + cfg.offset_tol * fp) & (h > 0)
+    up = V - bp
+    up /= np.maximum(np.linalg.norm(up, axis=1, keepdims=True), 1e-12)
+    target[tail] = bp[tail] + h[tail, None] * up[tail]
+    conf[tail] = cfg.w_offset * support[tail]
+    info["offset_prior"] = {"vertices": int(tail.sum()),
+                            "moved_mean_mm": round(float(np.linalg.norm(target[tail] - V[tail], axis=1).mean() * 1000), 1)
+                            if tail.any() else 0.0}
+
+
 def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, np.ndarray],
                 masks: dict[str, np.ndarray], body_vertices: np.ndarray | None, body_faces: np.ndarray | None,
                 cfg: RefineConfig) -> tuple[np.ndarray, dict]:
@@ -187,8 +231,20 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
     info: dict = {"pixel_mm": round(fp * 1000, 2)}
     view_cos = view_cosines(V, N, cameras, 0.5 * edge)
     seen = (view_cos > cfg.unseen_cos).any(0)
+    body_q, photo_has = None, np.zeros(len(V), bool)
+    if body_vertices is not None:
+        from ...geometry.closest import MeshQuery
+
+        body_q = MeshQuery(body_vertices, body_faces, spacing=0.02)
     if cfg.photo and images:
-        d, s, used = photo_depths(V, N, cameras, images, cfg, view_cos, fp)
+        reach = None
+        if body_q is not None and cfg.search_max > cfg.search_in:
+            # the surface lies between the hull and the body under it: search down to the body
+            db = np.abs(body_q.signed_distance(V)[0])
+            reach = np.clip(db + cfg.body_slack, cfg.search_in, cfg.search_max)
+            info["search_reach_mm"] = {"median": round(float(np.median(reach)) * 1000, 1),
+                                    "beyond_search_in": int((reach > cfg.search_in + 1e-9).sum())}
+        d, s, used = photo_depths(V, N, cameras, images, cfg, view_cos, fp, reach)
         has = s > 0
         if cfg.agree_px > 0 and has.any():
             ok = agreeing(F, d, has, cfg.agree_rings, cfg.agree_px * fp)
@@ -197,29 +253,29 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
         d = np.clip(d, 0.0, None)  # the hull contains the surface: inward only
         target[has] = V[has] - d[has, None] * N[has]
         conf[has] = cfg.w_photo * s[has]
+        photo_has = has
         info["_photo"] = np.where(used >= 2, has.astype(np.float64), np.nan)
         info["photo"] = {"vertices_with_evidence": int(has.sum()), "seen_by_two": int((used >= 2).sum()),
                          "moved_mean_mm": round(float(d[has].mean() * 1000), 2) if has.any() else 0.0}
     unseen = np.zeros(len(V), bool)
-    if cfg.body_prior and body_vertices is not None:
-        from ...geometry.closest import MeshQuery
-
+    if cfg.body_prior and body_q is not None:
         unseen = ~seen & (conf == 0)
         info["_on_body"] = unseen
         if unseen.any():
-            q = MeshQuery(body_vertices, body_faces, spacing=0.02)
-            _, qp, qn = q.signed_distance(V[unseen])
+            _, qp, qn = body_q.signed_distance(V[unseen])
             tgt = qp + cfg.body_margin * qn
             target[unseen] = tgt
             conf[unseen] = cfg.w_body
             info["body_prior"] = {"unseen_vertices": int(unseen.sum()),
                                   "moved_mean_mm": round(float(np.linalg.norm(tgt - V[unseen], axis=1).mean() * 1000), 1)}
+    L = _laplacian(F, len(V))
+    if cfg.w_offset > 0 and body_q is not None and photo_has.any():
+        _offset_prior(V, L, body_q, target, conf, photo_has, seen & (conf == 0), cfg, fp, info)
     # the hull itself, weakly, where a camera sees it and nothing else speaks
     hull_anchor = (conf == 0) & seen
     conf[hull_anchor] = cfg.w_hull
     if not (conf > 0).any():
         return V, info | {"moved": 0}
-    L = _laplacian(F, len(V))
     A = (sparse.diags(conf) + cfg.smoothness * L).tocsc()
     A = A + sparse.identity(len(V)) * 1e-6
     disp = spsolve(A, conf[:, None] * (target - V))
