@@ -179,7 +179,7 @@ def _laplacian(F: np.ndarray, n: int):
     return sparse.diags(np.asarray(A.sum(1)).ravel()) - A
 
 
-def _offset_prior(V, L, body_q, target, conf, known, free, cfg: RefineConfig, fp: float, info: dict) -> None:
+def _offset_prior(V, L, body_q, on_body, target, conf, known, free, cfg: RefineConfig, fp: float, info: dict) -> None:
     """Where a seen vertex has no evidence of its own, the garment's height above the body that
     its neighbours' photo evidence gives (a smooth field over the mesh, one sparse solve) bounds it: a
     hull vertex higher above the body than that by more than ``offset_tol`` pixel footprints is
@@ -189,7 +189,7 @@ def _offset_prior(V, L, body_q, target, conf, known, free, cfg: RefineConfig, fp
     from scipy import sparse
     from scipy.sparse.linalg import spsolve
 
-    h_hull, bp, _ = body_q.signed_distance(V)
+    h_hull, bp, _ = on_body  # body_q.signed_distance(V), the caller's
     h_known = body_q.signed_distance(target[known])[0]
     c = np.zeros(len(V))
     c[known] = 1.0
@@ -231,16 +231,17 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
     info: dict = {"pixel_mm": round(fp * 1000, 2)}
     view_cos = view_cosines(V, N, cameras, 0.5 * edge)
     seen = (view_cos > cfg.unseen_cos).any(0)
-    body_q, photo_has = None, np.zeros(len(V), bool)
+    body_q, on_body, photo_has = None, None, np.zeros(len(V), bool)
     if body_vertices is not None:
         from ...geometry.closest import MeshQuery
 
         body_q = MeshQuery(body_vertices, body_faces, spacing=0.02)
+        on_body = body_q.signed_distance(V)  # (height over the body, closest point, normal) of every vertex
     if cfg.photo and images:
         reach = None
         if body_q is not None and cfg.search_max > cfg.search_in:
             # the surface lies between the hull and the body under it: search down to the body
-            db = np.abs(body_q.signed_distance(V)[0])
+            db = np.abs(on_body[0])
             reach = np.clip(db + cfg.body_slack, cfg.search_in, cfg.search_max)
             info["search_reach_mm"] = {"median": round(float(np.median(reach)) * 1000, 1),
                                     "beyond_search_in": int((reach > cfg.search_in + 1e-9).sum())}
@@ -262,7 +263,7 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
         unseen = ~seen & (conf == 0)
         info["_on_body"] = unseen
         if unseen.any():
-            _, qp, qn = body_q.signed_distance(V[unseen])
+            qp, qn = on_body[1][unseen], on_body[2][unseen]
             tgt = qp + cfg.body_margin * qn
             target[unseen] = tgt
             conf[unseen] = cfg.w_body
@@ -270,7 +271,7 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
                                   "moved_mean_mm": round(float(np.linalg.norm(tgt - V[unseen], axis=1).mean() * 1000), 1)}
     L = _laplacian(F, len(V))
     if cfg.w_offset > 0 and body_q is not None and photo_has.any():
-        _offset_prior(V, L, body_q, target, conf, photo_has, seen & (conf == 0), cfg, fp, info)
+        _offset_prior(V, L, body_q, on_body, target, conf, photo_has, seen & (conf == 0), cfg, fp, info)
     # the hull itself, weakly, where a camera sees it and nothing else speaks
     hull_anchor = (conf == 0) & seen
     conf[hull_anchor] = cfg.w_hull
