@@ -98,3 +98,11 @@ def test_candidate_threads_give_bit_identical_trajectories():
                      settings=SimSettings(candidate_threads=k, ccd_threads=c, self_contact=True))
             for k, c in ((1, 1), (2, 1), (2, 2))]
     assert np.array_equal(runs[0], runs[1]) and np.array_equal(runs[0], runs[2])
+
+
+def test_a_negative_candidate_thread_count_is_refused():
+    import pytest
+
+    with pytest.raises(ValueError, match="candidate_threads -1"):
+        SimSettings(candidate_threads=-1)
+    assert SimSettings(candidate_threads=2).candidate_threads == 2

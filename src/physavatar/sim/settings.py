@@ -188,6 +188,9 @@ class SimSettings:
         if not 0.0 <= self.contact_preview <= 2.0:
             raise ValueError(f"contact_preview {self.contact_preview}: expected 0 (off) or a ratio d̂₂/d̂ in (0, 2] "
                              "(the candidates hold the pairs within 2 d̂ only)")
+        if self.candidate_threads < 0:
+            raise ValueError(f"candidate_threads {self.candidate_threads}: expected 0 (the candidates' own order, "
+                             "one thread) or a thread count k >= 1")
 
 
 @dataclasses.dataclass
