@@ -82,7 +82,7 @@ def default_rules(clearance: float = 0.03) -> list[Clearance]:
     rest, the groin, left out), the calf out of the thigh at the back of the knee (the same bounds
     for the knee), then the forearm and hand off every other part of the body (at most 40 degrees
     more at the shoulder, on top of ``arm_clearance``'s sideways raise). The knee's collapse:
-    :func:`knee_collapse_rules`, not by default."""
+    :func:`knee_collapse_rules`, applied after these by ``body.load.with_part_clearance``."""
     rules = []
     for s in ("L", "R"):
         rules.append(Clearance(f"thigh-belly.{s}", f"upperleg01.{s}", (f"upperleg01.{s}", f"upperleg02.{s}"), _TRUNK,
