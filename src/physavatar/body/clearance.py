@@ -28,11 +28,13 @@ cloth caught in that fold has no place outside the body (docs/simulation.md "Ses
 
 A collapse rule with ``min_depth`` > 0 opens the joint only where the parts pass through each other
 deeper than that, decided from the motion before it is changed (:func:`collapse_windows`): the
-frames with a buried vertex, joined into windows where they are closer than the hold (⅓ s); per
+frames with a buried vertex, joined into windows where the rule's smoothing of one would reach the
+other (about 1 s); per
 frame, the crossing's depth is the smallest hinge opening that clears the frame (a bisection to
 0.006 degrees) times the largest distance of a buried vertex from the hinge's axis (how far the
 surface there has to move to come apart); a window whose deepest frame is shallower than
-``min_depth`` is left exactly as it is (its frames never count as needing a turn); the other windows
+``min_depth`` is left exactly as it is (its frames never count as needing a turn, and no other
+window's turn reaches them); the other windows
 are opened as without ``min_depth``. ``knee_collapse_rules(KNEE_ROOM)``: the knee opened only where
 the crossing is deeper than the room the cloth's contact needs, ``--knee-collapse`` auto
 (docs/simulation.md "Session 33").
@@ -223,7 +225,8 @@ def collapse_windows(body: BodyModel, rots, trs, rule: Clearance, fps: float, sa
                      iterations: int = 12) -> list[dict]:
     """Where collapse rule ``rule`` finds the part and the obstacle passing through each other in
     the motion ``rots`` [T, B, 3], ``trs`` [T, 3]: the frames with a buried vertex, in windows
-    (frames closer than twice the rule's hold of ⅓ s, whose turns would overlap, joined). Per
+    (frames within the reach of the rule's smoothing of each other joined: 3 holds of ⅓ s, the
+    held maximum and the Gaussian's 4 sigma, so that no opened window's turn reaches a left one). Per
     frame: ``opening_rad``, the smallest turn of the joint about its hinge axis that leaves no
     vertex buried (bisection, ``iterations`` halvings of ``max_angle``: 0.006 degrees), and
     ``depth_m``, that opening times the largest distance of a buried vertex from the hinge's axis
@@ -253,7 +256,7 @@ def collapse_windows(body: BodyModel, rots, trs, rule: Clearance, fps: float, sa
         reach[k] = np.linalg.norm(r - np.outer(r @ axis[k], axis[k]), axis=1).max()
     hold = max(1, int(round(fps / 3)))
     out = []
-    for grp in np.split(np.arange(len(frames)), np.flatnonzero(np.diff(frames) > 2 * hold) + 1):
+    for grp in np.split(np.arange(len(frames)), np.flatnonzero(np.diff(frames) > 3 * hold) + 1):
         depth = hi[grp] * reach[grp]
         out.append({"frames": frames[grp], "opening_rad": hi[grp], "depth_m": depth,
                     "opened": bool(depth.max() >= rule.min_depth)})

@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import PhysavatarError
 from .amass import import_amass, is_amass
 from .bvh import import_bvh
-from .clearance import KNEE_ROOM
+from .clearance import KNEE_ROOM, default_rules, knee_collapse_rules, part_clearance
 from .model import BodyModel
 from .motion import BUILTIN, Motion, arm_clearance, builtin_motion
 
@@ -82,11 +82,6 @@ KNEE_COLLAPSE_HELP = ("with a .bvh/AMASS motion and --part-clearance: open the k
 # simulate's and animate's --knee-collapse (None: auto)
 
 
-def _knee_rules(knee_collapse: bool | None, room: float):
-    from .clearance import knee_collapse_rules
-    return knee_collapse_rules(room if knee_collapse is None else 0.0)
-
-
 def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool,
                         knee_collapse: bool | None = None, room: float = KNEE_ROOM) -> tuple[Motion, dict | None]:
     """Motion capture with the parts a garment covers kept apart (:func:`body.clearance.part_clearance`:
@@ -101,19 +96,18 @@ def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool,
     knee = knee_collapse is True or (knee_collapse is None and on)
     if not (on or knee) or not is_capture(spec):
         return motion, None
-    from .clearance import default_rules, part_clearance
     m2, info = part_clearance(motion, body, default_rules()) if on else (motion, {})
     if knee:
-        m2, more = part_clearance(m2, body, _knee_rules(knee_collapse, room))
+        m2, more = part_clearance(m2, body, knee_collapse_rules(room if knee_collapse is None else 0.0))
         info = info | more
     summary = {}
     for name, d in info.items():
         turned = d["angle_rad"] > 1e-3
         if turned.any() or d.get("windows"):
+            closest = {f"min_distance_{k}_m": round(float(d[f"distance_{k}_m"][turned].min()), 4) if turned.any() else None
+                       for k in ("before", "after")}
             summary[name] = {"frames_turned": int(turned.sum()),
-                             "max_angle_deg": round(float(np.degrees(d["angle_rad"].max())), 1),
-                             "min_distance_before_m": round(float(d["distance_before_m"][turned].min()), 4) if turned.any() else None,
-                             "min_distance_after_m": round(float(d["distance_after_m"][turned].min()), 4) if turned.any() else None}
+                             "max_angle_deg": round(float(np.degrees(d["angle_rad"].max())), 1), **closest}
         if d.get("windows"):
             summary[name]["min_depth_m"] = room
             summary[name]["windows"] = [{"frames": [int(w["frames"][0]), int(w["frames"][-1])],
