@@ -46,7 +46,7 @@ import numpy as np  # noqa: E402
 
 from _common import cpu_name  # noqa: E402
 from physavatar.body import BUILTIN, BodyModel, Motion  # noqa: E402
-from physavatar.body.load import load_motion, with_clearances  # noqa: E402
+from physavatar.body.load import describe_part_clearance, load_motion, with_clearances  # noqa: E402
 from physavatar.body.motion import _x, _y, _z, bone_vertex_mask  # noqa: E402
 from physavatar.data.garment_sequence import GarmentSequence  # noqa: E402
 from physavatar.errors import PhysavatarError  # noqa: E402
@@ -267,9 +267,11 @@ def main():
                     help="the CMU clips also corrected by body.clearance.part_clearance (thigh out of the belly, "
                          "calf out of the thigh, hand off the body; docs/simulation.md \"Session 23\"), as "
                          "`simulate` and `animate` do by default; --no-part-clearance: the clips as retargeted")
-    ap.add_argument("--knee-collapse", action="store_true",
+    ap.add_argument("--knee-collapse", nargs="?", const="on", default="auto", choices=("auto", "on", "off"),
                     help="the CMU clips also corrected by body.clearance.knee_collapse_rules (the knee opened where "
-                         "calf and thigh pass through each other; opt-in, docs/simulation.md \"Session 29\")")
+                         "calf and thigh pass through each other): auto (default, as `simulate`): only where they "
+                         "cross deeper than 1 mm (d-hat; docs/simulation.md \"Session 33\"); on (or the bare flag, "
+                         "session 29's opt-in): everywhere; off: nowhere")
     ap.add_argument("--skinned-between", action=argparse.BooleanOptionalAction, default=True,
                     help="a frame split into sub-steps poses the body in between from the motion (body.between, "
                          "as `simulate` does by default); --no-skinned-between: vertex by vertex (`--linear-between`)")
@@ -292,7 +294,8 @@ def main():
         path = MOTIONS / clip
         if not wanted(name):
             continue
-        cached = work / f"{name}{'-full' if args.full else ''}{'-parts' if args.part_clearance else ''}{'-knee' if args.knee_collapse else ''}.npz"
+        knee = {"auto": "-kneeauto", "on": "-knee", "off": ""}[args.knee_collapse]
+        cached = work / f"{name}{'-full' if args.full else ''}{'-parts' if args.part_clearance else ''}{knee}.npz"
         if cached.exists():  # the clip retargeted with arm clearance (minutes on a loaded machine)
             specs[name] = str(cached)
             continue
@@ -300,8 +303,10 @@ def main():
             print(f"{name}: {path} missing, skipped")
             continue
         m = load_motion(str(path), fps, 4.0, body=body)
-        m, _, _ = with_clearances(m, str(path), lambda: body, 0.03, args.part_clearance,
-                                  args.knee_collapse)  # as `simulate` does
+        m, _, parts = with_clearances(m, str(path), lambda: body, 0.03, args.part_clearance,
+                                      {"auto": None, "on": True, "off": False}[args.knee_collapse])  # as `simulate` does
+        print(f"{name}: {describe_part_clearance(parts)}")
+        write_json_atomic(cached.with_suffix(".json"), {"part_clearance": parts})
         if not args.full:
             m = m.slice(start, start + int(round(duration * fps)) + 1)
         m.save(cached)
@@ -319,7 +324,7 @@ def main():
     cases = {name: ("dress", None, spec) for name, spec in specs.items()} | layered
     if args.targets:
         out = Path(args.out) if args.out else Path(__file__).resolve().parent / "results" / "motion_suite_targets.json"
-        rows = {name: target_row(garment, over, spec, edge, duration, warmup, args)
+        rows = {name: target_row(garment, over, spec, edge, duration, warmup, args) | _clip_clearance(spec)
                 for name, (garment, over, spec) in cases.items()}
         for name, r in rows.items():
             print(f"{name:15s} {r['frames']:6d} frames: attached triangles cross in {len(r['crossing_frames_ride'])} "
@@ -381,7 +386,7 @@ def main():
                "resumed_after_frame": rec.get("resumed_after_frame"),
                "mean_substeps": float(np.mean(steps)) if steps else 1.0, "max_substeps": int(max(steps, default=1)),
                "newton_iterations": int(sum(rec["per_frame"]["newton_iterations"])),
-               "max_lag_m": float(max(rec["per_frame"]["lag_m"], default=0.0))}
+               "max_lag_m": float(max(rec["per_frame"]["lag_m"], default=0.0)), **_clip_clearance(spec)}
         rows[name] = row
         print(f"{name:15s} {frames:6d} {len(row['frames_with_lag']):4d} {len(body_x):6d} {len(self_x):6d} "
               f"{len(nan):4d} {row['s_per_frame']:8.2f} {row['mean_substeps']:6.2f} (max {row['max_substeps']})",
@@ -461,6 +466,14 @@ def target_row(garment, over, spec, edge, duration, warmup, args) -> dict:
             "frames_unfolded": rep["unfold"]["frames_changed"], "max_unfold_change_m": rep["unfold"]["max_change_m"],
             "area_ratio_range": [round(float(ratio.min()), 3), round(float(ratio.max()), 3)],
             "keep_clear": {k: v for k, v in rep["keep_clear"].items()}}
+
+
+def _clip_clearance(spec) -> dict:
+    """A CMU clip's part clearance summary (what each rule turned; the knee's windows opened or
+    left), as written beside the cached clip; {} for other motions."""
+    side = Path(str(spec)).with_suffix(".json")
+    ok = str(spec).endswith(".npz") and side.exists()
+    return {"clip_part_clearance": json.loads(side.read_text())["part_clearance"]} if ok else {}
 
 
 def _checks(rows: dict) -> dict:

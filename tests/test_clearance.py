@@ -193,7 +193,8 @@ def test_knee_collapse_option_is_the_rule_after_the_default_ones(body):
     from physavatar.stages.animate import AnimateConfig
     from physavatar.stages.simulate import SimulateConfig
 
-    assert not SimulateConfig().knee_collapse and not AnimateConfig().knee_collapse
+    # auto by default since session 33 (None); True / False: --knee-collapse / --no-knee-collapse
+    assert SimulateConfig().knee_collapse is None and AnimateConfig().knee_collapse is None
     idx = {n: i for i, n in enumerate(body.bone_names)}
     T = 40
     a = np.clip(1 - np.abs(np.arange(T) - 20) / 8, 0, 1)
@@ -206,5 +207,73 @@ def test_knee_collapse_option_is_the_rule_after_the_default_ones(body):
     np.testing.assert_array_equal(m2.rotations, ref.rotations)
     assert "knee-collapse.L" in summary and summary["knee-collapse.L"]["max_angle_deg"] > 1.0
     assert "knee-collapse.L" in describe_part_clearance(summary)
-    m1, _ = with_part_clearance(m, "clip.bvh", body, True)  # the default: no collapse rule
-    assert not np.array_equal(m1.rotations, m2.rotations)
+    m0, _ = with_part_clearance(m, "clip.bvh", body, True, knee_collapse=False)  # no collapse rule
+    assert not np.array_equal(m0.rotations, m2.rotations)
+    np.testing.assert_array_equal(m0.rotations, part_clearance(m, body, default_rules())[0].rotations)
+    # the default, auto: this knee crosses deeply (the heel to the buttock), so it is opened as with the flag
+    m1, s1 = with_part_clearance(m, "clip.bvh", body, True)
+    np.testing.assert_array_equal(m1.rotations, m2.rotations)
+    assert s1["knee-collapse.L"]["windows"][0]["opened"]
+    assert with_part_clearance(m, "clip.bvh", body, False) == (m, None)  # auto follows --part-clearance
+
+
+def test_knee_collapse_auto_opens_a_deep_crossing_and_leaves_a_grazing_one(body):
+    """`--knee-collapse` auto (session 33): the knee opened only in windows of frames where calf and
+    thigh cross deeper than the room the cloth's contact needs (KNEE_ROOM = d̂ + cotton's contact
+    offset = 1 mm). One knee bend in 80 frames folds the calf 10 mm into the thigh (frames 14-16),
+    a second, 50 frames later, grazes (frame 60: one thigh vertex inside the calf). Checked with the
+    winding numbers computed here and the hinge axis from the posed joints: the deep window is
+    opened until no leg vertex is buried; the grazing one is left bit-identical (every frame from
+    41 on: the deep window's smoothing ends before), its vertex still buried, though the full rule
+    (``min_depth`` 0) does open it; the reported opening is bracketed by turns 0.02 degrees either
+    side of it (buried, clear), and the depth is that opening times the buried vertex's distance
+    from the hinge axis, below 1 mm."""
+    from physavatar.body.clearance import KNEE_ROOM, knee_collapse_rules
+    from physavatar.body.motion import turn_bone
+    from physavatar.data.material import resolve_material
+    from physavatar.sim import SimSettings
+
+    assert KNEE_ROOM == SimSettings().dhat + resolve_material("cotton", option="--material").contact_offset
+    names = body.bone_names
+    idx = {n: i for i, n in enumerate(names)}
+    b, thigh, calf = idx["lowerleg01.L"], idx["upperleg02.L"], idx["lowerleg02.L"]
+    T, t = 80, np.arange(80)
+
+    def bump(centre, peak_deg):
+        a = np.clip(1 - np.abs(t - centre) / 8, 0, 1)
+        return np.radians(peak_deg) * a * a * (3 - 2 * a)
+
+    R = np.zeros((T, len(names), 3))
+    R[:, b, 0] = bump(15, 110.0) + bump(60, 102.6)
+    m = Motion("t", 25.0, names, R, np.zeros((T, 3)))
+    m2, info = part_clearance(m, body, knee_collapse_rules(KNEE_ROOM)[:1])
+    deep, graze = info["knee-collapse.L"]["windows"]
+    assert list(deep["frames"]) == [14, 15, 16] and deep["opened"]
+    assert list(graze["frames"]) == [60] and not graze["opened"]
+    np.testing.assert_array_equal(m2.rotations[41:], m.rotations[41:])
+    assert not np.array_equal(m2.rotations[14:17], m.rotations[14:17])
+    full = part_clearance(m, body, knee_collapse_rules()[:1])[0]
+    assert not np.array_equal(full.rotations[60], m.rotations[60])
+
+    F = np.asarray(body.faces)
+    leg = np.flatnonzero(bone_vertex_mask(body, [n for n in names if n.startswith(("upperleg", "lowerleg")) and n.endswith(".L")]))
+    P0, P1 = m.pose(body), m2.pose(body)
+    for f in (14, 15, 16):
+        assert (_winding(P0.vertices[f], F, leg) > 1).any() and not (_winding(P1.vertices[f], F, leg) > 1).any()
+    bur = leg[_winding(P0.vertices[60], F, leg) > 1]
+    assert len(bur) == 1 and (_winding(P1.vertices[60], F, leg) > 1).any()
+
+    # the hinge axis: normal to the thigh's and the calf's directions (posed joints)
+    J = P0.joints[60]
+    axis = np.cross(J[calf] - J[b], J[b] - J[thigh])
+    axis /= np.linalg.norm(axis)
+    theta = graze["opening_rad"][0]
+    X = _world(body, m.rotations[60:61], thigh)
+    for dth, buried in ((-0.02, True), (0.02, False)):
+        r = turn_bone(m.rotations[60:61], b, X, axis[None] * (theta + np.radians(dth)), np.array([0]))
+        V = Motion("t", 25.0, names, r, np.zeros((1, 3))).pose(body).vertices[0]
+        assert (_winding(V, F, leg) > 1).any() == buried
+    v = P0.vertices[60][bur[0]] - J[b]
+    reach = np.linalg.norm(v - (v @ axis) * axis)
+    assert graze["depth_m"][0] == pytest.approx(theta * reach, rel=1e-6) and 0.3e-3 < graze["depth_m"][0] < KNEE_ROOM
+    assert deep["depth_m"].max() > 5 * KNEE_ROOM

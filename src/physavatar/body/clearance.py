@@ -26,6 +26,19 @@ turning the bone about the normal of its own and its parent's direction, until n
 (clearance 0). Linear blend skinning folds the back of a deeply bent knee into the limb: the
 cloth caught in that fold has no place outside the body (docs/simulation.md "Session 28").
 
+A collapse rule with ``min_depth`` > 0 opens the joint only where the parts pass through each other
+deeper than that, decided from the motion before it is changed (:func:`collapse_windows`): the
+frames with a buried vertex, joined into windows where the rule's smoothing of one would reach the
+other (about 1 s); per
+frame, the crossing's depth is the smallest hinge opening that clears the frame (a bisection to
+0.006 degrees) times the largest distance of a buried vertex from the hinge's axis (how far the
+surface there has to move to come apart); a window whose deepest frame is shallower than
+``min_depth`` is left exactly as it is (its frames never count as needing a turn, and no other
+window's turn reaches them); the other windows
+are opened as without ``min_depth``. ``knee_collapse_rules(KNEE_ROOM)``: the knee opened only where
+the crossing is deeper than the room the cloth's contact needs, ``--knee-collapse`` auto
+(docs/simulation.md "Session 33").
+
 Parts connected at the joint (the thigh and the belly at the hip) are always in contact near the
 joint; ``rest_gap`` leaves out the points of the part and the obstacle that are closer than that to
 each other in the rest pose: the rule then keeps apart only what is apart at rest.
@@ -55,6 +68,7 @@ class Clearance:
     rest_gap: float = 0.0
     exclude: tuple[str, ...] = ()  # bones left out of the obstacle on the joint's side (the limb itself)
     collapse: bool = False  # measure the collapse instead: the joint opened until no vertex is buried
+    min_depth: float = 0.0  # a collapse rule: windows of frames crossing less deep than this [m] left as they are
 
 
 _HAND = ("lowerarm", "wrist", "hand", "finger", "thumb", "metacarpal")
@@ -70,7 +84,7 @@ def default_rules(clearance: float = 0.03) -> list[Clearance]:
     rest, the groin, left out), the calf out of the thigh at the back of the knee (the same bounds
     for the knee), then the forearm and hand off every other part of the body (at most 40 degrees
     more at the shoulder, on top of ``arm_clearance``'s sideways raise). The knee's collapse:
-    :func:`knee_collapse_rules`, not by default."""
+    :func:`knee_collapse_rules`, applied after these by ``body.load.with_part_clearance``."""
     rules = []
     for s in ("L", "R"):
         rules.append(Clearance(f"thigh-belly.{s}", f"upperleg01.{s}", (f"upperleg01.{s}", f"upperleg02.{s}"), _TRUNK,
@@ -84,15 +98,21 @@ def default_rules(clearance: float = 0.03) -> list[Clearance]:
     return rules
 
 
-def knee_collapse_rules() -> list[Clearance]:
+KNEE_ROOM = 1e-3  # [m] the room the cloth's contact needs: d̂ (sim.settings.SimSettings.dhat) + the
+# cotton preset's contact offset (0); the stages pass their own d̂ + offset
+
+
+def knee_collapse_rules(min_depth: float = 0.0) -> list[Clearance]:
     """The knee opened where calf and thigh pass through each other at the back of the knee (at
     most 25 degrees; ``collapse``: the fold the knee-fold rule leaves out with its ``rest_gap``).
     Not in :func:`default_rules`: on the 2-cm hop it takes out the pinch of written frames 164-166,
     on the CMU walk its turns of under 1 degree leave cloth in the knee pit at written 80-83
-    (docs/simulation.md "Session 29"). Meant after the default rules (a clip they corrected needs
-    only these on top)."""
+    (docs/simulation.md "Session 29"). ``min_depth`` [m]: only windows of frames where they cross
+    deeper than this are opened (``--knee-collapse`` auto: :data:`KNEE_ROOM`; "Session 33"). Meant
+    after the default rules (a clip they corrected needs only these on top)."""
     return [Clearance(f"knee-collapse.{s}", f"lowerleg01.{s}", (f"lowerleg01.{s}", f"lowerleg02.{s}"), ("upperleg",),
-                      clearance=0.0, max_angle=np.radians(25.0), collapse=True) for s in ("L", "R")]
+                      clearance=0.0, max_angle=np.radians(25.0), collapse=True, min_depth=min_depth)
+            for s in ("L", "R")]
 
 
 BURIED = 1.0  # winding number above which a vertex lies inside another part (as sim.crease.BURIED;
@@ -149,17 +169,20 @@ class _Geometry:
         return d, p, n
 
 
-    def buried_depth(self, V):
+    def buried_depth(self, V, buried=None):
         """Per frame of V [T, N, 3]: minus the depth [m] of the deepest vertex of the part buried in
         the obstacle or of the obstacle buried in the part (winding number of the body above
         BURIED; the closest triangle of the body's outer surface, its triangles more than one ring
-        from a buried vertex, has a corner on the other side), 0 where none is."""
+        from a buried vertex, has a corner on the other side), 0 where none is. ``buried``: a list
+        that gets, per frame, those vertices (indices)."""
         from ..geometry.closest import MeshQuery
         from ..geometry.winding import winding_number
 
         F, out = self.all_faces, np.zeros(len(V))
         for t in range(len(V)):
             bur = self.near[winding_number(V[t][self.near], V[t], F, self.near) > BURIED]
+            if buried is not None:
+                buried.append(bur[:0])
             if not len(bur):
                 continue
             hidden = np.zeros(len(V[t]), bool)
@@ -171,6 +194,8 @@ class _Geometry:
             across = np.where(part[bur], obst[outer[face]].any(axis=1), part[outer[face]].any(axis=1))
             if across.any():
                 out[t] = -float(np.max(depth[across]))
+                if buried is not None:
+                    buried[-1] = bur[across]
         return out
 
 
@@ -196,10 +221,52 @@ def _smooth(theta, axis, fps):
     return held[:, None] * vec / np.maximum(norm, 1e-12)[:, None]
 
 
+def collapse_windows(body: BodyModel, rots, trs, rule: Clearance, fps: float, samples_per_face: int = 10,
+                     iterations: int = 12) -> list[dict]:
+    """Where collapse rule ``rule`` finds the part and the obstacle passing through each other in
+    the motion ``rots`` [T, B, 3], ``trs`` [T, 3]: the frames with a buried vertex, in windows
+    (frames within the reach of the rule's smoothing of each other joined: 3 holds of ⅓ s, the
+    held maximum and the Gaussian's 4 sigma, so that no opened window's turn reaches a left one). Per
+    frame: ``opening_rad``, the smallest turn of the joint about its hinge axis that leaves no
+    vertex buried (bisection, ``iterations`` halvings of ``max_angle``: 0.006 degrees), and
+    ``depth_m``, that opening times the largest distance of a buried vertex from the hinge's axis
+    through the joint (how far the surface there has to move to come apart; the arc, not the
+    chord: they differ by under 0.1 % below 5 degrees). ``opened``: the window's deepest frame is
+    at least ``rule.min_depth`` deep."""
+    idx = {n: i for i, n in enumerate(body.bone_names)}
+    b, parents = idx[rule.joint], body.parents
+    child = next(i for i, q in enumerate(parents) if q == b)
+    g = _Geometry(body, rule, samples_per_face)
+    buried: list = []
+    frames = np.flatnonzero(g.buried_depth(body.pose(rots, trs).vertices, buried) < 0)
+    if not len(frames):
+        return []
+    P = body.pose(rots[frames], trs[frames])
+    axis = _opening_axis(P.joints, b, parents[b], child)
+    Xp = world_rotations(rots[frames], parents)[:, parents[b]]
+    lo, hi = np.zeros(len(frames)), np.full(len(frames), rule.max_angle)
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        turned = turn_bone(rots, b, Xp, axis * mid[:, None], frames)[frames]
+        ok = g.buried_depth(body.pose(turned, trs[frames]).vertices) >= 0
+        hi, lo = np.where(ok, mid, hi), np.where(ok, lo, mid)
+    reach = np.empty(len(frames))
+    for k, t in enumerate(frames):
+        r = P.vertices[k][buried[t]] - P.joints[k, b]
+        reach[k] = np.linalg.norm(r - np.outer(r @ axis[k], axis[k]), axis=1).max()
+    hold = max(1, int(round(fps / 3)))
+    out = []
+    for grp in np.split(np.arange(len(frames)), np.flatnonzero(np.diff(frames) > 3 * hold) + 1):
+        depth = hi[grp] * reach[grp]
+        out.append({"frames": frames[grp], "opening_rad": hi[grp], "depth_m": depth,
+                    "opened": bool(depth.max() >= rule.min_depth)})
+    return out
+
+
 def part_clearance(motion, body: BodyModel, rules=None, samples_per_face: int = 10, rounds: int = 3):
     """The motion with every rule of ``rules`` (default :func:`default_rules`) applied in turn.
     Returns (motion, info): per rule, the distance before and after [T] and the angle added [T]
-    (radians)."""
+    (radians); a collapse rule with ``min_depth``: also its ``windows`` (:func:`collapse_windows`)."""
     rules = default_rules() if rules is None else rules
     m = motion.for_bones(body.bone_names)
     rots, trs = m.rotations.copy(), m.root_translation
@@ -225,11 +292,16 @@ def part_clearance(motion, body: BodyModel, rules=None, samples_per_face: int = 
             continue
         T = len(rots)
         d0 = measure(rots, np.arange(T))[0]
+        left, windows = np.zeros(T, bool), None  # frames of windows too shallow to open
+        if rule.collapse and rule.min_depth > 0:
+            windows = collapse_windows(body, rots, trs, rule, m.fps, samples_per_face)
+            for w in windows:
+                left[w["frames"]] |= not w["opened"]
         total = np.zeros((T, 3))
         for _ in range(rounds):
             d, p, n, joint = measure(rots, np.arange(T))
             budget = rule.max_angle - np.linalg.norm(total, axis=1)
-            need = np.flatnonzero((d < rule.clearance) & (budget > 1e-3))
+            need = np.flatnonzero((d < rule.clearance) & (budget > 1e-3) & ~left)
             if not len(need):
                 break
             if rule.collapse:
@@ -265,4 +337,6 @@ def part_clearance(motion, body: BodyModel, rules=None, samples_per_face: int = 
             total += vec
         info[rule.name] = {"distance_before_m": d0, "distance_after_m": measure(rots, np.arange(T))[0],
                            "angle_rad": np.linalg.norm(total, axis=1)}
+        if windows is not None:
+            info[rule.name]["windows"] = windows
     return Motion(m.name, m.fps, m.bone_names, rots, trs, dict(m.meta)), info

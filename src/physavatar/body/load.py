@@ -12,6 +12,7 @@ import numpy as np
 from ..errors import PhysavatarError
 from .amass import import_amass, is_amass
 from .bvh import import_bvh
+from .clearance import KNEE_ROOM, default_rules, knee_collapse_rules, part_clearance
 from .model import BodyModel
 from .motion import BUILTIN, Motion, arm_clearance, builtin_motion
 
@@ -72,44 +73,55 @@ def with_arm_clearance(motion: Motion, spec: str, body: BodyModel, clearance: fl
     return m2, summary
 
 
-KNEE_COLLAPSE_HELP = ("with a .bvh/AMASS motion: also open the knee where calf and thigh pass through each other "
-                      "(at most 25 deg; body.clearance.knee_collapse_rules): the cloth caught in that fold has no "
-                      "place outside the body. Off by default: it clears the CMU hop's knee pinch but costs the CMU "
-                      "walk 4 frames (docs/simulation.md, Session 29)")  # simulate's and animate's --knee-collapse
+KNEE_COLLAPSE_HELP = ("with a .bvh/AMASS motion and --part-clearance: open the knee where calf and thigh pass through "
+                      "each other (at most 25 deg; body.clearance.knee_collapse_rules): the cloth caught in that fold "
+                      "has no place outside the body. Default auto: only windows of frames where they cross deeper than "
+                      "the cloth's contact needs (d-hat + contact offset; 1 mm for cotton), decided from the motion "
+                      "before simulating; --knee-collapse: every collapse (before session 33: clears the CMU hop, costs "
+                      "the CMU walk 16 frames); --no-knee-collapse: none (docs/simulation.md, Sessions 29 and 33)")
+# simulate's and animate's --knee-collapse (None: auto)
 
 
 def with_part_clearance(motion: Motion, spec: str, body: BodyModel, on: bool,
-                        knee_collapse: bool = False) -> tuple[Motion, dict | None]:
+                        knee_collapse: bool | None = None, room: float = KNEE_ROOM) -> tuple[Motion, dict | None]:
     """Motion capture with the parts a garment covers kept apart (:func:`body.clearance.part_clearance`:
-    thigh out of the belly, calf out of the thigh, hands off the body) when ``on``, and then, with
-    ``knee_collapse``, the knee opened where calf and thigh pass through each other
-    (:func:`body.clearance.knee_collapse_rules`, ``--knee-collapse``); other motions and both off
-    unchanged. Returns the motion and, per rule that turned a bone, the frames turned, the largest
-    turn [deg] and the closest distance (a collapse rule: minus the deepest buried vertex) before and
-    after [m] (None when nothing was done)."""
-    if not (on or knee_collapse) or not is_capture(spec):
+    thigh out of the belly, calf out of the thigh, hands off the body) when ``on``, and then the
+    knee opened where calf and thigh pass through each other (:func:`body.clearance.knee_collapse_rules`,
+    ``--knee-collapse``): ``knee_collapse`` True: every collapse; None (auto, with ``on`` only):
+    windows of frames crossing at least ``room`` [m] deep (the cloth's d̂ + contact offset); False:
+    none. Other motions and all off unchanged. Returns the motion and, per rule that turned a bone,
+    the frames turned, the largest turn [deg] and the closest distance (a collapse rule: minus the
+    deepest buried vertex) before and after [m]; an auto collapse rule that found a collapse also
+    its windows (frames, deepest crossing, opening, opened or left) (None when nothing was done)."""
+    knee = knee_collapse is True or (knee_collapse is None and on)
+    if not (on or knee) or not is_capture(spec):
         return motion, None
-    from .clearance import default_rules, knee_collapse_rules, part_clearance
     m2, info = part_clearance(motion, body, default_rules()) if on else (motion, {})
-    if knee_collapse:
-        m2, more = part_clearance(m2, body, knee_collapse_rules())
+    if knee:
+        m2, more = part_clearance(m2, body, knee_collapse_rules(room if knee_collapse is None else 0.0))
         info = info | more
     summary = {}
     for name, d in info.items():
         turned = d["angle_rad"] > 1e-3
-        if turned.any():
+        if turned.any() or d.get("windows"):
+            closest = {f"min_distance_{k}_m": round(float(d[f"distance_{k}_m"][turned].min()), 4) if turned.any() else None
+                       for k in ("before", "after")}
             summary[name] = {"frames_turned": int(turned.sum()),
-                             "max_angle_deg": round(float(np.degrees(d["angle_rad"].max())), 1),
-                             "min_distance_before_m": round(float(d["distance_before_m"][turned].min()), 4),
-                             "min_distance_after_m": round(float(d["distance_after_m"][turned].min()), 4)}
+                             "max_angle_deg": round(float(np.degrees(d["angle_rad"].max())), 1), **closest}
+        if d.get("windows"):
+            summary[name]["min_depth_m"] = room
+            summary[name]["windows"] = [{"frames": [int(w["frames"][0]), int(w["frames"][-1])],
+                                         "deepest_m": round(float(w["depth_m"].max()), 5),
+                                         "opening_deg": round(float(np.degrees(w["opening_rad"].max())), 3),
+                                         "opened": w["opened"]} for w in d["windows"]]
     return m2, summary or None
 
 
 def with_clearances(motion: Motion, spec: str, make_body, arm: float, parts: bool,
-                    knee_collapse: bool = False) -> tuple[Motion, dict | None, dict | None]:
+                    knee_collapse: bool | None = None, room: float = KNEE_ROOM) -> tuple[Motion, dict | None, dict | None]:
     """Motion capture with the corrections of ``simulate`` and ``animate`` applied: arm clearance
-    (``arm`` [m], :func:`with_arm_clearance`) and then part clearance (``parts``, ``knee_collapse``:
-    :func:`with_part_clearance`). ``make_body()`` gives the collider they measure on; it is built
+    (``arm`` [m], :func:`with_arm_clearance`) and then part clearance (``parts``, ``knee_collapse``,
+    ``room``: :func:`with_part_clearance`). ``make_body()`` gives the collider they measure on; it is built
     only when a correction applies. Returns the motion and the two summaries."""
     if arm < 0:
         raise PhysavatarError(None, "option --arm-clearance: must be >= 0")
@@ -117,7 +129,7 @@ def with_clearances(motion: Motion, spec: str, make_body, arm: float, parts: boo
         return motion, None, None
     body = make_body()
     motion, arm_info = with_arm_clearance(motion, spec, body, arm)
-    motion, parts_info = with_part_clearance(motion, spec, body, parts, knee_collapse)
+    motion, parts_info = with_part_clearance(motion, spec, body, parts, knee_collapse, room)
     return motion, arm_info, parts_info
 
 
@@ -136,10 +148,17 @@ def describe_part_clearance(summary: dict | None) -> str | None:
     """One line saying which bones --part-clearance turned and by how much (None when none was)."""
     if not summary:
         return None
-    return "part clearance: " + "; ".join(
-        f"{name} in {v['frames_turned']} frames (up to {v['max_angle_deg']} deg), closest "
-        f"{1000 * v['min_distance_before_m']:.0f} -> {1000 * v['min_distance_after_m']:.0f} mm"
-        for name, v in summary.items())
+
+    def one(name, v):
+        said = (f"{name} in {v['frames_turned']} frames (up to {v['max_angle_deg']} deg), closest "
+                f"{1000 * v['min_distance_before_m']:.0f} -> {1000 * v['min_distance_after_m']:.0f} mm"
+                if v["frames_turned"] else f"{name} turned nowhere")
+        left = [w for w in v.get("windows", ()) if not w["opened"]]
+        if left:
+            said += (", left where calf and thigh cross by less than " f"{1000 * v['min_depth_m']:.1f} mm: frames "
+                     + ", ".join(f"{w['frames'][0]}-{w['frames'][1]} ({1000 * w['deepest_m']:.2f} mm)" for w in left))
+        return said
+    return "part clearance: " + "; ".join(one(name, v) for name, v in summary.items())
 
 
 def inspect_capture(spec: str | Path, body: BodyModel, mapping: str | Path | None = None) -> dict:

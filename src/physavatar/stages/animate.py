@@ -273,8 +273,8 @@ class AnimateConfig(GarmentFileOptions):
                                          "thigh, hand into the body): bones turned by at most 20-40 deg "
                                          "(body.clearance; docs/motions.md; --no-part-clearance keeps the clip as retargeted)",
                                   flag="--part-clearance/--no-part-clearance")
-    knee_collapse: bool = option(False, KNEE_COLLAPSE_HELP,
-                                 flag="--knee-collapse/--no-knee-collapse")
+    knee_collapse: bool | None = option(None, KNEE_COLLAPSE_HELP,  # None: auto (session 33)
+                                        flag="--knee-collapse/--no-knee-collapse")
     max_substeps: int = option(16, "at most this many implicit steps per frame (more where the body moves fast)",
                                check=lambda v: None if v >= 1 else "must be at least 1")
     self_contact: bool = option(True, "garment-garment contact (ipctk's barrier and CCD between the garment's own "
@@ -322,11 +322,12 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
         raise PhysavatarError(None, "option --motion: give a motion (built-in name, .bvh or .npz)")
     av = Avatar.load(avatar)
     m = load_motion(config.motion, av.fps, config.duration)
+    settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)
     m, info, parts = with_clearances(m, config.motion, lambda: BodyModel(av.shape, topology="collider"),
-                                     config.arm_clearance, config.part_clearance, config.knee_collapse)
+                                     config.arm_clearance, config.part_clearance, config.knee_collapse,
+                                     settings.dhat + (settings.dmin or av.material.contact_offset))
     if config.max_frames:
         m = m.slice(0, config.max_frames)
-    settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)
     garment, imported = _file_garment(av, config, settings, progress) if config.garment else (None, None)
     seq, stats = animate(av, m, warmup_s=config.warmup, settings=settings, progress=progress,
                          max_substeps=config.max_substeps, out=out, garment=garment,

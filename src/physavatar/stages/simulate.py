@@ -106,8 +106,8 @@ class SimulateConfig(GarmentFileOptions):
                                          "the thigh, hand into the body): bones turned by at most 20-40 deg "
                                          "(body.clearance; docs/motions.md; --no-part-clearance keeps the clip as retargeted)",
                                   flag="--part-clearance/--no-part-clearance")
-    knee_collapse: bool = option(False, KNEE_COLLAPSE_HELP,
-                                 flag="--knee-collapse/--no-knee-collapse")
+    knee_collapse: bool | None = option(None, KNEE_COLLAPSE_HELP,  # None: auto (session 33)
+                                        flag="--knee-collapse/--no-knee-collapse")
     edge_length: float = option(0.02, "garment edge length [m] (with --garment KIND)")
     over: str | None = option(None, "with --motion: built-in garments worn over --garment, innermost first "
                                     "(comma-separated: dress, skirt, tshirt), simulated together with it as one cloth, "
@@ -358,8 +358,9 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
     if cfg.over:
         part = _layered(part, cfg.over, body, cfg)
     mot = load_motion(motion, fps, cfg.duration)
+    room = sim_settings.dhat + (sim_settings.dmin or mat.contact_offset)  # what auto's knee rule compares with
     mot, clearance_info, parts_info = with_clearances(mot, motion, lambda: body, cfg.arm_clearance,
-                                                      cfg.part_clearance, cfg.knee_collapse)
+                                                      cfg.part_clearance, cfg.knee_collapse, room)
     rots, trs = mot.rotations, mot.root_translation
     # the garment is made for the rest pose: a motion that starts elsewhere (a BVH clip) is
     # reached by a transition first, as `animate` does, so the garment never starts inside the body
