@@ -24,6 +24,7 @@ property changes at a time:
   simulator's ``Bending.rest_angle`` set to 0 inside this process);
 * the region: the original garment without its hem band that the prepared garment misses (its
   vertices below z 0.35 m more than 1 cm from the prepared garment);
+* the straps' width: the original garment with one strap narrowed to the prepared straps' necks;
 * the holds: the original garment with the prepared boundary (its vertices within 2 cm of the
   prepared boundary points);
 * the prepared garment's geometry: its vertices moved onto the true surface (closest point;
@@ -104,13 +105,21 @@ def offset_out(t, mm: float) -> np.ndarray:
 
 def taubin_rest(t, rounds: int = 10, lam: float = 0.5, mu: float = -0.53) -> np.ndarray:
     """[V, 3] ``t``'s vertices with its garment Taubin-smoothed (uniform weights, boundary fixed):
-    trimesh's filter_taubin with the boundary pinned."""
+    trimesh's filter_taubin, ``rounds`` λ/μ pairs."""
+    import scipy.sparse as sp
     import trimesh
-    from trimesh.smoothing import filter_taubin, laplacian_calculation
+    from trimesh.smoothing import filter_taubin
+
+    from physavatar.geometry.mesh import adjacency
 
     ids, f, _ = garment_normals(t)
     m = trimesh.Trimesh(t.vertices[ids].copy(), f, process=False)
-    L = laplacian_calculation(m, equal_weight=True, pinned_vertices=np.flatnonzero(t.boundary[ids]))
+    # the neighbours' mean, pinned rows the identity (trimesh's own equal-weight operator takes each
+    # open edge in one direction only: a strap's edge vertices would average one side)
+    A = adjacency(f, len(ids)).astype(np.float64).tocsr()
+    A.data[:] = 1.0
+    pin = t.boundary[ids]
+    L = sp.diags(np.where(pin, 0.0, 1.0 / np.asarray(A.sum(1)).ravel())) @ A + sp.diags(pin.astype(np.float64))
     filter_taubin(m, lamb=lam, nu=-mu, iterations=2 * rounds, laplacian_operator=L)  # a pass is λ or μ
     V = t.vertices.copy()
     V[ids] = m.vertices
@@ -238,6 +247,11 @@ def variants(orig, prep) -> dict:
         V = onto_truth(tp, to)
         return _template(tp, V, (tp.labels > 0) & boundary_from_points(V, tb, 0.012))
 
+    def necked():  # the left front strap's outer column at z 1.26-1.35 m removed: 2-3.4 cm wide there
+        V = to.vertices
+        cut = (to.labels > 0) & (V[:, 0] < -0.095) & (V[:, 1] < 0) & (V[:, 2] > 1.26) & (V[:, 2] < 1.35) & ~to.boundary
+        return keep_garment(to, (to.labels > 0) & ~cut)
+
     own = {"own_truth": True}
     return {
         "original": ("the original garment (own truth)", lambda: to, own),
@@ -257,6 +271,9 @@ def variants(orig, prep) -> dict:
                                      lambda: _template(to, rest=taubin_rest(to)), {"truth_on": to}),
         "original without the hem the prepared misses": ("its vertices below 0.35 m over 1 cm from the prepared garment removed",
                                                          hem_cut, {"truth_self": True}),
+        "original, left front strap necked": ("the left front strap's outer vertices at z 1.26-1.35 m removed "
+                                              "(2.0-3.4 cm wide there, as the prepared straps' necks)", necked,
+                                              {"truth_self": True}),
         "original, prepared holds": ("boundary: its vertices within 2 cm of the prepared boundary points",
                                      lambda: _template(to, boundary=(to.labels > 0) & boundary_from_points(to.vertices, pb, 0.02)), {}),
         "prepared": ("the prepared garment (true body given to prepare)", lambda: tp, {}),

@@ -99,3 +99,23 @@ def test_drop_profile_of_a_uniform_fall():
     seq[:, :, 2] = z[None] - 0.001 * np.arange(10)[:, None] ** 2
     d = drop_profile(seq, frame=8)
     assert d["all"] == -64.0 and all(v == -64.0 for v in d.values())
+
+
+def test_taubin_rest_is_the_symmetric_neighbour_average_on_an_open_strip():
+    # reference: λ/μ passes of x ← x + s (mean of the mesh neighbours − x), holds fixed. trimesh's own
+    # equal-weight operator takes each open edge in one direction and differs here by millimetres
+    S, G = grid(3, 12, (0, 0, 1.0), (0.02, 0, 0), (0, 0.003, 0.02))
+    S[:, 1] += 0.004 * np.sin(7 * S[:, 2])  # not a plane
+    top = S[:, 2] > 1.2
+    nbr = [set() for _ in S]
+    for a, b, c in G:
+        for u, v in ((a, b), (b, c), (c, a)):
+            nbr[u].add(v)
+            nbr[v].add(u)
+    X = S.copy()
+    for _ in range(10):
+        for s in (0.5, -0.53):
+            mean = np.array([X[sorted(n)].mean(0) for n in nbr])
+            X = np.where(top[:, None], X, X + s * (mean - X))
+    R = taubin_rest(with_body(S, G, top))[3:]
+    assert np.abs(R - X).max() < 1e-12
