@@ -97,11 +97,12 @@ def skinned_start(cap, held):
 
 
 def heldout_cd(cap, gt_src: Path, material, work: Path, frames: int | None, own_truth: bool = False,
-               truth_on=None, **animate_kw) -> dict:
+               truth_on=None, keep_sequence: bool = False, **animate_kw) -> dict:
     """Held-out garment Chamfer ×10³ of ``cap`` (a Capture: template and body) with ``material``,
     against ``gt_src``'s held-out meshes (re-expressed on the template, or on ``truth_on`` (a
     Template of the same vertices) when given, unless ``own_truth``);
-    ``animate_kw`` go to :func:`animate` (e.g. ``warmup_s``)."""
+    ``animate_kw`` go to :func:`animate` (e.g. ``warmup_s``); ``keep_sequence``: the simulated
+    garment [T, Ng, 3] in the result's ``_sequence`` too."""
     from physavatar.body.motion import Motion
     from physavatar.files import load_npz
     from physavatar.geometry import submesh
@@ -126,11 +127,14 @@ def heldout_cd(cap, gt_src: Path, material, work: Path, frames: int | None, own_
     g = t.labels > 0
     _, gf = submesh(t.faces, g)
     row = _surface_rows(seq.vertices[: len(gt)][:, g], gt[:, g], gf, 10000, 0)
-    return {"chamfer_x1e3": row["chamfer_x1e3"], "fscore@1cm": row["fscore@1cm"],
-            "per_frame_chamfer_x1e3": row["per_frame_chamfer_x1e3"], "frames": int(len(gt)),
-            "warmup_frames": stats["warmup_frames"], "garment_vertices": int(g.sum()),
-            "boundary_vertices": int(t.boundary.sum()), "animate_s": round(secs, 1),
-            "frames_with_lag": stats["frames_with_lag"]}
+    out = {"chamfer_x1e3": row["chamfer_x1e3"], "fscore@1cm": row["fscore@1cm"],
+           "per_frame_chamfer_x1e3": row["per_frame_chamfer_x1e3"], "frames": int(len(gt)),
+           "warmup_frames": stats["warmup_frames"], "garment_vertices": int(g.sum()),
+           "boundary_vertices": int(t.boundary.sum()), "animate_s": round(secs, 1),
+           "frames_with_lag": stats["frames_with_lag"]}
+    if keep_sequence:
+        out["_sequence"] = seq.vertices[: len(gt)][:, g]
+    return out
 
 
 def variants(args) -> dict:
