@@ -23,3 +23,23 @@ def quarter_ratio(per_frame: list[float]) -> float:
         return float("nan")
     q = max(1, len(e) // 4)
     return float(e[-q:].mean() / max(e[:q].mean(), 1e-9))
+
+
+def write_heldout_result(path, benchmark: str, load0, fields: dict, results: dict, unit: str) -> None:
+    """Writes a held-out Chamfer benchmark's result file ``path`` (`prepare_heldout_parts`,
+    `prepare_garment_parts`): the machine with the load at the start and now, ``fields``, the
+    ``variants`` and one reported check per variant (its ``chamfer_x1e3``)."""
+    import datetime
+    import json
+    import os
+    from pathlib import Path
+
+    result = {"benchmark": benchmark, "date": datetime.datetime.now().isoformat(timespec="seconds"),
+            "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(load0),
+                        "load_average_end": list(os.getloadavg())},
+            **fields, "variants": results,
+            "checks": {f"heldout_garment_cd_x1e3/{k}": {"value": r.get("chamfer_x1e3"), "target": "reported",
+                                                         "unit": unit, "pass": True}
+                       for k, r in results.items()}}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(result, indent=2) + "\n")

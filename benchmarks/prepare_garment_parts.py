@@ -43,7 +43,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import datetime
 import json
 import os
 import sys
@@ -53,7 +52,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_name
+from _common import write_heldout_result
 from prepare_heldout_parts import heldout_cd
 
 DROP_BANDS = (0.29, 0.5, 0.8, 1.0, 1.2, 1.3, 1.42)  # [m] frame-0 heights of the drop's bands
@@ -330,17 +329,10 @@ def main() -> int:
               f"drop@8 {r['drop_frame8_mm']['all']:.1f} mm", flush=True)
     truth = load_npz(gt_src / "heldout" / "meshes.npz")["vertices"].astype(np.float64)
     g = orig.template.labels > 0
-    result = {"benchmark": "prepare_garment_parts", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(load0),
-                          "load_average_end": list(os.getloadavg())},
-              "original": str(args.original), "prepared_true": str(args.prepared_true), "material": mat.to_dict(),
-              "truth_drop_frame8_mm": drop_profile(truth[:, g]),
-              "variants": results,
-              "checks": {f"heldout_garment_cd_x1e3/{k}": {"value": r["chamfer_x1e3"], "target": "reported",
-                                                           "unit": "Chamfer x1e3 (true material, true body)", "pass": True}
-                         for k, r in results.items()}}
-    args.results.parent.mkdir(parents=True, exist_ok=True)
-    args.results.write_text(json.dumps(result, indent=2) + "\n")
+    write_heldout_result(args.results, "prepare_garment_parts", load0,
+                         {"original": str(args.original), "prepared_true": str(args.prepared_true),
+                          "material": mat.to_dict(), "truth_drop_frame8_mm": drop_profile(truth[:, g])},
+                         results, "Chamfer x1e3 (true material, true body)")
     return 0
 
 

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import json
 import os
 import sys
@@ -40,7 +39,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_name
+from _common import write_heldout_result
 
 BOUNDARY_RADIUS = 0.02  # [m] a garment vertex this near a boundary point of the other template is boundary
 
@@ -228,18 +227,11 @@ def main() -> int:
         r = results[name]
         print(f"{name:48s} " + (f"held-out garment CD x1e3 {r['chamfer_x1e3']:.4f}  F@1cm {r['fscore@1cm']:.3f}"
                                  if "error" not in r else r["error"]), flush=True)
-    result = {"benchmark": "prepare_heldout_parts", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(load0),
-                          "load_average_end": list(os.getloadavg())},
-              "original": str(args.original), "prepared": str(args.prepared),
-              "true_body": str(args.true_body), "labels": str(args.labels),
-              "true_body_labels": str(args.true_body_labels), "material": mat.to_dict(),
-              "variants": results,
-              "checks": {f"heldout_garment_cd_x1e3/{k}": {"value": r.get("chamfer_x1e3"), "target": "reported",
-                                                           "unit": "Chamfer x1e3 (true material)", "pass": True}
-                         for k, r in results.items()}}
-    args.results.parent.mkdir(parents=True, exist_ok=True)
-    args.results.write_text(json.dumps(result, indent=2) + "\n")
+    write_heldout_result(args.results, "prepare_heldout_parts", load0,
+                         {"original": str(args.original), "prepared": str(args.prepared),
+                          "true_body": str(args.true_body), "labels": str(args.labels),
+                          "true_body_labels": str(args.true_body_labels), "material": mat.to_dict()},
+                         results, "Chamfer x1e3 (true material)")
     return 0
 
 
