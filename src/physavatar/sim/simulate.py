@@ -304,7 +304,8 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 attempts += 1
                 # an attempt that a retry in shorter steps would follow ends at its first lagging
                 # step (no change: a lagged attempt is retried) and gives up a stalled penalty
-                # phase early (ClothSim.stall_exit; the last attempt keeps the full budget)
+                # phase early (ClothSim.stall_exit; the last attempt keeps the full budget); with a
+                # crease attempt kept aside (below) a lagging attempt is discarded: it ends there too
                 if creasable is None and (n >= max_substeps or stuck):
                     creasable = body_creases(sim.settings, bodies[f - 1], bodies[f], collider_faces, saved[0])
                 last = (n >= max_substeps or stuck) and (crease or not creasable)
@@ -313,7 +314,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 path = None if collider_between is None or n == 1 else between_bodies(
                     collider_between, f, n, bodies[f - 1], bodies[f])
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
-                                           stop_on_lag=not last, path=path)
+                                           stop_on_lag=not last or kept is not None, path=path)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
                 if held[f] and not lagged and crosses(sim, x, original):
                     lagged = True  # clear of the uncollapsed body, through the one given: the crease rule on that
