@@ -31,7 +31,7 @@ from .crease import body_creases
 from .material import Material
 from .settings import SimSettings
 from .solver import ClothSim
-from .untangle import untangle_frame_end
+from .untangle import held_body, untangle_frame_end
 
 
 @dataclasses.dataclass
@@ -298,12 +298,14 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
             n, move = substep_count(bodies[f - 1], bodies[f], x, settings, substeps, max_substeps)
             saved = (x, v, sim.get_state())
             attempts, crease, tried = 0, False, False
+            kept, moved = None, 0  # a crease attempt written through the body, while shorter steps are tried
             creasable = None if settings.crease_ring >= 0 else False  # None: not yet known
             while True:
                 attempts += 1
                 # an attempt that a retry in shorter steps would follow ends at its first lagging
                 # step (no change: a lagged attempt is retried) and gives up a stalled penalty
-                # phase early (ClothSim.stall_exit; the last attempt keeps the full budget)
+                # phase early (ClothSim.stall_exit; the last attempt keeps the full budget); with a
+                # crease attempt kept aside (below) a lagging attempt is discarded: it ends there too
                 if creasable is None and (n >= max_substeps or stuck):
                     creasable = body_creases(sim.settings, bodies[f - 1], bodies[f], collider_faces, saved[0])
                 last = (n >= max_substeps or stuck) and (crease or not creasable)
@@ -312,10 +314,23 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 path = None if collider_between is None or n == 1 else between_bodies(
                     collider_between, f, n, bodies[f - 1], bodies[f])
                 x, v, stats_frame = _frame(sim, x, v, bodies[f - 1], bodies[f], collider_faces, tb0, tb1, n, fps,
-                                           stop_on_lag=not last, path=path)
+                                           stop_on_lag=not last or kept is not None, path=path)
                 lagged = any(s.body_gap > 0 for s in stats_frame)
                 if held[f] and not lagged and crosses(sim, x, original):
                     lagged = True  # clear of the uncollapsed body, through the one given: the crease rule on that
+                if crease and not lagged and not last:
+                    # the crease rule's cloth may end through the triangles it hid; where even the
+                    # frame-end untangle leaves it crossing the body (it would be written so), the
+                    # whole body in shorter steps first (docs/simulation.md "Session 33: sit-down")
+                    x, moved = untangle_frame_end(sim, x, bodies[f], collider_faces)
+                    if crosses(sim, x, held_body(sim, bodies[f])):
+                        kept = (x, v, sim.get_state(), stats_frame, moved)
+                        crease, creasable, lagged = False, False, True
+                if last and lagged and kept is not None:
+                    # the whole body lagged in the shortest steps too: the crease attempt, as before
+                    x, v, state, stats_frame, moved = kept
+                    sim.set_state(state)
+                    lagged = False
                 # a pinch that outlasted max_substeps in the last frame (no room for the cloth at
                 # the body's pose: the body still short of it at the frame's end) is not undone by
                 # shorter steps: no retries until a frame passes
@@ -342,10 +357,10 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                 sim.set_state(saved[2])
             # cloth through the body the sim holds (a step's CCD can miss an impact in a pinch):
             # moved out before the frame is written (sim.untangle; docs/simulation.md "Session 24", "Session 25")
-            x, moved = untangle_frame_end(sim, x, bodies[f], collider_faces)
+            x, more = untangle_frame_end(sim, x, bodies[f], collider_faces)
             out[f] = x
             report = frame_report(f, stats_frame, n, attempts, time.perf_counter() - t0, move)
-            report["untangled_vertices"] += moved
+            report["untangled_vertices"] += moved + more
             if on_frame is not None:
                 state = sim.get_state() | {"stuck": stuck} | ({"uncollapsed": True} if held[f] else {})
                 on_frame(Checkpoint(f, x.copy(), v.copy(), state), report)
