@@ -325,7 +325,7 @@ def simulate(garment_rest, faces, material: Material, collider_sequence, collide
                     x, moved = untangle_frame_end(sim, x, bodies[f], collider_faces)
                     if crosses(sim, x, held_body(sim, bodies[f])):
                         kept = (x, v, sim.get_state(), stats_frame, moved)
-                        crease, creasable, lagged = False, False, True
+                        crease, creasable, lagged, moved = False, False, True, 0
                 if last and lagged and kept is not None:
                     # the whole body lagged in the shortest steps too: the crease attempt, as before
                     x, v, state, stats_frame, moved = kept
