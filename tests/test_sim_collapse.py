@@ -89,3 +89,22 @@ def test_a_crease_attempt_left_through_the_body_gives_way_to_shorter_steps():
     rep = reports[-1]
     assert not crosses(X[1], F, B1, Fb)  # before: crossing (the crease attempt, 1 step)
     assert not rep["lagged"] and rep["lag_m"] == 0.0 and rep["substeps"] == 16 and rep["attempts"] > 3
+
+
+def test_a_frame_after_an_untangle_that_flattened_a_triangle_does_not_stop():
+    """Session 27's knee with ``uncollapse`` off, held at its collapsed pose for a second frame:
+    frame 1's untangle puts three vertices of a cloth triangle on one edge of the box (no area),
+    and frame 2's bending gradient stopped with ZeroDivisionError. It now runs, and the membrane
+    gives the triangle its area back (each triangle ≥ 90 % of its rest area)."""
+    B0, B1, Fb = knee()
+    V, F = cloth_grid.grid(9, 0.09, 0.0015, center=True)
+    seen = []
+    X = simulate(V, F, Material(), np.stack([B0, B1, B1]), Fb, fps=25.0, max_substeps=16,
+                 settings=SimSettings(friction=0.0, uncollapse=False), on_frame=lambda c, r: seen.append(c.x))
+
+    def area(x):
+        return 0.5 * np.linalg.norm(np.cross(x[F[:, 1]] - x[F[:, 0]], x[F[:, 2]] - x[F[:, 0]]), axis=1)
+
+    assert np.min(area(seen[0]) / area(V)) < 1e-6  # the flattened triangle the frame starts from
+    assert len(X) == 3 and np.isfinite(X).all()
+    assert np.min(area(X[2]) / area(V)) > 0.9

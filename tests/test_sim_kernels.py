@@ -208,3 +208,28 @@ def test_unique_int_is_np_unique():
     for a in (rng.integers(-50, 10**9, 20_000), rng.integers(0, 30, (40, 7)), np.zeros(0, np.int64)):
         out = unique_int(a)
         assert out.dtype == a.dtype and np.array_equal(out, np.unique(a))
+
+
+def test_bending_kernels_leave_out_a_hinge_whose_triangle_has_no_area(cloth):
+    """Three vertices of a triangle on one line (sim.untangle can put them on a body edge): the
+    dihedral angle of its hinges is 0/0. The kernels used to stop with ZeroDivisionError; they
+    now leave those hinges out, and the rest equals the numpy twin on the other hinges."""
+    import copy
+
+    topo, x = cloth
+    b = Bending(topo, 2e-4)
+    f = topo.faces[7]
+    x = x.copy()
+    x[f[2]] = x[f[0]] + 0.37 * (x[f[1]] - x[f[0]])  # on the line of the other two, not on either
+    u, w = x[f[1]] - x[f[0]], x[f[2]] - x[f[0]]
+    assert np.linalg.norm(np.cross(u, w)) < 1e-14 * np.linalg.norm(u) * np.linalg.norm(w)  # rounding only
+    bad = np.array([len(set(f) & set(h[:3])) == 3 or len(set(f) & {h[0], h[1], h[3]}) == 3 for h in b.index])
+    assert 1 <= bad.sum() <= 3
+    ref = copy.copy(b)
+    ref.index, ref.weight, ref.rest_angle = b.index[~bad], b.weight[~bad], b.rest_angle[~bad]
+    assert abs(b.energy(x) - ref.energy_numpy(x)) <= 1e-12 * abs(ref.energy_numpy(x))
+    assert close(b.gradient(x), ref.gradient_numpy(x))
+    for project in (False, "eigen", "gauss_newton"):
+        H = b.hessian(x, project).values
+        assert np.all(H[bad] == 0.0)
+        assert close(H[~bad], ref.hessian_numpy(x, project).values, 1e-9), project

@@ -1,4 +1,5 @@
-"""numba kernels for the per-element work of the elastic terms and the sparse scatter.
+"""numba kernels for the per-element work of the elastic terms; those of the sparse assembly and
+of CG are in _assembly_kernels (re-exported here).
 
 Each kernel has a plain-numpy twin in energies.py / assembly.py (the reference) and
 tests/test_sim_kernels.py holds the fast one to it. The loops are serial on purpose: a
@@ -402,6 +403,19 @@ def _angle_gradient_real(X, g):
     g[9], g[10], g[11] = -le * b0, -le * b1, -le * b2
 
 
+@numba.njit(cache=True, inline="always")
+def _degenerate(X):
+    """A hinge with a triangle of no area to rounding (sine below 1e-12; sim.untangle can flatten
+    one onto a body edge): θ is 0/0, the bending kernels leave it out (docs/simulation.md "Session 33")."""
+    e0, e1, e2 = X[1, 0] - X[0, 0], X[1, 1] - X[0, 1], X[1, 2] - X[0, 2]
+    a0, a1, a2 = X[2, 0] - X[0, 0], X[2, 1] - X[0, 1], X[2, 2] - X[0, 2]
+    b0, b1, b2 = X[3, 0] - X[0, 0], X[3, 1] - X[0, 1], X[3, 2] - X[0, 2]
+    na = (e1 * a2 - e2 * a1) ** 2 + (e2 * a0 - e0 * a2) ** 2 + (e0 * a1 - e1 * a0) ** 2
+    nb = (b1 * e2 - b2 * e1) ** 2 + (b2 * e0 - b0 * e2) ** 2 + (b0 * e1 - b1 * e0) ** 2
+    tiny = 1e-24 * (e0 * e0 + e1 * e1 + e2 * e2)  # sine² of the triangle's angle at X[0] below 1e-24
+    return na <= tiny * (a0 * a0 + a1 * a1 + a2 * a2) or nb <= tiny * (b0 * b0 + b1 * b1 + b2 * b2)
+
+
 @numba.njit(cache=True)
 def bending_energy(x, hinges, weight, rest_angle, scale):
     """Σ_e κb w_e (θ_e − θ̄_e)² (energies.Bending.energy)."""
@@ -411,6 +425,8 @@ def bending_energy(x, hinges, weight, rest_angle, scale):
         for a in range(4):
             for i in range(3):
                 X[a, i] = x[hinges[h, a], i]
+        if _degenerate(X):
+            continue
         d = _angle(X) - rest_angle[h]
         total += weight[h] * d * d
     return scale * total
@@ -426,6 +442,9 @@ def bending_gradient(x, hinges, weight, rest_angle, scale, n_vertices):
         for a in range(4):
             for i in range(3):
                 X[a, i] = x[hinges[h, a], i]
+        if _degenerate(X):  # no force from an undefined angle
+            per[h, :] = 0.0
+            continue
         _angle_gradient_real(X, g)
         c = 2.0 * scale * weight[h] * (_angle(X) - rest_angle[h])
         for k in range(12):
@@ -457,6 +476,9 @@ def bending_hessian(x, hinges, weight, rest_angle, scale, mode):
         for a in range(4):
             for i in range(3):
                 X[a, i] = x[hinges[h, a], i]
+        if _degenerate(X):
+            out[h] = 0.0
+            continue
         _angle_gradient_real(X, g)
         c = 2.0 * scale * weight[h]
         for i in range(12):
@@ -487,114 +509,6 @@ def bending_hessian(x, hinges, weight, rest_angle, scale, mode):
     return out
 
 
-# -- assembly ------------------------------------------------------------------------------------
-
-
-@numba.njit(cache=True)
-def scatter_add(data, slot, values):
-    """data[slot[i]] += values[i] (serial: slots repeat)."""
-    for i in range(slot.shape[0]):
-        data[slot[i]] += values[i]
-
-
-@numba.njit(cache=True, inline="always")
-def _csr_find(indptr, indices, r, c):
-    """Position of entry (r, c) in a CSR pattern with sorted rows (binary search in row r), or -1."""
-    lo, hi = indptr[r], indptr[r + 1]
-    end = hi
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if indices[mid] < c:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo if lo < end and indices[lo] == c else -1
-
-
-@numba.njit(cache=True, inline="always")
-def _element_dofs(dof_map, index, e, red):
-    for a in range(index.shape[1]):
-        for i in range(3):
-            red[3 * a + i] = dof_map[3 * index[e, a] + i]
-
-
-@numba.njit(cache=True)
-def element_keys(dof_map, index, n):
-    """r·n + c of each entry of the element blocks (index [M, k], blocks [3k, 3k]) whose reduced
-    row r and column c are both kept (dof_map ≥ 0): Assembler's pattern keys."""
-    nk = 3 * index.shape[1]
-    red = np.empty(nk, np.int64)
-    out = np.empty(index.shape[0] * nk * nk, np.int64)
-    m = 0
-    for e in range(index.shape[0]):
-        _element_dofs(dof_map, index, e, red)
-        for p in range(nk):
-            if red[p] < 0:
-                continue
-            for q in range(nk):
-                if red[q] >= 0:
-                    out[m] = red[p] * n + red[q]
-                    m += 1
-    return out[:m]
-
-
-@numba.njit(cache=True)
-def element_slots(dof_map, index, indptr, indices, dump):
-    """[M·3k·3k] slot in the CSR pattern of each entry of each element block, or ``dump`` where
-    its row or column is eliminated (Assembler._element_slots_numpy is the twin)."""
-    nk = 3 * index.shape[1]
-    red = np.empty(nk, np.int64)
-    out = np.empty(index.shape[0] * nk * nk, np.int64)
-    m = 0
-    for e in range(index.shape[0]):
-        _element_dofs(dof_map, index, e, red)
-        for p in range(nk):
-            r = red[p]
-            for q in range(nk):
-                c = red[q]
-                out[m] = dump if r < 0 or c < 0 else _csr_find(indptr, indices, r, c)
-                m += 1
-    return out
-
-
-@numba.njit(cache=True)
-def csr_slots(indptr, indices, rows, cols):
-    """Position of each entry (rows[k], cols[k]) in a CSR pattern with sorted rows, or -1
-    (binary search within the row; Assembler._sparse_slots_numpy is the twin)."""
-    out = np.empty(rows.shape[0], np.int64)
-    for k in range(rows.shape[0]):
-        out[k] = _csr_find(indptr, indices, rows[k], cols[k])
-    return out
-
-
-# -- conjugate gradients -------------------------------------------------------------------------
-# The vector operations of assembly.pcg. numpy's 1-D dot / norm call the threaded BLAS, whose
-# threads wake and spin on every call, far slower for these short vectors than a plain loop
-# (docs/simulation.md "The step").
-
-
-@numba.njit(cache=True)
-def dot(a, b):
-    """a · b (serial loop, summed in index order)."""
-    s = 0.0
-    for i in range(a.shape[0]):
-        s += a[i] * b[i]
-    return s
-
-
-@numba.njit(cache=True)
-def cg_step(x, r, p, Ap, alpha):
-    """x += α p; r −= α Ap (in place); returns r · r."""
-    s = 0.0
-    for i in range(x.shape[0]):
-        x[i] += alpha * p[i]
-        r[i] -= alpha * Ap[i]
-        s += r[i] * r[i]
-    return s
-
-
-@numba.njit(cache=True)
-def cg_direction(p, z, beta):
-    """p ← z + β p (in place)."""
-    for i in range(p.shape[0]):
-        p[i] = z[i] + beta * p[i]
+# the assembly and CG kernels live in _assembly_kernels (this module stays under 600 lines)
+from ._assembly_kernels import (_csr_find, _element_dofs, cg_direction, cg_step, csr_slots, dot,  # noqa: E402,F401
+                                element_keys, element_slots, scatter_add)
