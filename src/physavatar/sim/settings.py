@@ -192,6 +192,16 @@ class SimSettings:
             raise ValueError(f"candidate_threads {self.candidate_threads}: expected 0 (the candidates' own order, "
                              "one thread) or a thread count k >= 1")
 
+    def contact_thickness(self, material) -> float:
+        """The contact thickness [m] (ipctk's d_min): ``dmin`` when set (> 0), else ``material``'s
+        ``contact_offset`` (the model it was fitted in)."""
+        return self.dmin if self.dmin > 0 else material.contact_offset
+
+    def contact_room(self, material) -> float:
+        """The room [m] the cloth's contact needs next to the body: d̂ + the contact thickness
+        (what ``--knee-collapse`` auto compares a knee's crossing with, body.clearance.KNEE_ROOM)."""
+        return self.dhat + self.contact_thickness(material)
+
 
 @dataclasses.dataclass
 class StepStats:

@@ -128,9 +128,8 @@ class ClothSim:
 
     @property
     def dmin(self) -> float:
-        """The contact thickness [m]: ``settings.dmin`` when set (> 0), else the material's
-        ``contact_offset`` (the model it was fitted in)."""
-        return self.settings.dmin if self.settings.dmin > 0 else self.material.contact_offset
+        """The contact thickness [m] (:meth:`SimSettings.contact_thickness`)."""
+        return self.settings.contact_thickness(self.material)
 
     # -- setup ---------------------------------------------------------------------------------
 

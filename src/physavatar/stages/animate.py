@@ -95,12 +95,12 @@ def _warmup(avatar: Avatar, motion: Motion, bone_names, warmup_s: float,
     return m, rest, max(2, warmup_frames(move, fps, warmup_s))
 
 
-def sequence_motion_key(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> str:
+def sequence_motion_key(avatar: Avatar, motion: Motion, warmup_s: float = 1.0, body: BodyModel | None = None) -> str:
     """The content key (files.content_key) of the motion :func:`animate` simulates for ``motion``:
     at the avatar's fps, over its bones, with the warm-up frames. ``animate`` records it with its frame
     count (``motion_key``, ``motion_frames``), so a sequence reused for another motion is caught
-    (evaluate --sequence)."""
-    m, _, n_warm = _warmup(avatar, motion, avatar.bone_names, warmup_s)
+    (evaluate --sequence). ``body``: as :func:`_warmup`'s."""
+    m, _, n_warm = _warmup(avatar, motion, avatar.bone_names, warmup_s, body=body)
     return content_key(m.rotations, m.root_translation, fps=float(m.fps), bones=list(m.bone_names),
                        warmup_frames=n_warm)
 
@@ -209,7 +209,7 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     stats = {"frames": int(len(V)), "warmup_frames": n_warm, "simulation_s": round(secs, 2),
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
              "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps,
-             "motion_key": sequence_motion_key(avatar, motion, warmup_s), "motion_frames": int(len(m.rotations)),
+             "motion_key": sequence_motion_key(avatar, motion, warmup_s, body), "motion_frames": int(len(m.rotations)),
              "self_contact": bool(settings is not None and settings.self_contact),
              "rest_shape": {"kind": "equilibrium" if rest_report else "template" if t.rest is None and garment is None
                             else "designed"} | rest_report,
@@ -325,7 +325,7 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
     settings = SimSettings(integrator=av.material.integrator, self_contact=config.self_contact)
     m, info, parts = with_clearances(m, config.motion, lambda: BodyModel(av.shape, topology="collider"),
                                      config.arm_clearance, config.part_clearance, config.knee_collapse,
-                                     settings.dhat + (settings.dmin or av.material.contact_offset))
+                                     settings.contact_room(av.material))
     if config.max_frames:
         m = m.slice(0, config.max_frames)
     garment, imported = _file_garment(av, config, settings, progress) if config.garment else (None, None)

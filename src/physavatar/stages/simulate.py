@@ -358,9 +358,9 @@ def _on_motion(garment, motion, fps: float, cfg: SimulateConfig, mat, sim_settin
     if cfg.over:
         part = _layered(part, cfg.over, body, cfg)
     mot = load_motion(motion, fps, cfg.duration)
-    room = sim_settings.dhat + (sim_settings.dmin or mat.contact_offset)  # what auto's knee rule compares with
     mot, clearance_info, parts_info = with_clearances(mot, motion, lambda: body, cfg.arm_clearance,
-                                                      cfg.part_clearance, cfg.knee_collapse, room)
+                                                      cfg.part_clearance, cfg.knee_collapse,
+                                                      sim_settings.contact_room(mat))
     rots, trs = mot.rotations, mot.root_translation
     # the garment is made for the rest pose: a motion that starts elsewhere (a BVH clip) is
     # reached by a transition first, as `animate` does, so the garment never starts inside the body
