@@ -144,3 +144,23 @@ def test_a_warmup_changes_the_pose_not_the_time(tiny):
     gt = np.load(cap.root / "ground_truth" / "meshes.npz")["vertices"][:4, g] + d
     err = np.linalg.norm(seq.vertices[:, g] - gt, axis=-1)
     assert err.max() < 5e-4
+
+
+def test_a_sequence_warmed_up_under_gravity_is_not_reused(tiny, tmp_path):
+    """evaluate --sequence checks a sequence's recorded motion key (check_sequence_motion). A warm-up
+    without gravity (session 34) simulates another motion than one under gravity, so the keys must
+    differ where there is a warm-up, and stay as they were where there is none (no sequence made
+    before is invalidated for nothing)."""
+    from physavatar.errors import PhysavatarError
+    from physavatar.stages.animate import check_sequence_motion, sequence_motion_key
+
+    cap, av, _ = tiny
+    own = Motion("capture", cap.fps, cap.body.bone_names, cap.body.rotations, cap.body.root_translation).slice(0, 4)
+    moved = Motion("capture", cap.fps, cap.body.bone_names, cap.body.rotations,
+                   cap.body.root_translation + np.array([1e-5, 0.0, 0.0])).slice(0, 4)
+    assert sequence_motion_key(av, own) == sequence_motion_key(av, own, warmup_gravity=True)
+    assert sequence_motion_key(av, moved) != sequence_motion_key(av, moved, warmup_gravity=True)
+    meta = {"motion_key": sequence_motion_key(av, moved, warmup_gravity=True), "motion_frames": 4}
+    with pytest.raises(PhysavatarError, match="another motion"):
+        check_sequence_motion(tmp_path / "sequence.json", meta, av, moved)
+    check_sequence_motion(tmp_path / "sequence.json", dict(meta, motion_key=sequence_motion_key(av, moved)), av, moved)

@@ -109,14 +109,17 @@ def _warmup(avatar: Avatar, motion: Motion, bone_names, warmup_s: float,
     return m, rest, max(2, warmup_frames(move, fps, warmup_s))
 
 
-def sequence_motion_key(avatar: Avatar, motion: Motion, warmup_s: float = 1.0, body: BodyModel | None = None) -> str:
+def sequence_motion_key(avatar: Avatar, motion: Motion, warmup_s: float = 1.0, body: BodyModel | None = None,
+                        warmup_gravity: bool | None = None) -> str:
     """The content key (files.content_key) of the motion :func:`animate` simulates for ``motion``:
-    at the avatar's fps, over its bones, with the warm-up frames. ``animate`` records it with its frame
-    count (``motion_key``, ``motion_frames``), so a sequence reused for another motion is caught
-    (evaluate --sequence). ``body``: as :func:`_warmup`'s."""
+    at the avatar's fps, over its bones, with the warm-up frames, and a warm-up without gravity
+    (:func:`warmup_without_gravity`, since session 34) marked. ``animate`` records it with its frame
+    count (``motion_key``, ``motion_frames``), so a sequence reused for another motion, or warmed up
+    under gravity before session 34, is caught (evaluate --sequence). ``body``: as :func:`_warmup`'s."""
     m, _, n_warm = _warmup(avatar, motion, avatar.bone_names, warmup_s, body=body)
+    weightless = {"warmup_gravity": False} if n_warm and warmup_without_gravity(avatar.material, warmup_gravity) else {}
     return content_key(m.rotations, m.root_translation, fps=float(m.fps), bones=list(m.bone_names),
-                       warmup_frames=n_warm)
+                       warmup_frames=n_warm, **weightless)
 
 
 def check_sequence_motion(meta_file: Path, meta: dict, avatar: Avatar, motion: Motion) -> None:
@@ -241,7 +244,8 @@ def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: 
     stats = {"frames": int(len(V)), "warmup_frames": n_warm, "simulation_s": round(secs, 2),
              "sim_fps": round((len(rots) - 1) / max(secs, 1e-9), 3), "garment_vertices": int(len(part.vertices)),
              "material": avatar.material.to_dict(), "motion": motion.name, "fps": fps,
-             "motion_key": sequence_motion_key(avatar, motion, warmup_s, body), "motion_frames": int(len(m.rotations)),
+             "motion_key": sequence_motion_key(avatar, motion, warmup_s, body, warmup_gravity),
+             "motion_frames": int(len(m.rotations)), "warmup_gravity": (Xw is None) if n_warm else None,
              "self_contact": bool(settings is not None and settings.self_contact),
              "rest_shape": {"kind": "equilibrium" if rest_report else "template" if t.rest is None and garment is None
                             else "designed"} | rest_report,
@@ -314,6 +318,10 @@ class AnimateConfig(GarmentFileOptions):
     garment: str = option("", "a garment file (OBJ, PLY, glTF, npz) worn instead of the avatar's own: fitted onto "
                               "the avatar's body, simulated with the avatar's material (as simulate --garment)")
     skinned_between: bool = option(True, BETWEEN_HELP, flag="--skinned-between/--linear-between")
+    warmup_gravity: bool | None = option(None, "the warm-up under gravity (default: only when the material's rest shape "
+                                               "is its equilibrium; otherwise the garment is carried to the motion's "
+                                               "first pose without gravity and the motion starts from there at rest: "
+                                               "docs/motions.md)", flag="--warmup-gravity/--no-warmup-gravity")
 
 
 def pipeline_config(motion: str, eval_frames: int | None) -> AnimateConfig:
@@ -363,7 +371,7 @@ def run(avatar: Path, *, out: Path, config: AnimateConfig, progress=None) -> Ani
     garment, imported = _file_garment(av, config, settings, progress) if config.garment else (None, None)
     seq, stats = animate(av, m, warmup_s=config.warmup, settings=settings, progress=progress,
                          max_substeps=config.max_substeps, out=out, garment=garment,
-                         skinned_between=config.skinned_between)
+                         skinned_between=config.skinned_between, warmup_gravity=config.warmup_gravity)
     seq.save(Path(out), {"command": "animate", "motion_spec": config.motion, "config": to_dict(config),
                          "arm_clearance": info, "part_clearance": parts, "garment_import": imported, **stats})
     FrameStore(out, "", 0).remove()  # the sequence is written: the per-frame record is no longer needed
