@@ -39,6 +39,15 @@ MOVING_RMS = 20 * AT_REST_RMS  # [m] a first round (rest = x0) that drifts this 
 HOPELESS_RMS = 10 * AT_REST_RMS  # [m] three rounds with no better RMS error than this: no rest shape holds the start
 STALLED_RMS = 2 * AT_REST_RMS  # [m] a best round above this that STALL_ROUNDS later rounds do not better: stalled
 STALL_ROUNDS = 3
+STOP_REASONS = {  # report["stopped"] -> what it says about the start (report["stop_reason"])
+    "converged": "the rest shape found holds the start to the tolerance",
+    "max_rounds": "the round limit was reached (the best round is kept)",
+    "moving": f"the first round (the start as rest) drifted more than {1e3 * MOVING_RMS:.0f} mm RMS: a moving start",
+    "hopeless": f"three rounds without one below {1e3 * HOPELESS_RMS:.0f} mm RMS: no rest shape holds the start",
+    "stalled": f"the best round stayed above {1e3 * STALLED_RMS:.0f} mm RMS for {STALL_ROUNDS} more rounds: "
+               "no rest shape holds the start to 'at rest'",
+    "degenerate": "a round's rest shape had a degenerate triangle (the iteration went too far; the best round is kept)",
+}
 
 
 def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> SimSettings:
@@ -135,8 +144,10 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     first round, x₀ as rest, drifts more than ``MOVING_RMS``, 100 mm RMS, and after ``STALL_ROUNDS``
     rounds that do not better a best round above ``STALLED_RMS``, 10 mm RMS): a garment that is moving in x₀
     (a capture that starts mid-motion) is in no static equilibrium, and callers then keep x₀ as
-    the rest shape (garment_sim.equilibrium_part, fit-physics); "error_mm" per round
-    (max and RMS of x_eq − x₀ over the vertices), "sag_mm": the first round's (X̄ = x₀), seconds.
+    the rest shape (garment_sim.equilibrium_part, fit-physics); "stopped" why the rounds ended
+    (a key of ``STOP_REASONS``; "stop_reason" its words); "error_mm" per round (max and RMS of
+    x_eq − x₀ over the vertices, the equilibrium's implicit steps, Newton iterations and seconds),
+    "sag_mm": the first round's (X̄ = x₀), seconds.
     """
     x0 = np.asarray(x0, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64)
@@ -160,30 +171,37 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     free[b] = False
     kw = dict(h=h, tol=0.1 * tol, extra_terms=extra_terms, contact_exclude=contact_exclude)
     X = x0.copy()
+    stopped = "max_rounds"  # why the rounds ended (report["stopped"])
     G, R = [], []  # the fixed point's g(X) = X − (x_eq(X) − x0) and residuals, flat
     best, history = (np.inf, X, np.zeros_like(X)), []
     alpha = 1.0  # the restarts' step length: halved on each restart without a better round in between
     for _ in range(max_rounds):
+        t_round = time.perf_counter()
         try:
             x_eq, info = static_equilibrium(X, F, material, x0, b, body, body_faces, settings, **kw,
                                             give_up_rms=np.inf if history else MOVING_RMS)
         except PhysavatarError as e:  # a degenerate rest triangle (ClothTopology): the iteration went too far
             if not history:
                 raise PhysavatarError(path, e.problem) from None
+            stopped = "degenerate"
             break
         r = x_eq - x0
         d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
         err, rms = float(d.max()), float(np.sqrt(np.mean(d ** 2)))
         history.append({"max_mm": 1e3 * err, "rms_mm": 1e3 * rms,
-                        "steps": info["steps"], "equilibrium_converged": info["converged"]})
+                        "steps": info["steps"], "equilibrium_converged": info["converged"],
+                        "newton_iterations": info.get("newton_iterations"),
+                        "seconds": round(time.perf_counter() - t_round, 2)})
         if err < tol:
-            best = (rms, X.copy(), r)
+            best, stopped = (rms, X.copy(), r), "converged"
             break
         if info.get("gave_up") or (len(history) >= 3 and min(e["rms_mm"] for e in history) > 1e3 * HOPELESS_RMS):
             if rms < best[0]:
                 best = (rms, X.copy(), r)
+            stopped = "moving" if info.get("gave_up") else "hopeless"
             break  # hopeless: the start is far from any static equilibrium (report["at_rest"])
         if _stalled([e["rms_mm"] for e in history]):
+            stopped = "stalled"
             break  # far from at rest and no better round for STALL_ROUNDS rounds (the demo's draw: 12 rounds, 573 s)
         if rms > SAFEGUARD * best[0]:  # overshot: a shorter plain step from the best round, history cleared
             G, R = [], []
@@ -202,7 +220,7 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     d = np.linalg.norm(r[free], axis=1) if free.any() else np.zeros(1)
     err, rms = float(d.max()), float(np.sqrt(np.mean(d ** 2)))
     report = {"converged": bool(err < tol), "at_rest": bool(rms < AT_REST_RMS), "tol_mm": 1e3 * tol,
-              "rounds": len(history), "error_mm": history,
+              "rounds": len(history), "stopped": stopped, "stop_reason": STOP_REASONS[stopped], "error_mm": history,
               "sag_mm": {"max": sag["max_mm"], "rms": sag["rms_mm"]}, "final_max_mm": 1e3 * err,
               "final_rms_mm": 1e3 * rms,
               "rest_offset_mm": {"max": 1e3 * float(np.linalg.norm(X - x0, axis=1).max()),
@@ -213,7 +231,9 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
 
 
 def describe(report: dict, subject: str) -> str:
-    """One line on an :func:`equilibrium_rest` solve of ``subject`` (e.g. "the template")."""
+    """One line on an :func:`equilibrium_rest` solve of ``subject`` (e.g. "the template"): what it
+    reached and, when it did not converge, why it stopped."""
+    why = "" if report.get("stopped") in (None, "converged") else f"; stopped: {report['stop_reason']}"
     return (f"rest shape from static equilibrium: {subject} sags {report['sag_mm']['max']:.2f} mm (max) with itself "
             f"as rest, {report['final_max_mm']:.3f} mm ({report['final_rms_mm']:.3f} RMS) with the rest found "
-            f"({report['rounds']} rounds, {report['seconds']:.1f} s)")
+            f"({report['rounds']} rounds, {report['seconds']:.1f} s{why})")
