@@ -226,3 +226,32 @@ def test_a_stalled_rest_solve_stops_where_no_round_can_make_it_at_rest(monkeypat
     assert rep["final_rms_mm"] == pytest.approx(min(rms_mm[:rounds]))
     assert rep["stopped"] == stopped and rep["stop_reason"] == sim_rest.STOP_REASONS[stopped]
     assert ("stopped: " in sim_rest.describe(rep, "the strip")) is (stopped != "converged")
+
+
+def test_an_equilibrium_step_whose_line_search_is_stuck_ends_its_newton_solve(monkeypatch):
+    """A Newton solve whose line searches all end at their floor (α < 1e-12: the iterate does not
+    move, as where the energy changes fall below round-off) repeats the same iteration; with
+    ClothSim.floor_exit (set by static_equilibrium) it ends after that many, unconverged, and
+    static_equilibrium reports the step as unconverged (session 34: the foreign skirt's first
+    round spent 200 such iterations in each of two steps)."""
+    import physavatar.sim.solver as solver
+    from physavatar.sim import SimSettings
+
+    V, F = strip(3, 6, 0.02, 0.1)
+    top = np.flatnonzero(np.abs(V[:, 2]) < 1e-12)
+
+    def stuck(scene, energy, X, step, stats, E0=None):
+        stats.line_search_iterations += 40
+        return X.copy(), energy(X) if E0 is None else E0, 0.0
+
+    monkeypatch.setattr(solver, "backtrack", stuck)
+    s = SimSettings(max_newton_iterations=60)
+    for exit_after, iterations in ((0, 60), (sim_rest.FLOOR_EXIT, sim_rest.FLOOR_EXIT)):
+        sim = solver.ClothSim(V, F, preset("cotton"), s, top)
+        sim.prepare(None, None)
+        sim.floor_exit = exit_after
+        _, _, st = sim.step(V, np.zeros_like(V), None, None, None, V[top])
+        assert st.newton_iterations == iterations and not st.converged
+    x, info = static_equilibrium(V, F, preset("cotton"), V, top, max_steps=3)
+    assert np.array_equal(x, V) and not info["converged"]
+    assert info["unconverged_steps"] == 2 and info["newton_iterations"] == 2 * sim_rest.FLOOR_EXIT

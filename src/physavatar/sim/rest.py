@@ -39,6 +39,7 @@ MOVING_RMS = 20 * AT_REST_RMS  # [m] a first round (rest = x0) that drifts this 
 HOPELESS_RMS = 10 * AT_REST_RMS  # [m] three rounds with no better RMS error than this: no rest shape holds the start
 STALLED_RMS = 2 * AT_REST_RMS  # [m] a best round above this that STALL_ROUNDS later rounds do not better: stalled
 STALL_ROUNDS = 3
+FLOOR_EXIT = 10  # an equilibrium step's Newton ends after this many line searches in a row at their floor
 STOP_REASONS = {  # report["stopped"] -> what it says about the start (report["stop_reason"])
     "converged": "the rest shape found holds the start to the tolerance",
     "max_rounds": "the round limit was reached (the best round is kept)",
@@ -70,7 +71,10 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
     with the velocity reset to zero after each (frictionless, undamped; module docstring) until a
     step moves no vertex by more than ``tol`` [m], at most ``max_steps``, or until it is more than
     ``give_up_rms`` [m] (RMS) from ``x_start`` (info["gave_up"]). Returns (x [N, 3],
-    {"steps", "last_move_m", "converged", "newton_iterations"})."""
+    {"steps", "last_move_m", "converged", "newton_iterations", "unconverged_steps"}): "converged"
+    when the last step moved less than ``tol`` and its Newton solve converged; "unconverged_steps"
+    counts steps whose Newton did not (iteration limit, or ``FLOOR_EXIT`` line searches in a row
+    at their floor: no progress left)."""
     from .simulate import feasible_thickness
     from .solver import ClothSim
 
@@ -91,14 +95,21 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
     # set (ipctk's adaptive κ scales with mass / h²; it persists across steps): the contact then
     # holds the cloth at the distance theirs does
     sim.set_dt((settings or SimSettings()).dt)
+    # a near-static step along a mode nothing stiff holds (a soft flare swinging in) can end its
+    # Newton solve where the energy changes fall below round-off: every backtracking line search
+    # then ends at its floor and the iterate stops moving; without this exit it repeated that to
+    # max_newton_iterations (session 34: 3 of the foreign skirt's first 5 steps, 200 iterations each)
+    sim.floor_exit = FLOOR_EXIT
+    info["unconverged_steps"] = 0
     for k in range(max_steps):
         x_new, _, st = sim.step(x, zero, body, body, body_faces, targets)
         sim.set_dt(h)
         move = float(np.max(np.linalg.norm(x_new - x, axis=1))) if len(x) else 0.0
         info.update(steps=k + 1, last_move_m=move, newton_iterations=info["newton_iterations"] + st.newton_iterations)
+        info["unconverged_steps"] += int(not st.converged)
         x = x_new
         if move < tol and k > 0:  # (not the first, short step)
-            info["converged"] = True
+            info["converged"] = bool(st.converged)  # a step that stopped moving because its Newton stalled is no equilibrium
             break
         if np.sqrt(np.mean(np.sum((x - x_start) ** 2, axis=1))) > give_up_rms:
             info["gave_up"] = True  # farther than ``give_up_rms`` (RMS) from the start: stopped there
@@ -191,6 +202,7 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
         history.append({"max_mm": 1e3 * err, "rms_mm": 1e3 * rms,
                         "steps": info["steps"], "equilibrium_converged": info["converged"],
                         "newton_iterations": info.get("newton_iterations"),
+                        "unconverged_steps": info.get("unconverged_steps"),
                         "seconds": round(time.perf_counter() - t_round, 2)})
         if err < tol:
             best, stopped = (rms, X.copy(), r), "converged"
