@@ -121,9 +121,9 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
 def _stalled(rms_mm: list[float]) -> bool:
     """Whether the rounds' RMS errors [mm] have stalled short of at rest: the best one is above
     ``STALLED_RMS`` and the last ``STALL_ROUNDS`` rounds did not better it. The start is then
-    reported not at rest (report["at_rest"] false: the caller keeps the template). On the 23
+    reported not at rest (report["at_rest"] false: the caller keeps the template). On the 24
     solves of session 34's foreign captures (docs/physics.md "Issue 22, session 34") no round
-    after such a stall bettered the best, so stopping changed only the time; the report says that
+    after such a stall reached at rest, so stopping changed only the time; the report says that
     the rounds left were not tried (report["stopped"] "stalled")."""
     k = int(np.argmin(rms_mm))
     return rms_mm[k] > 1e3 * STALLED_RMS and len(rms_mm) - 1 - k >= STALL_ROUNDS
