@@ -191,7 +191,12 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
     (references.json's ``motion_key``: the capture's held-out motion changed since, or the
     folder predates the key), or whose material differs only in its contact thickness (a folder
     made with another --contact-offset, or before the draws had one), is not reused but listed
-    in ``stale`` (row -> why), for the caller to simulate again; any other difference is an error."""
+    in ``stale`` (row -> why), for the caller to simulate again; any other difference is an error.
+    A row's material is this evaluation's when its sequence.json records the model that material
+    is simulated in (animate.simulated_material of its recorded rest report: a draw asked for with
+    the equilibrium rest whose garment was not at rest records the template)."""
+    from .animate import simulated_material
+
     if not (path / "references.json").is_file():
         raise PhysavatarError(path, "no references.json (pass a `physavatar reference-sims` output folder)")
     ref_av = Avatar.load(path / "avatar")
@@ -218,6 +223,11 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
         if meta.get("material") is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
         used = Material.from_dict(meta["material"])  # the model simulated (simulated_material)
+        if used != mat and used == simulated_material(mat, meta.get("rest_shape") or {}):
+            # ``mat`` itself: asked for with the equilibrium rest, its garment was not at rest in the
+            # start frame, so it was simulated with the template, as it would be again (session 34:
+            # evaluate simulated four of the foreign skirt's five draws again for this)
+            used = mat
         if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset, rest_shape=mat.rest_shape) == mat:
             stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm and rest shape "
                           f"{used.rest_shape!r}, the estimate's are {1e3 * mat.contact_offset:.3f} mm and {mat.rest_shape!r}")
