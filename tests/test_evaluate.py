@@ -217,6 +217,13 @@ def test_random_draws_get_the_estimates_contact_offset(result, tiny_capture):
         rows, stale = _reuse_references(refs_eq, Avatar.load(root / "avatar"), _reference_materials(gt_root, 0, 5),
                                         4, held)
         assert len(stale) == n_stale and len(rows) == 6 - n_stale, (at_rest, recorded)
+    # ... and an estimate with the equilibrium rest reuses it too: the draw's own material, asked for
+    # with the equilibrium rest, is simulated with the template again (session 34: evaluate simulated
+    # four of the foreign skirt's draws again, each time to the same template-rest sequence)
+    rows, stale = _reuse_references(root / "refs_eq_False_template", Avatar.load(root / "avatar"), refs, 4, held)
+    assert not stale and len(rows) == 6
+    rows, stale = _reuse_references(root / "refs_eq_True_equilibrium", Avatar.load(root / "avatar"), refs, 4, held)
+    assert not stale and len(rows) == 6
 
 
 def _check_random_median(m, refs, cap):

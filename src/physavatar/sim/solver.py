@@ -67,6 +67,7 @@ class _Solve:
     confined: bool = False  # a given-up penalty phase left only the body near the pinch behind (lag.py)
     lag_stall: bool = False  # the body lags (confined): the free solve ends once it stalls (ClothSim.lag_stall_exit)
     lows: list = dataclasses.field(default_factory=list)  # (while lag_stall) the stopping norm per iteration
+    floors: int = 0  # consecutive line searches that ended at their floor (α < 1e-12: no progress)
     matrix: object = None  # the last Newton matrix
     linear_solver: NewtonLinearSolver | None = None  # the solver of the last Newton system
     memo: EnergyMemo = dataclasses.field(default_factory=EnergyMemo)  # E at the last iterate
@@ -91,6 +92,7 @@ class ClothSim:
     crease_on = False  # cloth collides with the body's outer surface only (crease.py; simulate: on a lag's retry)
     crease_visible = False  # ... and with the visible part of the triangles next to a crease (crease.VisibleContact)
     lag_stall_exit = False  # a lagging step's free solve ends once it stalls (simulate turns it on; _Solve.lag_stall)
+    floor_exit = 0  # >0: the Newton solve ends after this many line searches in a row at their floor (sim.rest)
     _crease_check = False  # the last step hid body or released cloth: look for cloth inside the body (crease.py)
 
     def __init__(self, rest_vertices, faces, material: Material, settings: SimSettings = SimSettings(),
@@ -406,6 +408,8 @@ class ClothSim:
             sv.below_count = sv.below_count + 1 if below else 0
             stop_after_step = s.newton_norm == "rms" and sv.below_count >= s.newton_window
             self._line_search(sv, step, residual, stats)
+            if self.floor_exit and sv.floors >= self.floor_exit:
+                break  # the iterate no longer moves (energy changes below round-off): not converged
             adapt_stiffness(self, sv, stats)
             sv.lows += [res_stop] if sv.lag_stall else []  # no new low in stall_window iterations: done
             w = self.stall_window
@@ -502,6 +506,7 @@ class ClothSim:
         sv.memo.set(EnergyMemo.key(self, X_new, sv.penalty), E1)
         sv.cut = alpha < 1.0
         sv.first = False
+        sv.floors = sv.floors + 1 if alpha < 1e-12 else 0
         if (self.settings.step_expansion and not sv.penalty and alpha == 1.0
                 and residual > 0.7 * sv.prev_residual):
             tls = time.perf_counter()
