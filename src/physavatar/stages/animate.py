@@ -139,6 +139,11 @@ def simulated_frames(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> i
     return len(m.rotations) + n_warm - 1
 
 
+def warmup_count(avatar: Avatar, motion: Motion, warmup_s: float = 1.0) -> int:
+    """Warm-up frames :func:`animate` puts before ``motion`` (0: it starts in the avatar's pose)."""
+    return _warmup(avatar, motion, avatar.bone_names, warmup_s)[2]
+
+
 def animate(avatar: Avatar, motion: Motion, *, warmup_s: float = 1.0, settings: SimSettings | None = None,
             progress=True, report=None, max_substeps: int = 16,
             out: Path | None = None, garment=None, skinned_between: bool = True,

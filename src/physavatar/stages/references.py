@@ -139,11 +139,14 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
 def _row_key(av, material: Material, motion: Motion) -> str:
     """The content key of one reference row: the material asked for (before the rest-shape solve
     decides the model it is simulated in), the avatar's start (template, skinning, body shape,
-    frame-1 pose, fps) and the motion."""
+    frame-1 pose, fps), the motion and whether a warm-up is under gravity (animate.warmup_without_gravity)."""
+    from .animate import warmup_without_gravity
+
     t = av.template
     return content_key(t.vertices, t.faces, t.labels, t.boundary, t.rest_shape, av.body_weights, av.rest_rotations,
                        av.rest_translation, motion_key(motion), material=material.to_dict(),
-                       shape=av.meta["body"]["shape"], fps=av.fps, bones=list(av.bone_names))
+                       shape=av.meta["body"]["shape"], fps=av.fps, bones=list(av.bone_names),
+                       warmup_gravity=not warmup_without_gravity(material))
 
 
 def _row_done(folder: Path, key: str, n_vertices: int) -> bool:
@@ -164,7 +167,7 @@ def reference_row_job(avatar_dir, material: Material, motion: Motion, folder: st
     renamed into place. Returns the rest-shape report."""
     import shutil
 
-    from .animate import animate_job, simulated_material
+    from .animate import animate_job, simulated_material, warmup_without_gravity
 
     V, rest = animate_job(avatar_dir, material, motion, report=report)
     av = Avatar.load(avatar_dir)
@@ -173,7 +176,8 @@ def reference_row_job(avatar_dir, material: Material, motion: Motion, folder: st
     tmp = folder.with_name(f".{folder.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     AnimatedSequence(V, t.faces, t.labels, None, av.fps, av.root).save(
-        tmp, meta | {"material": simulated_material(material, rest).to_dict(), "rest_shape": rest}, ply=False)
+        tmp, meta | {"material": simulated_material(material, rest).to_dict(), "rest_shape": rest,
+                     "warmup_gravity": not warmup_without_gravity(material)}, ply=False)
     shutil.rmtree(folder, ignore_errors=True)
     tmp.rename(folder)
     return rest
@@ -195,7 +199,7 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
     A row's material is this evaluation's when its sequence.json records the model that material
     is simulated in (animate.simulated_material of its recorded rest report: a draw asked for with
     the equilibrium rest whose garment was not at rest records the template)."""
-    from .animate import simulated_material
+    from .animate import simulated_material, warmup_count, warmup_without_gravity
 
     if not (path / "references.json").is_file():
         raise PhysavatarError(path, "no references.json (pass a `physavatar reference-sims` output folder)")
@@ -217,11 +221,18 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
                "made before references recorded their motion")
         return {}, {r.row: why for r in refs}
     rows, stale = {}, {}
+    warm = warmup_count(av, motion.slice(0, n_frames)) > 0
     for row, name, mat in refs:
         folder = path / name
         meta = read_json(folder / SEQUENCE_META) if (folder / SEQUENCE_META).is_file() else {}
         if meta.get("material") is None:
             raise PhysavatarError(folder, f"missing: no {row} sequence in this references folder")
+        if warm and meta.get("warmup_gravity", True) != (not warmup_without_gravity(mat)):
+            # session 34: animate's warm-up is weightless unless the rest shape is the equilibrium; a
+            # row warmed up otherwise (or made before the warm-up recorded it) starts another motion
+            stale[row] = "warmed up " + ("under gravity" if meta.get("warmup_gravity", True) else "without gravity") + \
+                ", as this evaluation's rows are not"
+            continue
         used = Material.from_dict(meta["material"])  # the model simulated (simulated_material)
         if used != mat and used == simulated_material(mat, meta.get("rest_shape") or {}):
             # ``mat`` itself: asked for with the equilibrium rest, its garment was not at rest in the
