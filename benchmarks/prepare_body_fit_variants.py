@@ -7,7 +7,7 @@
 capture with its true body.npz. The clothed surface the fit is given is ``prepare``'s: the visual
 hull of the first frame's masks, made manifold and remeshed (`stages.prepare.mesh.reconstruct`;
 cached in W/hull.npz). Each variant fits the body with `BodyFitConfig` fields replaced
-(``key=value``), over all frames (``full``: `fit_body`) or the first frame only (``first``: the
+(``key=value``; a tuple's items separated by ``/``), over all frames (``full``: `fit_body`) or the first frame only (``first``: the
 fit's first phase, what an avatar uses), and writes W/NAME/body.npz (for
 `prepare_body_parts.py --fitted`) and W/NAME/fit.json (cached). Reported per variant: the vertex
 error per frame and at frame 0 by region (`prepare_body_parts.body_errors`), the phenotypes, the
@@ -60,7 +60,8 @@ def config(over: dict):
     kw = {}
     for k, v in over.items():
         t = type(getattr(base, k))
-        kw[k] = v.lower() in ("1", "true", "yes") if t is bool else t(v)
+        kw[k] = (v.lower() in ("1", "true", "yes") if t is bool else
+                 tuple(float(x) for x in v.split("/")) if t is tuple else t(v))
     return dataclasses.replace(base, **kw)
 
 

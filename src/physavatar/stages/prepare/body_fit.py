@@ -126,9 +126,9 @@ class BodyFitConfig:
     w_pose_prior: float = setting(2e-4)
     w_spine_twist: float = setting(0.0)  # the spine's turn about the vertical (pelvis against shoulders)
     w_shape_prior: float = setting(1e-3)
-    # the phenotypes are fitted again with every frame's pose in the whole-sequence pass (Adam's step)
-    sequence_shape: bool = setting(False)
-    sequence_shape_lr: float = setting(0.01)
+    # the phenotypes the fit starts from and its shape prior is centred on (empty: Anny's
+    # defaults, all 0.5); a diagnostic: the truth here separates the shape's error from the pose's
+    shape_centre: tuple = setting(())
     clothing_margin: float = setting(0.003)  # [m] the body keeps this far under the clothing
     bones: tuple = setting(FIT_BONES)
     seed: int = setting(0)
@@ -179,6 +179,10 @@ class _Fitter:
         self.kp_offsets = None  # [K, 3] each keypoint's landmark offset in the body's (root's) frame
         self.camera_offsets = None  # {camera: [du, dv]} the images' own px, once fitted
         self.fit_offsets = fit_offsets and cfg.fit_offsets and keypoints
+        c = np.asarray(cfg.shape_centre, dtype=np.float64)
+        if len(c) and (c.shape != (len(PHENOTYPES),) or not ((c >= 0) & (c <= 1)).all()):
+            raise PhysavatarError(None, f"body fit: shape_centre must be {len(PHENOTYPES)} phenotypes in [0, 1] "
+                                        f"({', '.join(PHENOTYPES)}), got {cfg.shape_centre}")
         self.model = _Model(cfg, curl=cfg.finger_curl and keypoints, thumbs=cfg.fit_thumbs and keypoints)
         self.A = self.model.n_params
         # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
@@ -250,8 +254,12 @@ class _Fitter:
             p = p + self.cfg.w_spine_twist * (rot[:, self.twist_ids, 2] ** 2).sum(1).mean()
         return p
 
+    def shape_centre(self) -> torch.Tensor:
+        c = self.cfg.shape_centre
+        return torch.as_tensor(c, dtype=DTYPE) if len(c) else torch.full((len(PHENOTYPES),), 0.5, dtype=DTYPE)
+
     def shape_prior(self, phen) -> torch.Tensor:
-        return self.cfg.w_shape_prior * ((phen - 0.5) ** 2).sum()
+        return self.cfg.w_shape_prior * ((phen - self.shape_centre()) ** 2).sum()
 
     def _run(self, params: list, lrs: list, iters: int, loss_fn, sigma0: float, sigma1: float, phen=None):
         cfg = self.cfg
@@ -282,7 +290,9 @@ class _Fitter:
         views = obs.views(0)
         (cx, cy), zmin, zmax = _hull_extent(views)
         info = {"hull_height_m": round(zmax - zmin, 3)}
-        phen = torch.full((6,), 0.5, dtype=DTYPE)
+        phen = self.shape_centre()
+        if len(cfg.shape_centre):
+            body.relinearize(BodyShape.from_array(phen.numpy()))
         with torch.no_grad():
             v, _ = body.rest(phen)
         base = torch.as_tensor([cx - float(v[:, 0].mean()), cy - float(v[:, 1].mean()), zmin - float(v[:, 2].min())],
@@ -360,34 +370,22 @@ class _Fitter:
         return rot.detach(), tau.detach(), H[0]
 
     # phase 3
-    def sequence(self, rot: torch.Tensor, tau: torch.Tensor, phen) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Every frame together; with ``sequence_shape`` the phenotypes too. Returns rotations,
-        translations and phenotypes."""
+    def sequence(self, rot: torch.Tensor, tau: torch.Tensor, phen) -> tuple[torch.Tensor, torch.Tensor]:
         cfg = self.cfg
         frames = list(range(rot.shape[0]))
         rot, tau = rot.clone().requires_grad_(), tau.clone().requires_grad_()
-        ph = phen.clone().requires_grad_() if cfg.sequence_shape else phen
-        shape = ([ph], [cfg.sequence_shape_lr]) if cfg.sequence_shape else ([], [])
 
         def f(sigma):
-            V, H = self.model.pose(rot, tau, ph)
+            V, H = self.model.pose(rot, tau, phen)
             loss = self.data_loss(frames, V, H, sigma, rot) + self.prior(rot)
-            if cfg.sequence_shape:
-                loss = loss + self.shape_prior(ph)
             if len(frames) >= 3:
                 acc = H[2:] - 2 * H[1:-1] + H[:-2]
                 loss = loss + cfg.smoothness * (acc ** 2).sum(-1).mean()
             return loss
 
-        def done():
-            if cfg.sequence_shape:
-                self.model.body.relinearize(BodyShape.from_array(ph.detach().numpy()))
-            return rot.detach(), tau.detach(), ph.detach()
-
         if not self.fit_offsets:
-            self._run([rot, tau] + shape[0], [0.005, 0.002] + shape[1], cfg.sequence_iterations, f, cfg.sigma_end,
-                      cfg.sigma_end, ph if cfg.sequence_shape else None)
-            return done()
+            self._run([rot, tau], [0.005, 0.002], cfg.sequence_iterations, f, cfg.sigma_end, cfg.sigma_end)
+            return rot.detach(), tau.detach()
         # each camera's image offset with the body (calibration.py's from the keypoints carry the
         # detector's bias): held orthogonal to what a common shift of the body explains (the
         # translations are free), weakly drawn to 0; in metres at the body's distance
@@ -404,8 +402,8 @@ class _Fitter:
             d = self.offsets * m_px
             return f(sigma) + cfg.w_offset_gauge * ((Q.T @ d.reshape(-1)) ** 2).sum() + cfg.w_offset_prior * (d ** 2).sum()
 
-        self._run([rot, tau, self.offsets] + shape[0], [0.005, 0.002, cfg.offset_lr] + shape[1], cfg.sequence_iterations,
-                  g, cfg.sigma_end, cfg.sigma_end, ph if cfg.sequence_shape else None)
+        self._run([rot, tau, self.offsets], [0.005, 0.002, cfg.offset_lr], cfg.sequence_iterations, g, cfg.sigma_end,
+                  cfg.sigma_end)
         off = self.offsets.detach().numpy().copy()
         self.offsets = None
         # the offsets go into the cameras (the check and the capture's cameras.json)
@@ -417,7 +415,7 @@ class _Fitter:
                 v.camera = shifted(v.camera, o)
         self.camera_offsets = {n.name: [round(float(x) * n.width / c.width, 3) for x in o]
                                for n, c, o in zip(self.obs.native, cams, off)}
-        return done()
+        return rot.detach(), tau.detach()
 
 
 # -- entry point ---------------------------------------------------------------------------------
@@ -485,7 +483,7 @@ def _fit(root: Path, template_vertices, template_faces, cfg: BodyFitConfig, prog
         t2 = time.time()
         if T >= 3 and cfg.sequence_iterations > 0:
             with prog.task("prepare: body, whole sequence", total=1) as task:
-                rot, tau, phen = fitter.sequence(rot, tau, phen)
+                rot, tau = fitter.sequence(rot, tau, phen)
                 task.advance()
     report.update(check(fitter, rot, tau, phen))
     if fitter.camera_offsets:
