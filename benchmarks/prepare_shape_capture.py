@@ -11,7 +11,7 @@ without template/ and body.npz: what `prepare` gets), then the body fit's benchm
 The default shape is the foreign benchmark's body (``benchmarks/foreign/capture.py``:
 ``FOREIGN_SHAPE``): the demo's phenotypes are all 0.5, the centre of the fit's shape prior, so
 the demo alone cannot tell a fit that finds the shape from one that keeps the prior's.
-About 100 s on 2 shared cores (12 frames).
+60-100 s on 2 shared cores (12 frames); deterministic (rebuilt: the same body, meshes and masks).
 """
 
 from __future__ import annotations
