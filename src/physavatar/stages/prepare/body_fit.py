@@ -126,6 +126,9 @@ class BodyFitConfig:
     w_pose_prior: float = setting(2e-4)
     w_spine_twist: float = setting(0.0)  # the spine's turn about the vertical (pelvis against shoulders)
     w_shape_prior: float = setting(1e-3)
+    # the phenotypes the fit starts from and its shape prior is centred on (empty: Anny's
+    # defaults, all 0.5); a diagnostic: the truth here separates the shape's error from the pose's
+    shape_centre: tuple = setting(())
     clothing_margin: float = setting(0.003)  # [m] the body keeps this far under the clothing
     bones: tuple = setting(FIT_BONES)
     seed: int = setting(0)
@@ -176,6 +179,10 @@ class _Fitter:
         self.kp_offsets = None  # [K, 3] each keypoint's landmark offset in the body's (root's) frame
         self.camera_offsets = None  # {camera: [du, dv]} the images' own px, once fitted
         self.fit_offsets = fit_offsets and cfg.fit_offsets and keypoints
+        c = np.asarray(cfg.shape_centre, dtype=np.float64)
+        if len(c) and (c.shape != (len(PHENOTYPES),) or not ((c >= 0) & (c <= 1)).all()):
+            raise PhysavatarError(None, f"body fit: shape_centre must be {len(PHENOTYPES)} phenotypes in [0, 1] "
+                                        f"({', '.join(PHENOTYPES)}), got {cfg.shape_centre}")
         self.model = _Model(cfg, curl=cfg.finger_curl and keypoints, thumbs=cfg.fit_thumbs and keypoints)
         self.A = self.model.n_params
         # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
@@ -247,6 +254,13 @@ class _Fitter:
             p = p + self.cfg.w_spine_twist * (rot[:, self.twist_ids, 2] ** 2).sum(1).mean()
         return p
 
+    def shape_centre(self) -> torch.Tensor:
+        c = self.cfg.shape_centre
+        return torch.as_tensor(c, dtype=DTYPE) if len(c) else torch.full((len(PHENOTYPES),), 0.5, dtype=DTYPE)
+
+    def shape_prior(self, phen) -> torch.Tensor:
+        return self.cfg.w_shape_prior * ((phen - self.shape_centre()) ** 2).sum()
+
     def _run(self, params: list, lrs: list, iters: int, loss_fn, sigma0: float, sigma1: float, phen=None):
         cfg = self.cfg
         opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in zip(params, lrs)])
@@ -276,7 +290,9 @@ class _Fitter:
         views = obs.views(0)
         (cx, cy), zmin, zmax = _hull_extent(views)
         info = {"hull_height_m": round(zmax - zmin, 3)}
-        phen = torch.full((6,), 0.5, dtype=DTYPE)
+        phen = self.shape_centre()
+        if len(cfg.shape_centre):
+            body.relinearize(BodyShape.from_array(phen.numpy()))
         with torch.no_grad():
             v, _ = body.rest(phen)
         base = torch.as_tensor([cx - float(v[:, 0].mean()), cy - float(v[:, 1].mean()), zmin - float(v[:, 2].min())],
@@ -293,8 +309,7 @@ class _Fitter:
         def loss_fn(rot, tau, ph):
             def f(sigma):
                 V, H = self.model.pose(rot, tau, ph)
-                return (self.data_loss([0], V, H, sigma, rot) + self.prior(rot)
-                        + cfg.w_shape_prior * ((ph - 0.5) ** 2).sum())
+                return self.data_loss([0], V, H, sigma, rot) + self.prior(rot) + self.shape_prior(ph)
             return f
 
         if len(candidates) > 1:
