@@ -25,21 +25,32 @@ def quarter_ratio(per_frame: list[float]) -> float:
     return float(e[-q:].mean() / max(e[:q].mean(), 1e-9))
 
 
+def machine(load0) -> dict:
+    """The ``machine`` field of a result file: cores, CPU, the load average at the start (``load0``) and now."""
+    import os
+
+    return {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(load0),
+            "load_average_end": list(os.getloadavg())}
+
+
+def write_result(path, result: dict) -> None:
+    """Writes a benchmark's result dict to ``path`` (JSON; its folder made)."""
+    import json
+    from pathlib import Path
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(result, indent=2) + "\n")
+
+
 def write_heldout_result(path, benchmark: str, load0, fields: dict, results: dict, unit: str) -> None:
     """Writes a held-out Chamfer benchmark's result file ``path`` (`prepare_heldout_parts`,
     `prepare_garment_parts`): the machine with the load at the start and now, ``fields``, the
     ``variants`` and one reported check per variant (its ``chamfer_x1e3``)."""
     import datetime
-    import json
-    import os
-    from pathlib import Path
 
     result = {"benchmark": benchmark, "date": datetime.datetime.now().isoformat(timespec="seconds"),
-            "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(load0),
-                        "load_average_end": list(os.getloadavg())},
-            **fields, "variants": results,
+            "machine": machine(load0), **fields, "variants": results,
             "checks": {f"heldout_garment_cd_x1e3/{k}": {"value": r.get("chamfer_x1e3"), "target": "reported",
                                                          "unit": unit, "pass": True}
                        for k, r in results.items()}}
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(result, indent=2) + "\n")
+    write_result(path, result)

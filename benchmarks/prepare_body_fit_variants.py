@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import json
 import os
 import sys
@@ -31,7 +32,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_name
+from _common import machine, write_result
 from prepare_body_parts import body_errors
 
 
@@ -147,16 +148,14 @@ def main() -> int:
         print(f"{name:28s} {mode:5s} frame 0 {e['frame0_mean_mm']:6.2f} mm, mean {e['mean_mm']:6.2f} mm, "
               f"6-11 {np.mean(e['mean_mm_per_frame'][6:]) if len(e['mean_mm_per_frame']) > 6 else float('nan'):6.2f} mm, rest shape {r['shape_error']['rest_mean_mm']:5.2f} mm, "
               f"phen rms {r['shape_error']['phenotype_rms']:.3f}", flush=True)
-    result = {"benchmark": "prepare_body_fit_variants",
-              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(load0),
-                          "load_average_end": list(os.getloadavg())},
+    result = {"benchmark": "prepare_body_fit_variants", "date": datetime.datetime.now().isoformat(timespec="seconds"),
+              "machine": machine(load0),
               "input": str(args.input), "truth": str(args.truth), "variants": out,
               "checks": {f"body_mean_mm/{k}": {"value": r["error"]["mean_mm"], "target": "reported", "unit": "mm",
                                                "pass": True} for k, r in out.items()}
              | {f"rest_shape_mm/{k}": {"value": r["shape_error"]["rest_mean_mm"], "target": "reported", "unit": "mm",
                                        "pass": True} for k, r in out.items()}}
-    args.results.parent.mkdir(parents=True, exist_ok=True)
-    args.results.write_text(json.dumps(result, indent=2) + "\n")
+    write_result(args.results, result)
     return 0
 
 

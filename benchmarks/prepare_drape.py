@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import sys
 from pathlib import Path
@@ -27,7 +26,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import cpu_name
+from _common import machine, write_result
 
 FREE = 0.3  # [m] a garment vertex this far from every boundary vertex is "free"
 
@@ -136,14 +135,12 @@ def main() -> int:
     for k, v in drops.items():
         print(f"{k:50s} free-part drop {v:7.1f} mm")
     result = {"benchmark": "prepare_drape", "date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": {"cores": os.cpu_count(), "cpu": cpu_name(), "load_average_start": list(load0),
-                          "load_average_end": list(os.getloadavg())},
+              "machine": machine(load0),
               "original": str(args.original), "prepared": str(args.prepared), "frames": args.frames,
               "free_part_drop_mm": drops, "garment": shapes,
               "checks": {f"drop/{k}": {"value": v, "target": "reported", "unit": "mm (mean z change, free part)",
                                        "pass": True} for k, v in drops.items()}}
-    args.results.parent.mkdir(parents=True, exist_ok=True)
-    args.results.write_text(json.dumps(result, indent=2) + "\n")
+    write_result(args.results, result)
     return 0
 
 
