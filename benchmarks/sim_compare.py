@@ -16,9 +16,8 @@ Matched settings:
   physavatar's StVK against Newton's stable Neo-Hookean membrane;
 - contact: physavatar's IPC barrier (d̂ = 1 mm, friction 0.2) against Newton's penalty springs
   between particles of radius 4 mm and the body mesh (friction 0.2);
-- self-contact: physavatar's default (on since issue 25: its barrier and CCD between the dress's
-  own triangles), VBD's off (Newton's cloth examples' default); so physavatar does more work per
-  frame than VBD here, and ``config`` records both.
+- self-contact off in both (``SimSettings``' default; `simulate` and `animate` turn physavatar's on,
+  `benchmarks/sim_speed.py` measures it on); ``config`` records both.
 
 Measured in one process, one after the other: simulated frames/s (Newton's kernel compilation,
 cached in ~/.cache/warp, is done in a warm-up before the clock starts) and frames in which the
