@@ -34,7 +34,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _common import write_heldout_result
-from prepare_heldout_parts import compose, heldout_cd
+from prepare_heldout_parts import compose, heldout_cd, variant_args
 
 # bone groups of the fit's moving bones (stages/prepare/body_fit.FIT_BONES)
 GROUPS = {
@@ -135,16 +135,8 @@ def variants(orig, prep, extra: dict) -> dict:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--original", type=Path, required=True, help="the original capture (template, body.npz)")
-    ap.add_argument("--prepared", type=Path, required=True, help="its prepared capture (fitted body)")
-    ap.add_argument("--fitted", action="append", default=[], help="NAME=BODY.npz: another fitted body")
-    ap.add_argument("--material", type=Path, help="default: ORIGINAL/ground_truth/material.json")
-    ap.add_argument("--frames", type=int, default=None, help="held-out frames (default: all)")
-    ap.add_argument("--only", default="", help="comma-separated variant names")
-    ap.add_argument("--work", type=Path, required=True)
-    ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_body_parts_s34.json")
-    args = ap.parse_args()
+    args = variant_args(argparse.ArgumentParser(), "prepare_body_parts_s34.json", **{
+        "--fitted": dict(action="append", default=[], help="NAME=BODY.npz: another fitted body")})
     from physavatar.capture import load_capture
     from physavatar.sim.material import Material
 

@@ -186,19 +186,27 @@ def variants(args) -> dict:
     return v
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser()
+def variant_args(ap: argparse.ArgumentParser, results: str, **extra: dict) -> argparse.Namespace:
+    """Parses the options of a held-out variant benchmark (this one, prepare_body_parts): the
+    original and prepared captures, ``extra`` options (name -> add_argument keywords), the
+    material, frames, variants, work folder and results file (default ``results`` in results/)."""
     ap.add_argument("--original", type=Path, required=True, help="the original capture (template, body.npz)")
     ap.add_argument("--prepared", type=Path, required=True, help="its prepared capture (fitted body)")
-    ap.add_argument("--true-body", type=Path, help="the input prepared with the true body.npz given")
-    ap.add_argument("--labels", type=Path, help="the input prepared with the true labels (the fitted body given)")
-    ap.add_argument("--true-body-labels", type=Path, help="the input prepared with the true body and labels")
+    for name, kw in extra.items():
+        ap.add_argument(name, **kw)
     ap.add_argument("--material", type=Path, help="default: ORIGINAL/ground_truth/material.json")
     ap.add_argument("--frames", type=int, default=None, help="held-out frames (default: all)")
     ap.add_argument("--only", default="", help="comma-separated variant names")
     ap.add_argument("--work", type=Path, required=True)
-    ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_heldout_parts_s32.json")
-    args = ap.parse_args()
+    ap.add_argument("--results", type=Path, default=HERE / "results" / results)
+    return ap.parse_args()
+
+
+def main() -> int:
+    args = variant_args(argparse.ArgumentParser(), "prepare_heldout_parts_s32.json", **{
+        "--true-body": dict(type=Path, help="the input prepared with the true body.npz given"),
+        "--labels": dict(type=Path, help="the input prepared with the true labels (the fitted body given)"),
+        "--true-body-labels": dict(type=Path, help="the input prepared with the true body and labels")})
     from physavatar.sim.material import Material
 
     load0 = os.getloadavg()
