@@ -11,7 +11,8 @@ terms of :mod:`physavatar.body.fit_terms`:
    terms: body inside every mask, skin contours on the body's outline, keypoints, body inside the
    clothed mesh and near it where it is skin; weak priors on pose and shape. With keypoints and
    the mesh, each keypoint's offset from its Anny joint (a landmark is not a joint) is fitted
-   here and kept for the later frames.
+   here and kept for the later frames. Then, with the clothed mesh, pose and shape again from
+   the skin alone, where the mesh lies on the body (:mod:`.skin_shape`, from several starts).
 2. **Every later frame**, in order: pose and translation starting from the previous frames
    (constant velocity), with a smoothness term on the joints' acceleration.
 3. **All frames together**: a few iterations on the whole sequence with the same terms, so the
