@@ -165,8 +165,8 @@ def main() -> int:
         for k, r in out.items():
             if k == args.baseline or r["mode"] != base["mode"]:
                 continue
-            for key, value, ref in (("rest_shape", r["shape_error"]["rest_mean_mm"], base["shape_error"]["rest_mean_mm"]),
-                                    ("body_mean", r["error"]["mean_mm"], base["error"]["mean_mm"])):
+            rest, rest0 = r["shape_error"]["rest_mean_mm"], base["shape_error"]["rest_mean_mm"]
+            for key, value, ref in (("rest_shape", rest, rest0), ("body_mean", r["error"]["mean_mm"], base["error"]["mean_mm"])):
                 result["checks"][f"{key}_vs_{args.baseline}/{k}"] = {
                     "value": value, "target": f"<= {ref} + {args.tolerance} ({args.baseline})", "unit": "mm",
                     "pass": bool(value <= ref + args.tolerance)}

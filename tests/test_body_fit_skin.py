@@ -60,7 +60,8 @@ def _fitter(root, **kw):
 
     body = BodyModel(BodyShape.from_array(np.array(CENTRE)), "collider")
     cfg = BodyFitConfig(keypoints="none", **kw)
-    fitter = _Fitter(cfg, _Observations(root, cfg, resolve(False)), ClothedSurface(body.rest_vertices, body.faces), 25.0)
+    clothed = ClothedSurface(body.rest_vertices, body.faces)
+    fitter = _Fitter(cfg, _Observations(root, cfg, resolve(False)), clothed, 25.0)
     fitter.use_clothing = True
     return fitter
 
