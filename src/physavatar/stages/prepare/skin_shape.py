@@ -61,7 +61,7 @@ def skin_shape(fitter, rot: torch.Tensor, tau: torch.Tensor, phen: torch.Tensor)
     fitter.skin, fitter.skin_samples = sk, torch.cat([sk, sk[fitter.sample_faces].all(1)])
     best = None
     try:
-        for delta in cfg.skin_starts:
+        for delta in cfg.skin_starts or (0.0,):
             r = _candidate(fitter, rot, tau, phen, delta)
             info.setdefault("candidates", []).append({"start_age_offset": delta, "loss": r[3],
                                                       "shape": [round(float(x), 4) for x in r[2]]})
