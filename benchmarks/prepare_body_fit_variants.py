@@ -118,6 +118,9 @@ def main() -> int:
     ap.add_argument("--truth", type=Path, required=True, help="the capture with its true body.npz")
     ap.add_argument("--variant", action="append", default=[], help="NAME=first|full[:key=value,...]")
     ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--baseline", help="a variant the others are checked against: rest shape and body mean no worse "
+                    "than its own plus --tolerance (session 35)")
+    ap.add_argument("--tolerance", type=float, default=0.25, help="[mm] for --baseline")
     ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_body_fit_variants_s34.json")
     args = ap.parse_args()
     from physavatar.capture import load_capture
@@ -141,6 +144,8 @@ def main() -> int:
             b.save(w / "body.npz")
             r = {"mode": mode, "settings": over, "seconds": round(time.time() - t0, 1),
                  "shape": [round(float(x), 4) for x in b.shape], "error": body_errors(true, b.body_poses())}
+            if "skin_shape" in b.report:  # the skin pass's starts and shapes (session 35)
+                r["skin_shape"] = b.report["skin_shape"]
             cached.write_text(json.dumps(r, indent=1) + "\n")
         r["shape_error"] = shape_errors(true.shape.as_array(), r["shape"])
         out[name] = r
@@ -155,6 +160,16 @@ def main() -> int:
                                                "pass": True} for k, r in out.items()}
              | {f"rest_shape_mm/{k}": {"value": r["shape_error"]["rest_mean_mm"], "target": "reported", "unit": "mm",
                                        "pass": True} for k, r in out.items()}}
+    if args.baseline:
+        base = out[args.baseline]
+        for k, r in out.items():
+            if k == args.baseline or r["mode"] != base["mode"]:
+                continue
+            rest, rest0 = r["shape_error"]["rest_mean_mm"], base["shape_error"]["rest_mean_mm"]
+            for key, value, ref in (("rest_shape", rest, rest0), ("body_mean", r["error"]["mean_mm"], base["error"]["mean_mm"])):
+                result["checks"][f"{key}_vs_{args.baseline}/{k}"] = {
+                    "value": value, "target": f"<= {ref} + {args.tolerance} ({args.baseline})", "unit": "mm",
+                    "pass": bool(value <= ref + args.tolerance)}
     write_result(args.results, result)
     return 0
 

@@ -84,10 +84,13 @@ def gm(d2: torch.Tensor, sigma) -> torch.Tensor:
 
 
 def silhouette_terms(points: torch.Tensor, views: list[MaskView], sigma: float,
-                     margin_px: float = 0.0, offsets: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                     margin_px: float = 0.0, offsets: torch.Tensor | None = None,
+                     contour_on: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean squared outside distance [m^2] (outside the mask shrunk by ``margin_px``) and mean
     robust contour distance [m^2] of body ``points`` [N, 3] over the views of one frame
-    (``offsets`` [C, 2] px added to each view's projections: its image offset)."""
+    (``offsets`` [C, 2] px added to each view's projections: its image offset). With
+    ``contour_on`` [N] bool, only the contour points whose nearest projected body point is one of
+    those count (the contour of skin, not of clothing)."""
     out, cont = points.new_zeros(()), points.new_zeros(())
     for i, view in enumerate(views):
         uv, z = project(points, view.camera)
@@ -101,6 +104,11 @@ def silhouette_terms(points: torch.Tensor, views: list[MaskView], sigma: float,
         if len(q):
             with torch.no_grad():
                 nn = torch.as_tensor(cKDTree(uv.detach().numpy()).query(q.numpy())[1])
+            if contour_on is not None:
+                keep = contour_on[nn]
+                q, nn = q[keep], nn[keep]
+                if not len(q):
+                    continue
             d2 = ((q - uv[nn]) ** 2).sum(-1) * scale[nn] ** 2
             # the kernel is never narrower than a pixel (edges are only known to a pixel)
             cont = cont + gm(d2, torch.clamp(scale[nn].detach(), min=sigma)).mean()
@@ -177,14 +185,20 @@ class ClothedSurface:
         idx = torch.as_tensor(idx)
         return ((points - self.Vt[idx]) * self.Nt[idx]).sum(-1)
 
-    def terms(self, points: torch.Tensor, margin: float, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean squared depth of body points outside the clothing (less ``margin``),
-        mean robust distance [m^2] from clothed vertices to the nearest body point)."""
+    def terms(self, points: torch.Tensor, margin, sigma: float,
+              near_on: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean squared depth of body points outside the clothing (less ``margin``, a number or
+        [N] per point), mean robust distance [m^2] from clothed vertices to the nearest body
+        point; with ``near_on`` [N] bool only the clothed vertices whose nearest body point is
+        one of those)."""
         s = self.signed_distance(points)
         outside = (torch.relu(s + margin) ** 2).mean()
         with torch.no_grad():
             from scipy.spatial import cKDTree
 
             _, nn = cKDTree(points.detach().numpy()).query(self.vertices)
-        d2 = ((self.Vt - points[torch.as_tensor(nn)]) ** 2).sum(-1)
-        return outside, gm(d2, sigma).mean()
+        nn = torch.as_tensor(nn)
+        d2 = ((self.Vt - points[nn]) ** 2).sum(-1)
+        if near_on is not None:
+            d2 = d2[near_on[nn]]
+        return outside, (gm(d2, sigma).mean() if len(d2) else outside.new_zeros(()))

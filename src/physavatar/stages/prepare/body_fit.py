@@ -11,7 +11,8 @@ terms of :mod:`physavatar.body.fit_terms`:
    terms: body inside every mask, skin contours on the body's outline, keypoints, body inside the
    clothed mesh and near it where it is skin; weak priors on pose and shape. With keypoints and
    the mesh, each keypoint's offset from its Anny joint (a landmark is not a joint) is fitted
-   here and kept for the later frames.
+   here and kept for the later frames. Then, with the clothed mesh, pose and shape again from
+   the skin alone, where the mesh lies on the body (:mod:`.skin_shape`, from several starts).
 2. **Every later frame**, in order: pose and translation starting from the previous frames
    (constant velocity), with a smoothness term on the joints' acceleration.
 3. **All frames together**: a few iterations on the whole sequence with the same terms, so the
@@ -31,7 +32,7 @@ import numpy as np
 import torch
 
 from ...body.differentiable import DTYPE, DiffBody, axis_angle_to_matrix_t
-from ...body.fit_terms import ClothedSurface, keypoint_term, silhouette_terms
+from ...body.fit_terms import ClothedSurface, gm, keypoint_term, silhouette_terms
 from ...body.model import PHENOTYPES, TOPOLOGIES, BodyShape
 from ...errors import PhysavatarError
 from ...files import read_json
@@ -129,6 +130,17 @@ class BodyFitConfig:
     # the phenotypes the fit starts from and its shape prior is centred on (empty: Anny's
     # defaults, all 0.5); a diagnostic: the truth here separates the shape's error from the pose's
     shape_centre: tuple = setting(())
+    # session 35: after the first frame's fit, the shape again from the skin alone (.skin_shape):
+    # body vertices within skin_distance of the clothed mesh are skin; the mask contours nearest
+    # to them and the clothed mesh there fit pose and phenotypes, from several starts
+    skin_shape: bool = setting(True)
+    skin_distance: float = setting(0.008)  # [m]
+    skin_starts: tuple = setting((-0.15, 0.0, 0.15))  # the pass's starts: age offsets at equal stature
+    skin_sigma_factor: float = setting(2.0)  # the kernel narrows from sigma_end times this to sigma_end
+    skin_iterations: int = setting(150)
+    skin_step: float = setting(0.002)  # [m] Adam's step of the phenotypes, in rest-body displacement
+    w_shape_prior_skin: float = setting(1e-5)
+    w_skin_surface: float = setting(10.0)  # the skin on the clothed mesh, both sides (robust, kernel skin_distance)
     clothing_margin: float = setting(0.003)  # [m] the body keeps this far under the clothing
     bones: tuple = setting(FIT_BONES)
     seed: int = setting(0)
@@ -188,6 +200,8 @@ class _Fitter:
         # the clothing terms (ICP-like, nearest clothed vertex) only once the pose is close:
         # from a far pose they squeeze the body into the wrong part of the clothing
         self.use_clothing = False
+        self.skin = None  # [V] bool while the shape is fitted from the skin (.skin_shape), else None
+        self.skin_samples = None  # [V + n F] the same for the silhouette samples
         # silhouette samples: the vertices and points spread over the triangles (about 1 cm
         # apart on the collider body), so a mask's edge always has a body point near it
         F_ = self.model.body.faces
@@ -212,7 +226,7 @@ class _Fitter:
             mesh = t == 0 and self.clothing is not None and self.use_clothing
             pressed = obs.kp is not None and (not mesh or len(obs.cams) < cfg.press_with_mesh_below)
             margin = cfg.outside_margin_px_keypoints if pressed else cfg.outside_margin_px
-            o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, margin, self.offsets)
+            o, c = silhouette_terms(self.samples(V[i]), obs.views(t), sigma, margin, self.offsets, self.skin_samples)
             w_out = outside_weight(cfg, sigma, True) if pressed else cfg.w_outside
             total = total + w_out * o + cfg.w_contour * c
             if kps is not None:
@@ -238,8 +252,16 @@ class _Fitter:
     def clothing_loss(self, V: torch.Tensor, sigma: float) -> torch.Tensor:
         """The clothed mesh's terms for body vertices ``V`` [V, 3] (the body inside the clothing,
         on it where it is skin), without the hands' and feet's extremities."""
-        inside, near = self.clothing.terms(V[self.clothing_points], self.cfg.clothing_margin, sigma)
-        return self.cfg.w_clothing_inside * inside + self.cfg.w_clothing_near * near
+        margin, near_on = self.cfg.clothing_margin, None
+        if self.skin is not None:  # skin: on the clothed mesh, not under it
+            near_on = self.skin[self.clothing_points]
+            margin = torch.where(near_on, 0.0, margin)
+        inside, near = self.clothing.terms(V[self.clothing_points], margin, sigma, near_on)
+        loss = self.cfg.w_clothing_inside * inside + self.cfg.w_clothing_near * near
+        if self.skin is not None:  # skin on the clothed mesh (both sides)
+            d = self.clothing.signed_distance(V[self.skin])
+            loss = loss + self.cfg.w_skin_surface * gm(d ** 2, self.cfg.skin_distance).mean()
+        return loss
 
     def samples(self, V: torch.Tensor) -> torch.Tensor:
         """[V, 3] body vertices -> [V + n F, 3] vertices and surface samples."""
@@ -343,6 +365,11 @@ class _Fitter:
             info["landmark_offsets_mm"] = {str(k): [round(1000 * float(x), 1) for x in o]
                                            for k, o in zip(self.kp_ids, self.kp_offsets)}
         info["first_frame_loss"] = loss
+        if cfg.skin_shape and self.clothing is not None:
+            from .skin_shape import skin_shape
+
+            rot, tau, ph, skin_info = skin_shape(self, rot.detach(), tau.detach(), ph.detach())
+            info["skin_shape"] = skin_info
         return rot.detach(), tau.detach(), ph.detach(), info
 
     # phase 2
