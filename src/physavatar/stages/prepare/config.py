@@ -142,6 +142,11 @@ class BoundaryConfig:
     frames: int = setting(12)  # frames sampled for the contact test
     min_region: int = setting(2)  # contact regions of fewer vertices are not holds
     grow: bool = setting(True)  # a kept hold grows over the contact vertices joined to it, within the band
+    # [m] then along the garment (geodesic) over contact vertices by this much, past the band: the band is
+    # in height, and where the garment drops steeply behind the crest (a strap down the back of the
+    # shoulder) it stops short; a missing row of holds costs far more than an extra one (docs/prepare.md,
+    # session 35); 0: the band only
+    reach: float = setting(0.02)
     inside: float = setting(0.9)  # share of cameras whose mask must hold the skinned vertex in a sampled frame
 
 
