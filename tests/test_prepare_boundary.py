@@ -27,9 +27,9 @@ def test_a_bodice_in_contact_all_along_is_held_at_its_top():
     b, info = find_boundary(GV, GF, frames, BF, cams, lambda i: {c.name: np.ones((64, 64)) for c in cams}, [0, 1],
                             cfg)
     assert info["contact"] == len(GV) and info["regions_kept"] == 1
-    # the chosen holds: the top band and ``reach`` along the tube below it, all around (without the
+    # the chosen holds: the top band and ``grow_along`` along the tube below it, all around (without the
     # band limit: every vertex)
-    low = 1.40 - cfg.top_band - cfg.reach - 1e-9
+    low = 1.40 - cfg.top_band - cfg.grow_along - 1e-9
     assert b.any() and GV[b, 2].min() >= low, GV[b, 2].min()
     assert b.sum() == (GV[:, 2] >= low).sum() < len(GV)
 
@@ -58,7 +58,7 @@ def test_a_top_the_body_does_not_carry_still_holds_the_band_under_it():
     cfg = BoundaryConfig()
     b, info = find_boundary(GV, GF, np.stack([BV, BV]), BF, cams, masks, [0, 1], cfg)
     assert info["candidates"] < info["contact"] == len(GV)
-    assert np.isclose(GV[b, 2].max(), 1.40) and GV[b, 2].min() >= 1.40 - cfg.top_band - cfg.reach - 1e-9, GV[b, 2].min()
+    assert np.isclose(GV[b, 2].max(), 1.40) and GV[b, 2].min() >= 1.40 - cfg.top_band - cfg.grow_along - 1e-9, GV[b, 2].min()
 
 
 def _ridge(ds: float = 0.01, front_deg: float = 30.0, back_deg: float = 70.0):
@@ -85,12 +85,12 @@ def _ridge(ds: float = 0.01, front_deg: float = 30.0, back_deg: float = 70.0):
     return GV, GF, gs, BV - [0.0, 0.0, 0.005], BF
 
 
-def test_a_strap_down_a_steep_back_is_held_a_reach_along_the_garment_past_the_band():
+def test_a_strap_down_a_steep_back_is_held_further_along_the_garment_past_the_band():
     """The band is in height: 4 cm of height is 8 cm of strap down a 30° front but 4.3 cm down a 70°
-    back. The holds then grow ``reach`` (2 cm) along the garment over the contact: analytic arc
+    back. The holds then grow ``grow_along`` (2 cm) along the garment over the contact: analytic arc
     lengths s ∈ [-(0.04/sin 30° + 0.02), 0.04/sin 70° + 0.02] (demo, session 35: the prepared
     straps' back rows were missing, 0.161 → 0.149 held-out Chamfer); a vertex off the body is not
-    grown onto. Main (no reach): s ∈ [-0.08, 0.0426]."""
+    grown onto. Main (no growth along): s ∈ [-0.08, 0.0426]."""
     from physavatar.stages.prepare.boundary import find_boundary
     from physavatar.stages.prepare.config import BoundaryConfig
 
@@ -99,11 +99,11 @@ def test_a_strap_down_a_steep_back_is_held_a_reach_along_the_garment_past_the_ba
     GV[off] -= [0.0, 0.05, 0.0]
     cams = ring_rig(4, 3.0, 1.0, (0, 0, 0.9), 64, 64, 50.0)
     cfg = BoundaryConfig()
-    assert cfg.reach == 0.02 and cfg.top_band == 0.04
+    assert cfg.grow_along == 0.02 and cfg.top_band == 0.04
     b, info = find_boundary(GV, GF, np.stack([BV, BV]), BF, cams, lambda i: {c.name: np.ones((64, 64)) for c in cams},
                             [0, 1], cfg)
     assert info["contact"] == (~off).sum()
     front, back = 0.04 / np.sin(np.radians(30.0)), 0.04 / np.sin(np.radians(70.0))
-    want = (s >= -min(front + cfg.reach, 0.09) - 1e-9) & (s <= back + cfg.reach + 1e-9)
+    want = (s >= -min(front + cfg.grow_along, 0.09) - 1e-9) & (s <= back + cfg.grow_along + 1e-9)
     assert np.array_equal(b, want), (np.unique(s[b]), np.unique(s[want]))
     assert s[b].max() == 0.06 and s[b].min() == -0.09  # 2 rows further down the back than the band's 0.04

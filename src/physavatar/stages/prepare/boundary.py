@@ -9,7 +9,7 @@ body would carry it; one held by the body does not. Garments hang from the highe
 are held, so of the contact regions (connected on the garment) those reaching within
 ``top_band`` of the garment's highest contact are kept: the waistband of a skirt or trousers,
 the shoulders of a dress, not a hull's bridge between a hem and the legs. The band is in height;
-the holds then grow ``reach`` along the garment over the contact vertices (a strap that drops
+the holds then grow ``grow_along`` along the garment over the contact vertices (a strap that drops
 steeply down the back of the shoulder is held beyond the band's height there).
 
 Override (``--boundary FILE``): a PLY whose vertices carry a ``boundary`` property, or a .npy /
@@ -128,8 +128,8 @@ def _find_boundary(vertices, faces, body_frames, body_faces, cameras, masks_of, 
         # grown over contact above the followed part (straps a fitted body carries a few pixels
         # out of a side view's mask): the hold is the band under the grown region's top
         out &= vertices[:, 2] >= vertices[out, 2].max() - cfg.top_band
-    if cfg.reach > 0 and out.any():
-        out = along_garment(vertices, faces, out, contact, cfg.reach)
+    if cfg.grow_along > 0 and out.any():
+        out = along_garment(vertices, faces, out, contact, cfg.grow_along)
     info["boundary"] = int(out.sum())
     info["regions_kept"] = int(reach.sum())
     info["regions"] = int(k)

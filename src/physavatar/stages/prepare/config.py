@@ -146,7 +146,7 @@ class BoundaryConfig:
     # in height, and where the garment drops steeply behind the crest (a strap down the back of the
     # shoulder) it stops short; a missing row of holds costs far more than an extra one (docs/prepare.md,
     # session 35); 0: the band only
-    reach: float = setting(0.02)
+    grow_along: float = setting(0.02)
     inside: float = setting(0.9)  # share of cameras whose mask must hold the skinned vertex in a sampled frame
 
 
