@@ -81,7 +81,7 @@ def hold_sets(orig, prep) -> dict:
 
 
 def record_boundary_inputs(src: Path, dst: Path) -> dict:
-    """Prepares ``src`` into ``dst`` (default settings but ``boundary.grow_along`` 0: the holds of
+    """Prepares ``src`` into ``dst`` (default settings, ``boundary.grow_along`` 0: the holds of
     session 34's main, the z band) and returns find_boundary's inputs for its
     one garment piece: V (the contact-test positions), F, BV (the first sampled frame's body), BF,
     d (body distance), worst (carried support); cached in ``dst``/boundary_inputs.npz."""
@@ -156,7 +156,7 @@ def rule_sets(prep, truth, D: dict) -> dict:
 
     sets = {"own": ("its own holds (the z band: session 34's main, grow_along 0)", own),
             "grown 2 cm over contact": ("its holds grown 2 cm along the garment over contact vertices "
-                                        "(along_garment: session 35's default, grow_along 0.02)",
+                                        "(along_garment: the setting grow_along 0.02)",
                                         along_garment(V, F, own, contact, 0.02)),
             "grown 3 cm over contact": ("the same, 3 cm", along_garment(V, F, own, contact, 0.03)),
             "crest 7 cm": ("contact within 7 cm along the garment of each hold's crest (its top 1 cm)", crest(0.07)),

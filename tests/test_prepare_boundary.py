@@ -87,10 +87,10 @@ def _ridge(ds: float = 0.01, front_deg: float = 30.0, back_deg: float = 70.0):
 
 def test_a_strap_down_a_steep_back_is_held_further_along_the_garment_past_the_band():
     """The band is in height: 4 cm of height is 8 cm of strap down a 30° front but 4.3 cm down a 70°
-    back. The holds then grow ``grow_along`` (2 cm) along the garment over the contact: analytic arc
-    lengths s ∈ [-(0.04/sin 30° + 0.02), 0.04/sin 70° + 0.02] (demo, session 35: the prepared
-    straps' back rows were missing, 0.161 → 0.149 held-out Chamfer); a vertex off the body is not
-    grown onto. Main (no growth along): s ∈ [-0.08, 0.0426]."""
+    back. With ``grow_along`` 2 cm the holds then grow that far along the garment over the contact:
+    analytic arc lengths s ∈ [-(0.04/sin 30° + 0.02), 0.04/sin 70° + 0.02] (demo, session 35: the
+    prepared straps' back rows were missing, 0.161 → 0.149 held-out Chamfer); a vertex off the body
+    is not grown onto. With 0 (the default, main's rule): s ∈ [-0.08, 0.0426]."""
     from physavatar.stages.prepare.boundary import find_boundary
     from physavatar.stages.prepare.config import BoundaryConfig
 
@@ -98,12 +98,13 @@ def test_a_strap_down_a_steep_back_is_held_further_along_the_garment_past_the_ba
     off = s < -0.095  # the strap's front end stands 5 cm off the chest: not in contact
     GV[off] -= [0.0, 0.05, 0.0]
     cams = ring_rig(4, 3.0, 1.0, (0, 0, 0.9), 64, 64, 50.0)
-    cfg = BoundaryConfig()
-    assert cfg.grow_along == 0.02 and cfg.top_band == 0.04
-    b, info = find_boundary(GV, GF, np.stack([BV, BV]), BF, cams, lambda i: {c.name: np.ones((64, 64)) for c in cams},
-                            [0, 1], cfg)
-    assert info["contact"] == (~off).sum()
     front, back = 0.04 / np.sin(np.radians(30.0)), 0.04 / np.sin(np.radians(70.0))
-    want = (s >= -min(front + cfg.grow_along, 0.09) - 1e-9) & (s <= back + cfg.grow_along + 1e-9)
-    assert np.array_equal(b, want), (np.unique(s[b]), np.unique(s[want]))
+    masks = lambda i: {c.name: np.ones((64, 64)) for c in cams}  # noqa: E731
+    for along in (0.0, 0.02):  # 0: the default, the band alone
+        cfg = BoundaryConfig(grow_along=along)
+        assert cfg.top_band == 0.04
+        b, info = find_boundary(GV, GF, np.stack([BV, BV]), BF, cams, masks, [0, 1], cfg)
+        assert info["contact"] == (~off).sum()
+        want = (s >= -min(front + along, 0.09) - 1e-9) & (s <= back + along + 1e-9)
+        assert np.array_equal(b, want), (along, np.unique(s[b]), np.unique(s[want]))
     assert s[b].max() == 0.06 and s[b].min() == -0.09  # 2 rows further down the back than the band's 0.04

@@ -9,8 +9,9 @@ body would carry it; one held by the body does not. Garments hang from the highe
 are held, so of the contact regions (connected on the garment) those reaching within
 ``top_band`` of the garment's highest contact are kept: the waistband of a skirt or trousers,
 the shoulders of a dress, not a hull's bridge between a hem and the legs. The band is in height;
-the holds then grow ``grow_along`` along the garment over the contact vertices (a strap that drops
-steeply down the back of the shoulder is held beyond the band's height there).
+with ``grow_along`` > 0 (default 0) the holds then grow that far along the garment over the
+contact vertices (a strap that drops steeply down the back of the shoulder is held beyond the
+band's height there).
 
 Override (``--boundary FILE``): a PLY whose vertices carry a ``boundary`` property, or a .npy /
 .txt of 3D points; garment vertices within ``radius`` of those points are the boundary.
