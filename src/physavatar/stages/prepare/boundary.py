@@ -8,7 +8,10 @@ point that swings away from the body (a hem, a loose panel) leaves the silhouett
 body would carry it; one held by the body does not. Garments hang from the highest place they
 are held, so of the contact regions (connected on the garment) those reaching within
 ``top_band`` of the garment's highest contact are kept: the waistband of a skirt or trousers,
-the shoulders of a dress, not a hull's bridge between a hem and the legs.
+the shoulders of a dress, not a hull's bridge between a hem and the legs. The band is in height;
+with ``grow_along`` > 0 (default 0) the holds then grow that far along the garment over the
+contact vertices (a strap that drops steeply down the back of the shoulder is held beyond the
+band's height there).
 
 Override (``--boundary FILE``): a PLY whose vertices carry a ``boundary`` property, or a .npy /
 .txt of 3D points; garment vertices within ``radius`` of those points are the boundary.
@@ -126,10 +129,27 @@ def _find_boundary(vertices, faces, body_frames, body_faces, cameras, masks_of, 
         # grown over contact above the followed part (straps a fitted body carries a few pixels
         # out of a side view's mask): the hold is the band under the grown region's top
         out &= vertices[:, 2] >= vertices[out, 2].max() - cfg.top_band
+    if cfg.grow_along > 0 and out.any():
+        out = along_garment(vertices, faces, out, contact, cfg.grow_along)
     info["boundary"] = int(out.sum())
     info["regions_kept"] = int(reach.sum())
     info["regions"] = int(k)
     return out, info
+
+
+def along_garment(vertices: np.ndarray, faces: np.ndarray, seed: np.ndarray, allowed: np.ndarray,
+                  reach: float) -> np.ndarray:
+    """[n] bool: ``seed`` and the ``allowed`` vertices within ``reach`` of it along the garment's
+    edges (shortest paths through allowed vertices; scipy's Dijkstra)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+
+    A = adjacency(faces, len(vertices)).tocoo()
+    ok = (seed | allowed)[A.row] & (seed | allowed)[A.col]
+    i, j = A.row[ok], A.col[ok]
+    G = sp.csr_matrix((np.linalg.norm(vertices[i] - vertices[j], axis=1), (i, j)), shape=A.shape)
+    dist = dijkstra(G, directed=False, indices=np.flatnonzero(seed), min_only=True)
+    return seed | (allowed & (dist <= reach * (1 + 1e-6)))
 
 
 def boundary_points(path: Path) -> np.ndarray:

@@ -142,6 +142,12 @@ class BoundaryConfig:
     frames: int = setting(12)  # frames sampled for the contact test
     min_region: int = setting(2)  # contact regions of fewer vertices are not holds
     grow: bool = setting(True)  # a kept hold grows over the contact vertices joined to it, within the band
+    # [m] then along the garment (geodesic) over contact vertices by this much, past the band: the band is
+    # in height, and where the garment drops steeply behind the crest (a strap down the back of the
+    # shoulder) it stops short; a missing row of holds costs far more than an extra one. 0 (off): with
+    # 0.02 the demo's held-out Chamfer fell 7-9 %, but `run`'s fit-physics refused the fitted-body
+    # preparation (its proxy crossed the body at the start; docs/prepare.md, session 35)
+    grow_along: float = setting(0.0)
     inside: float = setting(0.9)  # share of cameras whose mask must hold the skinned vertex in a sampled frame
 
 
