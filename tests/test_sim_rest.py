@@ -259,3 +259,29 @@ def test_an_equilibrium_step_whose_line_search_is_stuck_ends_its_newton_solve(mo
     x, info = static_equilibrium(V, F, preset("cotton"), V, top, max_steps=3)
     assert np.array_equal(x, V) and not info["converged"]
     assert info["unconverged_steps"] == 2 and info["newton_iterations"] == 2 * sim_rest.FLOOR_EXIT
+
+
+def test_a_body_through_the_held_band_only_does_not_refuse_the_rest_solve():
+    """A box pierces the strip's top band, whose triangles are all held (as a coarse proxy's held
+    triangle cuts a convex shoulder: fit-physics refused the fitted-body preparation with holds
+    grown 2 cm, docs/physics.md session 35). The simulator has no contact between prescribed
+    vertices and the body, so those crossings are not counted and the rest solve runs; with only
+    the top row held, the pierced triangles are free to move and the solve must still refuse."""
+    from physavatar.geometry import count_intersections
+
+    mat = Material(density=0.1, stretch_stiffness=5.0, bend_stiffness=1e-7, poisson=0.0)
+    x0, F = strip(5, 11, 0.1, 0.2)  # rows every 2 cm: z = 0, -0.02, ...
+    band = np.flatnonzero(x0[:, 2] >= -0.02 - 1e-9)  # the top two rows: the triangles between them are all held
+    box = trimesh.creation.box(extents=(0.01, 0.04, 0.01))
+    bV, bF = np.asarray(box.vertices) + [0.05, 0.0, -0.01], np.asarray(box.faces)
+    crossing = count_intersections(x0, F, bV, bF)
+    assert crossing > 0  # the box's edges pass through the band's triangles, both ways
+    assert count_intersections(x0, F, bV, bF, fixed=band) == 0
+    top = np.flatnonzero(x0[:, 2] == 0)
+    assert count_intersections(x0, F, bV, bF, fixed=top) == crossing  # mixed edges and triangles still count
+    X, rep = equilibrium_rest(x0, F, mat, band, bV, bF)
+    assert rep["converged"] and rep["at_rest"]
+    assert np.allclose(X[band], x0[band])
+    assert X[:, 2].min() > x0[:, 2].min() + 1e-3  # the rest shape is shorter than the loaded strip (it stretches under its weight)
+    with pytest.raises(PhysavatarError, match="outside the body"):
+        equilibrium_rest(x0, F, mat, top, bV, bF)

@@ -41,15 +41,36 @@ def intersecting_pairs(V1, F1, V2, F2) -> tuple[list[tuple[np.ndarray, int]], li
             [(E2[e], t) for e, t in _edge_triangle_pairs(V2, E2, V1, F1)])
 
 
-def count_intersections(V1, F1, V2, F2) -> int:
+def count_intersections(V1, F1, V2, F2, fixed=None) -> int:
     """Intersecting edge-triangle pairs between two meshes, both ways (0: the surfaces are apart).
 
     ``ipctk.has_intersections`` on the union cannot be used here: the Anny body intersects itself
     in its rest pose (fingers, armpits), so only pairs across the two meshes are tested.
+
+    ``fixed`` [K] (vertex ids of mesh 1 whose motion is prescribed, e.g. a garment's boundary on
+    the body mesh 2): a crossing whose mesh-1 edge or triangle has only fixed vertices is not
+    counted. The simulator never sees such a pair (``sim.contact.prescribed_filter``: no contact
+    between prescribed vertices and the body), and nothing can move it out.
     """
+    if fixed is not None:
+        g, b = _movable(*intersecting_pairs(V1, F1, V2, F2), F1, fixed, len(V1))
+        return len(g) + len(b)
     V1, V2 = np.asarray(V1, float), np.asarray(V2, float)
     return (len(_edge_triangle_pairs(V1, mesh_edges(F1), V2, np.asarray(F2)))
             + len(_edge_triangle_pairs(V2, mesh_edges(F2), V1, np.asarray(F1))))
+
+
+def _movable(edges_1, edges_2, F1, fixed, n: int):
+    """The crossings of :func:`intersecting_pairs` (``edges_1``: mesh-1 edges through mesh-2
+    triangles; ``edges_2``: mesh-2 edges through mesh-1 triangles) less those whose mesh-1
+    primitive has only ``fixed`` vertices (None: all kept); ``n`` mesh 1's vertex count."""
+    if fixed is None:
+        return edges_1, edges_2
+    F1 = np.asarray(F1)
+    fix = np.zeros(n, bool)
+    fix[np.asarray(fixed, dtype=np.int64)] = True
+    return ([(e, t) for e, t in edges_1 if not fix[e].all()],
+            [(e, t) for e, t in edges_2 if not fix[F1[t]].all()])
 
 
 def push_out_crossings(V, F, body_V, body_F, step: float, fixed=None, iters: int = 10) -> tuple[np.ndarray, int]:
@@ -60,7 +81,8 @@ def push_out_crossings(V, F, body_V, body_F, step: float, fixed=None, iters: int
     Each iteration moves the corners of every crossing garment edge or triangle by ``step`` along
     the body's outward normal there (the crossed body triangle's, or the crossing body edge's
     vertex normals), their neighbours half as far so the cloth stays smooth; ``fixed`` vertices
-    (boundary targets) stay. Returns the new vertices and the number of crossing pairs left
+    (boundary targets) stay, and crossings made only of them are neither pushed nor counted
+    (:func:`count_intersections`). Returns the new vertices and the number of crossing pairs left
     after ``iters`` iterations (0: apart).
     """
     from .mesh import adjacency, vertex_normals
@@ -75,7 +97,7 @@ def push_out_crossings(V, F, body_V, body_F, step: float, fixed=None, iters: int
     if fixed is not None:
         free[np.asarray(fixed, dtype=np.int64)] = False
     for _ in range(iters):
-        garment_edges, body_edges = intersecting_pairs(V, F, body_V, body_F)
+        garment_edges, body_edges = _movable(*intersecting_pairs(V, F, body_V, body_F), F, fixed, len(V))
         if not garment_edges and not body_edges:
             return V, 0
         direction = np.zeros_like(V)
@@ -89,5 +111,5 @@ def push_out_crossings(V, F, body_V, body_F, step: float, fixed=None, iters: int
         delta[moved] = step * direction[moved] / norm[moved, None]
         spread = (A @ delta) / np.maximum(A @ moved.astype(float), 1.0)[:, None]
         V += np.where(moved[:, None], delta, 0.5 * spread * free[:, None])
-    garment_edges, body_edges = intersecting_pairs(V, F, body_V, body_F)
+    garment_edges, body_edges = _movable(*intersecting_pairs(V, F, body_V, body_F), F, fixed, len(V))
     return V, len(garment_edges) + len(body_edges)

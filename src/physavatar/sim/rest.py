@@ -177,7 +177,10 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
         from ..geometry import count_intersections
 
         body = np.asarray(body, np.float64)
-        if count_intersections(x0, F, body, np.asarray(body_faces, np.int64).reshape(-1, 3)):
+        # crossings of the boundary's own edges and triangles do not count: the simulator has no
+        # contact between prescribed vertices and the body (a coarse proxy's held triangle may cut
+        # a convex shoulder; docs/physics.md, session 35)
+        if count_intersections(x0, F, body, np.asarray(body_faces, np.int64).reshape(-1, 3), fixed=b):
             raise PhysavatarError(path, "the garment intersects the body in the frame its rest shape is solved for; "
                                         "it must start outside the body")
     t0 = time.perf_counter()

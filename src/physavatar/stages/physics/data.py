@@ -141,7 +141,7 @@ def clear_start(data: PhysicsData, source=None, frame: int = 0,
     if data.collider is None or data.collider_faces is None:
         return dataclasses.replace(data, initial=x0), info
     body, bfaces = data.collider[0], data.collider_faces
-    crossing = count_intersections(x0, data.faces, body, bfaces)
+    crossing = count_intersections(x0, data.faces, body, bfaces, fixed=data.boundary)
     gap = body_clearance(x0, data.faces, body, bfaces)
     info.update(crossing_pairs=int(crossing), min_gap_mm=1e3 * gap)
     if crossing == 0 and gap >= START_MIN_GAP:
@@ -150,7 +150,7 @@ def clear_start(data: PhysicsData, source=None, frame: int = 0,
     if left:
         seq, first = (sequence, 0) if sequence is not None else (data, frame)
         clean = [first + f for f in range(min(seq.frames, 200))
-                 if not count_intersections(seq.reference[f], seq.faces, seq.collider[f], bfaces)]
+                 if not count_intersections(seq.reference[f], seq.faces, seq.collider[f], bfaces, fixed=seq.boundary)]
         where = (f"frames free of crossings: {clean[:12]}" + (" ..." if len(clean) > 12 else "")
                  if clean else "no frame is free of crossings")
         raise PhysavatarError(source, f"the garment crosses the body at frame {frame} ({crossing} intersecting "
