@@ -286,22 +286,34 @@ def variants(orig, prep) -> dict:
     }
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser()
+def parts_arguments(ap: argparse.ArgumentParser, results: Path) -> None:
+    """The options of the benchmarks that wear variants of the excerpt's garment on its true body
+    (this one and prepare_hold_parts.py)."""
     ap.add_argument("--original", type=Path, required=True)
     ap.add_argument("--prepared-true", type=Path, required=True, help="the excerpt prepared with its true body.npz")
     ap.add_argument("--work", type=Path, required=True)
     ap.add_argument("--only", default="")
-    ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_garment_parts_s33.json")
-    args = ap.parse_args()
+    ap.add_argument("--results", type=Path, default=results)
+
+
+def parts_inputs(args) -> tuple:
+    """(load average now, the original's ground_truth/ folder, its true material, the original
+    capture, the prepared one) of :func:`parts_arguments`' options."""
     from physavatar.capture import load_capture
-    from physavatar.files import load_npz
     from physavatar.sim.material import Material
 
-    load0 = os.getloadavg()
     gt_src = args.original / "ground_truth"
-    mat = Material.load(gt_src / "material.json")
-    orig, prep = load_capture(args.original), load_capture(args.prepared_true)
+    return (os.getloadavg(), gt_src, Material.load(gt_src / "material.json"), load_capture(args.original),
+            load_capture(args.prepared_true))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    parts_arguments(ap, HERE / "results" / "prepare_garment_parts_s33.json")
+    args = ap.parse_args()
+    from physavatar.files import load_npz
+
+    load0, gt_src, mat, orig, prep = parts_inputs(args)
     only = [s for s in args.only.split(",") if s]
     results = {}
     for name, (what, make, kw) in variants(orig, prep).items():

@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -38,7 +37,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _common import write_heldout_result
-from prepare_garment_parts import _template, drop_profile
+from prepare_garment_parts import _template, drop_profile, parts_arguments, parts_inputs
 from prepare_heldout_parts import heldout_cd
 
 
@@ -194,21 +193,13 @@ def _run(name, what, cap, b, gt_src, mat, w, **kw):
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--original", type=Path, required=True)
-    ap.add_argument("--prepared-true", type=Path, required=True, help="the excerpt prepared with its true body.npz")
-    ap.add_argument("--work", type=Path, required=True)
+    parts_arguments(ap, HERE / "results" / "prepare_hold_parts_s35.json")
     ap.add_argument("--prepare-input", action="append", default=[], metavar="NAME=DIR",
                     help="the excerpt without template/ and with a body.npz, to prepare and try hold rules on")
-    ap.add_argument("--only", default="")
-    ap.add_argument("--results", type=Path, default=HERE / "results" / "prepare_hold_parts_s35.json")
     args = ap.parse_args()
     from physavatar.capture import load_capture
-    from physavatar.sim.material import Material
 
-    load0 = os.getloadavg()
-    gt_src = args.original / "ground_truth"
-    mat = Material.load(gt_src / "material.json")
-    orig, prep = load_capture(args.original), load_capture(args.prepared_true)
+    load0, gt_src, mat, orig, prep = parts_inputs(args)
     only = [s for s in args.only.split(";") if s]
     results = {}
     for name, (what, b) in hold_sets(orig, prep).items():
