@@ -133,7 +133,8 @@ class BodyFitConfig:
     # session 35: after the first frame's fit, the shape again from the skin alone (.skin_shape):
     # body vertices within skin_distance of the clothed mesh are skin; the mask contours nearest
     # to them and the clothed mesh there fit pose and phenotypes, from several starts
-    skin_shape: bool = setting(True)
+    skin_shape: bool = option(True, "fit the body's shape again from where the clothed mesh lies on it (arms, head, "
+                                    "lower legs), so a shape other than Anny's default is found", flag="--skin-shape/--no-skin-shape")
     skin_distance: float = setting(0.008)  # [m]
     skin_starts: tuple = setting((-0.15, 0.0, 0.15))  # the pass's starts: age offsets at equal stature
     skin_sigma_factor: float = setting(2.0)  # the kernel narrows from sigma_end times this to sigma_end
