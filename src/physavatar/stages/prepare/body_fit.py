@@ -11,8 +11,9 @@ terms of :mod:`physavatar.body.fit_terms`:
    terms: body inside every mask, skin contours on the body's outline, keypoints, body inside the
    clothed mesh and near it where it is skin; weak priors on pose and shape. With keypoints and
    the mesh, each keypoint's offset from its Anny joint (a landmark is not a joint) is fitted
-   here and kept for the later frames. Then, with the clothed mesh, pose and shape again from
-   the skin alone, where the mesh lies on the body (:mod:`.skin_shape`, from several starts).
+   here and kept for the later frames. Then, with ``skin_shape`` (``--skin-shape``) and the clothed
+   mesh, pose and shape again from the skin alone, where the mesh lies on the body
+   (:mod:`.skin_shape`, from several starts).
 2. **Every later frame**, in order: pose and translation starting from the previous frames
    (constant velocity), with a smoothness term on the joints' acceleration.
 3. **All frames together**: a few iterations on the whole sequence with the same terms, so the
@@ -132,8 +133,10 @@ class BodyFitConfig:
     shape_centre: tuple = setting(())
     # session 35: after the first frame's fit, the shape again from the skin alone (.skin_shape):
     # body vertices within skin_distance of the clothed mesh are skin; the mask contours nearest
-    # to them and the clothed mesh there fit pose and phenotypes, from several starts
-    skin_shape: bool = option(True, "fit the body's shape again from where the clothed mesh lies on it (arms, head, "
+    # to them and the clothed mesh there fit pose and phenotypes, from several starts. Off by default:
+    # a non-default body's rest shape 8.23 -> 3.73 mm, but on the demo excerpt's whole `run` the
+    # preparation with it tracked 2.94 -> 3.51 mm and held-out CD 0.2056 -> 0.2225 (docs/prepare.md)
+    skin_shape: bool = option(False, "fit the body's shape again from where the clothed mesh lies on it (arms, head, "
                                     "lower legs), so a shape other than Anny's default is found", flag="--skin-shape/--no-skin-shape")
     skin_distance: float = setting(0.008)  # [m]
     skin_starts: tuple = setting((-0.15, 0.0, 0.15))  # the pass's starts: age offsets at equal stature
