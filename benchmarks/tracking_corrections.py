@@ -74,13 +74,14 @@ def _mean_mm(X, G, sel) -> float:
     return float(np.linalg.norm(X[sel] - G[sel], axis=1).mean() * 1e3)
 
 
-def corrections_from(capture: Path, flow_sets: dict, frames_sel: list[int], n: int, start: str,
+def corrections_from(setup: tuple, frames_sel: list[int], n: int, start: str,
                      reference: str = "first", tracked: np.ndarray | None = None) -> dict:
     """Per frame: free-garment error [mm] of ``n`` corrections started at the true mesh
-    (``start="truth"``) or at ``tracked`` (``start="tracked"``): {frame: [before, after]}."""
+    (``start="truth"``) or at ``tracked`` (``start="tracked"``): {frame: [before, after]}.
+    ``setup``: :func:`_setup`'s tuple for the variant."""
     from physavatar.stages.track.flow import ReferenceAppearance
 
-    cap, cfg, train, frames, truth, fs, free = _setup(capture, flow_sets)
+    cap, cfg, train, frames, truth, fs, free = setup
     out = {}
     for i in frames_sel:
         ref = fs.reference
@@ -96,10 +97,10 @@ def corrections_from(capture: Path, flow_sets: dict, frames_sel: list[int], n: i
     return out
 
 
-def sensitivity(capture: Path, frames_sel: list[int], tracked: np.ndarray | None, shift_mm: float) -> dict:
+def sensitivity(setup: tuple, frames_sel: list[int], tracked: np.ndarray | None, shift_mm: float) -> dict:
     """Measured correction flow against the true offsets (module docstring), at the tracked state
-    and at the rigidly shifted truth."""
-    cap, cfg, train, frames, truth, fs, free = _setup(capture, {})
+    and at the rigidly shifted truth; ``setup``: :func:`_setup`'s tuple with the defaults."""
+    cap, cfg, train, frames, truth, fs, free = setup
     lift, ref = fs.flow, fs.reference
     res = {}
     for i in frames_sel:
@@ -157,15 +158,16 @@ def main() -> None:
     variants = dict([("defaults", {})] + [_variant(v) for v in a.variant])
     fig: dict = {"bias": {}, "bias_reference_previous": {}, "from_tracked": {}}
     for name, sets in variants.items():
+        setup = _setup(a.capture, sets)
         print(f"[{name}] corrections from the truth", flush=True)
-        fig["bias"][name] = corrections_from(a.capture, sets, sel, a.corrections, "truth")
+        fig["bias"][name] = corrections_from(setup, sel, a.corrections, "truth")
         print(f"[{name}] the same, the true previous frame as reference", flush=True)
-        fig["bias_reference_previous"][name] = corrections_from(a.capture, sets, sel, a.corrections, "truth", "previous")
+        fig["bias_reference_previous"][name] = corrections_from(setup, sel, a.corrections, "truth", "previous")
         if tracked is not None:
             print(f"[{name}] corrections from the tracked state", flush=True)
-            fig["from_tracked"][name] = corrections_from(a.capture, sets, sel, a.corrections, "tracked", tracked=tracked)
+            fig["from_tracked"][name] = corrections_from(setup, sel, a.corrections, "tracked", tracked=tracked)
     print("sensitivity", flush=True)
-    fig["sensitivity"] = sensitivity(a.capture, sel, tracked, a.shift_mm)
+    fig["sensitivity"] = sensitivity(_setup(a.capture, {}), sel, tracked, a.shift_mm)
     checks = {}
     for key in ("bias", "bias_reference_previous", "from_tracked"):
         for name, rows in fig[key].items():
