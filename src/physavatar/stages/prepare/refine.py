@@ -23,7 +23,10 @@ hip, under the arms, between the legs under a skirt). Two kinds of evidence move
 * **The body prior** where no camera sees the surface: hull vertices that face away from every
   camera (the underside that closes the hull between a hem and the legs) are drawn to the
   fitted body's surface, which is the true surface under clothing there (as body-model priors
-  fill unseen regions in ICON / ECON).
+  fill unseen regions in ICON / ECON). Those facing down (``split_up``: the underside between a
+  hem and the legs) are smoothed apart from the rest of the hull: a hem is an open edge, the
+  cloth does not continue to the legs, and a field smoothed across it drags the seen hem up
+  into the skirt by the centimetres the underside moves (docs/prepare.md, Session 36).
 
 Both give each vertex a target and a confidence; a smooth displacement field (the mesh's graph
 Laplacian as the regulariser, one sparse solve, scipy) spreads them to the vertices without
@@ -168,11 +171,16 @@ def agreeing(F: np.ndarray, depth: np.ndarray, has: np.ndarray, rings: int, tol:
     return keep
 
 
-def _laplacian(F: np.ndarray, n: int):
+def _laplacian(F: np.ndarray, n: int, apart: np.ndarray | None = None):
+    """[n, n] the mesh's graph Laplacian (unit edge weights); with ``apart`` [n] bool, the edges
+    between a vertex in ``apart`` and one outside it are left out (the field is not smoothed
+    across that border)."""
     from scipy import sparse
 
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     e = np.unique(np.sort(e, 1), axis=0)
+    if apart is not None:
+        e = e[apart[e[:, 0]] == apart[e[:, 1]]]
     A = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
     A = (A + A.T).tocsr()
     A.data[:] = 1.0
@@ -270,6 +278,10 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
             info["body_prior"] = {"unseen_vertices": int(unseen.sum()),
                                   "moved_mean_mm": round(float(np.linalg.norm(tgt - V[unseen], axis=1).mean() * 1000), 1)}
     L = _laplacian(F, len(V))
+    split = np.zeros(len(V), bool)
+    if cfg.split_up > -1.5 and unseen.any():
+        split = unseen & (N[:, 2] <= cfg.split_up)
+        info["split_from_seen"] = int(split.sum())
     if cfg.w_offset > 0 and body_q is not None and photo_has.any():
         _offset_prior(V, L, body_q, on_body, target, conf, photo_has, seen & (conf == 0), cfg, fp, info)
     # the hull itself, weakly, where a camera sees it and nothing else speaks
@@ -277,7 +289,8 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
     conf[hull_anchor] = cfg.w_hull
     if not (conf > 0).any():
         return V, info | {"moved": 0}
-    A = (sparse.diags(conf) + cfg.smoothness * L).tocsc()
+    Ls = _laplacian(F, len(V), split) if split.any() else L
+    A = (sparse.diags(conf) + cfg.smoothness * Ls).tocsc()
     A = A + sparse.identity(len(V)) * 1e-6
     disp = spsolve(A, conf[:, None] * (target - V))
     disp = np.asarray(disp).reshape(len(V), 3)
