@@ -198,3 +198,54 @@ def test_an_untextured_hull_tail_is_drawn_to_its_neighbours_height_over_the_body
     assert res["new"][0] < 0.006, res["new"][0]  # 3.6 mm
     assert res["new"][2]["offset_prior"]["vertices"] > 0
     assert res["new"][1] < res["old"][1] + 0.001, (res["new"][1], res["old"][1])
+
+
+def test_the_unseen_underside_does_not_drag_the_seen_surface_in():
+    """A textured sphere seen only from above (its hull exact) over a body 8 cm inside it, as a
+    skirt over the legs: the lower cap no camera sees is drawn onto the body, 8 cm in. Smoothed
+    together with it, the seen vertices along its border (the hem, which the cameras see and the
+    photo evidence puts on the sphere) are dragged in by centimetres; smoothed apart from it
+    (``split_up`` 0, the default: the unseen vertices facing down, from the seen ones amid photo
+    evidence), they stay on the sphere."""
+    cams = ring_rig(6, 1.5, 2.2, (0, 0, 1.0), 160, 160, 40.0, n_elevated=0)
+    images, masks = _render(cams)
+    V, F = _sphere(R, 3)
+    BV, BF = _sphere(R - 0.08, 3)
+    err, infos, outs = {}, {}, {}
+    for name, kw in (("joined", dict(split_up=-2.0)), ("split", {})):
+        outs[name], infos[name] = refine_hull(V, F, cams, images, masks, BV, BF, RefineConfig(**kw))
+        err[name] = np.abs(np.linalg.norm(outs[name] - C0, axis=1) - R)
+    unseen = infos["split"]["_on_body"]
+    assert unseen.any() and (V[unseen, 2] < C0[2]).all()
+    assert infos["split"]["split_from_seen"] == int(unseen.sum())
+    # the seen vertices within two rings of the unseen cap (the "hem")
+    from physavatar.stages.prepare.refine import _rings
+
+    near = (np.asarray(_rings(F, len(V), 2)[unseen].sum(0)).ravel() > 0) & ~unseen
+    assert near.sum() > 20
+    assert err["joined"][near].mean() > 0.01, err["joined"][near].mean()
+    assert err["split"][near].mean() < 0.004, err["split"][near].mean()
+    # the unseen cap still lands on the body
+    r = np.linalg.norm(outs["split"][unseen] - C0, axis=1)
+    assert np.abs(r - (R - 0.08)).mean() < 0.006, np.abs(r - (R - 0.08)).mean()
+
+
+def test_without_photo_evidence_the_underside_still_pulls_its_neighbours():
+    """Where no seen vertex has photo evidence near the unseen underside (coarse pixels: the tiny
+    capture's 2.3-cm ones), the body prior's pull on its seen neighbours is the only thing that
+    tightens a loose hull: the split leaves the field as it was (the same result to the bit)."""
+    cams = ring_rig(6, 1.5, 2.2, (0, 0, 1.0), 160, 160, 40.0, n_elevated=0)
+    flat = {c.name: np.full((c.height, c.width, 3), 128, np.uint8) for c in cams}
+    _, masks = _render(cams)
+    V, F = _sphere(R, 3)
+    BV, BF = _sphere(R - 0.08, 3)
+    a, info = refine_hull(V, F, cams, flat, masks, BV, BF, RefineConfig())
+    b, _ = refine_hull(V, F, cams, flat, masks, BV, BF, RefineConfig(split_up=-2.0))
+    assert info["_on_body"].any() and "split_from_seen" not in info
+    assert np.array_equal(a, b)
+    # and the seen vertices next to the underside are pulled in by it (the behaviour kept)
+    from physavatar.stages.prepare.refine import _rings
+
+    unseen = info["_on_body"]
+    near = (np.asarray(_rings(F, len(V), 1)[unseen].sum(0)).ravel() > 0) & ~unseen
+    assert (np.linalg.norm(a[near] - C0, axis=1) < R - 0.01).mean() > 0.5

@@ -92,6 +92,10 @@ class RefineConfig:
     offset_tol: float = setting(5.0)  # by more than this many pixel footprints are drawn down to it
     offset_rings: float = setting(4.0)  # that height is the evidence's spread over about this many edges
     offset_support: float = setting(0.2)  # and is used where the evidence's spread indicator is this or more
+    # unseen vertices drawn onto the body whose hull normal's up component is at most this (the
+    # underside between a hem and the legs) are smoothed apart from the seen vertices amid photo
+    # evidence (-2: not at all; docs/prepare.md, session 36)
+    split_up: float = setting(0.0)
     body_margin: float = setting(0.0)  # [m] unseen parts land this far outside the body
     smoothness: float = setting(0.3)  # Laplacian weight of the displacement field
     chunk: int = setting(256)  # vertices per vectorised block

@@ -23,7 +23,10 @@ hip, under the arms, between the legs under a skirt). Two kinds of evidence move
 * **The body prior** where no camera sees the surface: hull vertices that face away from every
   camera (the underside that closes the hull between a hem and the legs) are drawn to the
   fitted body's surface, which is the true surface under clothing there (as body-model priors
-  fill unseen regions in ICON / ECON).
+  fill unseen regions in ICON / ECON). Those facing down (``split_up``: the underside between a
+  hem and the legs) are smoothed apart from the rest of the hull: a hem is an open edge, the
+  cloth does not continue to the legs, and a field smoothed across it drags the seen hem up
+  into the skirt by the centimetres the underside moves (docs/prepare.md, Session 36).
 
 Both give each vertex a target and a confidence; a smooth displacement field (the mesh's graph
 Laplacian as the regulariser, one sparse solve, scipy) spreads them to the vertices without
@@ -168,15 +171,32 @@ def agreeing(F: np.ndarray, depth: np.ndarray, has: np.ndarray, rings: int, tol:
     return keep
 
 
-def _laplacian(F: np.ndarray, n: int):
+def _laplacian(F: np.ndarray, n: int, apart: np.ndarray | None = None, held: np.ndarray | None = None):
+    """[n, n] the mesh's graph Laplacian (unit edge weights); with ``apart`` and ``held`` [n]
+    bool, the edges between a vertex in ``apart`` and a ``held`` one outside it are left out (the
+    field is not smoothed across that border)."""
     from scipy import sparse
 
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     e = np.unique(np.sort(e, 1), axis=0)
+    if apart is not None:
+        a, b = apart[e[:, 0]], apart[e[:, 1]]
+        e = e[~((a & ~b & held[e[:, 1]]) | (b & ~a & held[e[:, 0]]))]
     A = sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
     A = (A + A.T).tocsr()
     A.data[:] = 1.0
     return sparse.diags(np.asarray(A.sum(1)).ravel()) - A
+
+
+def _spread(L, c: np.ndarray, rhs: np.ndarray, rings: float) -> np.ndarray:
+    """``rhs`` [V, k] spread over the mesh from the vertices weighted ``c`` [V] by one screened
+    Laplacian (decay length ``rings`` edges): a normalised convolution's numerator; with ``rhs``
+    = ``c``, the indicator's spread (1 amid the vertices, falling away from them)."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    A = (sparse.diags(c) + L + sparse.identity(L.shape[0]) / rings ** 2).tocsc()
+    return np.asarray(spsolve(A, rhs)).reshape(L.shape[0], -1)
 
 
 def _offset_prior(V, L, body_q, on_body, target, conf, known, free, cfg: RefineConfig, fp: float, info: dict) -> None:
@@ -186,9 +206,6 @@ def _offset_prior(V, L, body_q, on_body, target, conf, known, free, cfg: RefineC
     a hull tail (a concavity no camera's silhouette carves, e.g. in front of the waist between the
     hands in the side views) and is drawn down to it with weight ``w_offset`` (in place of the
     hull anchor). Changes ``target`` and ``conf`` in place."""
-    from scipy import sparse
-    from scipy.sparse.linalg import spsolve
-
     h_hull, bp, _ = on_body  # body_q.signed_distance(V), the caller's
     h_known = body_q.signed_distance(target[known])[0]
     c = np.zeros(len(V))
@@ -198,8 +215,7 @@ def _offset_prior(V, L, body_q, on_body, target, conf, known, free, cfg: RefineC
     # normalised convolution on the mesh: the evidence's heights and its indicator spread by the
     # same screened Laplacian (decay length ``offset_rings`` edges); their ratio is the local
     # mean height, the indicator's spread (1 amid evidence, falling away from it) its support
-    A = (sparse.diags(c) + L + sparse.identity(len(V)) / cfg.offset_rings ** 2).tocsc()
-    sol = np.asarray(spsolve(A, np.stack([rhs, c], 1)))
+    sol = _spread(L, c, np.stack([rhs, c], 1), cfg.offset_rings)
     support = sol[:, 1]
     h = sol[:, 0] / np.maximum(support, 1e-9)
     tail = free & (support >= cfg.offset_support) & (h_hull > h + cfg.offset_tol * fp) & (h > 0)
@@ -270,6 +286,15 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
             info["body_prior"] = {"unseen_vertices": int(unseen.sum()),
                                   "moved_mean_mm": round(float(np.linalg.norm(tgt - V[unseen], axis=1).mean() * 1000), 1)}
     L = _laplacian(F, len(V))
+    split, held = np.zeros(len(V), bool), None
+    if cfg.split_up > -1.5 and unseen.any() and photo_has.any():
+        # the unseen underside apart from the seen vertices amid photo evidence (the evidence's
+        # spread, as the height prior's support): where none is near (coarse pixels), the body
+        # prior's pull on its seen neighbours is the best guess there is, and stays
+        split = unseen & (N[:, 2] <= cfg.split_up)
+        held = seen & (_spread(L, photo_has.astype(np.float64), photo_has.astype(np.float64),
+                               cfg.offset_rings)[:, 0] >= cfg.offset_support)
+        info["split_from_seen"] = int(split.sum())
     if cfg.w_offset > 0 and body_q is not None and photo_has.any():
         _offset_prior(V, L, body_q, on_body, target, conf, photo_has, seen & (conf == 0), cfg, fp, info)
     # the hull itself, weakly, where a camera sees it and nothing else speaks
@@ -277,7 +302,8 @@ def refine_hull(V: np.ndarray, F: np.ndarray, cameras: list, images: dict[str, n
     conf[hull_anchor] = cfg.w_hull
     if not (conf > 0).any():
         return V, info | {"moved": 0}
-    A = (sparse.diags(conf) + cfg.smoothness * L).tocsc()
+    Ls = _laplacian(F, len(V), split, held) if split.any() else L
+    A = (sparse.diags(conf) + cfg.smoothness * Ls).tocsc()
     A = A + sparse.identity(len(V)) * 1e-6
     disp = spsolve(A, conf[:, None] * (target - V))
     disp = np.asarray(disp).reshape(len(V), 3)
