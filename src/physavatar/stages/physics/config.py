@@ -38,6 +38,9 @@ class PhysicsConfig:
         max_vertices: fit on a coarse proxy of at most this many vertices when the garment has
             more (0: always the full garment).
         shape_weight: weight of the local-shape residuals (None: 3 with exact, 0 with fd).
+        select_shape_weight: with exact gradients and ``shape_weight`` None, fit with weight 3
+            and with 0 and keep the one that predicts the frames after the window (up to a
+            window's length of them) better (stage.select_shape_weight; session 36).
         contact_offset: the cloth's contact thickness [m] (Material.contact_offset, ipctk's d_min);
             None: estimated from the start frame, the garment's distance to the body where it
             rests on it (sim.offset.estimate_contact_offset; 0 when it does not rest on it at
@@ -81,6 +84,10 @@ class PhysicsConfig:
     shape_weight: float | None = option(None, "weight of the local-shape residuals next to L_sim (default: 3 "
                                               "with exact, 0 = the paper's L_sim with fd; docs/physics.md)",
                                         flag="--shape-weight", check=lambda v: None if v >= 0 else "must be >= 0")
+    select_shape_weight: bool = option(False, "without --shape-weight (exact): fit with the shape term (weight 3) "
+                                              "and without it, and keep the fit whose material predicts the frames "
+                                              "after the window better (a second fit; docs/physics.md)",
+                                       flag="--select-shape-weight")
     contact_offset: float | None = option(None, "cloth contact thickness in m, kept between cloth and body "
                                                 "(default: estimated from the start frame where the garment "
                                                 "rests on the body; 0 = none; docs/physics.md)",
