@@ -297,7 +297,7 @@ def incline(tan_theta: float):
     x = np.c_[u.ravel(), v.ravel(), np.full(u.size, 5e-4)]
     plane = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], float)
     pf = np.array([[0, 1, 2], [0, 2, 3]])
-    mat = preset("cotton")
+    mat = dataclasses.replace(preset("cotton"), rest_shape="equilibrium", rest_friction=True)
     x, info = static_equilibrium(x, F, mat, x, (), plane, pf, friction=0.0)  # settled on the level plane
     assert info["converged"]
     c, s = 1 / np.hypot(1, tan_theta), tan_theta / np.hypot(1, tan_theta)
@@ -322,16 +322,23 @@ def test_static_friction_holds_a_sheet_on_an_incline_below_the_friction_angle_on
         assert info.get("gave_up") and moved > 0.02
     x, info = static_equilibrium(x0, F, mat, x0, (), P, PF, SimSettings(friction=0.3), give_up_rms=0.02, friction=0.0)
     assert info.get("gave_up")
+    plain = dataclasses.replace(mat, rest_friction=False)  # a material without it: frictionless, as before session 36
+    x, info = static_equilibrium(x0, F, plain, x0, (), P, PF, SimSettings(friction=0.3), give_up_rms=0.02)
+    assert info.get("gave_up")
 
 
 def test_the_rest_solve_holds_a_sheet_on_an_incline_with_static_friction():
-    """The rest solve of the sheet on the plane at tan θ = 0.2: with the simulations' friction
-    (μ = 0.2 ≥ tan θ, the default) the start is a static equilibrium, at rest to the tolerance; a
-    frictionless solve (``friction=0``, the solve before session 36) finds the sheet sliding off and
-    no rest shape that holds it (not at rest: the callers keep the template)."""
+    """The rest solve of the sheet on the plane at tan θ = 0.18: for a material with
+    ``rest_friction`` and the simulations' friction (μ = 0.2 > tan θ, the default) the start is a
+    static equilibrium, at rest to the tolerance in one round; frictionless (a material without it,
+    the solve before session 36) the sheet slides off and no rest shape holds it (not at rest: the
+    callers keep the template). The material records the option; older files are unchanged."""
     x0, F, P, PF, mat = incline(0.2 * 0.9)
     X, rep = equilibrium_rest(x0, F, mat, (), P, PF, SimSettings())
     assert rep["converged"] and rep["at_rest"] and rep["friction"] == 0.2 and rep["rounds"] == 1
     assert np.allclose(X, x0)
-    X, rep = equilibrium_rest(x0, F, mat, (), P, PF, SimSettings(), friction=0.0)
-    assert not rep["at_rest"] and rep["stopped"] == "moving"
+    plain = dataclasses.replace(mat, rest_friction=False)
+    X, rep = equilibrium_rest(x0, F, plain, (), P, PF, SimSettings())
+    assert not rep["at_rest"] and rep["stopped"] == "moving" and rep["friction"] == 0.0
+    assert mat.to_dict()["rest_friction"] is True and "rest_friction" not in plain.to_dict()
+    assert Material.from_dict(mat.to_dict()) == mat

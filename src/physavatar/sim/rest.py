@@ -16,14 +16,14 @@ and bending in their own modes; the mixing fits the rest of the Jacobian from th
 step, halved on each restart that finds no better round), so no mixed derivative ∂²E/∂x∂X̄ (which the simulator does not have) is needed. Each round's
 equilibrium (:func:`static_equilibrium`) is the simulator's own implicit step repeated with the
 velocity reset to zero (a proximal-point iteration: every step minimises the static energy plus
-½‖x − xₖ‖²_M / h², so it ends where the static energy is stationary), undamped, and with *static*
-friction (session 36, :class:`StaticFriction`): Coulomb friction against the body anchored at the
-start x₀ (the tangential displacement from x₀, not the step's, smoothed over the distance the
+½‖x − xₖ‖²_M / h², so it ends where the static energy is stationary), undamped, and frictionless,
+or, for a material with ``rest_friction`` (session 36, opt-in: ``fit-physics --rest-friction``),
+with *static* friction (:class:`StaticFriction`): Coulomb friction against the body anchored at
+the start x₀ (the tangential displacement from x₀, not the step's, smoothed over the distance the
 simulations treat as sticking, ε_v·dt), so the equilibrium is one in which every contact's
-tangential force lies within μ × its normal force. Frictionless (the code before session 36,
-``friction=0``), a flared skirt resting on the hips slides down them: its frictionless
-equilibrium is far from the start, and no rest shape near the template holds it there
-(docs/physics.md "Issue 22, session 36").
+tangential force lies within μ × its normal force. Frictionless, a flared skirt resting on the
+hips slides down them: its frictionless equilibrium is far from the start, and no rest shape near
+the template holds it there (docs/physics.md "Issue 22, session 36").
 """
 
 from __future__ import annotations
@@ -76,6 +76,14 @@ class StaticFriction(Friction):
         self.dt, self.previous = 1.0, self.anchor
 
 
+def rest_friction(material: Material, settings: SimSettings | None, friction: float | None = None) -> float:
+    """The static-friction coefficient of the equilibrium: ``friction`` when given, else the
+    simulations' (``settings.friction``) when ``material.rest_friction``, else 0 (frictionless)."""
+    if friction is not None:
+        return float(friction)
+    return (settings or SimSettings()).friction if material.rest_friction else 0.0
+
+
 def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> SimSettings:
     """The settings of the equilibrium solve: ``settings``' contact model (d̂, d_min, self-contact,
     gravity, membrane model) without damping, implicit Euler with step ``h``, Newton to a step below
@@ -95,7 +103,7 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
     ``x_start`` [N, 3] (v = 0): the boundary vertices stay at ``x_start``'s positions, the body
     ``body`` [Nb, 3] / ``body_faces`` (None: no body) is still. ``friction``: the Coulomb
     coefficient against the body, anchored at ``x_start`` (:class:`StaticFriction`; None:
-    ``settings.friction``, 0.2 by default; 0: frictionless, as before session 36). Implicit steps
+    ``settings.friction`` when ``material.rest_friction``, else 0: frictionless). Implicit steps
     of length ``h`` with the velocity reset to zero after each (undamped; module docstring) until a
     step moves no vertex by more than ``tol`` [m], at most ``max_steps``, or until it is more than
     ``give_up_rms`` [m] (RMS) from ``x_start`` (info["gave_up"]). Returns (x [N, 3],
@@ -107,7 +115,7 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
     from .solver import ClothSim
 
     s = equilibrium_settings(settings, h, tol)
-    mu = s.friction if friction is None else float(friction)
+    mu = rest_friction(material, settings, friction)
     s = dataclasses.replace(s, friction=mu)
     sim = ClothSim(rest, faces, material, s, boundary, extra_terms=extra_terms, contact_exclude=contact_exclude)
     x = np.array(x_start, dtype=np.float64)
@@ -183,8 +191,9 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
 
     ``material``: its density and stiffnesses (and contact offset) decide X̄; ``settings``: the
     contact model, gravity and friction coefficient of the simulations that will use it (damping
-    is ignored: it vanishes at rest); ``friction``: the coefficient of the equilibria's static
-    friction instead (:func:`static_equilibrium`; 0: frictionless, the solve before session 36).
+    is ignored: it vanishes at rest); the equilibria hold the garment with static friction of that
+    coefficient when ``material.rest_friction`` (:func:`static_equilibrium`), frictionless
+    otherwise; ``friction``: that coefficient instead.
     ``path``: the file named in the messages about bad input.
     Returns (X̄, report): report["converged"] says whether the tolerance was met within
     ``max_rounds`` (otherwise X̄ is the round with the smallest RMS error); "at_rest" whether
@@ -221,7 +230,7 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     free = np.ones(len(x0), bool)
     free[b] = False
     kw = dict(h=h, tol=0.1 * tol, extra_terms=extra_terms, contact_exclude=contact_exclude, friction=friction)
-    mu = (settings or SimSettings()).friction if friction is None else float(friction)
+    mu = rest_friction(material, settings, friction)
     X = x0.copy()
     stopped = "max_rounds"  # why the rounds ended (report["stopped"])
     G, R = [], []  # the fixed point's g(X) = X − (x_eq(X) − x0) and residuals, flat

@@ -156,7 +156,8 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The reference materials: two independent simulations, side by side (physavatar.parallel),
     # or taken from a `reference_sequences` folder made earlier (`physavatar run` makes it while
     # tracking runs).
-    references_ = _reference_materials(gt_root, seed, random_draws, av.material.contact_offset, av.material.rest_shape)
+    references_ = _reference_materials(gt_root, seed, random_draws, av.material.contact_offset, av.material.rest_shape,
+                                       av.material.rest_friction)
     refs = {r.row: r.material for r in references_}
     if oracle is not None:
         from ..data.material import FittedMaterial

@@ -61,16 +61,19 @@ class Reference(NamedTuple):
 
 
 def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS,
-                         contact_offset: float = 0.0, rest_shape: str = "template") -> list[Reference]:
+                         contact_offset: float = 0.0, rest_shape: str = "template",
+                         rest_friction: bool = False) -> list[Reference]:
     """The rows that need only the capture: the true material (when the capture has one, folder
     ``true``; with the thickness its file records) and each random draw (:func:`random_draw_row`,
     folder ``random-<seed>``) in the simulation model of the estimate it is compared with: its
-    contact thickness ``contact_offset`` [m] and its ``rest_shape`` (Material.contact_offset,
-    Material.rest_shape: the fit's model, docs/physics.md)."""
+    contact thickness ``contact_offset`` [m] and its ``rest_shape`` and ``rest_friction``
+    (Material.contact_offset, Material.rest_shape, Material.rest_friction: the fit's model,
+    docs/physics.md)."""
     true_path = gt_root / "material.json"
     return ([Reference("true material", "true", Material.load(true_path))] if true_path.exists() else []) + \
         [Reference(random_draw_row(s), f"random-{s}", dataclasses.replace(random_material(s), contact_offset=contact_offset,
-                                                                          rest_shape=rest_shape))
+                                                                          rest_shape=rest_shape,
+                                                                          rest_friction=rest_friction))
          for s in random_seeds(seed, draws)]
 
 

@@ -38,6 +38,9 @@ class PhysicsConfig:
         max_vertices: fit on a coarse proxy of at most this many vertices when the garment has
             more (0: always the full garment).
         shape_weight: weight of the local-shape residuals (None: 3 with exact, 0 with fd).
+        rest_friction: with ``rest_shape`` "equilibrium", the rest solve's equilibria hold the
+            garment with static friction (Material.rest_friction, sim.rest.StaticFriction;
+            session 36); the material records it, so animate/evaluate solve the same.
         select_shape_weight: with exact gradients and ``shape_weight`` None, fit with weight 3
             and with 0 and keep the one that predicts the frames after the window (up to a
             window's length of them) better (stage.select_shape_weight; session 36).
@@ -84,6 +87,9 @@ class PhysicsConfig:
     shape_weight: float | None = option(None, "weight of the local-shape residuals next to L_sim (default: 3 "
                                               "with exact, 0 = the paper's L_sim with fd; docs/physics.md)",
                                         flag="--shape-weight", check=lambda v: None if v >= 0 else "must be >= 0")
+    rest_friction: bool = option(False, "with --rest-shape equilibrium: the rest solve holds the garment with static "
+                                        "friction (--friction, anchored at the start frame) instead of frictionless; "
+                                        "the material records it (docs/physics.md)", flag="--rest-friction")
     select_shape_weight: bool = option(False, "without --shape-weight (exact): fit with the shape term (weight 3) "
                                               "and without it, and keep the fit whose material predicts the frames "
                                               "after the window better (a second fit; docs/physics.md)",

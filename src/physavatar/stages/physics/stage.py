@@ -47,6 +47,8 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
     initial = far_material() if cfg.init == "far" else resolve_material(cfg.init)
     if cfg.density is not None:
         initial = dataclasses.replace(initial, density=cfg.density)
+    if cfg.rest_friction and cfg.rest_shape == "equilibrium":
+        initial = dataclasses.replace(initial, rest_friction=True)
     sequence = load_physics_data(source)
     if cfg.start < 0 or cfg.start + 2 > sequence.frames:
         raise PhysavatarError(None, f"option --start: must leave at least 2 of the {sequence.frames} frames")
@@ -123,6 +125,8 @@ def run(source: Path, *, out: Path, config: PhysicsConfig, progress=None,
             result.shape_selection = selection
         if rest_report is not None:
             start_info["rest_shape"] = rest_report
+        if result.material.rest_shape != "equilibrium":  # (kept the first fit: no rest solve in its model)
+            result.material = dataclasses.replace(result.material, rest_friction=False)
     result.start_state = start_info
     if proxy is not None:
         result.proxy = {"vertices": len(proxy.vertices), "faces": len(proxy.faces), "boundary": len(proxy.boundary),
