@@ -169,7 +169,9 @@ def select_shape_weight(following, candidates, weights, window: int, settings, s
                        substeps=substeps)
         err = run_.positions[window:] - d.reference[window:]
         rms = 1e3 * float(np.sqrt(np.mean(np.sum(err * err, axis=-1))))
+        per_frame = 1e3 * np.sqrt(np.mean(np.sum(err * err, axis=-1), axis=-1))
         rows.append({"shape_weight": w if w is not None else SHAPE_WEIGHT, "heldout_rms_mm": rms,
+                     "heldout_rms_mm_per_frame": [round(float(v), 4) for v in per_frame],
                      "fit_rms_mm": result.rms_mm, "stretch_ratio": result.material.stretch_ratio,
                      "bend_ratio": result.material.bend_ratio, "integrator": result.material.integrator,
                      "converged": bool(run_.converged), "material": result.material.to_dict()})
