@@ -6,10 +6,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ...errors import PhysavatarError
-from ...sim.material import FIT_REST_SHAPE, REST_SHAPES
+from ...sim.material import FIT_REST_FRICTION, FIT_REST_SHAPE, REST_SHAPES
 from ..base import option, options
 
 GRADIENTS = ("fd", "exact")
+SELECT_SHAPE_WEIGHT = False  # fit-physics --select-shape-weight's default (session 36)
 INTEGRATORS = ("auto", "euler", "bdf2")
 
 
@@ -87,11 +88,11 @@ class PhysicsConfig:
     shape_weight: float | None = option(None, "weight of the local-shape residuals next to L_sim (default: 3 "
                                               "with exact, 0 = the paper's L_sim with fd; docs/physics.md)",
                                         flag="--shape-weight", check=lambda v: None if v >= 0 else "must be >= 0")
-    rest_friction: bool = option(False, "with --rest-shape equilibrium: the rest solve holds the garment with static "
-                                        "friction (--friction, anchored at the start frame) instead of frictionless; "
+    rest_friction: bool = option(FIT_REST_FRICTION, "with --rest-shape equilibrium: the rest solve holds the "
+                                                    "garment with static friction (--friction, anchored at the start frame) instead of frictionless; "
                                         "the material records it (docs/physics.md)", flag="--rest-friction")
-    select_shape_weight: bool = option(False, "without --shape-weight (exact): fit with the shape term (weight 3) "
-                                              "and without it, and keep the fit whose material predicts the frames "
+    select_shape_weight: bool = option(SELECT_SHAPE_WEIGHT, "without --shape-weight (exact): fit with the shape "
+                                                            "term (weight 3) and without it, and keep the fit whose material predicts the frames "
                                               "after the window better (a second fit; docs/physics.md)",
                                        flag="--select-shape-weight")
     contact_offset: float | None = option(None, "cloth contact thickness in m, kept between cloth and body "
