@@ -88,13 +88,14 @@ class PhysicsConfig:
     shape_weight: float | None = option(None, "weight of the local-shape residuals next to L_sim (default: 3 "
                                               "with exact, 0 = the paper's L_sim with fd; docs/physics.md)",
                                         flag="--shape-weight", check=lambda v: None if v >= 0 else "must be >= 0")
-    rest_friction: bool = option(FIT_REST_FRICTION, "with --rest-shape equilibrium: the rest solve holds the "
-                                                    "garment with static friction (--friction, anchored at the start frame) instead of frictionless; "
-                                        "the material records it (docs/physics.md)", flag="--rest-friction")
-    select_shape_weight: bool = option(SELECT_SHAPE_WEIGHT, "without --shape-weight (exact): fit with the shape "
-                                                            "term (weight 3) and without it, and keep the fit whose material predicts the frames "
-                                              "after the window better (a second fit; docs/physics.md)",
-                                       flag="--select-shape-weight")
+    rest_friction: bool = option(FIT_REST_FRICTION,
+                                 "with --rest-shape equilibrium: the rest solve holds the garment with static friction "
+                                 "(--friction, anchored at the start frame) instead of frictionless; the material "
+                                 "records it (docs/physics.md)", flag="--rest-friction")
+    select_shape_weight: bool = option(SELECT_SHAPE_WEIGHT,
+                                       "without --shape-weight (exact): fit with the shape term (weight 3) and without "
+                                       "it, and keep weight 0 only when it predicts the frames after the window better "
+                                       "in a sign test (a second fit; docs/physics.md)", flag="--select-shape-weight")
     contact_offset: float | None = option(None, "cloth contact thickness in m, kept between cloth and body "
                                                 "(default: estimated from the start frame where the garment "
                                                 "rests on the body; 0 = none; docs/physics.md)",
