@@ -342,3 +342,14 @@ def test_the_rest_solve_holds_a_sheet_on_an_incline_with_static_friction():
     assert not rep["at_rest"] and rep["stopped"] == "moving" and rep["friction"] == 0.0
     assert mat.to_dict()["rest_friction"] is True and "rest_friction" not in plain.to_dict()
     assert Material.from_dict(mat.to_dict()) == mat
+
+
+def test_the_random_draws_get_the_estimates_rest_friction(tmp_path):
+    """evaluate's and reference-sims' random draws are simulated in the estimate's model: with a
+    material that records rest_friction, so do the draws (and not otherwise)."""
+    from physavatar.stages.references import _reference_materials
+
+    for flag in (True, False):
+        refs = _reference_materials(tmp_path, 0, 3, 1e-3, "equilibrium", flag)
+        assert len(refs) == 3 and all(r.material.rest_friction is flag for r in refs)
+        assert all(r.material.rest_shape == "equilibrium" and r.material.contact_offset == 1e-3 for r in refs)
