@@ -35,7 +35,7 @@ CODIM_BASE_POISSON = 0.071
 CODIM_BASE_THICKNESS = 0.328e-3  # m
 REST_SHAPES = ("template", "equilibrium")  # Material.rest_shape
 FIT_REST_SHAPE = "equilibrium"  # what fit-physics (and reference-sims' draws) use by default, since session 28
-FIT_REST_FRICTION = False  # fit-physics --rest-friction's default (Material.rest_friction; session 36)
+FIT_REST_FRICTION = True  # fit-physics --rest-friction (Material.rest_friction): the default since session 36
 
 
 @dataclasses.dataclass(frozen=True)

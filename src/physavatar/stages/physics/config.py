@@ -10,7 +10,7 @@ from ...sim.material import FIT_REST_FRICTION, FIT_REST_SHAPE, REST_SHAPES
 from ..base import option, options
 
 GRADIENTS = ("fd", "exact")
-SELECT_SHAPE_WEIGHT = False  # fit-physics --select-shape-weight's default (session 36)
+SELECT_SHAPE_WEIGHT = True  # fit-physics --select-shape-weight: the default since session 36
 INTEGRATORS = ("auto", "euler", "bdf2")
 
 
