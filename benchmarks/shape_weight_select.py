@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 CASES = ("skirt-plaid-256", "top-print-512", "top-plain-256")
+HOLD = 0.01  # a held-out CD within 1 % of the run's estimate holds (issue 22 point 6)
 
 
 def fit(track: Path, out: Path, window: int, iterations: int, rest_friction: bool) -> dict:
@@ -137,11 +138,14 @@ def summarise(name: str, run: Path, sel: dict, rows: dict, floor: float, points:
             "unit": f"1 - (CD - floor)/(CD_LBS - floor) at {points} points, the kept fit"}
     # the run's estimate as its evaluate scored it, or the same material simulated again here (today's
     # code and, for the foreign captures, the candidates' rest model), whichever is higher
+    # whichever is higher, within HOLD (1 %: the same material scored by the run and here differs by up to 0.15 %
+    # where the model is the same, the demo and the tops)
     ref = max(fig["before"]["estimated_x1e3"], cd["before_est"])
-    checks[f"{name}:heldout_cd_not_worse_than_before"] = {
-        "value": cd[chosen], "target": f"<= {ref:.6g} (the run's estimate: its evaluate {fig['before']['estimated_x1e3']:.6g}, "
-                                      f"simulated again here {cd['before_est']:.6g})",
-        "pass": bool(cd[chosen] <= ref), "unit": f"garment CD x1e3 at {points} points"}
+    checks[f"{name}:heldout_cd_holds"] = {
+        "value": cd[chosen] / ref - 1, "target": f"<= {HOLD:g}",
+        "pass": bool(cd[chosen] <= ref * (1 + HOLD)), "unit": f"relative change of the garment CD at {points} points "
+        f"against the run's estimate (its evaluate {fig['before']['estimated_x1e3']:.6g}, simulated again here "
+        f"{cd['before_est']:.6g}), the kept fit {cd[chosen]:.6g}"}
     return fig, checks
 
 

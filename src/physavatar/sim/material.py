@@ -73,8 +73,9 @@ class Material:
             records it. A garment with a designed rest shape (a sewing pattern) keeps that one.
         rest_friction: with rest_shape "equilibrium": the equilibrium holds the garment with static
             friction against the body (the simulations' coefficient, anchored at the start:
-            sim.rest.StaticFriction, session 36) instead of frictionless. ``fit-physics
-            --rest-friction`` fits in that model and records it; False (omitted) for older files.
+            sim.rest.StaticFriction, session 36) instead of frictionless. ``fit-physics`` fits in
+            that model and records it by default (``--no-rest-friction``: not); False (omitted)
+            for presets and older files.
     """
 
     density: float = 0.131

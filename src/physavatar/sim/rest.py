@@ -17,7 +17,7 @@ step, halved on each restart that finds no better round), so no mixed derivative
 equilibrium (:func:`static_equilibrium`) is the simulator's own implicit step repeated with the
 velocity reset to zero (a proximal-point iteration: every step minimises the static energy plus
 ½‖x − xₖ‖²_M / h², so it ends where the static energy is stationary), undamped, and frictionless,
-or, for a material with ``rest_friction`` (session 36, opt-in: ``fit-physics --rest-friction``),
+or, for a material with ``rest_friction`` (session 36; ``fit-physics`` records it by default),
 with *static* friction (:class:`StaticFriction`): Coulomb friction against the body anchored at
 the start x₀ (the tangential displacement from x₀, not the step's, smoothed over the distance the
 simulations treat as sticking, ε_v·dt), so the equilibrium is one in which every contact's
