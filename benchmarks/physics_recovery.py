@@ -462,7 +462,7 @@ def main():
             rows[(setting, name, "exact")]["true_material_objective_m2"] = float(r_true @ r_true)
             estimates = [("estimated_exact", res.material)]
             if "equilibrium" in rest_shapes:  # fit-physics --rest-shape equilibrium: from the first fit
-                eq, eq_report = refit_at_equilibrium(
+                eq, eq_report, _ = refit_at_equilibrium(
                     data, res, dataclasses.replace(fit_settings, integrator="euler"),
                     lambda d, init: exact_fit(d, init, callback=logger(f"{name} {setting}", "exact_rest_eq", 1),
                                               shape_weight=args.shape_weight), print)

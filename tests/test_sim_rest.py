@@ -13,7 +13,7 @@ from scipy.integrate import trapezoid
 from scipy.optimize import brentq
 
 from physavatar.errors import PhysavatarError
-from physavatar.sim import Material, preset, simulate
+from physavatar.sim import Material, SimSettings, preset, simulate
 from physavatar.sim import rest as sim_rest
 from physavatar.sim.rest import MOVING_RMS, equilibrium_rest, static_equilibrium
 
@@ -285,3 +285,71 @@ def test_a_body_through_the_held_band_only_does_not_refuse_the_rest_solve():
     assert X[:, 2].min() > x0[:, 2].min() + 1e-3  # the rest shape is shorter than the loaded strip (it stretches under its weight)
     with pytest.raises(PhysavatarError, match="outside the body"):
         equilibrium_rest(x0, F, mat, top, bV, bF)
+
+
+def incline(tan_theta: float):
+    """A 6 × 6 cm cotton sheet (no boundary) resting on a plane tilted by θ = atan(``tan_theta``)
+    about y, at the distance the barrier holds it at on the level plane (its frictionless static
+    equilibrium there). Returns (x0, faces, plane vertices, plane faces, material)."""
+    u, v = np.meshgrid(np.linspace(-0.03, 0.03, 6), np.linspace(-0.03, 0.03, 6), indexing="ij")
+    F = np.array([f for i in range(5) for j in range(5)
+                  for f in ([i * 6 + j, i * 6 + j + 7, i * 6 + j + 1], [i * 6 + j, i * 6 + j + 6, i * 6 + j + 7])])
+    x = np.c_[u.ravel(), v.ravel(), np.full(u.size, 5e-4)]
+    plane = np.array([[-0.5, -0.5, 0], [0.5, -0.5, 0], [0.5, 0.5, 0], [-0.5, 0.5, 0]], float)
+    pf = np.array([[0, 1, 2], [0, 2, 3]])
+    mat = dataclasses.replace(preset("cotton"), rest_shape="equilibrium", rest_friction=True)
+    x, info = static_equilibrium(x, F, mat, x, (), plane, pf, friction=0.0)  # settled on the level plane
+    assert info["converged"]
+    c, s = 1 / np.hypot(1, tan_theta), tan_theta / np.hypot(1, tan_theta)
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    return x @ R.T, F, plane @ R.T, pf, mat
+
+
+@pytest.mark.parametrize("tan_theta, holds", [(0.2, True), (0.25, True), (0.35, False), (0.5, False)])
+def test_static_friction_holds_a_sheet_on_an_incline_below_the_friction_angle_only(tan_theta, holds):
+    """Coulomb: a body resting on a plane inclined by θ stays where it is when tan θ ≤ μ and slides
+    when tan θ > μ, whatever its weight. The equilibrium with static friction μ = 0.3 anchored at
+    the start (sim.rest.StaticFriction) must keep the sheet within the sticking distance (ε_v·dt =
+    0.04 mm, plus the barrier's normal settle) below the friction angle (tan θ = 0.2, 0.25) and let
+    it slide off (farther than 2 cm: the solve gives up) above it (0.35, 0.5); frictionless, as the
+    solve was before session 36, it slides at every angle."""
+    x0, F, P, PF, mat = incline(tan_theta)
+    x, info = static_equilibrium(x0, F, mat, x0, (), P, PF, SimSettings(friction=0.3), give_up_rms=0.02)
+    moved = np.linalg.norm(x - x0, axis=1).max()
+    if holds:
+        assert info["converged"] and not info.get("gave_up") and moved < 0.1e-3, moved
+    else:
+        assert info.get("gave_up") and moved > 0.02
+    x, info = static_equilibrium(x0, F, mat, x0, (), P, PF, SimSettings(friction=0.3), give_up_rms=0.02, friction=0.0)
+    assert info.get("gave_up")
+    plain = dataclasses.replace(mat, rest_friction=False)  # a material without it: frictionless, as before session 36
+    x, info = static_equilibrium(x0, F, plain, x0, (), P, PF, SimSettings(friction=0.3), give_up_rms=0.02)
+    assert info.get("gave_up")
+
+
+def test_the_rest_solve_holds_a_sheet_on_an_incline_with_static_friction():
+    """The rest solve of the sheet on the plane at tan θ = 0.18: for a material with
+    ``rest_friction`` and the simulations' friction (μ = 0.2 > tan θ, the default) the start is a
+    static equilibrium, at rest to the tolerance in one round; frictionless (a material without it,
+    the solve before session 36) the sheet slides off and no rest shape holds it (not at rest: the
+    callers keep the template). The material records the option; older files are unchanged."""
+    x0, F, P, PF, mat = incline(0.2 * 0.9)
+    X, rep = equilibrium_rest(x0, F, mat, (), P, PF, SimSettings())
+    assert rep["converged"] and rep["at_rest"] and rep["friction"] == 0.2 and rep["rounds"] == 1
+    assert np.allclose(X, x0)
+    plain = dataclasses.replace(mat, rest_friction=False)
+    X, rep = equilibrium_rest(x0, F, plain, (), P, PF, SimSettings())
+    assert not rep["at_rest"] and rep["stopped"] == "moving" and rep["friction"] == 0.0
+    assert mat.to_dict()["rest_friction"] is True and "rest_friction" not in plain.to_dict()
+    assert Material.from_dict(mat.to_dict()) == mat
+
+
+def test_the_random_draws_get_the_estimates_rest_friction(tmp_path):
+    """evaluate's and reference-sims' random draws are simulated in the estimate's model: with a
+    material that records rest_friction, so do the draws (and not otherwise)."""
+    from physavatar.stages.references import _reference_materials
+
+    for flag in (True, False):
+        refs = _reference_materials(tmp_path, 0, 3, 1e-3, "equilibrium", flag)
+        assert len(refs) == 3 and all(r.material.rest_friction is flag for r in refs)
+        assert all(r.material.rest_shape == "equilibrium" and r.material.contact_offset == 1e-3 for r in refs)

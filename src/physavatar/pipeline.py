@@ -141,7 +141,8 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
         # ... and the rest shape its material will record (Material.rest_shape)
         fit_cfg = physics.pipeline_config(cfg.quick)
         refs_cfg = evaluate.ReferencesConfig(frames=cfg.eval_frames, contact_offset=fit_cfg.contact_offset,
-                                             rest_shape=fit_cfg.rest_shape, random_draws=cfg.random_draws)
+                                             rest_shape=fit_cfg.rest_shape, rest_friction=fit_cfg.rest_friction,
+                                             random_draws=cfg.random_draws)
         steps.insert(0, Step("references", "physavatar.stages.evaluate:run_references", refs_cfg, cap,
                              "references.json", background=True))
         inputs = cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track"),

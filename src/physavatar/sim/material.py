@@ -35,6 +35,7 @@ CODIM_BASE_POISSON = 0.071
 CODIM_BASE_THICKNESS = 0.328e-3  # m
 REST_SHAPES = ("template", "equilibrium")  # Material.rest_shape
 FIT_REST_SHAPE = "equilibrium"  # what fit-physics (and reference-sims' draws) use by default, since session 28
+FIT_REST_FRICTION = True  # fit-physics --rest-friction (Material.rest_friction): the default since session 36
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +71,11 @@ class Material:
             ``garment_sim.simulate_on_body`` and so by ``animate``, ``evaluate`` and the tracker's
             physics prediction). ``fit-physics --rest-shape equilibrium`` fits in that model and
             records it. A garment with a designed rest shape (a sewing pattern) keeps that one.
+        rest_friction: with rest_shape "equilibrium": the equilibrium holds the garment with static
+            friction against the body (the simulations' coefficient, anchored at the start:
+            sim.rest.StaticFriction, session 36) instead of frictionless. ``fit-physics`` fits in
+            that model and records it by default (``--no-rest-friction``: not); False (omitted)
+            for presets and older files.
     """
 
     density: float = 0.131
@@ -83,6 +89,7 @@ class Material:
     bdf2_blend: float = 1.0
     contact_offset: float = 0.0
     rest_shape: str = "template"
+    rest_friction: bool = False
 
     UNITS = {
         "density": "kg/m^2",
@@ -188,6 +195,8 @@ class Material:
         out = dataclasses.asdict(self)
         if out["rest_shape"] == "template":  # the model of every file before session 27: keys unchanged
             del out["rest_shape"]
+        if not out["rest_friction"]:  # (files before session 36: keys unchanged)
+            del out["rest_friction"]
         out["units"] = dict(self.UNITS)
         return out
 

@@ -16,9 +16,14 @@ and bending in their own modes; the mixing fits the rest of the Jacobian from th
 step, halved on each restart that finds no better round), so no mixed derivative ∂²E/∂x∂X̄ (which the simulator does not have) is needed. Each round's
 equilibrium (:func:`static_equilibrium`) is the simulator's own implicit step repeated with the
 velocity reset to zero (a proximal-point iteration: every step minimises the static energy plus
-½‖x − xₖ‖²_M / h², so it ends where the static energy is stationary), frictionless and undamped
-(friction and damping vanish at rest: what is in equilibrium without them is in equilibrium with
-them).
+½‖x − xₖ‖²_M / h², so it ends where the static energy is stationary), undamped, and frictionless,
+or, for a material with ``rest_friction`` (session 36; ``fit-physics`` records it by default),
+with *static* friction (:class:`StaticFriction`): Coulomb friction against the body anchored at
+the start x₀ (the tangential displacement from x₀, not the step's, smoothed over the distance the
+simulations treat as sticking, ε_v·dt), so the equilibrium is one in which every contact's
+tangential force lies within μ × its normal force. Frictionless, a flared skirt resting on the
+hips slides down them: its frictionless equilibrium is far from the start, and no rest shape near
+the template holds it there (docs/physics.md "Issue 22, session 36").
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import time
 import numpy as np
 
 from ..errors import PhysavatarError
+from .contact import Friction
 from .material import Material
 from .settings import SimSettings
 
@@ -52,12 +58,39 @@ STOP_REASONS = {  # report["stopped"] -> what it says about the start (report["s
 }
 
 
+class StaticFriction(Friction):
+    """Coulomb friction anchored at a fixed configuration: D(X − X₀) with ipctk's smoothed
+    potential, the tangential *displacement* from ``anchor`` [N + Nb, 3] in place of a step's
+    velocity (ĥ = 1, ε = ``eps_x`` [m]). Below ε a contact sticks (a spring of stiffness ~μλ/ε),
+    beyond it it slides against μλ. Normal forces and tangent bases are lagged at each step's
+    start, as the simulations' friction is. Its energy does not depend on the step length, so the
+    near-static steps of :func:`static_equilibrium` end where gravity, elasticity, contact and
+    this friction balance: a static equilibrium within the friction cone."""
+
+    def __init__(self, scene, mu: float, eps_x: float, anchor: np.ndarray):
+        super().__init__(scene, mu, eps_x, 1.0)
+        self.anchor = np.asarray(anchor, np.float64)
+
+    def begin_step(self, state):
+        super().begin_step(state)
+        self.dt, self.previous = 1.0, self.anchor
+
+
+def rest_friction(material: Material, settings: SimSettings | None, friction: float | None = None) -> float:
+    """The static-friction coefficient of the equilibrium: ``friction`` when given, else the
+    simulations' (``settings.friction``) when ``material.rest_friction``, else 0 (frictionless)."""
+    if friction is not None:
+        return float(friction)
+    return (settings or SimSettings()).friction if material.rest_friction else 0.0
+
+
 def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> SimSettings:
     """The settings of the equilibrium solve: ``settings``' contact model (d̂, d_min, self-contact,
-    gravity, membrane model) without friction and damping, implicit Euler with step ``h``, Newton to
-    a step below ``tol`` / 10 [m] in every vertex."""
+    gravity, membrane model) without damping, implicit Euler with step ``h``, Newton to a step below
+    ``tol`` / 10 [m] in every vertex. Its friction coefficient is ``settings``' (the solve anchors
+    it: :class:`StaticFriction`)."""
     s = settings or SimSettings()
-    return dataclasses.replace(s, dt=float(h), integrator="euler", friction=0.0, damping_mass=0.0,
+    return dataclasses.replace(s, dt=float(h), integrator="euler", damping_mass=0.0, friction_iterations=1,
                                damping_stiffness=0.0, newton_norm="max", newton_tol=0.1 * tol / h,
                                max_newton_iterations=max(s.max_newton_iterations, 200), keep_linearization=False)
 
@@ -65,11 +98,13 @@ def equilibrium_settings(settings: SimSettings | None, h: float, tol: float) -> 
 def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), body=None, body_faces=None,
                        settings: SimSettings | None = None, *, h: float = EQ_STEP, tol: float = 1e-5,
                        max_steps: int = 60, extra_terms=(), contact_exclude=None,
-                       give_up_rms: float = np.inf) -> tuple[np.ndarray, dict]:
+                       give_up_rms: float = np.inf, friction: float | None = None) -> tuple[np.ndarray, dict]:
     """The static equilibrium of the cloth with rest shape ``rest`` [N, 3], reached from
     ``x_start`` [N, 3] (v = 0): the boundary vertices stay at ``x_start``'s positions, the body
-    ``body`` [Nb, 3] / ``body_faces`` (None: no body) is still. Implicit steps of length ``h``
-    with the velocity reset to zero after each (frictionless, undamped; module docstring) until a
+    ``body`` [Nb, 3] / ``body_faces`` (None: no body) is still. ``friction``: the Coulomb
+    coefficient against the body, anchored at ``x_start`` (:class:`StaticFriction`; None:
+    ``settings.friction`` when ``material.rest_friction``, else 0: frictionless). Implicit steps
+    of length ``h`` with the velocity reset to zero after each (undamped; module docstring) until a
     step moves no vertex by more than ``tol`` [m], at most ``max_steps``, or until it is more than
     ``give_up_rms`` [m] (RMS) from ``x_start`` (info["gave_up"]). Returns (x [N, 3],
     {"steps", "last_move_m", "converged", "newton_iterations", "unconverged_steps"}): "converged"
@@ -80,6 +115,8 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
     from .solver import ClothSim
 
     s = equilibrium_settings(settings, h, tol)
+    mu = rest_friction(material, settings, friction)
+    s = dataclasses.replace(s, friction=mu)
     sim = ClothSim(rest, faces, material, s, boundary, extra_terms=extra_terms, contact_exclude=contact_exclude)
     x = np.array(x_start, dtype=np.float64)
     if body is not None:
@@ -87,6 +124,9 @@ def static_equilibrium(rest, faces, material: Material, x_start, boundary=(), bo
         sim.prepare(body, body_faces)
         if sim.dmin > 0:
             x, sim.settings = feasible_thickness(sim, x, body, body_faces)
+        if mu > 0:  # anchored where the solve starts; sticking within what the simulations' steps treat as static
+            base = settings or SimSettings()
+            sim.friction = StaticFriction(sim.scene, mu, base.friction_eps_v * base.dt, np.vstack([x, body]))
     else:
         sim.prepare(None, None)
     targets = x[sim.boundary].copy() if len(sim.boundary) else None
@@ -144,14 +184,17 @@ def _anderson(G: list[np.ndarray], F: list[np.ndarray], memory: int) -> np.ndarr
 def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body_faces=None,
                      settings: SimSettings | None = None, *, tol: float = 1e-4, max_rounds: int = 12,
                      memory: int = 3, h: float = EQ_STEP, extra_terms=(), contact_exclude=None,
-                     path=None) -> tuple[np.ndarray, dict]:
+                     path=None, friction: float | None = None) -> tuple[np.ndarray, dict]:
     """The rest shape X̄ [N, 3] whose static equilibrium under gravity, pinned at ``boundary``
     and in contact with ``body`` (frame 0; None: no body), is the loaded shape ``x0`` [N, 3]
     (module docstring), to ``tol`` [m] in every vertex.
 
     ``material``: its density and stiffnesses (and contact offset) decide X̄; ``settings``: the
-    contact model and gravity of the simulations that will use it (friction and damping are
-    ignored: they vanish at rest). ``path``: the file named in the messages about bad input.
+    contact model, gravity and friction coefficient of the simulations that will use it (damping
+    is ignored: it vanishes at rest); the equilibria hold the garment with static friction of that
+    coefficient when ``material.rest_friction`` (:func:`static_equilibrium`), frictionless
+    otherwise; ``friction``: that coefficient instead.
+    ``path``: the file named in the messages about bad input.
     Returns (X̄, report): report["converged"] says whether the tolerance was met within
     ``max_rounds`` (otherwise X̄ is the round with the smallest RMS error); "at_rest" whether
     the best round holds x₀ to an RMS error below ``AT_REST_RMS`` (5 mm; the solve stops at once when its
@@ -186,7 +229,8 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
     t0 = time.perf_counter()
     free = np.ones(len(x0), bool)
     free[b] = False
-    kw = dict(h=h, tol=0.1 * tol, extra_terms=extra_terms, contact_exclude=contact_exclude)
+    kw = dict(h=h, tol=0.1 * tol, extra_terms=extra_terms, contact_exclude=contact_exclude, friction=friction)
+    mu = rest_friction(material, settings, friction)
     X = x0.copy()
     stopped = "max_rounds"  # why the rounds ended (report["stopped"])
     G, R = [], []  # the fixed point's g(X) = X − (x_eq(X) − x0) and residuals, flat
@@ -244,7 +288,9 @@ def equilibrium_rest(x0, faces, material: Material, boundary=(), body=None, body
               "rest_offset_mm": {"max": 1e3 * float(np.linalg.norm(X - x0, axis=1).max()),
                                  "rms": 1e3 * float(np.sqrt(np.mean(np.sum((X - x0) ** 2, axis=1))))},
               "method": f"fixed point with Anderson mixing (memory {memory}); equilibrium: implicit steps of "
-                        f"{h:g} s from rest, frictionless", "seconds": round(time.perf_counter() - t0, 2)}
+                        f"{h:g} s from rest, " + (f"static friction {mu:g} anchored at the start"
+                                                  if mu > 0 and body is not None else "frictionless"),
+              "friction": mu if body is not None else 0.0, "seconds": round(time.perf_counter() - t0, 2)}
     return X, report
 
 

@@ -284,7 +284,7 @@ def simulated_material(material, rest: dict):
     (``rest["at_rest"]`` false), the template was the rest shape (garment_sim.equilibrium_part),
     the model a fit records then too (physics.stage.refit_at_equilibrium keeps its first fit)."""
     if material.rest_shape == "equilibrium" and rest.get("at_rest") is False:
-        return replace(material, rest_shape="template")
+        return replace(material, rest_shape="template", rest_friction=False)
     return material
 
 

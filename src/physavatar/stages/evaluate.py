@@ -41,7 +41,7 @@ from ..data.tracked import TrackedSequence
 from ..errors import PhysavatarError
 from ..files import load_npz, read_json, write_json_atomic, write_text_atomic
 from ..geometry import submesh
-from ..sim.material import FIT_REST_SHAPE, REST_SHAPES
+from ..sim.material import FIT_REST_FRICTION, FIT_REST_SHAPE, REST_SHAPES
 from .base import camera_list, option, setting
 from .references import (RANDOM_DRAWS, Reference, _reference_materials, _reuse_references, _reuse_sequence,  # noqa: F401
                          motion_key, random_draw_row, random_material, random_seeds, reference_sequences)
@@ -156,7 +156,8 @@ def _heldout_motion(metrics: dict, cap, av, out: Path, *, frames, n_points, view
     # The reference materials: two independent simulations, side by side (physavatar.parallel),
     # or taken from a `reference_sequences` folder made earlier (`physavatar run` makes it while
     # tracking runs).
-    references_ = _reference_materials(gt_root, seed, random_draws, av.material.contact_offset, av.material.rest_shape)
+    references_ = _reference_materials(gt_root, seed, random_draws, av.material.contact_offset, av.material.rest_shape,
+                                       av.material.rest_friction)
     refs = {r.row: r.material for r in references_}
     if oracle is not None:
         from ..data.material import FittedMaterial
@@ -403,6 +404,8 @@ class ReferencesConfig:
                                           check=lambda v: None if 0 <= v < 0.05 else "must be in [0, 0.05) m")
     rest_shape: str = option(FIT_REST_SHAPE, "the random draws' rest shape, the fit's (fit-physics --rest-shape): "
                                          "template or equilibrium", flag="--rest-shape", choices=REST_SHAPES)
+    rest_friction: bool = option(FIT_REST_FRICTION, "the random draws' rest solve with static friction, the fit's "
+                                                    "(fit-physics --rest-friction)", flag="--rest-friction")
 
 
 def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), avatar: Path,
@@ -417,4 +420,5 @@ def run(capture: Path, *, out: Path, config: EvaluateConfig = EvaluateConfig(), 
 def run_references(capture: Path, *, out: Path, config: ReferencesConfig = ReferencesConfig(), progress=None) -> Path:
     """:func:`reference_sequences` as a stage (``physavatar reference-sims``)."""
     return reference_sequences(capture, out, frames=config.frames, seed=config.seed, random_draws=config.random_draws,
-                               contact_offset=config.contact_offset, rest_shape=config.rest_shape, progress=progress)
+                               contact_offset=config.contact_offset, rest_shape=config.rest_shape,
+                               rest_friction=config.rest_friction, progress=progress)

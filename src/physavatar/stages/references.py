@@ -24,7 +24,7 @@ from ..data.avatar import Avatar
 from ..errors import PhysavatarError
 from ..files import content_key, load_npz, read_json, write_json_atomic
 from ..sim import Material
-from ..sim.material import FIT_REST_SHAPE
+from ..sim.material import FIT_REST_FRICTION, FIT_REST_SHAPE
 
 log = logging.getLogger(__name__)
 
@@ -61,22 +61,26 @@ class Reference(NamedTuple):
 
 
 def _reference_materials(gt_root: Path, seed: int, draws: int = RANDOM_DRAWS,
-                         contact_offset: float = 0.0, rest_shape: str = "template") -> list[Reference]:
+                         contact_offset: float = 0.0, rest_shape: str = "template",
+                         rest_friction: bool = False) -> list[Reference]:
     """The rows that need only the capture: the true material (when the capture has one, folder
     ``true``; with the thickness its file records) and each random draw (:func:`random_draw_row`,
     folder ``random-<seed>``) in the simulation model of the estimate it is compared with: its
-    contact thickness ``contact_offset`` [m] and its ``rest_shape`` (Material.contact_offset,
-    Material.rest_shape: the fit's model, docs/physics.md)."""
+    contact thickness ``contact_offset`` [m] and its ``rest_shape`` and ``rest_friction``
+    (Material.contact_offset, Material.rest_shape, Material.rest_friction: the fit's model,
+    docs/physics.md)."""
     true_path = gt_root / "material.json"
     return ([Reference("true material", "true", Material.load(true_path))] if true_path.exists() else []) + \
         [Reference(random_draw_row(s), f"random-{s}", dataclasses.replace(random_material(s), contact_offset=contact_offset,
-                                                                          rest_shape=rest_shape))
+                                                                          rest_shape=rest_shape,
+                                                                          rest_friction=rest_friction))
          for s in random_seeds(seed, draws)]
 
 
 def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | None = None, seed: int = 0,
                         random_draws: int = RANDOM_DRAWS, contact_offset: float | None = None,
-                        rest_shape: str = FIT_REST_SHAPE, progress=True) -> Path:
+                        rest_shape: str = FIT_REST_SHAPE, rest_friction: bool = FIT_REST_FRICTION,
+                        progress=True) -> Path:
     """The true- and random-material rows of :func:`evaluate` simulated ahead of time.
 
     They depend on the capture alone (its template, body shape and frame-1 pose; the held-out
@@ -88,8 +92,8 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     The random draws are simulated with the contact thickness the fit will use
     (``contact_offset``, ``--contact-offset``; None: estimated on the template as fit-physics
     estimates it, physics.stage.template_contact_offset) and the rest shape the fit's material
-    will record (``rest_shape``, Material.rest_shape: `run` passes its fit's); references.json
-    records both, each draw's sequence.json the model it was simulated in (animate.simulated_material),
+    will record (``rest_shape`` and ``rest_friction``, Material.rest_shape and
+    Material.rest_friction: `run` passes its fit's); references.json records them, each draw's sequence.json the model it was simulated in (animate.simulated_material),
     and :func:`evaluate` does not reuse draws made in another model than the avatar's.
 
     Resumes (session 34): each row is written as soon as its simulation ends (in its own process,
@@ -113,7 +117,8 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     if frames:
         held = held.slice(0, frames)
     offset, offset_info = template_contact_offset(cap.template, contact_offset)
-    refs = _reference_materials(gt_root, seed, random_draws, offset, rest_shape)
+    refs = _reference_materials(gt_root, seed, random_draws, offset, rest_shape,
+                                rest_friction and rest_shape == "equilibrium")
     av = build_avatar(cap, out / "avatar", material=refs[0].material)
     n_sim = simulated_frames(av, held)
     t0 = time.time()
@@ -131,7 +136,8 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
                                                 "random_seeds": random_seeds(seed, random_draws),
                                                 "rows": [r.row for r in refs], "folders": [r.folder for r in refs],
                                                 "contact_offset_m": offset, "contact_offset": offset_info,
-                                                "rest_shape": rest_shape, "reused": done,
+                                                "rest_shape": rest_shape, "rest_friction": rest_friction,
+                                                "reused": done,
                                                 "seconds": round(time.time() - t0, 1)})
     return out
 

@@ -6,10 +6,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ...errors import PhysavatarError
-from ...sim.material import FIT_REST_SHAPE, REST_SHAPES
+from ...sim.material import FIT_REST_FRICTION, FIT_REST_SHAPE, REST_SHAPES
 from ..base import option, options
 
 GRADIENTS = ("fd", "exact")
+SELECT_SHAPE_WEIGHT = True  # fit-physics --select-shape-weight: the default since session 36
 INTEGRATORS = ("auto", "euler", "bdf2")
 
 
@@ -38,6 +39,12 @@ class PhysicsConfig:
         max_vertices: fit on a coarse proxy of at most this many vertices when the garment has
             more (0: always the full garment).
         shape_weight: weight of the local-shape residuals (None: 3 with exact, 0 with fd).
+        rest_friction: with ``rest_shape`` "equilibrium", the rest solve's equilibria hold the
+            garment with static friction (Material.rest_friction, sim.rest.StaticFriction;
+            session 36); the material records it, so animate/evaluate solve the same.
+        select_shape_weight: with exact gradients and ``shape_weight`` None, fit with weight 3
+            and with 0 and keep the one that predicts the frames after the window (up to a
+            window's length of them) better (stage.select_shape_weight; session 36).
         contact_offset: the cloth's contact thickness [m] (Material.contact_offset, ipctk's d_min);
             None: estimated from the start frame, the garment's distance to the body where it
             rests on it (sim.offset.estimate_contact_offset; 0 when it does not rest on it at
@@ -81,6 +88,14 @@ class PhysicsConfig:
     shape_weight: float | None = option(None, "weight of the local-shape residuals next to L_sim (default: 3 "
                                               "with exact, 0 = the paper's L_sim with fd; docs/physics.md)",
                                         flag="--shape-weight", check=lambda v: None if v >= 0 else "must be >= 0")
+    rest_friction: bool = option(FIT_REST_FRICTION,
+                                 "with --rest-shape equilibrium: the rest solve holds the garment with static friction "
+                                 "(--friction, anchored at the start frame) instead of frictionless; the material "
+                                 "records it (docs/physics.md)", flag="--rest-friction")
+    select_shape_weight: bool = option(SELECT_SHAPE_WEIGHT,
+                                       "without --shape-weight (exact): fit with the shape term (weight 3) and without "
+                                       "it, and keep weight 0 only when it predicts the frames after the window better "
+                                       "in a sign test (a second fit; docs/physics.md)", flag="--select-shape-weight")
     contact_offset: float | None = option(None, "cloth contact thickness in m, kept between cloth and body "
                                                 "(default: estimated from the start frame where the garment "
                                                 "rests on the body; 0 = none; docs/physics.md)",

@@ -42,6 +42,7 @@ class FitResult:
     objective: float | None = None  # what was minimised (= loss when shape_weight is 0)
     model_selection: dict | None = None  # fit_selecting_integrator: both fits and the choice
     start_state: dict | None = None  # clear_start: crossings and gap of the start frame, what was pushed
+    shape_selection: dict | None = None  # stage.select_shape_weight: the fits with and without the shape term
 
     def at_bound(self) -> list:
         """Fitted parameters that ended on their search bound (:data:`BOUNDS`): the data pushed
@@ -80,6 +81,7 @@ class FitResult:
             "model_selection": self.model_selection,
             "proxy": self.proxy,
             "start_state": self.start_state,
+            **({"shape_selection": self.shape_selection} if self.shape_selection else {}),
         }
 
 

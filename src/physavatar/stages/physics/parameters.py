@@ -45,6 +45,9 @@ FIT_NEWTON_TOL = 1e-5
 # residuals have their minimum near the true κb. w = 3: docs/physics.md ("Local shape"); 0 is
 # the paper's L_sim.
 SHAPE_WEIGHT = 3.0
+# the weights fit-physics chooses between by the frames after the window (--select-shape-weight;
+# docs/physics.md "Issue 22, session 36"): with the shape term, and the paper's L_sim alone
+SHAPE_WEIGHTS = (SHAPE_WEIGHT, 0.0)
 
 
 def fit_settings(**changes) -> SimSettings:
