@@ -42,6 +42,26 @@ def write_result(path, result: dict) -> None:
     Path(path).write_text(json.dumps(result, indent=2) + "\n")
 
 
+def animate_scored(av, held, gt, points: int = 10000, **animate_kw):
+    """The avatar ``av`` animated on the held-out motion ``held`` as `evaluate` animates it, its
+    garment scored as `evaluate` scores it against ``gt`` [T, V, 3] (the true held-out meshes on the
+    template's vertices): seed 0 at ``points`` surface points. Returns (``_surface_rows``' row,
+    animate's stats, its seconds, the simulated garment [T, Ng, 3])."""
+    import time
+
+    from physavatar.geometry import submesh
+    from physavatar.stages.animate import animate
+    from physavatar.stages.evaluate import _surface_rows
+
+    t0 = time.time()
+    seq, stats = animate(av, held, progress=False, **animate_kw)
+    secs = time.time() - t0
+    g = av.template.labels > 0
+    _, gf = submesh(av.template.faces, g)
+    V = seq.vertices[: len(gt)][:, g]
+    return _surface_rows(V, gt[:, g], gf, points, 0), stats, secs, V
+
+
 def write_heldout_result(path, benchmark: str, load0, fields: dict, results: dict, unit: str) -> None:
     """Writes a held-out Chamfer benchmark's result file ``path`` (`prepare_heldout_parts`,
     `prepare_garment_parts`): the machine with the load at the start and now, ``fields``, the

@@ -32,14 +32,13 @@ import dataclasses
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import write_heldout_result
+from _common import animate_scored, write_heldout_result
 
 BOUNDARY_RADIUS = 0.02  # [m] a garment vertex this near a boundary point of the other template is boundary
 
@@ -104,10 +103,7 @@ def heldout_cd(cap, gt_src: Path, material, work: Path, frames: int | None, own_
     garment [T, Ng, 3] in the result's ``_sequence`` too."""
     from physavatar.body.motion import Motion
     from physavatar.files import load_npz
-    from physavatar.geometry import submesh
-    from physavatar.stages.animate import animate
     from physavatar.stages.avatar import build_avatar
-    from physavatar.stages.evaluate import _surface_rows
     from physavatar.stages.prepare.truth import carry_truth
 
     t = cap.template
@@ -120,19 +116,15 @@ def heldout_cd(cap, gt_src: Path, material, work: Path, frames: int | None, own_
     if frames:
         held, gt = held.slice(0, frames), gt[:frames]
     av = build_avatar(cap, work / "avatar", material=material)
-    t0 = time.time()
-    seq, stats = animate(av, held, progress=False, **animate_kw)
-    secs = time.time() - t0
+    row, stats, secs, V = animate_scored(av, held, gt, 10000, **animate_kw)
     g = t.labels > 0
-    _, gf = submesh(t.faces, g)
-    row = _surface_rows(seq.vertices[: len(gt)][:, g], gt[:, g], gf, 10000, 0)
     out = {"chamfer_x1e3": row["chamfer_x1e3"], "fscore@1cm": row["fscore@1cm"],
            "per_frame_chamfer_x1e3": row["per_frame_chamfer_x1e3"], "frames": int(len(gt)),
            "warmup_frames": stats["warmup_frames"], "garment_vertices": int(g.sum()),
            "boundary_vertices": int(t.boundary.sum()), "animate_s": round(secs, 1),
            "frames_with_lag": stats["frames_with_lag"]}
     if keep_sequence:
-        out["_sequence"] = seq.vertices[: len(gt)][:, g]
+        out["_sequence"] = V
     return out
 
 

@@ -27,13 +27,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _common import animate_scored, machine, write_result  # noqa: E402
 
 CASES = ("skirt-plaid-256", "top-print-512", "top-plain-256")
 HOLD = 0.01  # a held-out CD within 1 % of the run's estimate holds (issue 22 point 6)
@@ -53,10 +56,7 @@ def heldout(capture: Path, avatar: Path, cache: Path, materials: dict, points: i
     from physavatar.body import Motion
     from physavatar.data.avatar import Avatar
     from physavatar.files import load_npz
-    from physavatar.geometry import submesh
     from physavatar.sim import Material
-    from physavatar.stages.animate import animate
-    from physavatar.stages.evaluate import _surface_rows
 
     res = json.loads(cache.read_text()) if cache.exists() else {}
     held = Motion.load(capture / "ground_truth" / "heldout" / "motion.npz")
@@ -66,18 +66,14 @@ def heldout(capture: Path, avatar: Path, cache: Path, materials: dict, points: i
             continue
         av = Avatar.load(avatar)
         av.material = Material.from_dict({k: v for k, v in mat.items() if k != "units"})
-        t0 = time.time()
-        seq, stats = animate(av, held, progress=False)
-        V, g = seq.vertices[: len(gt)], av.template.labels > 0
-        _, gf = submesh(av.template.faces, g)
-        rows = _surface_rows(V[:, g], gt[:, g], gf, points, 0)
+        rows, stats, secs, V = animate_scored(av, held, gt, points)
         rs = stats.get("rest_shape") or {}
         res[name] = {"material": av.material.to_dict(), "cd_x1e3": rows["chamfer_x1e3"],
                      "per_frame": rows["per_frame_chamfer_x1e3"],
-                     "vertex_mean_mm": 1e3 * float(np.linalg.norm(V[:, g] - gt[:, g], axis=-1).mean()),
+                     "vertex_mean_mm": 1e3 * float(np.linalg.norm(V - gt[:, av.template.labels > 0], axis=-1).mean()),
                      "rest": {k: rs.get(k) for k in ("at_rest", "converged", "final_rms_mm", "final_max_mm", "rounds",
                                                       "stopped", "seconds", "friction")},
-                     "seconds": round(time.time() - t0, 1)}
+                     "seconds": round(secs, 1)}
         print(f"{cache.parent.name} {name}: CD {rows['chamfer_x1e3']:.5f}", flush=True)
         cache.write_text(json.dumps(res, indent=1))
     return res
@@ -137,9 +133,9 @@ def summarise(name: str, run: Path, sel: dict, rows: dict, floor: float, points:
             "value": fig["below_lbs"][chosen], "target": ">= 0.25", "pass": bool(fig["below_lbs"][chosen] >= 0.25),
             "unit": f"1 - (CD - floor)/(CD_LBS - floor) at {points} points, the kept fit"}
     # the run's estimate as its evaluate scored it, or the same material simulated again here (today's
-    # code and, for the foreign captures, the candidates' rest model), whichever is higher
-    # whichever is higher, within HOLD (1 %: the same material scored by the run and here differs by up to 0.15 %
-    # where the model is the same, the demo and the tops)
+    # code and, for the foreign captures, the candidates' rest model), whichever is higher, within HOLD
+    # (1 %: the same material scored by the run and here differs by up to 0.15 % where the model is
+    # the same, the demo and the tops)
     ref = max(fig["before"]["estimated_x1e3"], cd["before_est"])
     checks[f"{name}:heldout_cd_holds"] = {
         "value": cd[chosen] / ref - 1, "target": f"<= {HOLD:g}",
@@ -159,6 +155,7 @@ def main(argv=None) -> None:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--rest-friction", action=argparse.BooleanOptionalAction, default=True)
     a = p.parse_args(argv)
+    load0 = os.getloadavg()
     checks_before = json.loads(a.before.read_text())["checks"]
     figures, checks = {}, {}
     todo = [(c, a.runs / c, 6, 3, 100000) for c in a.cases.split(",") if c]
@@ -173,10 +170,9 @@ def main(argv=None) -> None:
                        points)
         figures[name], c = summarise(name, run, sel, rows, floor, points)
         checks |= c
-    out = {"benchmark": "shape_weight_select", "date": time.strftime("%Y-%m-%d %H:%M"),
-           "machine": f"{platform.node()} {platform.processor()} {os.cpu_count()} cpus",
-           "load_average": os.getloadavg(), "command": " ".join(sys.argv), "figures": figures, "checks": checks}
-    a.out.write_text(json.dumps(out, indent=1))
+    out = {"benchmark": "shape_weight_select", "date": time.strftime("%Y-%m-%d %H:%M"), "machine": machine(load0),
+           "command": " ".join(sys.argv), "figures": figures, "checks": checks}
+    write_result(a.out, out)
     for k, v in checks.items():
         print(k, round(v["value"], 4), v["target"], "pass" if v["pass"] else "FAIL")
 

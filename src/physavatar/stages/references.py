@@ -117,8 +117,8 @@ def reference_sequences(capture: str | Path, out: str | Path, *, frames: int | N
     if frames:
         held = held.slice(0, frames)
     offset, offset_info = template_contact_offset(cap.template, contact_offset)
-    refs = _reference_materials(gt_root, seed, random_draws, offset, rest_shape,
-                                rest_friction and rest_shape == "equilibrium")
+    rest_friction = rest_friction and rest_shape == "equilibrium"  # (a template rest solves nothing)
+    refs = _reference_materials(gt_root, seed, random_draws, offset, rest_shape, rest_friction)
     av = build_avatar(cap, out / "avatar", material=refs[0].material)
     n_sim = simulated_frames(av, held)
     t0 = time.time()

@@ -177,8 +177,9 @@ def select_shape_weight(following, candidates, weights, window: int, settings, s
         run_ = rollout(d, result.material, dataclasses.replace(settings, integrator=result.material.integrator),
                        substeps=substeps)
         err = run_.positions[window:] - d.reference[window:]
-        rms = 1e3 * float(np.sqrt(np.mean(np.sum(err * err, axis=-1))))
-        per_frame = 1e3 * np.sqrt(np.mean(np.sum(err * err, axis=-1), axis=-1))
+        sq = np.sum(err * err, axis=-1)  # [frames, V]
+        rms = 1e3 * float(np.sqrt(np.mean(sq)))
+        per_frame = 1e3 * np.sqrt(np.mean(sq, axis=-1))
         rows.append({"shape_weight": w if w is not None else SHAPE_WEIGHT, "heldout_rms_mm": rms,
                      "heldout_rms_mm_per_frame": [round(float(v), 4) for v in per_frame],
                      "fit_rms_mm": result.rms_mm, "stretch_ratio": result.material.stretch_ratio,
