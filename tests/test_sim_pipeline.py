@@ -87,3 +87,13 @@ def test_the_resume_key_keeps_main_s_without_the_thread_and_tells_it_apart_with_
 
     assert "factor_thread" not in run_settings(SimSettings())
     assert run_settings(SimSettings(factor_thread=True))["factor_thread"] is True
+
+
+def test_with_cholespy_factor_thread_is_the_plain_solver_bit_for_bit():
+    """A worker's cholespy factorisation does not overlap the main thread: with cholespy (and
+    "auto" below PARDISO's size) the setting changes nothing."""
+    V, F, seq, BF, pins = rising_sphere()
+    runs = [simulate(V, F, MAT, seq, BF, pins, None, fps=25.0, max_substeps=4,
+                     settings=SimSettings(factor_thread=t, linear_solver="cholespy", damping_mass=0.5))
+            for t in (True, False)]
+    assert np.array_equal(runs[0], runs[1])

@@ -80,7 +80,9 @@ class SimSettings:
             thread for every Newton direction and used by the next one (sim.pipeline): its
             factorisations leave the main thread. Deterministic (the factor a solve uses depends
             on the iteration count only), but another CG path than the refresh rule's, so other
-            bits than off. Not with ``keep_linearization`` (docs/simulation.md "Session 37").
+            bits than off. PARDISO factors only (cholespy's: the plain solver's bits); not with
+            ``keep_linearization``. Slower on a 2-core machine with another job running
+            (docs/simulation.md "Session 37"), hence off.
         newton_forcing: relative CG residual of the Newton directions that do not end the
             solve (inexact Newton; most are cut by CCD anyway). The direction that passes the
             stopping test is always refined to 1e-10, so only the path changes. Penalty-mode
