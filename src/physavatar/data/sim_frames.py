@@ -62,6 +62,8 @@ def run_settings(settings) -> dict | None:
     out = {k: v for k, v in dataclasses.asdict(settings).items() if k not in RESULT_NEUTRAL}
     if getattr(settings, "candidate_threads", 0) > 0:  # sorted barrier sets: other bits than 0's (any k ≥ 1 alike)
         out["canonical_contacts"] = True
+    if not out.get("factor_thread", True):  # off (the default): the key of the code before session 37
+        del out["factor_thread"]
     return out
 
 

@@ -76,6 +76,13 @@ class SimSettings:
             the sparsified factor needs ~50 CG iterations; assembly.NewtonLinearSolver).
         solver_threads: threads of PARDISO's factorisations and solves (1: bit-identical
             repeats; cholespy always runs on one).
+        factor_thread: the CG preconditioner of the free system refactorised on a second
+            thread for every Newton direction and used by the next one (sim.pipeline): its
+            factorisations leave the main thread. Deterministic (the factor a solve uses depends
+            on the iteration count only), but another CG path than the refresh rule's, so other
+            bits than off. PARDISO factors only (cholespy's: the plain solver's bits); not with
+            ``keep_linearization``. Slower on a 2-core machine with another job running
+            (docs/simulation.md "Session 37"), hence off.
         newton_forcing: relative CG residual of the Newton directions that do not end the
             solve (inexact Newton; most are cut by CCD anyway). The direction that passes the
             stopping test is always refined to 1e-10, so only the path changes. Penalty-mode
@@ -165,6 +172,7 @@ class SimSettings:
     linear_solver: str = "auto"
     preconditioner: str = "auto"
     solver_threads: int = 1
+    factor_thread: bool = False
     max_newton_iterations: int = 100
     max_penalty_iterations: int = 40
     barrier_stiffness_scale: float = 1e11

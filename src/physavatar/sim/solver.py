@@ -39,6 +39,7 @@ from .kappa import adapt_stiffness, initial_stiffness
 from .lag import confine_lag, penalty_phase
 from .material import Material
 from .mesh import ClothTopology
+from .pipeline import PipelinedLinearSolver
 from .settings import SimSettings, StepStats
 from .linesearch import CandidateScene, EnergyMemo, backtrack, expand_step
 from .start import follow_body, release_weight, warm_start
@@ -121,7 +122,11 @@ class ClothSim:
         self._body_faces = None
         solver_kw = dict(backend=settings.linear_solver, preconditioner=settings.preconditioner,
                          threads=settings.solver_threads)
-        self.linear_solver = NewtonLinearSolver(settings.linear_rtol, settings.max_cg_iterations, **solver_kw)
+        # the preconditioner factorised on a second thread, one iteration behind (pipeline.py);
+        # not with keep_linearization (the sensitivities read the step's last factor)
+        free_solver = (PipelinedLinearSolver if settings.factor_thread and not settings.keep_linearization
+                       else NewtonLinearSolver)
+        self.linear_solver = free_solver(settings.linear_rtol, settings.max_cg_iterations, **solver_kw)
         # The penalty-mode system (body DOFs unknown too) keeps its own preconditioner, so
         # switching between the two systems within a step costs no refactorisation. Its path
         # decides where the body is snapped and friction re-lagged, so it is solved to 1e-10
