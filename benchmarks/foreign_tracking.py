@@ -12,6 +12,9 @@ which resumes. Per frame, against ground_truth/meshes.npz (garment vertices):
   photometric fit, the final result (after the final corrections);
 - the error by height (lowest quarter of the garment "hem", highest "waist") and by visibility
   (true vertices no training camera sees, e.g. behind the legs, against the seen ones);
+- the garment's fine shape (session 37, :func:`detail_figures`): the part of its deformation since
+  the first frame that a low-pass over the mesh does not keep (the folds at the scale of a few
+  edges), true and tracked, and the tracked one's gain and correlation along the true one;
 
 and the checks of issue 22: garment mean <= 5 mm at 512 px, <= 8 mm below, last quarter of the
 frames after the first <= 1.5x the first quarter. Writes benchmarks/results/foreign_tracking.json.
@@ -45,6 +48,23 @@ def seen_by_any(vertices: np.ndarray, faces: np.ndarray, cameras) -> np.ndarray:
     return seen
 
 
+def detail_figures(first: np.ndarray, tracked: np.ndarray, truth_first: np.ndarray, truth: np.ndarray,
+                   lowpass, sel: np.ndarray) -> dict:
+    """The fine shape of a frame's deformation d = x - x_first: h = d - lowpass(d) (the part at the
+    scale of a few edges, e.g. (I + 3 L)^-1's complement), true against tracked over ``sel``:
+    mean |h| [mm] of each, the tracked one's least-squares gain along the true one and their
+    correlation (1 and 1: the folds reproduced; gain 0.5: half their depth)."""
+    ht = truth - truth_first
+    ht = (ht - np.asarray(lowpass(ht)))[sel]
+    hx = tracked - first
+    hx = (hx - np.asarray(lowpass(hx)))[sel]
+    dot = float((ht * hx).sum())
+    return {"true_mm": float(np.linalg.norm(ht, axis=1).mean() * 1e3),
+            "tracked_mm": float(np.linalg.norm(hx, axis=1).mean() * 1e3),
+            "gain": dot / max(float((ht ** 2).sum()), 1e-30),
+            "correlation": dot / max(float(np.sqrt((ht ** 2).sum() * (hx ** 2).sum())), 1e-30)}
+
+
 def tracking_figures(capture: Path, run_dir: Path, frames: list[int], train_names: list[str]) -> dict:
     """Per-frame garment errors [mm] of every stage, by band and visibility (module docstring)."""
     from physavatar.capture import frame_name, load_capture
@@ -58,10 +78,18 @@ def tracking_figures(capture: Path, run_dir: Path, frames: list[int], train_name
     hem, waist = g & (z <= zq[0]), g & (z >= zq[1])
     cams = [c for c in cap.cameras if c.name in train_names]
     rows = {k: [] for k in ("final", "start", "fit", "final_p95", "hem", "waist", "hidden", "seen", "hidden_share",
-                            "body")}
+                            "body", "detail_true", "detail_tracked", "detail_gain", "detail_correlation")}
+    from physavatar.stages.track.fit import smoothing_solver
+
+    lowpass = smoothing_solver(len(t.vertices), t.faces, 3.0)
+    free = g & ~t.boundary
+    first = None
     for i, f in enumerate(frames):
         z_ = np.load(run_dir / "frames" / f"{frame_name(f)}.npz")
         e = np.linalg.norm(z_["vertices"] - gt[i], axis=1) * 1e3
+        first = z_["vertices"].astype(np.float64) if first is None else first
+        for k, v in detail_figures(first, z_["vertices"].astype(np.float64), gt[0], gt[i], lowpass, free).items():
+            rows[f"detail_{k}"].append(v if i > 0 else None)
         rows["final"].append(float(e[g].mean()))
         rows["final_p95"].append(float(np.percentile(e[g], 95)))
         rows["body"].append(float(e[~g].mean()))
