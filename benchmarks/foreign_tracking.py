@@ -78,7 +78,7 @@ def tracking_figures(capture: Path, run_dir: Path, frames: list[int], train_name
     hem, waist = g & (z <= zq[0]), g & (z >= zq[1])
     cams = [c for c in cap.cameras if c.name in train_names]
     rows = {k: [] for k in ("final", "start", "fit", "final_p95", "hem", "waist", "hidden", "seen", "hidden_share",
-                            "body", "detail_true", "detail_tracked", "detail_gain", "detail_correlation")}
+                            "body", "detail_true_mm", "detail_tracked_mm", "detail_gain", "detail_correlation")}
     from physavatar.stages.track.fit import smoothing_solver
 
     lowpass = smoothing_solver(len(t.vertices), t.faces, 3.0)
