@@ -2,11 +2,13 @@
 
     python benchmarks/foreign_tracking.py [--cases NAME,NAME] [--work /tmp/foreign_capture]
         [--runs DIR] [--frames N] [--set dotted.field=JSON ...] [--out FILE]
+    python benchmarks/foreign_tracking.py --capture /work/data/demo/capture --frames 12 [...]
 
 The captures are benchmarks/foreign_capture.py's (its QUICK_CASES, cached in --work and built
 there when missing). Each is tracked with the tracking stage's defaults (the config `physavatar
 run` uses; ``--set`` overrides a field, e.g. ``--set flow.silhouette=0``) into --runs/<case>,
-which resumes. Per frame, against ground_truth/meshes.npz (garment vertices):
+which resumes (``--capture`` instead: a capture folder with ``ground_truth/meshes.npz``, e.g. the
+demo's, tracked as the case named by its parent folder). Per frame, against ground_truth/meshes.npz (garment vertices):
 
 - the error of the chain's stages: the start (optical-flow prediction and corrections), the
   photometric fit, the final result (after the final corrections);
@@ -29,6 +31,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 HERE = Path(__file__).resolve().parent
@@ -132,6 +135,7 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", default="/tmp/foreign_tracking", help="tracking runs go here (resumed)")
     ap.add_argument("--frames", type=int, default=None, help="track only the first N frames")
     ap.add_argument("--set", action="append", default=[], help="override a TrackConfig field: dotted.name=JSON")
+    ap.add_argument("--capture", default=None, help="track this capture (with ground_truth/) instead of the cases")
     ap.add_argument("--out", default=str(HERE / "results" / "foreign_tracking.json"))
     args = ap.parse_args(argv)
     from physavatar.capture import load_capture
@@ -140,7 +144,11 @@ def main(argv=None) -> int:
     from physavatar.stages.track import run as run_track
 
     cases = QUICK_CASES
-    if args.cases:
+    if args.capture:  # a capture of its own (the demo's): no case to build
+        root = Path(args.capture).resolve()
+        size = max(c.width for c in load_capture(root).cameras)
+        cases = [SimpleNamespace(name=root.parent.name, size=size, to_dict=lambda: {"capture": str(root)})]
+    elif args.cases:
         want = args.cases.split(",")
         cases = [c for c in cases if c.name in want]
     cfg = pipeline_config(args.frames)
@@ -154,7 +162,8 @@ def main(argv=None) -> int:
                          "cases": [c.to_dict() for c in cases]},
               "figures": {}, "checks": {}}
     for case in cases:
-        cap = build(Path(args.work) / case.name / "capture", case, say=lambda s: print(s, flush=True))
+        cap = (Path(args.capture).resolve() if args.capture
+               else build(Path(args.work) / case.name / "capture", case, say=lambda s: print(s, flush=True)))
         run_dir = Path(args.runs) / case.name
         t0 = time.time()
         res = run_track(cap, out=run_dir, config=cfg, progress=True)
