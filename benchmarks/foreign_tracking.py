@@ -2,16 +2,21 @@
 
     python benchmarks/foreign_tracking.py [--cases NAME,NAME] [--work /tmp/foreign_capture]
         [--runs DIR] [--frames N] [--set dotted.field=JSON ...] [--out FILE]
+    python benchmarks/foreign_tracking.py --capture /work/data/demo/capture --frames 12 [...]
 
 The captures are benchmarks/foreign_capture.py's (its QUICK_CASES, cached in --work and built
 there when missing). Each is tracked with the tracking stage's defaults (the config `physavatar
 run` uses; ``--set`` overrides a field, e.g. ``--set flow.silhouette=0``) into --runs/<case>,
-which resumes. Per frame, against ground_truth/meshes.npz (garment vertices):
+which resumes (``--capture`` instead: a capture folder with ``ground_truth/meshes.npz``, e.g. the
+demo's, tracked as the case named by its parent folder). Per frame, against ground_truth/meshes.npz (garment vertices):
 
 - the error of the chain's stages: the start (optical-flow prediction and corrections), the
   photometric fit, the final result (after the final corrections);
 - the error by height (lowest quarter of the garment "hem", highest "waist") and by visibility
   (true vertices no training camera sees, e.g. behind the legs, against the seen ones);
+- the garment's fine shape (session 37, :func:`detail_figures`): the part of its deformation since
+  the first frame that a low-pass over the mesh does not keep (the folds at the scale of a few
+  edges), true and tracked, and the tracked one's gain and correlation along the true one;
 
 and the checks of issue 22: garment mean <= 5 mm at 512 px, <= 8 mm below, last quarter of the
 frames after the first <= 1.5x the first quarter. Writes benchmarks/results/foreign_tracking.json.
@@ -26,6 +31,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 HERE = Path(__file__).resolve().parent
@@ -45,6 +51,23 @@ def seen_by_any(vertices: np.ndarray, faces: np.ndarray, cameras) -> np.ndarray:
     return seen
 
 
+def detail_figures(first: np.ndarray, tracked: np.ndarray, truth_first: np.ndarray, truth: np.ndarray,
+                   lowpass, sel: np.ndarray) -> dict:
+    """The fine shape of a frame's deformation d = x - x_first: h = d - lowpass(d) (the part at the
+    scale of a few edges, e.g. (I + 3 L)^-1's complement), true against tracked over ``sel``:
+    mean |h| [mm] of each, the tracked one's least-squares gain along the true one and their
+    correlation (1 and 1: the folds reproduced; gain 0.5: half their depth)."""
+    ht = truth - truth_first
+    ht = (ht - np.asarray(lowpass(ht)))[sel]
+    hx = tracked - first
+    hx = (hx - np.asarray(lowpass(hx)))[sel]
+    dot = float((ht * hx).sum())
+    return {"true_mm": float(np.linalg.norm(ht, axis=1).mean() * 1e3),
+            "tracked_mm": float(np.linalg.norm(hx, axis=1).mean() * 1e3),
+            "gain": dot / max(float((ht ** 2).sum()), 1e-30),
+            "correlation": dot / max(float(np.sqrt((ht ** 2).sum() * (hx ** 2).sum())), 1e-30)}
+
+
 def tracking_figures(capture: Path, run_dir: Path, frames: list[int], train_names: list[str]) -> dict:
     """Per-frame garment errors [mm] of every stage, by band and visibility (module docstring)."""
     from physavatar.capture import frame_name, load_capture
@@ -58,10 +81,18 @@ def tracking_figures(capture: Path, run_dir: Path, frames: list[int], train_name
     hem, waist = g & (z <= zq[0]), g & (z >= zq[1])
     cams = [c for c in cap.cameras if c.name in train_names]
     rows = {k: [] for k in ("final", "start", "fit", "final_p95", "hem", "waist", "hidden", "seen", "hidden_share",
-                            "body")}
+                            "body", "detail_true_mm", "detail_tracked_mm", "detail_gain", "detail_correlation")}
+    from physavatar.stages.track.fit import smoothing_solver
+
+    lowpass = smoothing_solver(len(t.vertices), t.faces, 3.0)
+    free = g & ~t.boundary
+    first = None
     for i, f in enumerate(frames):
         z_ = np.load(run_dir / "frames" / f"{frame_name(f)}.npz")
         e = np.linalg.norm(z_["vertices"] - gt[i], axis=1) * 1e3
+        first = z_["vertices"].astype(np.float64) if first is None else first
+        for k, v in detail_figures(first, z_["vertices"].astype(np.float64), gt[0], gt[i], lowpass, free).items():
+            rows[f"detail_{k}"].append(v if i > 0 else None)
         rows["final"].append(float(e[g].mean()))
         rows["final_p95"].append(float(np.percentile(e[g], 95)))
         rows["body"].append(float(e[~g].mean()))
@@ -104,6 +135,7 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", default="/tmp/foreign_tracking", help="tracking runs go here (resumed)")
     ap.add_argument("--frames", type=int, default=None, help="track only the first N frames")
     ap.add_argument("--set", action="append", default=[], help="override a TrackConfig field: dotted.name=JSON")
+    ap.add_argument("--capture", default=None, help="track this capture (with ground_truth/) instead of the cases")
     ap.add_argument("--out", default=str(HERE / "results" / "foreign_tracking.json"))
     args = ap.parse_args(argv)
     from physavatar.capture import load_capture
@@ -112,7 +144,11 @@ def main(argv=None) -> int:
     from physavatar.stages.track import run as run_track
 
     cases = QUICK_CASES
-    if args.cases:
+    if args.capture:  # a capture of its own (the demo's): no case to build
+        root = Path(args.capture).resolve()
+        size = max(c.width for c in load_capture(root).cameras)
+        cases = [SimpleNamespace(name=root.parent.name, size=size, to_dict=lambda: {"capture": str(root)})]
+    elif args.cases:
         want = args.cases.split(",")
         cases = [c for c in cases if c.name in want]
     cfg = pipeline_config(args.frames)
@@ -126,7 +162,8 @@ def main(argv=None) -> int:
                          "cases": [c.to_dict() for c in cases]},
               "figures": {}, "checks": {}}
     for case in cases:
-        cap = build(Path(args.work) / case.name / "capture", case, say=lambda s: print(s, flush=True))
+        cap = (Path(args.capture).resolve() if args.capture
+               else build(Path(args.work) / case.name / "capture", case, say=lambda s: print(s, flush=True)))
         run_dir = Path(args.runs) / case.name
         t0 = time.time()
         res = run_track(cap, out=run_dir, config=cfg, progress=True)

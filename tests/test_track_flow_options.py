@@ -235,3 +235,32 @@ def test_fit_blend_keeps_the_flow_start_of_the_free_garment_and_the_fit_of_the_b
     s.flow_cfg = s._flow_settings(None, [])
     s.refine(1, fit.astype(np.float32), start.astype(np.float32))
     assert s.flow_cfg.fit_blend == 1.0 and np.allclose(s.flow.got, fit, atol=1e-6)
+
+
+def test_bending_toward_the_physics_step_keeps_its_fold_where_no_camera_sees():
+    """bend_reference="physics" (session 37): the bending terms hold the hinges of the frame's
+    physics step (the lift's reference, ``carried``) instead of the template's. The template is the
+    flat sheet; the step has folded it 60 degrees (an isometry) and moved it, and no camera sees
+    it. Every term of the lift is then zero at the step, so the start (prediction and corrections)
+    is the step itself; toward the template's hinges the unseen half is pulled back toward flat
+    (6.6 mm at the far edge in two lifts, against the membrane that holds it to the step)."""
+    from physavatar.stages.track.flow import FlowStart
+
+    V0, F = _grid(9, 0.4)
+    step = _fold(V0, 60.0) + [0.008, -0.005, 0.004]
+    solve = np.ones(len(V0), bool)
+    kw = {"smoothness": 3.0, "iterations": 5, "rest": V0, "iso_weight": 3.0, "bend_weight": 10.0}
+    out = {}
+    for ref in ("rest", "physics"):
+        fs = FlowStart(FlowPrediction(F, solve, F, bend_reference=ref, **kw), [], V0, [], corrections=0)
+        X = fs(V0, [], [], step, carried=step)
+        # the frame's corrections (no camera: the regularisers and the pull toward the estimate)
+        out[ref] = fs.flow.correct(X, [], [], None, iterations=2, bend_weight=5.0, physics=fs._carried)
+    err = {ref: np.linalg.norm(X - step, axis=1).max() for ref, X in out.items()}
+    assert err["physics"] < 1e-9 and err["rest"] > 3e-3, err
+    fp = FlowPrediction(F, solve, F, bend_reference="physics", **kw)
+    assert np.allclose(fp.hinge_lengths(out["physics"]), fp.hinge_lengths(step), atol=1e-12)
+    # without a step (frame 2, or none intersection-free) "physics" is the template's reference
+    no_step = FlowStart(fp, [], V0, [], corrections=0)(V0, [], [], step)
+    to_rest = FlowStart(FlowPrediction(F, solve, F, **kw), [], V0, [], corrections=0)(V0, [], [], step)
+    assert np.array_equal(no_step, to_rest)

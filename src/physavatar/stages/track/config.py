@@ -225,10 +225,13 @@ class FlowConfig:
             more than ``bend_moved``, the template's elsewhere: a fold the garment has made is
             kept; session 28: tracking skirt 5.08 -> 4.78 mm, demo 48 frames 0.955 -> 0.917, tops
             0.629 -> 0.607 and 2.84 -> 2.78, but the whole demo's held-out garment CD 0.0432 ->
-            0.0472 and motion PSNR 27.97 -> 27.52 dB, so not the default; docs/tracking.md).
+            0.0472 and motion PSNR 27.97 -> 27.52 dB, so not the default; docs/tracking.md);
+            "physics" (session 37: the hinges of the frame's physics step, the lift's reference
+            under ``carry`` "physics", in the prediction and the frame's corrections; the
+            template's where there is no step).
         correction_bend_reference: the same for the corrections alone ("": as ``bend_reference``):
-            "rest", "start", "moved" or "previous" (the hinges of the tracked frame t-1, fixed
-            through the frame's corrections).
+            "rest", "start", "moved", "physics" or "previous" (the hinges of the tracked frame
+            t-1, fixed through the frame's corrections).
         bend_moved: [m] the threshold of ``bend_reference`` "moved" (sessions 22 and 28).
         bend_views: the cameras whose flow must see both vertices opposite a hinge for
             ``bend_reference`` "seen" to keep the start's distance there (session 24).

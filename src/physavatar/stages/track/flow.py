@@ -66,7 +66,7 @@ class FlowObservation:
                 np.einsum("nki,nk->ni", Jm, rm) * w[:, None])
 
 
-BEND_REFERENCES = ("rest", "start", "previous", "moved", "seen")  # FlowPrediction.bend_reference
+BEND_REFERENCES = ("rest", "start", "previous", "moved", "seen", "physics")  # FlowPrediction.bend_reference
 
 class FlowPrediction:
     """Multi-view optical flow lifted to the vertices of a mesh (module docstring).
@@ -101,7 +101,10 @@ class FlowPrediction:
             is kept, the template's shape holds where the garment still has it); "seen" as "moved",
             and only where both vertices opposite the hinge have flow observations in at least
             ``bend_views`` cameras in that lift (a fold the views see follows the data, an unseen
-            hinge keeps the template's distance).
+            hinge keeps the template's distance); "physics" the hinges the caller passes as ``bend_rest``
+            (:class:`FlowStart`: those of the frame's physics step, the lift's reference under
+            ``flow.carry`` "physics"; the template's without one), so the folds the simulator
+            predicts are kept where the views do not resolve them (session 37).
         collider_faces: [Fc, 3] faces (over the same vertices, none solved) the solved vertices stay
             outside of, by ``collision_margin`` [m], penalty ``collision_weight``, for vertices
             within ``contact_range`` [m] of it (module docstring, 4). None: no collider.
@@ -202,7 +205,7 @@ class FlowPrediction:
                 bend_weight: float | None = None, masks: list[np.ndarray] | None = None,
                 silhouette_weight: float = 0.0, channels: str = "luma", coarse: int = 0,
                 opponent: tuple[bool, bool] = (True, True), bend_reference: str | None = None,
-                previous: np.ndarray | None = None) -> np.ndarray:
+                previous: np.ndarray | None = None, physics: np.ndarray | None = None) -> np.ndarray:
         """[V, 3] the solved vertices of ``vertices`` (an estimate of frame t) corrected against
         frame t's images by model-based flow (module docstring): each iteration renders the mesh
         as the reference frame saw it (:class:`ReferenceAppearance`), measures the flow from that
@@ -223,13 +226,17 @@ class FlowPrediction:
 
         ``bend_reference`` (None: the instance's) is what the bending term holds in these lifts:
         "rest", "start" (each lift's estimate) or "previous" (the hinges of ``previous`` [V, 3],
-        the tracked frame t-1: a fold may change from frame to frame, not within a frame's lifts)."""
+        the tracked frame t-1: a fold may change from frame to frame, not within a frame's lifts)
+        or "physics" (the hinges of ``physics`` [V, 3], the frame's physics step; the template's
+        where it is None)."""
         ref = self.bend_reference if bend_reference is None else bend_reference
         bend_rest = None
         if ref == "previous":
             if previous is None:
                 raise ValueError("bend_reference 'previous' needs the previous frame's vertices")
             ref, bend_rest = "rest", self.hinge_lengths(previous)
+        elif ref == "physics":
+            ref, bend_rest = "rest", None if physics is None else self.hinge_lengths(physics)
         X = np.asarray(vertices, np.float64).copy()
         views = [im if channels == "colour" else to_gray8(im) for im in images]
         outlines = ([MaskOutline(cam, m) for cam, m in zip(cameras, masks)]
@@ -420,6 +427,7 @@ class FlowStart:
         self.final_corrections = final_corrections
         self.correction = dict(correction or {})
         self._previous: np.ndarray | None = None  # the tracked frame t-1 of the last call
+        self._carried: np.ndarray | None = None  # the last call's lift reference (bend_reference "physics")
         colour = self.correction.get("channels", "luma") == "colour"
         if colour:  # only the opponent channels in which the garment shows a pattern (none: the luma alone)
             opponent = patterned_opponents(reference_vertices, flow.faces, flow.solve, cameras, reference_images)
@@ -440,11 +448,16 @@ class FlowStart:
         if self.predict_colour and self.correction.get("channels") == "colour":
             pc = {"channels": "colour", "opponent": self.correction["opponent"]}
         obs = self.flow.observe(np.asarray(previous, np.float64), self.cameras, previous_grey, grey, **pc)
-        X = self.flow.lift(previous if carried is None else carried, obs, start)
+        # bend_reference "physics": the hinges of the lift's reference (the frame's physics step)
+        self._carried = None if carried is None else np.asarray(carried, np.float64)
+        physics = self._carried is not None and self.flow.bend_reference == "physics"
+        X = self.flow.lift(previous if carried is None else carried, obs, start,
+                           bend_rest=self.flow.hinge_lengths(carried) if physics else None)
         self._previous = np.asarray(previous, np.float64)  # the corrections' bending may hold its hinges
         if self.corrections > 0:
             X = self.flow.correct(X, self.cameras, grey, self.reference, self.corrections, masks=masks,
-                                  coarse=self.coarse, previous=self._previous, **self.correction)
+                                  coarse=self.coarse, previous=self._previous, physics=self._carried,
+                                  **self.correction)
         return X
 
     def refine(self, vertices: np.ndarray, grey: list[np.ndarray], masks: list[np.ndarray] | None = None) -> np.ndarray:
@@ -453,7 +466,7 @@ class FlowStart:
         if self.final_corrections == 0:
             return np.asarray(vertices, np.float64)
         return self.flow.correct(vertices, self.cameras, grey, self.reference, self.final_corrections, masks=masks,
-                                 previous=self._previous, **self.correction)
+                                 previous=self._previous, physics=self._carried, **self.correction)
 
 
 class ReferenceAppearance:
