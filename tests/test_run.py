@@ -153,3 +153,49 @@ def test_random_draws_reach_the_references(tiny_capture, tmp_path):
     assert cfg_of(RunConfig(random_draws=1), "references").random_draws == 1
     assert cfg_of(RunConfig(random_draws=1), "evaluate").random_draws == 1
     assert _odd_positive(2) is not None and _odd_positive(3) is None
+
+
+def test_track_passes_2_tracks_again_with_the_fitted_material(tiny_capture, tmp_path, monkeypatch):
+    """`run --track-passes 2` (session 37, the paper's loop): a second tracking step after
+    fit-physics whose physics prediction takes that material (the stage's ``material`` input, so
+    its hash follows the fit), with the equilibrium rest shape and the bending reference
+    "physics"; appearance and evaluate read the second pass, fit-physics the first. The default
+    plan is the one-pass plan. The track stage resolves the material folder to its material.json
+    (recorded in its config.json), and a missing one is one message naming the file."""
+    import pytest
+    from typer.testing import CliRunner
+
+    from physavatar.errors import PhysavatarError
+    from physavatar.pipeline import RunConfig, _passes, plan
+    from physavatar.stages.track import pipeline_config, second_pass_config, stage
+
+    one = {s.name: s for s in plan(tiny_capture, tmp_path / "o", RunConfig())}
+    two_list = plan(tiny_capture, tmp_path / "o", RunConfig(track_passes=2))
+    two = {s.name: s for s in two_list}
+    assert "retrack" not in one and one["appearance"].inputs["tracked"] == ("step", "track")
+    assert one["evaluate"].inputs["tracked"] == ("step", "track")
+    names = [s.name for s in two_list]
+    assert names.index("physics") < names.index("retrack") < names.index("appearance") < names.index("avatar")
+    assert two["retrack"].inputs["material"] == ("step", "physics")
+    assert two["physics"].inputs["source"] == ("step", "track")
+    assert two["appearance"].inputs["tracked"] == two["evaluate"].inputs["tracked"] == ("step", "retrack")
+    cfg = two["retrack"].config
+    assert cfg == second_pass_config(None) and cfg != pipeline_config(None)
+    assert (cfg.prediction.rest_shape, cfg.flow.bend_reference) == ("equilibrium", "physics")
+    assert two["retrack"].command[:4] == ["track", str(tiny_capture), "--out", str(tmp_path / "o" / "retrack")]
+    assert "--material" in two["retrack"].command
+    assert _passes(1) is None and _passes(2) is None and _passes(3) is not None
+    r = CliRunner().invoke(app, ["run", str(tiny_capture), str(tmp_path / "bad"), "--track-passes", "3"])
+    assert r.exit_code == 2 and "track" in r.output and "Traceback" not in r.output
+
+    seen = {}
+    monkeypatch.setattr(stage, "_track", lambda cap, out, cfg, *a: seen.setdefault("cfg", cfg))
+    fit = tmp_path / "physics"
+    fit.mkdir()
+    (fit / "material.json").write_text("{}")
+    stage.run(tiny_capture, out=tmp_path / "t", config=second_pass_config(2), material=fit)
+    assert seen["cfg"].prediction.material == str((fit / "material.json").resolve())
+    written = json.loads((tmp_path / "t" / "config.json").read_text())
+    assert written["prediction"]["material"] == str((fit / "material.json").resolve())
+    with pytest.raises(PhysavatarError, match="material not found"):
+        stage.run(tiny_capture, out=tmp_path / "t2", config=second_pass_config(2), material=tmp_path / "none")

@@ -41,7 +41,7 @@ RAY_INSTALL = "pip install 'physavatar[ray]' (or: pip install 'ray>=2.9')"
 # everything else single-threaded (tracking at one thread, the simulator serial).
 STAGE_CPUS = {"appearance": 2}
 # Stages that use a CUDA device when there is one (gsplat, Mitsuba's cuda variant).
-GPU_STAGES = ("track", "appearance", "render", "relight")
+GPU_STAGES = ("track", "retrack", "appearance", "render", "relight")
 
 
 @dataclass(frozen=True)

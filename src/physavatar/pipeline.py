@@ -70,6 +70,10 @@ def _odd_positive(v):
     return None if v >= 1 and v % 2 == 1 else "use an odd number of draws (the row is the median draw)"
 
 
+def _passes(v):
+    return None if v in (1, 2) else "1 (track once) or 2 (track again with the fitted material)"
+
+
 def evaluate_random_draws() -> int:
     from .stages.evaluate import RANDOM_DRAWS
 
@@ -90,6 +94,9 @@ class RunConfig:
     holdout: tuple[str, ...] | None = option(None, "cameras held out of tracking and scored by evaluate, CAM,CAM "
                                              "('' for none; default: two when the capture has six or more)",
                                              parse=camera_list)
+    track_passes: int = option(1, "2: track again with the material fit-physics found on the first pass "
+                               "(the paper's loop; the appearance and evaluation then read the second "
+                               "pass; docs/tracking.md)", check=_passes)
 
 
 def _resolve(value, out: Path):
@@ -111,14 +118,20 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
     # stage reads the prepared capture (OUT/prepare), which keeps the ground truth of a synthetic one.
     unprepared = is_unprepared(capture)
     cap = {"capture": ("step", "prepare") if unprepared else capture}
+    # The tracking that appearance and evaluate read: the first pass, or with --track-passes 2 the
+    # second, whose physics prediction uses the material fitted on the first (the paper's loop).
+    tracked = ("step", "retrack" if cfg.track_passes == 2 else "track")
+    # fit-appearance (Mitsuba, multi-threaded) runs beside fit-physics (single-threaded
+    # simulations): both need only the tracking (with two passes, beside the later stages).
+    appear = Step("appearance", "physavatar.stages.appearance:run", appearance.pipeline_config(cfg.quick),
+                  cap | {"tracked": tracked}, "texture.png", background=True)
     steps = [
         Step("track", "physavatar.stages.track:run", track.pipeline_config(cfg.track_frames, cfg.holdout), cap, "tracked.npz"),
-        # fit-appearance (Mitsuba, multi-threaded) runs beside fit-physics (single-threaded
-        # simulations): both need only the tracking.
-        Step("appearance", "physavatar.stages.appearance:run", appearance.pipeline_config(cfg.quick),
-             cap | {"tracked": ("step", "track")}, "texture.png", background=True),
+        *([appear] if cfg.track_passes == 1 else []),
         Step("physics", "physavatar.stages.physics:run", physics.pipeline_config(cfg.quick),
              {"source": ("step", "track")}, "material.json"),
+        *([Step("retrack", "physavatar.stages.track:run", track.second_pass_config(cfg.track_frames, cfg.holdout),
+                cap | {"material": ("step", "physics")}, "tracked.npz"), appear] if cfg.track_passes == 2 else []),
         Step("avatar", "physavatar.stages.avatar:run", avatar.AvatarConfig(),
              cap | {"material": ("step", "physics"), "appearance": ("step", "appearance")}, "avatar.json"),
         Step("animate", "physavatar.stages.animate:run", animate.pipeline_config(motion, cfg.eval_frames),
@@ -145,8 +158,7 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
                                              random_draws=cfg.random_draws)
         steps.insert(0, Step("references", "physavatar.stages.evaluate:run_references", refs_cfg, cap,
                              "references.json", background=True))
-        inputs = cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track"),
-                        "references": ("step", "references")}
+        inputs = cap | {"avatar": ("step", "avatar"), "tracked": tracked, "references": ("step", "references")}
         if not (capture / "ground_truth" / "material.json").exists() and \
                 (capture / "ground_truth" / "meshes.npz").exists():
             # Another simulator's garment: no true material in this one's terms. The oracle row is
@@ -162,7 +174,7 @@ def plan(capture: Path, out: Path, cfg: RunConfig = RunConfig()) -> list[Step]:
     elif _holds_out(capture, cfg.holdout):
         # Any capture: the cameras tracking held out are scored (the tracked meshes, textured and lit).
         steps.append(Step("evaluate", "physavatar.stages.evaluate:run", evaluate.EvaluateConfig(),
-                          cap | {"avatar": ("step", "avatar"), "tracked": ("step", "track")}, "metrics.json"))
+                          cap | {"avatar": ("step", "avatar"), "tracked": tracked}, "metrics.json"))
     if unprepared:  # first of all: even the background steps read its output
         from .stages import prepare
 
@@ -192,7 +204,7 @@ def _command(st: Step, out: Path) -> list[str]:
 
     if st.name == "prepare":  # physavatar prepare CAPTURE OUT
         return ["prepare", str(st.inputs["capture"]), str(st.out(out))] + to_argv(st.config)
-    names = {"track": "track", "appearance": "fit-appearance", "physics": "fit-physics", "avatar": "build-avatar",
+    names = {"track": "track", "retrack": "track", "appearance": "fit-appearance", "physics": "fit-physics", "avatar": "build-avatar",
              "animate": "animate", "render": "render", "relight": "render", "export": "export",
              "export-glb": "export", "references": "reference-sims", "evaluate": "evaluate", "oracle": "fit-physics"}
     args = [names.get(st.name, st.name)]

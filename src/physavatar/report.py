@@ -105,10 +105,12 @@ def _view_html(out: Path) -> list[str]:
 
 
 def _tracking_plot(out: Path) -> None:
-    """OUT/tracking.png from track/track_log.csv (+ the evaluation's per-frame vertex error)."""
+    """OUT/tracking.png from track/track_log.csv, retrack's with two passes (+ the evaluation's
+    per-frame vertex error, of the same pass)."""
     import csv
 
-    log = out / "track" / "track_log.csv"
+    log = next((p for p in (out / "retrack" / "track_log.csv", out / "track" / "track_log.csv") if p.exists()),
+               out / "track" / "track_log.csv")
     if not log.exists():
         return
     try:

@@ -19,6 +19,9 @@ def track(
     out: Path = typer.Option(..., "--out", "-o", help="output folder (a rerun with the same config and capture data resumes)"),
     no_iso: bool = typer.Option(False, "--no-iso", help="drop the isometry loss (ablation)"),
     no_normal: bool = typer.Option(False, "--no-normal", help="drop the normal loss (ablation)"),
+    material: Path = typer.Option(None, "--material", help="fit-physics output (folder or material.json) for the "
+                                  "physics prediction: a second pass, as `run --track-passes 2` makes it "
+                                  "(docs/tracking.md)"),
     *,
     config: TrackConfig,
 ):
@@ -30,6 +33,6 @@ def track(
     if no_normal:
         config = set_path(config, "loss.normal_weight", 0.0)
     t0 = time.time()
-    res = run(capture, out=out, config=config, progress=True)
+    res = run(capture, out=out, config=config, progress=True, material=material)
     console.print(f"tracked {len(res.frames)} frames ({len(res.computed)} fitted now, the rest resumed) "
                   f"in {time.time() - t0:.0f} s; wrote {out}/tracked.npz, frames/, meshes/, track_log.csv")

@@ -245,13 +245,18 @@ def _reuse_references(path: Path, av, refs: list[Reference], n_frames: int, moti
             # start frame, so it was simulated with the template, as it would be again (session 34:
             # evaluate simulated four of the foreign skirt's five draws again for this)
             used = mat
-        if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset, rest_shape=mat.rest_shape) == mat:
-            stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm and rest shape "
-                          f"{used.rest_shape!r}, the estimate's are {1e3 * mat.contact_offset:.3f} mm and {mat.rest_shape!r}")
+        if used != mat and dataclasses.replace(used, contact_offset=mat.contact_offset, rest_shape=mat.rest_shape,
+                                               rest_friction=mat.rest_friction) == mat:
+            # the estimate's model (thickness, rest shape, the rest solve's friction): simulated again
+            stale[row] = (f"simulated with contact offset {1e3 * used.contact_offset:.3f} mm, rest shape "
+                          f"{used.rest_shape!r} and rest friction {used.rest_friction}, the estimate's are "
+                          f"{1e3 * mat.contact_offset:.3f} mm, {mat.rest_shape!r} and {mat.rest_friction}")
             continue
         if used != mat:
-            raise PhysavatarError(folder / "sequence.json", f"{row} was simulated with {used.name!r}, "
-                                  f"this evaluation uses {mat.name!r} (other ground truth, --seed or --random-draws)")
+            differ = ", ".join(f"{f.name} {getattr(used, f.name)!r} against {getattr(mat, f.name)!r}"
+                               for f in dataclasses.fields(mat) if getattr(used, f.name) != getattr(mat, f.name))
+            raise PhysavatarError(folder / "sequence.json", f"{row} was simulated with another material than "
+                                  f"this evaluation's ({differ}): other ground truth, --seed or --random-draws")
         rows[row] = _reuse_sequence(folder, av, n_frames).vertices
     return rows, stale
 

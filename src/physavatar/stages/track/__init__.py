@@ -39,10 +39,10 @@ and masks, chained over the frames before it); a frame whose data changed is tra
 so is every frame after it.
 """
 
-from .config import FitConfig, FlowConfig, LossConfig, PredictionConfig, TrackConfig, pipeline_config
+from .config import FitConfig, FlowConfig, LossConfig, PredictionConfig, TrackConfig, pipeline_config, second_pass_config
 
 __all__ = ["FitConfig", "FlowConfig", "LossConfig", "PredictionConfig", "TrackConfig", "TrackResult",
-           "pipeline_config", "run", "track"]
+           "pipeline_config", "run", "second_pass_config", "track"]
 
 
 def __getattr__(name: str):

@@ -7,7 +7,7 @@ measurements behind them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from ..base import camera_list, option, setting
 
@@ -356,3 +356,16 @@ def pipeline_config(track_frames: int | None, holdout: tuple[str, ...] | None = 
     """The config ``physavatar run`` tracks with: the defaults, ``track_frames`` frames (None: all),
     ``holdout`` cameras held out (None: the default rule)."""
     return TrackConfig(n_frames=track_frames, holdout=holdout)
+
+
+def second_pass_config(track_frames: int | None, holdout: tuple[str, ...] | None = None) -> TrackConfig:
+    """The config of ``physavatar run --track-passes 2``'s second tracking pass (the paper's loop;
+    its material, fit-physics' on the first pass, is the stage's ``material`` input): the physics
+    step's rest shape the equilibrium one (``prediction.rest_shape``), and the bending terms of the
+    lifts holding the step's hinges (``flow.bend_reference`` "physics"). Session 37 (docs/tracking.md,
+    "Issue 22, session 37"): neither helps alone; together, with the material of session 36's
+    fit, the foreign skirt 5.08 -> 4.18 mm, the tops 0.632 -> 0.577 and 2.835 -> 2.353 mm, the demo's
+    48 frames 0.985 -> 0.881 mm."""
+    base = pipeline_config(track_frames, holdout)
+    return replace(base, prediction=replace(base.prediction, rest_shape="equilibrium"),
+                   flow=replace(base.flow, bend_reference="physics"))

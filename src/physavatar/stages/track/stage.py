@@ -210,12 +210,20 @@ class TrackResult:
     seconds: dict[int, float]
 
 
-def run(capture: Path, *, out: Path, config: TrackConfig, progress=None) -> TrackResult:
+def run(capture: Path, *, out: Path, config: TrackConfig, progress=None, material: Path | None = None) -> TrackResult:
     """Track the capture's template through its frames into ``out`` (package docstring: outputs).
 
     ``capture``: the capture folder (or a loaded :class:`~physavatar.capture.Capture`). A rerun
     into the same ``out`` with the same config (``n_frames`` may differ) skips finished frames made
-    from the same capture data (:func:`frame_key`); another config there is refused. ``progress``: see :func:`physavatar.progress.resolve`."""
+    from the same capture data (:func:`frame_key`); another config there is refused. ``progress``: see :func:`physavatar.progress.resolve`.
+    ``material``: a fit-physics output folder (or its material.json) as ``prediction.material``: the
+    physics step of a second tracking pass (the paper's loop; ``config.second_pass_config``)."""
+    if material is not None:
+        material = Path(material)
+        path = material / "material.json" if material.is_dir() else material
+        if not path.is_file():
+            raise PhysavatarError(path, "material not found (a fit-physics output folder or its material.json)")
+        config = replace(config, prediction=replace(config.prediction, material=str(path.resolve())))
     cap = capture if isinstance(capture, Capture) else load_capture(capture)
     out = Path(out)
     if out.exists() and not out.is_dir():
