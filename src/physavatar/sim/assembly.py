@@ -422,10 +422,18 @@ class NewtonLinearSolver:
         if self.factor is None or self._stale or self.factor.n != H.shape[0]:
             self._refactor(self._preconditioner_matrix(H, assembler))
             self._stale = False
+        # the old factor no longer fits H: a fresh one
+        return self._cg(H, b, rtol, lambda: self._refactor(self._preconditioner_matrix(H, assembler)))
+
+    def _cg(self, H: sp.csr_matrix, b: np.ndarray, rtol: float, refit) -> np.ndarray:
+        """CG on H x = b with the current factor as preconditioner; where it does not converge,
+        ``refit()`` installs a factor that fits H and CG runs again, and where that fails too a
+        direct solve answers. The next solve refactorises first when this one's CG took more than
+        the backend's ``REFRESH_CG`` iterations."""
         x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
         self.cg_iterations += its
-        if not ok:  # the old factor no longer fits H: a fresh one
-            self._refactor(self._preconditioner_matrix(H, assembler))
+        if not ok:
+            refit()
             x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
             self.cg_iterations += its
             if not ok:  # not expected (H₁ ⪰ H); a direct solve is always right

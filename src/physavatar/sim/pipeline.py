@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import threading
 
-from .assembly import Factorization, NewtonLinearSolver, pcg, uses_pardiso
+from .assembly import Factorization, NewtonLinearSolver, uses_pardiso
 
 
 class _Job:
@@ -120,18 +120,10 @@ class PipelinedLinearSolver(NewtonLinearSolver):
                 if f is not None and f.n == H.shape[0]:
                     self._swap_in(f, M)
         self._launch(H, assembler)  # this matrix's factor, for the next solve
-        x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
-        self.cg_iterations += its
-        if not ok:  # the lagged factor no longer fits H: this matrix's own (the job's)
-            job, self._job = self._job, None
-            f, M = job.take()
-            self._swap_in(f, M)
-            x, its, ok = pcg(H, b, self.factor.solve, rtol, self.max_cg)
-            self.cg_iterations += its
-            if not ok:  # not expected (H₁ ⪰ H); a direct solve is always right
-                self._refactor(H)
-                self._stale = True
-                return self.factor.solve(b)
-        refresh = self.REFRESH_CG[self.factor.backend] if self.refresh_cg is None else self.refresh_cg
-        self._stale = its > refresh  # even the last matrix's factor was slow: this one's, on the main thread
-        return x
+        # the lagged factor no longer fits H: this matrix's own (the job's); a slow CG even with the
+        # last matrix's factor: this one's on the main thread next time (NewtonLinearSolver._cg)
+        return self._cg(H, b, rtol, self._take_own)
+
+    def _take_own(self):
+        job, self._job = self._job, None
+        self._swap_in(*job.take())
