@@ -64,6 +64,7 @@ class MeshConfig:
     sheet_views: int = setting(0)
     sheet_level: float = setting(0.15)
     sheet_px: int = setting(3)
+    sheet_reach: float = setting(0.0)  # the thin line counts within this many voxels of a voxel's centre
     smooth: int = setting(3)  # Taubin smoothing passes on the marching-cubes surface (voxel staircase)
     clothing_footprint: float = setting(0.01)  # [m] a hull from coarser pixels does not guide the body fit
 
