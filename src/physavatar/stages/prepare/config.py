@@ -58,6 +58,13 @@ class MeshConfig:
                                 check=_positive)
     remesh_iterations: int = setting(10)
     view_share: float = setting(1.0)  # share of the cameras that must see a voxel (1: their common volume)
+    # thin sheets (a strap standing off the skin) kept in the hull: up to sheet_views cameras may
+    # hold a voxel below half where it lies on a thin line of their mask (narrower than sheet_px
+    # pixels, covering sheet_level or more; 0: the plain hull; docs/prepare.md, session 37)
+    sheet_views: int = setting(0)
+    sheet_level: float = setting(0.15)
+    sheet_px: int = setting(3)
+    sheet_reach: float = setting(0.0)  # the thin line counts within this many voxels of a voxel's centre
     smooth: int = setting(3)  # Taubin smoothing passes on the marching-cubes surface (voxel staircase)
     clothing_footprint: float = setting(0.01)  # [m] a hull from coarser pixels does not guide the body fit
 

@@ -6,7 +6,9 @@ made manifold and remeshed to near-uniform triangles.
   ``voxel`` metres). A voxel's occupancy is the smallest mask value (bilinear, so the masks'
   anti-aliased edges give sub-voxel positions) over the cameras that see it; it needs
   ``view_share`` of them (all by default: the common volume). The surface is the 0.5 level set by marching cubes (scikit-image),
-  closed because the grid is padded with empty voxels.
+  closed because the grid is padded with empty voxels. With ``sheet_views`` > 0 (off by default)
+  thin sheets standing off the body are kept: up to that many cameras may see a voxel below half
+  where it lies on a thin line of their mask (:func:`occupancy`, :func:`thin_part`).
 * **Manifold** (:func:`make_manifold`): trimesh merges duplicate vertices, drops degenerate and
   duplicate faces, keeps the largest piece and orients the faces outward; a mesh that still has
   edges shared by more than two faces or bow-tie vertices is refused (one message).
@@ -61,22 +63,54 @@ def _sample(mask: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return val, inside
 
 
+def thin_part(mask: np.ndarray, width: int, reach: int = 0) -> np.ndarray:
+    """[H, W] the part of a mask in structures narrower than ``width`` pixels: the mask less its
+    grey opening by a ``width`` x ``width`` square (a white top-hat). A sheet seen nearly edge-on
+    is such a line, partly covering its pixels; a solid's anti-aliased edge is not (the opening
+    keeps it). With ``reach`` > 0: its largest value within that many pixels (a voxel whose
+    footprint the line crosses sees it, not only one whose centre it passes)."""
+    from scipy.ndimage import grey_dilation, grey_opening
+
+    thin = np.clip(mask - grey_opening(mask, size=(width, width)), 0.0, 1.0)
+    return grey_dilation(thin, size=(2 * reach + 1,) * 2) if reach > 0 else thin
+
+
 def occupancy(points: np.ndarray, cameras: list, masks: dict[str, np.ndarray], view_share: float,
-              chunk: int = 400_000) -> np.ndarray:
+              chunk: int = 400_000, sheet_views: int = 0, sheet_level: float = 0.15, sheet_px: int = 3,
+              sheet_reach: int = 0) -> np.ndarray:
     """[n] in [0, 1]: the smallest mask value over the cameras that see each point (0 where
-    fewer than ``view_share`` of the cameras do: 1 = the cameras' common volume)."""
+    fewer than ``view_share`` of the cameras do: 1 = the cameras' common volume).
+
+    With ``sheet_views`` k > 0 thin sheets are kept: up to k cameras may hold the point below
+    half where it lies on a thin line of their mask (:func:`thin_part` of ``sheet_px``, within
+    ``sheet_reach`` pixels, covering at least ``sheet_level``): a sheet standing off the body,
+    seen nearly edge-on, covers under half a pixel there and would be carved away
+    (docs/prepare.md, session 37). The value is then min(w₁, v₍ₖ₊₁₎) over the sorted mask values
+    v and the sorted values w = max(v, thin · 0.5 / ``sheet_level``), whose 0.5 level is that
+    rule; k = 0 is the plain smallest value."""
     need = max(1, int(np.ceil(view_share * len(cameras) - 1e-9)))
+    thin = {c.name: thin_part(masks[c.name], sheet_px, sheet_reach) for c in cameras} if sheet_views else {}
     out = np.empty(len(points))
     for s in range(0, len(points), chunk):
         P = points[s:s + chunk]
-        occ = np.ones(len(P))
+        vals = np.ones((len(cameras), len(P)))
+        lifted = np.ones((len(cameras), len(P)))
         seen = np.zeros(len(P), np.int32)
-        for c in cameras:
+        for i, c in enumerate(cameras):
             uv, z = c.project(P)
-            val, inside = _sample(masks[c.name], np.nan_to_num(uv))
+            uv = np.nan_to_num(uv)
+            val, inside = _sample(masks[c.name], uv)
             inside &= z > 1e-6
-            occ = np.where(inside, np.minimum(occ, val), occ)
+            vals[i] = np.where(inside, val, 1.0)
+            if thin:
+                lifted[i] = np.where(inside, np.maximum(val, np.minimum(1.0, _sample(thin[c.name], uv)[0]
+                                                                        * (0.5 / sheet_level))), 1.0)
             seen += inside
+        if thin:
+            vals.sort(axis=0)
+            occ = np.minimum(lifted.min(0), vals[min(sheet_views, len(vals) - 1)])
+        else:
+            occ = vals.min(0)
         out[s:s + chunk] = np.where(seen >= need, occ, 0.0)
     return out
 
@@ -125,11 +159,22 @@ def visual_hull(cameras: list, masks: dict[str, np.ndarray], cfg: MeshConfig, wh
     cpts, cn = _grid(lo, hi, coarse)
     cin = (occupancy(cpts, cameras, masks, cfg.view_share) > 0.5).reshape(cn)
     band = binary_dilation(cin, iterations=1) & ~binary_erosion(cin, iterations=1)
+    if cfg.sheet_views > 0:
+        # a sheet off the body may pass between the coarse points: the band also takes the cells
+        # the cameras' masks may hold anywhere (each mask's largest value within a cell's reach)
+        from scipy.ndimage import grey_dilation
+
+        fp = pixel_footprint(cameras, pts[keep].mean(0))
+        r = int(np.ceil(0.5 * np.sqrt(3) * coarse / fp))
+        wide = {k: grey_dilation(m, size=(2 * r + 1,) * 2) for k, m in masks.items()}
+        band |= (occupancy(cpts, cameras, wide, cfg.view_share) > 0.5).reshape(cn) & ~binary_erosion(cin, iterations=1)
+    sheet = {"sheet_views": cfg.sheet_views, "sheet_level": cfg.sheet_level, "sheet_px": cfg.sheet_px,
+             "sheet_reach": int(np.ceil(cfg.sheet_reach * voxel / pixel_footprint(cameras, pts[keep].mean(0)) - 1e-9))}
     pts, n = _grid(lo, hi, voxel)
     cell = np.minimum(np.round((pts - lo) / coarse).astype(np.int64), np.array(cn) - 1)
     in_band = band[cell[:, 0], cell[:, 1], cell[:, 2]]
     occ = cin[cell[:, 0], cell[:, 1], cell[:, 2]].astype(np.float64)
-    occ[in_band] = occupancy(pts[in_band], cameras, masks, cfg.view_share)
+    occ[in_band] = occupancy(pts[in_band], cameras, masks, cfg.view_share, **sheet)
     occ = np.pad(occ.reshape(n), 1)  # closed surface
     verts, faces, _, _ = marching_cubes(occ.astype(np.float32), level=0.5, spacing=(voxel,) * 3)
     verts = verts + lo - voxel
