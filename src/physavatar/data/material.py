@@ -29,6 +29,12 @@ from ..sim.material import PRESETS, Material
 FILE = "material.json"
 
 
+def material_file(path: str | Path) -> Path:
+    """A fit-physics output folder's ``material.json``, or ``path`` itself when it is a file."""
+    path = Path(path)
+    return path / FILE if path.is_dir() else path
+
+
 def resolve_material(spec: str | Path | Material, option: str | None = None) -> Material:
     """``spec`` as a Material: a Material as it is, a preset name (silk, cotton, denim), or a
     material .json file (the simulator's format or fit-physics'). With ``option`` (a command-line
@@ -68,9 +74,7 @@ class FittedMaterial:
     @classmethod
     def load(cls, path: str | Path) -> "FittedMaterial":
         """``path``: a fit-physics output folder (its ``material.json``) or the file."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / FILE
+        path = material_file(path)
         try:
             data = json.loads(path.read_text())
         except (OSError, ValueError) as err:

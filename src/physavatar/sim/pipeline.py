@@ -36,7 +36,6 @@ class _Job:
 
     def __init__(self, solver: "PipelinedLinearSolver", H, assembler, reuse, move: bool):
         self.result = self.matrix = self.error = None
-        self.n = H.shape[0]
 
         def run():
             try:

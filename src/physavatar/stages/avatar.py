@@ -14,7 +14,7 @@ from ..body import BodyModel, Motion
 from ..body.transfer import transfer_skinning_weights
 from ..capture import Capture, Template, load_capture
 from ..data.avatar import AVATAR_VERSION, Avatar
-from ..data.material import resolve_material
+from ..data.material import material_file, resolve_material
 from ..data.tracked import TrackedSequence
 from ..files import load_npz, save_npz_atomic, write_json_atomic
 from ..geometry import submesh
@@ -36,7 +36,7 @@ def run(capture: Path, *, out: Path, config: AvatarConfig = AvatarConfig(), mate
     if tracked is not None:
         tv = TrackedSequence.load(tracked, require=("vertices",)).vertices[0]
     if not isinstance(material, Material) and Path(material).is_dir():
-        material = Path(material) / "material.json"
+        material = material_file(material)
     return build_avatar(capture, out, material=material, texture_dir=appearance, template_vertices=tv)
 
 

@@ -14,6 +14,7 @@ import torch
 
 from ...camera import Camera
 from ...capture import Capture, frame_name, load_capture
+from ...data.material import material_file
 from ...data.tracked import FILE as TRACKED, TrackedSequence
 from ...errors import PhysavatarError
 from ...files import PlyMesh, content_key, load_npz, read_json, save_npz_atomic, write_json_atomic, write_ply, write_text_atomic
@@ -219,8 +220,7 @@ def run(capture: Path, *, out: Path, config: TrackConfig, progress=None, materia
     ``material``: a fit-physics output folder (or its material.json) as ``prediction.material``: the
     physics step of a second tracking pass (the paper's loop; ``config.second_pass_config``)."""
     if material is not None:
-        material = Path(material)
-        path = material / "material.json" if material.is_dir() else material
+        path = material_file(material)
         if not path.is_file():
             raise PhysavatarError(path, "material not found (a fit-physics output folder or its material.json)")
         config = replace(config, prediction=replace(config.prediction, material=str(path.resolve())))
