@@ -86,7 +86,7 @@ def main() -> None:
         cases[name]["heldout_fscore_1cm"] = v["fscore@1cm"]
     checks = {f"{k}/strap_points_to_template_garment_median_mm": {
         "value": c["strap_points_to_template_garment_mm_q25_50_75_90"][1], "target": "reported", "unit": "mm",
-        "pass": True} for k, c in cases.items() if "strap_points_to_template_garment_mm_q25_50_75_90" in c}
+        "pass": None} for k, c in cases.items() if "strap_points_to_template_garment_mm_q25_50_75_90" in c}
     result = {"benchmark": "prepare_strap_sheets", "date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": machine(load0), "original": str(args.original), "strap_points": int(len(straps)),
               "cases": cases, "checks": checks}
